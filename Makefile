@@ -1,0 +1,25 @@
+# `make test` and `make demo` set everything up on a fresh machine (a .venv with the pinned packages).
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed-stamp
+
+.PHONY: test demo bench clean
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e ".[test]"
+	touch $(STAMP)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+demo: $(STAMP)
+	$(BIN)/skinsafe demo
+
+bench: $(STAMP)
+	for b in jacobians design sensing retraction modulation serial; do $(BIN)/skinsafe bench $$b || exit 1; done
+
+clean:
+	rm -rf $(VENV) out build *.egg-info

@@ -1,0 +1,143 @@
+"""Taxel world poses and Jacobians for all taxels at once.
+
+One MuJoCo body Jacobian per skinned body (`mj_jacBody`), then every taxel on that body gets
+`J_p = J_p,body - [r]_x J_r` (r its offset from the body origin, world frame). Since r is the
+body rotation applied to the taxel's fixed local position, the whole (6 x nv) block of every
+taxel on a body is one small matrix product `[1, p_local] @ B_body`: one GEMM per body.
+"""
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from .skin import DesignError, SkinDesign
+
+# S(e_a) for a = x, y, z: the cross-product matrices of the unit vectors.
+_SKEW = np.array([[[0, 0, 0], [0, 0, -1], [0, 1, 0]],
+                  [[0, 0, 1], [0, 0, 0], [-1, 0, 0]],
+                  [[0, -1, 0], [1, 0, 0], [0, 0, 0]]], dtype=float)
+
+
+class TaxelKinematics:
+    """Poses and Jacobians `(N, 6, nv)` (rows: linear velocity of the taxel point, angular
+    velocity; world frame) of a design's taxels on a MuJoCo model."""
+
+    def __init__(self, model: mujoco.MjModel, design: SkinDesign, data: mujoco.MjData | None = None):
+        self.model = model
+        self.data = data if data is not None else mujoco.MjData(model)
+        t = design.taxels
+        ids = []
+        for name in design.bodies:
+            bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+            if bid < 0:
+                raise DesignError(f"design: body '{name}' does not exist in the robot model; "
+                                  "use a body name of the robot the skin was designed for")
+            ids.append(bid)
+        self.n = n = len(t)
+        self.body_id = np.asarray(ids, dtype=np.int32)[t.body] if n else np.zeros(0, np.int32)
+        self.local_pos = np.ascontiguousarray(t.positions)
+        self.local_frames = np.ascontiguousarray(t.frames)
+        self._lh = np.hstack([np.ones((n, 1)), t.positions])  # homogeneous local positions (N,4)
+        self._ft = np.ascontiguousarray(t.frames.transpose(0, 2, 1)).reshape(3 * n, 3)  # local axes as rows
+        # Taxel groups by body: contiguous slices when the design keeps bodies together.
+        self.groups = []
+        for bid in np.unique(self.body_id):
+            idx = np.flatnonzero(self.body_id == bid)
+            contiguous = idx[-1] - idx[0] + 1 == len(idx)
+            self.groups.append((int(bid), slice(idx[0], idx[-1] + 1) if contiguous else idx))
+        nv = model.nv
+        self._jacp = np.zeros((3, nv))
+        self._jacr = np.zeros((3, nv))
+        self._B = np.zeros((4, 6, nv))
+        self.positions = np.zeros((n, 3))
+        self._frames_t = np.zeros((n, 3, 3))
+        self.frames = self._frames_t.transpose(0, 2, 1)  # (N,3,3) view: columns x, y, z in world
+        self.jac = np.zeros((n, 6, nv))
+
+    def update(self, q: np.ndarray | None = None) -> None:
+        """Forward kinematics at configuration q (or the data's current qpos)."""
+        if q is not None:
+            self.data.qpos[:] = q
+        mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_comPos(self.model, self.data)
+
+    def poses(self, q: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """World positions (N,3) and frames (N,3,3) of all taxels."""
+        self.update(q)
+        d = self.data
+        T = np.empty((4, 3))
+        ft2 = self._frames_t.reshape(3 * self.n, 3)
+        for bid, sel in self.groups:
+            R = d.xmat[bid].reshape(3, 3)
+            T[0], T[1:] = d.xpos[bid], R.T
+            if isinstance(sel, slice):
+                np.matmul(self._lh[sel], T, out=self.positions[sel])
+                np.matmul(self._ft[3 * sel.start:3 * sel.stop], R.T, out=ft2[3 * sel.start:3 * sel.stop])
+            else:
+                self.positions[sel] = self._lh[sel] @ T
+                self._frames_t[sel] = self.local_frames[sel].transpose(0, 2, 1) @ R.T
+        return self.positions, self.frames
+
+    def jacobians(self, q: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Jacobians (N,6,nv), world positions (N,3) and frames (N,3,3) at q.
+
+        The returned arrays are reused by the next call; copy them to keep them.
+        """
+        pos, frames = self.poses(q)
+        d, m, B = self.data, self.model, self._B
+        nv = m.nv
+        J2 = self.jac.reshape(self.n, 6 * nv)
+        for bid, sel in self.groups:
+            mujoco.mj_jacBody(m, d, self._jacp, self._jacr, bid)
+            R = d.xmat[bid].reshape(3, 3)
+            B[0, :3], B[0, 3:] = self._jacp, self._jacr
+            # row 1+b: d J_p / d p_local[b] = -S(R e_b) J_r  (angular rows do not depend on position)
+            B[1:, :3] = -np.einsum("ab,aij,jk->bik", R, _SKEW, self._jacr)
+            B[1:, 3:] = 0.0
+            if isinstance(sel, slice):
+                np.matmul(self._lh[sel], B.reshape(4, 6 * nv), out=J2[sel])
+            else:
+                J2[sel] = self._lh[sel] @ B.reshape(4, 6 * nv)
+        return self.jac, pos, frames
+
+    def jacobians_of(self, index: np.ndarray, q: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Jacobians (K,6,nv), world positions (K,3) and frames (K,3,3) of the taxels `index` only
+        (new arrays): one `mj_jacBody` per distinct body among them, for control ticks where few
+        taxels matter."""
+        self.update(q)
+        d, m = self.data, self.model
+        index = np.asarray(index, dtype=np.intp)
+        bodies = self.body_id[index]
+        J = np.empty((len(index), 6, m.nv))
+        pos = np.empty((len(index), 3))
+        frames = np.empty((len(index), 3, 3))
+        for bid in np.unique(bodies):
+            sel = bodies == bid
+            mujoco.mj_jacBody(m, d, self._jacp, self._jacr, int(bid))
+            jp, jr = self._jacp, self._jacr
+            R = d.xmat[bid].reshape(3, 3)
+            r = self.local_pos[index[sel]] @ R.T  # offset from the body origin, world frame
+            pos[sel] = r + d.xpos[bid]
+            frames[sel] = R @ self.local_frames[index[sel]]
+            rx, ry, rz = r[:, 0:1], r[:, 1:2], r[:, 2:3]
+            J[sel, 0, :] = jp[0] + jr[1] * rz - jr[2] * ry
+            J[sel, 1, :] = jp[1] + jr[2] * rx - jr[0] * rz
+            J[sel, 2, :] = jp[2] + jr[0] * ry - jr[1] * rx
+            J[sel, 3:, :] = jr
+        return J, pos, frames
+
+    def jacobians_loop(self, q: np.ndarray | None = None) -> np.ndarray:
+        """Reference: one `mj_jac` call per taxel (slow, for benchmarks and tests)."""
+        pos, _ = self.poses(q)
+        out = np.zeros((self.n, 6, self.model.nv))
+        jp, jr = np.zeros((3, self.model.nv)), np.zeros((3, self.model.nv))
+        for i in range(self.n):
+            mujoco.mj_jac(self.model, self.data, jp, jr, pos[i], int(self.body_id[i]))
+            out[i, :3], out[i, 3:] = jp, jr
+        return out
+
+
+def retractability(J: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """How well the robot can move each taxel along its -z: `|J_p^T z|` (N,), m/s per rad/s."""
+    z = frames[:, :, 2]
+    return np.linalg.norm(np.einsum("nij,ni->nj", J[:, :3, :], z), axis=1)

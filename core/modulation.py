@@ -1,0 +1,93 @@
+"""Velocity modulation by a tactile danger potential (paper eq. 6-7).
+
+With equal tangential eigenvalues and an orthonormal E, `M = E D E^-1` is
+`M = (1+f) I - 2 f n n^T` (n the unit normal): no tangent basis, any dimension. Decisions where
+the paper is silent (all tested in tests/test_modulation_*.py):
+
+- **|df/ds| tiny** (flat potential, e.g. a saturated plateau): the direction is undefined. Below
+  `eps_grad` the matrix blends continuously to the isotropic `(1-f) I` ("danger, but no escape
+  direction: slow down uniformly"): `M = [(1-f) + 2f b^2] I - 2f n n^T / eps^2` with
+  `b = |n| / eps_grad`. The eigenvalue along n stays `1-f`; across n it rises from `1-f` to `1+f`.
+- **Velocity already pointing away** (n . v < 0): by default its normal component is not slowed
+  (`keep_away=True`), so the robot can always leave danger (e.g. retract from a contact); the
+  paper's M (which also slows leaving motions) is `keep_away=False`. Both are continuous in v.
+- **f outside [0, 1]** is clipped; a **non-finite f** counts as f = 1 with no direction (stop);
+  a non-finite normal counts as no direction.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+EPS_GRAD = 1e-3
+"""Default gradient norm (potential units per state unit) below which the normal is blended out."""
+
+
+def _prepare(f, n, eps_grad: float):
+    n = np.asarray(n, dtype=float)
+    if n.ndim == 1:
+        n = n[None]
+    f = np.asarray(f, dtype=float).reshape(-1)
+    if f.shape[0] != n.shape[0]:
+        f = np.broadcast_to(f, (n.shape[0],))
+    if not (np.isfinite(f).all() and np.isfinite(n).all()):
+        bad_f = ~np.isfinite(f)
+        f = np.where(bad_f, 1.0, f)
+        n = np.where((~np.isfinite(n).all(axis=1) | bad_f)[:, None], 0.0, n)
+    f = np.minimum(np.maximum(f, 0.0), 1.0)
+    # Unit normal and blend weight b in [0, 1].
+    norm = np.sqrt(np.einsum("bi,bi->b", n, n))
+    if not np.isfinite(norm).all():  # huge gradients: scale before squaring
+        scale = np.abs(n).max(axis=1)
+        norm = np.linalg.norm(n / np.where(scale > 0, scale, 1.0)[:, None], axis=1) * scale
+    unit = n / np.where(norm > 0, norm, 1.0)[:, None]
+    b = np.minimum(norm / eps_grad, 1.0) if eps_grad > 0 else (norm > 0).astype(float)
+    return f, unit, b
+
+
+def modulation_matrix(f, n, eps_grad: float = EPS_GRAD) -> np.ndarray:
+    """M (B, d, d) for potentials f (B,) and gradients n (B, d) (eq. 7, toward-danger form)."""
+    f, u, b = _prepare(f, n, eps_grad)
+    d = u.shape[1]
+    b2 = b * b
+    lam_t = (1.0 - f) + 2.0 * f * b2
+    return lam_t[:, None, None] * np.eye(d) - (2.0 * f * b2)[:, None, None] * np.einsum("bi,bj->bij", u, u)
+
+
+def modulate(v, f, n, eps_grad: float = EPS_GRAD, keep_away: bool = True) -> np.ndarray:
+    """Modulated velocities `M v` (B, d) for velocities v (B, d) or (d,), f (B,), n (B, d).
+
+    Computed without forming M: `lam_t v + (lam_n - lam_t) u (u . v)`.
+    """
+    v = np.asarray(v, dtype=float)
+    single = v.ndim == 1
+    v2 = v[None] if single else v
+    f, u, b = _prepare(f, n, eps_grad)
+    b2 = b * b
+    lam_t = (1.0 - f) + 2.0 * f * b2
+    vn = np.einsum("bi,bi->b", u, v2)
+    lam_n = 1.0 - f
+    if keep_away:
+        # Leaving danger: normal component kept (blended toward (1-f) where the normal fades).
+        lam_n = np.where(vn < 0, 1.0 - f * (1.0 - b2), lam_n)
+    out = lam_t[:, None] * v2 + ((lam_n - lam_t) * vn)[:, None] * u
+    return out[0] if single else out
+
+
+class ModulationLayer:
+    """The modulation layer: a potential (f_phi or a distilled w_phi) applied to velocities.
+
+    `layer(s, v, a=None)` -> (modulated v, f) for one state (d,) or a batch (B, d); the action
+    passed to the potential defaults to the velocity itself (velocity-command actions).
+    """
+
+    def __init__(self, potential, eps_grad: float = EPS_GRAD, keep_away: bool = True):
+        self.potential, self.eps_grad, self.keep_away = potential, float(eps_grad), bool(keep_away)
+
+    def __call__(self, s, v, a=None) -> tuple[np.ndarray, np.ndarray | float]:
+        from .potential import potential_and_normal
+
+        single = np.ndim(v) == 1
+        a = v if a is None else a
+        f, n = potential_and_normal(self.potential, s, a)
+        out = modulate(np.atleast_2d(v), f, n, self.eps_grad, self.keep_away)
+        return (out[0], float(f[0])) if single else (out, f)

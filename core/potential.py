@@ -1,0 +1,261 @@
+"""Tactile danger potentials for the modulation layer (paper eq. 4, 5 and 8).
+
+- `DangerPotential`: f_phi(s, a) = p(D | s, a), the total danger (eq. 1, in log space) of a
+  tactile danger model's per-taxel logits; differentiable in s.
+- `potential_and_normal`: f and n = df/ds (eq. 5) for a batch, by autograd.
+- The n-step potential w_phi (eq. 8): Monte Carlo rollouts through the learned potential with a
+  configurable policy pi' (uniform by default), horizon T and discount gamma
+  (`nstep_targets`), distilled into a small network (`NStepPotential`, `distill_nstep`) that is
+  used in place of f. w is divided by sum_t gamma^t so it stays in [0, 1] like f (the
+  modulation eigenvalue 1 - w must stay in [0, 1]); D_t is replaced by its expectation
+  f(s_t, a_t) (same mean as sampling D_t, less variance); rollouts do not stop at a danger event.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+from scipy.special import expit
+from torch import nn
+
+from .danger import total_danger
+
+Potential = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+"""(s (B, d), a (B, m)) -> (B,) potential in [0, 1], differentiable in s."""
+
+
+class DangerPotential(nn.Module):
+    """f_phi(s, a): the total danger of a TDM's per-taxel logits `tdm(s, a) -> (B, N)` (eq. 4)."""
+
+    def __init__(self, tdm: nn.Module):
+        super().__init__()
+        self.tdm = tdm
+
+    def forward(self, s: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        return total_danger(self.tdm(s, a))
+
+
+def _as_tensor(x, dtype) -> torch.Tensor:
+    x = torch.as_tensor(np.asarray(x), dtype=dtype)
+    return x[None] if x.ndim == 1 else x
+
+
+def potential_and_normal(potential: Potential, s, a, dtype=torch.float32) -> tuple[np.ndarray, np.ndarray]:
+    """f (B,) and n = df/ds (B, d) as float64 arrays, batched (eq. 5).
+
+    The batch rows must be independent (no batch statistics in the potential), so the gradient
+    of sum(f) is each row's own gradient.
+    """
+    s_t = _as_tensor(s, dtype).clone().requires_grad_(True)
+    a_t = _as_tensor(a, dtype)
+    if s_t.shape[0] != a_t.shape[0]:
+        raise ValueError(f"potential: states have {s_t.shape[0]} rows but actions {a_t.shape[0]}; give one action per state")
+    with torch.enable_grad():
+        f = potential(s_t, a_t)
+        (n,) = torch.autograd.grad(f.sum(), s_t)
+    return f.detach().double().numpy(), n.double().numpy()
+
+
+class FastPotential:
+    """A numpy snapshot of a potential whose network is Linear/ReLU/Tanh layers, with the
+    gradient written out (no autograd): the same f and n as `potential_and_normal`, a few
+    times faster for one state per control tick. Rebuild it after every training.
+
+    Supports `DangerPotential` over a TDM with `trunk` (Sequential) and `head` (Linear), and
+    `NStepPotential`; anything else raises TypeError (use `potential_and_normal`).
+    """
+
+    def __init__(self, potential: nn.Module):
+        if isinstance(potential, DangerPotential) and hasattr(potential.tdm, "trunk") and hasattr(potential.tdm, "head"):
+            mods, self.output = list(potential.tdm.trunk) + [potential.tdm.head], "total_danger"
+            self.mean = self.std = None
+        elif isinstance(potential, NStepPotential):
+            mods, self.output = list(potential.net), "sigmoid"
+            self.mean = potential.mean.detach().double().numpy()
+            self.std = potential.std.detach().double().numpy()
+        else:
+            raise TypeError(f"FastPotential: {type(potential).__name__} is not a DangerPotential over a TDM "
+                            "or an NStepPotential; use potential_and_normal instead")
+        self.layers: list[tuple[np.ndarray, np.ndarray, str]] = []
+        for m in mods:
+            if isinstance(m, nn.Linear):
+                self.layers.append((m.weight.detach().double().numpy().copy(),
+                                    m.bias.detach().double().numpy().copy(), "linear"))
+            elif isinstance(m, (nn.ReLU, nn.Tanh)):
+                w, b, _ = self.layers[-1]
+                self.layers[-1] = (w, b, "relu" if isinstance(m, nn.ReLU) else "tanh")
+            else:
+                raise TypeError(f"FastPotential: layer {type(m).__name__} is not supported (Linear, ReLU, Tanh)")
+
+    def __call__(self, s, a) -> tuple[np.ndarray, np.ndarray]:
+        """f (B,) and df/ds (B, d) for states (B, d) or (d,) and actions (B, m) or (m,)."""
+        s = np.atleast_2d(np.asarray(s, dtype=float))
+        x = np.concatenate([s, np.atleast_2d(np.asarray(a, dtype=float))], axis=1)
+        if self.mean is not None:
+            x = (x - self.mean) / self.std
+        acts = []
+        for w, b, kind in self.layers:
+            x = x @ w.T + b
+            if kind == "relu":
+                x = np.maximum(x, 0.0)
+            elif kind == "tanh":
+                x = np.tanh(x)
+            acts.append(x)
+        if self.output == "total_danger":
+            log_safe = -np.logaddexp(0.0, x).sum(axis=1)
+            f = -np.expm1(log_safe)
+            g = np.exp(log_safe)[:, None] * expit(x)  # df/dz_i = (1 - f) sigmoid(z_i)
+        else:
+            f = expit(x[:, 0])
+            g = (f * (1.0 - f))[:, None]
+        for i in range(len(self.layers) - 1, -1, -1):
+            w, _, kind = self.layers[i]
+            if kind == "relu":
+                g = g * (acts[i] > 0)
+            elif kind == "tanh":
+                g = g * (1.0 - acts[i] ** 2)
+            g = g @ w
+        if self.std is not None:
+            g = g / self.std
+        return f, g[:, :s.shape[1]]
+
+
+# ---------------------------------------------------------------- n-step potential (eq. 8)
+
+class UniformPolicy:
+    """pi'(a | s) = U([low, high]) per action dimension (the paper's default exploration policy)."""
+
+    def __init__(self, low, high):
+        self.low = torch.as_tensor(np.asarray(low, dtype=np.float32))
+        self.high = torch.as_tensor(np.asarray(high, dtype=np.float32))
+        if self.low.shape != self.high.shape or bool((self.high < self.low).any()):
+            raise ValueError("UniformPolicy: 'low' and 'high' must have the same shape with low <= high")
+
+    def __call__(self, s: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+        u = torch.rand((s.shape[0],) + tuple(self.low.shape), generator=gen, dtype=s.dtype)
+        return self.low + u * (self.high - self.low)
+
+
+class EulerDynamics:
+    """s' = s + dt * a for velocity actions (a has the state's dimension)."""
+
+    def __init__(self, dt: float):
+        self.dt = float(dt)
+
+    def __call__(self, s: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        return s + self.dt * a
+
+
+@dataclass
+class NStepConfig:
+    """Monte Carlo settings of eq. 8: horizon T, discount gamma, rollouts per (s, a)."""
+
+    horizon: int = 2
+    gamma: float = 0.9
+    samples: int = 16
+
+    def check(self) -> None:
+        if self.horizon < 1:
+            raise ValueError(f"n-step potential: horizon is {self.horizon}; use T >= 1")
+        if not 0.0 < self.gamma <= 1.0:
+            raise ValueError(f"n-step potential: gamma is {self.gamma}; use 0 < gamma <= 1")
+        if self.samples < 1:
+            raise ValueError(f"n-step potential: samples is {self.samples}; use at least 1 rollout")
+
+
+@torch.no_grad()
+def nstep_targets(potential: Potential, s0, a0, dynamics, policy, cfg: NStepConfig,
+                  seed: int = 0) -> np.ndarray:
+    """w(s0, a0) / sum_t gamma^t (B,) estimated with `cfg.samples` rollouts of `cfg.horizon` steps."""
+    cfg.check()
+    gen = torch.Generator().manual_seed(seed)
+    s = _as_tensor(s0, torch.float32)
+    a = _as_tensor(a0, torch.float32)
+    b = s.shape[0]
+    k = cfg.samples if cfg.horizon > 1 else 1
+    s = s.repeat_interleave(k, 0)
+    a = a.repeat_interleave(k, 0)
+    total = torch.zeros(b * k)
+    weight = 0.0
+    for t in range(cfg.horizon):
+        if t > 0:
+            s = dynamics(s, a)
+            a = policy(s, gen)
+        total += cfg.gamma ** t * potential(s, a)
+        weight += cfg.gamma ** t
+    return (total / weight).view(b, k).mean(1).double().numpy()
+
+
+class NStepPotential(nn.Module):
+    """The distilled n-step potential w_phi(s, a) in [0, 1]: an MLP on normalised inputs."""
+
+    def __init__(self, state_dim: int, action_dim: int, hidden: int = 64):
+        super().__init__()
+        self.register_buffer("mean", torch.zeros(state_dim + action_dim))
+        self.register_buffer("std", torch.ones(state_dim + action_dim))
+        self.net = nn.Sequential(nn.Linear(state_dim + action_dim, hidden), nn.Tanh(),
+                                 nn.Linear(hidden, hidden), nn.Tanh(), nn.Linear(hidden, 1))
+
+    def forward(self, s: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        x = (torch.cat([s, a], dim=-1) - self.mean) / self.std
+        return torch.sigmoid(self.net(x)).squeeze(-1)
+
+
+def distill_nstep(potential: Potential, states, actions, dynamics, policy, cfg: NStepConfig,
+                  state_noise: float = 0.05, epochs: int = 150, lr: float = 3e-3, hidden: int = 64,
+                  seed: int = 0, net: NStepPotential | None = None) -> tuple[NStepPotential, dict]:
+    """Fit an `NStepPotential` to Monte Carlo targets of eq. 8.
+
+    Training points: the given (state, action) pairs, the same states with Gaussian noise
+    (`state_noise`) and policy actions, so the net also sees the neighbourhood it will be asked
+    about. `net` warm-starts from a previous fit. Returns the net and {"mc_s", "fit_s", "rmse"}.
+    """
+    s = _as_tensor(states, torch.float32)
+    a = _as_tensor(actions, torch.float32)
+    if len(s) == 0 or len(s) != len(a):
+        raise ValueError(f"distill_nstep: got {len(s)} states and {len(a)} actions; give the same, non-zero number")
+    gen = torch.Generator().manual_seed(seed)
+    s_near = s + state_noise * torch.randn(s.shape, generator=gen)
+    xs = torch.cat([s, s_near])
+    xa = torch.cat([a, policy(s_near, gen)])
+    t0 = time.perf_counter()
+    y = torch.as_tensor(nstep_targets(potential, xs, xa, dynamics, policy, cfg, seed), dtype=torch.float32)
+    t1 = time.perf_counter()
+    torch.manual_seed(seed)
+    if net is None:
+        net = NStepPotential(s.shape[1], a.shape[1], hidden)
+    x = torch.cat([xs, xa], 1)
+    net.mean.copy_(x.mean(0))
+    net.std.copy_(x.std(0).clamp_min(1e-3))
+    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    bs = 512
+    for _ in range(epochs):
+        perm = torch.randperm(len(x), generator=gen)
+        for i in range(0, len(x), bs):
+            idx = perm[i:i + bs]
+            loss = nn.functional.binary_cross_entropy(net(xs[idx], xa[idx]).clamp(1e-6, 1 - 1e-6), y[idx])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+    with torch.no_grad():
+        rmse = float(torch.sqrt(((net(xs, xa) - y) ** 2).mean()))
+    return net, {"mc_s": t1 - t0, "fit_s": time.perf_counter() - t1, "rmse": rmse}
+
+
+def nstep_trade(potential: Potential, states, actions, dynamics, policy, horizons=(1, 2, 4, 8),
+                samples=(1, 4, 16, 64), gamma: float = 0.9, reference_samples: int = 1024) -> list[dict]:
+    """Rows {horizon, samples, err, ms}: Monte Carlo error of w (RMS, against `reference_samples`
+    rollouts) and the time to estimate w for all given states, per horizon and sample count."""
+    rows = []
+    for T in horizons:
+        ref = nstep_targets(potential, states, actions, dynamics, policy, NStepConfig(T, gamma, reference_samples), seed=12345)
+        for k in samples:
+            cfg = NStepConfig(T, gamma, k)
+            t0 = time.perf_counter()
+            w = nstep_targets(potential, states, actions, dynamics, policy, cfg, seed=1)
+            ms = (time.perf_counter() - t0) * 1e3
+            rows.append({"horizon": T, "samples": k, "err": float(np.sqrt(np.mean((w - ref) ** 2))), "ms": ms})
+    return rows

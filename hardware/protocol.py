@@ -1,0 +1,185 @@
+"""The skinsafe board wire protocol (see PROTOCOL.md): frames, message types, payload layouts.
+
+A frame is a 16-byte header (sync word, protocol version, type, sequence, board uid, payload
+length), a CRC-16 over the header, the payload and a CRC-32 over everything before it. The
+parser resynchronises after garbage by scanning for the sync word and checking both CRCs.
+"""
+from __future__ import annotations
+
+import binascii
+import struct
+import zlib
+from dataclasses import dataclass
+from typing import NamedTuple
+
+PROTOCOL_VERSION = 1
+FIRMWARE_MAJOR = 1  # hosts talk to firmware whose major version equals this
+SYNC = b"\xa5\x5a"
+HEADER = struct.Struct("<2sBBHQH")  # sync, version, type, seq, uid, payload length
+HEADER_CRC = struct.Struct("<H")
+CRC32 = struct.Struct("<I")
+HEADER_SIZE = HEADER.size + HEADER_CRC.size  # 18
+OVERHEAD = HEADER_SIZE + CRC32.size  # 22
+MAX_PAYLOAD = 65535
+BROADCAST_UID = 0
+
+# message types; a response has the request's type | RESPONSE and echoes its sequence number
+IDENTIFY = 0x01
+CONFIG_BEGIN = 0x02
+CONFIG_CHUNK = 0x03
+CONFIG_COMMIT = 0x04
+CONFIG_READ = 0x05
+STREAM_START = 0x06
+STREAM_STOP = 0x07
+SET_PARAMS = 0x08
+RESET = 0x09
+STREAM_DATA = 0x40  # unsolicited, board -> host
+RESPONSE = 0x80
+COMMANDS = {IDENTIFY: "identify", CONFIG_BEGIN: "config-begin", CONFIG_CHUNK: "config-chunk",
+            CONFIG_COMMIT: "config-commit", CONFIG_READ: "config-read", STREAM_START: "stream-start",
+            STREAM_STOP: "stream-stop", SET_PARAMS: "set-params", RESET: "reset"}
+
+# status codes (first payload byte of every response)
+OK = 0
+STATUS = {
+    OK: "ok", 1: "malformed request", 2: "no config transfer in progress", 3: "chunk outside the declared length",
+    4: "transfer incomplete", 5: "hash mismatch", 6: "config rejected", 7: "flash write failed",
+    8: "unknown command", 9: "bad parameter",
+}
+E_MALFORMED, E_NO_TRANSFER, E_RANGE, E_INCOMPLETE, E_HASH, E_CONFIG, E_FLASH, E_UNKNOWN, E_PARAM = range(1, 10)
+
+# capability bits reported by identify
+CAP_FORCE, CAP_TEMPERATURE, CAP_CLASSIFIER, CAP_SET_PARAMS, CAP_READBACK = 1, 2, 4, 8, 16
+
+# payload layouts (little-endian)
+IDENTIFY_RESP = struct.Struct("<BBBBHHIHH32sI")  # see Identity
+BEGIN_REQ = struct.Struct("<I32s")  # total length, sha256 of the whole config
+CHUNK_REQ = struct.Struct("<I")  # offset, then the data
+CHUNK_RESP = struct.Struct("<I")  # next expected offset
+COMMIT_REQ = struct.Struct("<32s")
+READ_REQ = struct.Struct("<IH")  # offset, length
+READ_RESP = struct.Struct("<I")  # offset, then the data
+START_REQ = struct.Struct("<H")  # rate in Hz
+PARAMS_REQ = struct.Struct("<HH")  # first channel, count, then count x (threshold u16, gain u16 Q8.8)
+STREAM_HEAD = struct.Struct("<QIHH")  # timestamp us, sample counter, n channels, n channels over threshold
+FLAG_STREAMING, FLAG_CONFIG_VALID, FLAG_PARAMS_CHANGED = 1, 2, 4
+
+
+class ProtocolError(Exception):
+    """The peer spoke the protocol wrongly (bad version, malformed payload, error status)."""
+
+
+class Frame(NamedTuple):
+    version: int
+    type: int
+    seq: int
+    uid: int
+    payload: bytes
+
+
+def encode_frame(msg_type: int, seq: int, uid: int, payload: bytes = b"", version: int = PROTOCOL_VERSION) -> bytes:
+    """One frame on the wire: header, header CRC-16, payload, CRC-32."""
+    if len(payload) > MAX_PAYLOAD:
+        raise ValueError(f"payload of {len(payload)} bytes exceeds the protocol maximum {MAX_PAYLOAD}")
+    head = HEADER.pack(SYNC, version, msg_type, seq & 0xFFFF, uid, len(payload))
+    body = head + HEADER_CRC.pack(crc16(head)) + payload
+    return body + CRC32.pack(zlib.crc32(body))
+
+
+def crc16(data: bytes) -> int:
+    """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection, no final xor)."""
+    return binascii.crc_hqx(data, 0xFFFF)
+
+
+class FrameParser:
+    """Incremental frame parser: feed it any bytes, get whole valid frames back; never raises.
+
+    Counts `crc_errors` (a valid header whose payload CRC failed) and `bytes_skipped` (garbage
+    between frames, including frames with a damaged header).
+    """
+
+    def __init__(self, max_payload: int = MAX_PAYLOAD):
+        self.buf = bytearray()
+        self.max_payload = max_payload
+        self.crc_errors = 0
+        self.bytes_skipped = 0
+        self.frames = 0
+
+    def feed(self, data: bytes) -> list[Frame]:
+        buf = self.buf
+        buf += data
+        out: list[Frame] = []
+        pos, n = 0, len(buf)
+        while True:
+            i = buf.find(SYNC, pos)
+            if i < 0:
+                keep = n - 1 if n and buf[-1] == SYNC[0] else n  # a sync word may straddle two reads
+                self.bytes_skipped += max(0, keep - pos)
+                pos = max(pos, keep)
+                break
+            self.bytes_skipped += i - pos
+            pos = i
+            if n - i < HEADER_SIZE:
+                break
+            _, version, msg_type, seq, uid, length = HEADER.unpack_from(buf, i)
+            if crc16(bytes(buf[i:i + HEADER.size])) != HEADER_CRC.unpack_from(buf, i + HEADER.size)[0] \
+                    or length > self.max_payload:
+                self.bytes_skipped += 1
+                pos = i + 1
+                continue
+            end = i + HEADER_SIZE + length
+            if n < end + CRC32.size:
+                break
+            if zlib.crc32(memoryview(buf)[i:end]) != CRC32.unpack_from(buf, end)[0]:
+                self.crc_errors += 1
+                self.bytes_skipped += 1
+                pos = i + 1
+                continue
+            out.append(Frame(version, msg_type, seq, uid, bytes(buf[i + HEADER_SIZE:end])))
+            pos = end + CRC32.size
+        del buf[:pos]
+        self.frames += len(out)
+        return out
+
+
+@dataclass(frozen=True)
+class Identity:
+    """What a board says about itself (identify response)."""
+
+    uid: int
+    protocol: int
+    firmware: tuple[int, int, int]
+    n_channels: int
+    max_chunk: int
+    capabilities: int
+    max_rate_hz: int
+    flags: int
+    config_hash: bytes  # sha256 of the active config, zeros when none
+    config_length: int
+
+    def pack(self) -> bytes:
+        return IDENTIFY_RESP.pack(self.protocol, *self.firmware, self.n_channels, self.max_chunk, self.capabilities,
+                                  self.max_rate_hz, self.flags, self.config_hash, self.config_length)
+
+    @classmethod
+    def unpack(cls, uid: int, data: bytes) -> "Identity":
+        if len(data) < IDENTIFY_RESP.size:
+            raise ProtocolError(f"identify response of {len(data)} bytes, expected {IDENTIFY_RESP.size}")
+        p, a, b, c, n, chunk, caps, rate, flags, h, length = IDENTIFY_RESP.unpack_from(data)
+        return cls(uid, p, (a, b, c), n, chunk, caps, rate, flags, h, length)
+
+    @property
+    def firmware_str(self) -> str:
+        return ".".join(map(str, self.firmware))
+
+
+def response(status: int, data: bytes = b"") -> bytes:
+    """A response payload: status byte, then data (or an ASCII message when status != OK)."""
+    return bytes([status]) + data
+
+
+def error_text(payload: bytes) -> str:
+    """Human text of an error response payload."""
+    code = payload[0] if payload else E_MALFORMED
+    detail = payload[1:].decode("ascii", "replace")
+    return STATUS.get(code, f"status {code}") + (f": {detail}" if detail else "")
