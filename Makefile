@@ -23,3 +23,8 @@ bench: $(STAMP)
 
 clean:
 	rm -rf $(VENV) out build *.egg-info
+
+# The Blender extension zip (dist/skinsafe-<version>.zip) with the skinsafe wheel and its runtime deps.
+.PHONY: addon
+addon: $(STAMP)
+	$(BIN)/python addon/package.py --out dist

@@ -1,1 +1,21 @@
-"""skinsafe.addon."""
+"""skinsafe Blender extension: design tactile skins on robots (placement, per-taxel frames,
+Jacobian heat maps, boards, coverage, export). Logic lives in skinsafe.core; this package
+adapts Blender data and draws.
+
+Registers properties, then operators, then panels, drawing and handlers; unregisters in reverse.
+"""
+from . import drawing, handlers, operators, panels, props
+
+_MODULES = (props, operators, panels, drawing, handlers)
+
+
+def register():
+    for m in _MODULES:
+        m.register()
+
+
+def unregister():
+    for m in reversed(_MODULES):
+        m.unregister()
+    from . import blender_to_core
+    blender_to_core.clear_caches()

@@ -53,6 +53,10 @@ class TaxelKinematics:
         self._frames_t = np.zeros((n, 3, 3))
         self.frames = self._frames_t.transpose(0, 2, 1)  # (N,3,3) view: columns x, y, z in world
         self.jac = np.zeros((n, 6, nv))
+        # for jacobians_of: the skinned bodies and each taxel's slot among them
+        self._bodies = np.unique(self.body_id)
+        self._slot = np.searchsorted(self._bodies, self.body_id)
+        self._jb = np.zeros((len(self._bodies), 6, nv))
 
     def update(self, q: np.ndarray | None = None) -> None:
         """Forward kinematics at configuration q (or the data's current qpos)."""
@@ -102,28 +106,24 @@ class TaxelKinematics:
 
     def jacobians_of(self, index: np.ndarray, q: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Jacobians (K,6,nv), world positions (K,3) and frames (K,3,3) of the taxels `index` only
-        (new arrays): one `mj_jacBody` per distinct body among them, for control ticks where few
-        taxels matter."""
+        (new arrays), for control ticks where few taxels matter: one `mj_jacBody` per skinned
+        body, then gathers (no per-body loop over the taxels)."""
         self.update(q)
         d, m = self.data, self.model
+        for k, bid in enumerate(self._bodies):
+            mujoco.mj_jacBody(m, d, self._jb[k, :3], self._jb[k, 3:], int(bid))
         index = np.asarray(index, dtype=np.intp)
-        bodies = self.body_id[index]
-        J = np.empty((len(index), 6, m.nv))
-        pos = np.empty((len(index), 3))
-        frames = np.empty((len(index), 3, 3))
-        for bid in np.unique(bodies):
-            sel = bodies == bid
-            mujoco.mj_jacBody(m, d, self._jacp, self._jacr, int(bid))
-            jp, jr = self._jacp, self._jacr
-            R = d.xmat[bid].reshape(3, 3)
-            r = self.local_pos[index[sel]] @ R.T  # offset from the body origin, world frame
-            pos[sel] = r + d.xpos[bid]
-            frames[sel] = R @ self.local_frames[index[sel]]
-            rx, ry, rz = r[:, 0:1], r[:, 1:2], r[:, 2:3]
-            J[sel, 0, :] = jp[0] + jr[1] * rz - jr[2] * ry
-            J[sel, 1, :] = jp[1] + jr[2] * rx - jr[0] * rz
-            J[sel, 2, :] = jp[2] + jr[0] * ry - jr[1] * rx
-            J[sel, 3:, :] = jr
+        bid = self.body_id[index]
+        R = d.xmat[bid].reshape(-1, 3, 3)
+        r = np.einsum("kij,kj->ki", R, self.local_pos[index])  # offset from the body origin, world
+        pos = r + d.xpos[bid]
+        frames = R @ self.local_frames[index]
+        J = self._jb[self._slot[index]]  # a new array (fancy indexing)
+        jr = J[:, 3:]
+        rx, ry, rz = r[:, 0:1], r[:, 1:2], r[:, 2:3]
+        J[:, 0] += jr[:, 1] * rz - jr[:, 2] * ry
+        J[:, 1] += jr[:, 2] * rx - jr[:, 0] * rz
+        J[:, 2] += jr[:, 0] * ry - jr[:, 1] * rx
         return J, pos, frames
 
     def jacobians_loop(self, q: np.ndarray | None = None) -> np.ndarray:

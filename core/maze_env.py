@@ -206,3 +206,24 @@ class MazeEnv(gym.Env):
             if self.data.ncon:
                 danger |= danger_events({"force": self.taxel_forces()}, thr)
         return danger
+
+
+class MazeFeatures:
+    """Network input from an observation: Gaussian bumps at every cell centre and the heading's 4 signs.
+
+    Generic MLPs learn the maze's value function from raw `[x, y, cos, sin]` slowly; these features
+    keep it a function of the position and heading alone (no walls or goal are given away).
+    """
+
+    def __init__(self, walls: np.ndarray, cell: float = CELL, width: float = 0.5):
+        rows, cols = walls.shape
+        self.centers = np.array([cell_center(r, c, rows, cell) for r in range(rows) for c in range(cols)])
+        self.inv = 1.0 / (2 * (width * cell) ** 2)
+        self.dim = len(self.centers) + 4
+
+    def __call__(self, obs) -> np.ndarray:
+        obs = np.atleast_2d(np.asarray(obs, dtype=np.float64))
+        d2 = ((obs[:, None, :2] - self.centers[None]) ** 2).sum(-1)
+        c, s = obs[:, 2:3], obs[:, 3:4]
+        head = np.maximum(np.concatenate([c, -c, s, -s], axis=1), 0.0)
+        return np.concatenate([np.exp(-d2 * self.inv), head], axis=1).astype(np.float32)

@@ -77,17 +77,27 @@ class ModulationLayer:
     """The modulation layer: a potential (f_phi or a distilled w_phi) applied to velocities.
 
     `layer(s, v, a=None)` -> (modulated v, f) for one state (d,) or a batch (B, d); the action
-    passed to the potential defaults to the velocity itself (velocity-command actions).
+    passed to the potential defaults to the velocity itself (velocity-command actions). Networks
+    of Linear/ReLU/Tanh layers are evaluated by `FastPotential` (call `set_potential` again after
+    training), others by autograd.
     """
 
     def __init__(self, potential, eps_grad: float = EPS_GRAD, keep_away: bool = True):
-        self.potential, self.eps_grad, self.keep_away = potential, float(eps_grad), bool(keep_away)
+        self.eps_grad, self.keep_away = float(eps_grad), bool(keep_away)
+        self.set_potential(potential)
+
+    def set_potential(self, potential) -> None:
+        from .potential import FastPotential, potential_and_normal
+
+        self.potential = potential
+        try:
+            self._eval = FastPotential(potential)
+        except TypeError:
+            self._eval = lambda s, a: potential_and_normal(potential, s, a)
 
     def __call__(self, s, v, a=None) -> tuple[np.ndarray, np.ndarray | float]:
-        from .potential import potential_and_normal
-
         single = np.ndim(v) == 1
         a = v if a is None else a
-        f, n = potential_and_normal(self.potential, s, a)
-        out = modulate(np.atleast_2d(v), f, n, self.eps_grad, self.keep_away)
-        return (out[0], float(f[0])) if single else (out, f)
+        f, n = self._eval(s, a)
+        out = modulate(v, f, n, self.eps_grad, self.keep_away)
+        return (out, float(f[0])) if single else (out, f)

@@ -18,7 +18,7 @@ from typing import Callable
 
 import numpy as np
 import torch
-from scipy.special import expit
+from scipy.special import expit, log_expit
 from torch import nn
 
 from .danger import total_danger
@@ -61,8 +61,9 @@ def potential_and_normal(potential: Potential, s, a, dtype=torch.float32) -> tup
 
 class FastPotential:
     """A numpy snapshot of a potential whose network is Linear/ReLU/Tanh layers, with the
-    gradient written out (no autograd): the same f and n as `potential_and_normal`, a few
-    times faster for one state per control tick. Rebuild it after every training.
+    gradient written out (no autograd, float32 layers, float64 total danger): the same f and n
+    as `potential_and_normal`, a few times faster for one state per control tick. Rebuild it
+    after every training.
 
     Supports `DangerPotential` over a TDM with `trunk` (Sequential) and `head` (Linear), and
     `NStepPotential`; anything else raises TypeError (use `potential_and_normal`).
@@ -74,16 +75,16 @@ class FastPotential:
             self.mean = self.std = None
         elif isinstance(potential, NStepPotential):
             mods, self.output = list(potential.net), "sigmoid"
-            self.mean = potential.mean.detach().double().numpy()
-            self.std = potential.std.detach().double().numpy()
+            self.mean = potential.mean.detach().float().numpy()
+            self.std = potential.std.detach().float().numpy()
         else:
             raise TypeError(f"FastPotential: {type(potential).__name__} is not a DangerPotential over a TDM "
                             "or an NStepPotential; use potential_and_normal instead")
         self.layers: list[tuple[np.ndarray, np.ndarray, str]] = []
         for m in mods:
             if isinstance(m, nn.Linear):
-                self.layers.append((m.weight.detach().double().numpy().copy(),
-                                    m.bias.detach().double().numpy().copy(), "linear"))
+                self.layers.append((m.weight.detach().float().numpy().copy(),
+                                    m.bias.detach().float().numpy().copy(), "linear"))
             elif isinstance(m, (nn.ReLU, nn.Tanh)):
                 w, b, _ = self.layers[-1]
                 self.layers[-1] = (w, b, "relu" if isinstance(m, nn.ReLU) else "tanh")
@@ -92,8 +93,8 @@ class FastPotential:
 
     def __call__(self, s, a) -> tuple[np.ndarray, np.ndarray]:
         """f (B,) and df/ds (B, d) for states (B, d) or (d,) and actions (B, m) or (m,)."""
-        s = np.atleast_2d(np.asarray(s, dtype=float))
-        x = np.concatenate([s, np.atleast_2d(np.asarray(a, dtype=float))], axis=1)
+        s = np.atleast_2d(np.asarray(s, dtype=np.float32))
+        x = np.concatenate([s, np.atleast_2d(np.asarray(a, dtype=np.float32))], axis=1)
         if self.mean is not None:
             x = (x - self.mean) / self.std
         acts = []
@@ -105,12 +106,12 @@ class FastPotential:
                 x = np.tanh(x)
             acts.append(x)
         if self.output == "total_danger":
-            log_safe = -np.logaddexp(0.0, x).sum(axis=1)
+            log_safe = log_expit(-x).sum(axis=1, dtype=np.float64)  # eq. 1 in log space
             f = -np.expm1(log_safe)
-            g = np.exp(log_safe)[:, None] * expit(x)  # df/dz_i = (1 - f) sigmoid(z_i)
+            g = np.exp(log_safe).astype(np.float32)[:, None] * expit(x)  # df/dz_i = (1 - f) sigmoid(z_i)
         else:
-            f = expit(x[:, 0])
-            g = (f * (1.0 - f))[:, None]
+            f = expit(x[:, 0].astype(np.float64))
+            g = (f * (1.0 - f)).astype(np.float32)[:, None]
         for i in range(len(self.layers) - 1, -1, -1):
             w, _, kind = self.layers[i]
             if kind == "relu":
@@ -120,7 +121,7 @@ class FastPotential:
             g = g @ w
         if self.std is not None:
             g = g / self.std
-        return f, g[:, :s.shape[1]]
+        return f, g[:, :s.shape[1]].astype(np.float64)
 
 
 # ---------------------------------------------------------------- n-step potential (eq. 8)
@@ -168,25 +169,28 @@ class NStepConfig:
 
 @torch.no_grad()
 def nstep_targets(potential: Potential, s0, a0, dynamics, policy, cfg: NStepConfig,
-                  seed: int = 0) -> np.ndarray:
-    """w(s0, a0) / sum_t gamma^t (B,) estimated with `cfg.samples` rollouts of `cfg.horizon` steps."""
+                  seed: int = 0, chunk: int = 65536) -> np.ndarray:
+    """w(s0, a0) / sum_t gamma^t (B,) estimated with `cfg.samples` rollouts of `cfg.horizon` steps
+    (evaluated `chunk` rollouts at a time to bound memory)."""
     cfg.check()
     gen = torch.Generator().manual_seed(seed)
-    s = _as_tensor(s0, torch.float32)
-    a = _as_tensor(a0, torch.float32)
-    b = s.shape[0]
+    s_all = _as_tensor(s0, torch.float32)
+    a_all = _as_tensor(a0, torch.float32)
     k = cfg.samples if cfg.horizon > 1 else 1
-    s = s.repeat_interleave(k, 0)
-    a = a.repeat_interleave(k, 0)
-    total = torch.zeros(b * k)
-    weight = 0.0
-    for t in range(cfg.horizon):
-        if t > 0:
-            s = dynamics(s, a)
-            a = policy(s, gen)
-        total += cfg.gamma ** t * potential(s, a)
-        weight += cfg.gamma ** t
-    return (total / weight).view(b, k).mean(1).double().numpy()
+    norm = sum(cfg.gamma ** t for t in range(cfg.horizon))
+    rows = max(1, chunk // k)
+    out = []
+    for i in range(0, s_all.shape[0], rows):
+        s = s_all[i:i + rows].repeat_interleave(k, 0)
+        a = a_all[i:i + rows].repeat_interleave(k, 0)
+        total = torch.zeros(s.shape[0])
+        for t in range(cfg.horizon):
+            if t > 0:
+                s = dynamics(s, a)
+                a = policy(s, gen)
+            total += cfg.gamma ** t * potential(s, a)
+        out.append((total / norm).view(-1, k).mean(1))
+    return torch.cat(out).double().numpy() if out else np.zeros(0)
 
 
 class NStepPotential(nn.Module):
@@ -222,7 +226,7 @@ def distill_nstep(potential: Potential, states, actions, dynamics, policy, cfg: 
     xs = torch.cat([s, s_near])
     xa = torch.cat([a, policy(s_near, gen)])
     t0 = time.perf_counter()
-    y = torch.as_tensor(nstep_targets(potential, xs, xa, dynamics, policy, cfg, seed), dtype=torch.float32)
+    y = torch.as_tensor(nstep_targets(potential, xs, xa, dynamics, policy, cfg, seed), dtype=torch.float32).clamp(0, 1)
     t1 = time.perf_counter()
     torch.manual_seed(seed)
     if net is None:

@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 FORMS = ("3d", "6d")
+MERGES = ("joint", "paper")  # the intent of eq. 13 in joint space, or eq. 13 as printed
 
 
 @dataclass
@@ -63,6 +64,7 @@ class RetractionParams:
     max_distance: float = 0.25  # m, cap on the final distance alpha * f / 12
     stimulus_alpha: dict = field(default_factory=lambda: {"temperature": 0.002, "classifier": 0.12})
     rank_tol: float = 1e-3  # relative residual under which a direction adds no new constraint
+    merge: str = "joint"  # "joint" (default, see module docstring) or "paper" (eq. 13 literally)
 
     def __post_init__(self):
         checks = [
@@ -74,6 +76,7 @@ class RetractionParams:
             ("sv_threshold", self.sv_threshold > 0 and np.isfinite(self.sv_threshold), "a positive number"),
             ("max_distance", self.max_distance > 0 and np.isfinite(self.max_distance), "a positive distance in m"),
             ("rank_tol", 0 < self.rank_tol < 1, "in (0, 1)"),
+            ("merge", self.merge in MERGES, f"one of {MERGES}"),
         ]
         for name, ok, want in checks:
             if not ok:
@@ -94,21 +97,32 @@ def profile(u: np.ndarray) -> np.ndarray:
 
 def profile_rate(u: np.ndarray) -> np.ndarray:
     """ds/du = u (1-u)^2, zero at both ends, peak 4/27 at u = 1/3; 0 outside [0, 1]."""
-    inside = (u >= 0) & (u <= 1)
-    return np.where(inside, u * (1 - u) ** 2, 0.0)
+    u = np.clip(u, 0.0, 1.0)
+    return u * (1 - u) ** 2
+
+
+def _filtered_svd(J: np.ndarray, damping: float, sv_threshold: float):
+    U, S, Vt = np.linalg.svd(J, full_matrices=False)
+    lam2 = np.where(S < sv_threshold, damping ** 2 * (1 - (S / sv_threshold) ** 2), 0.0)
+    den = S * S + lam2
+    return U, np.divide(S, den, out=np.zeros_like(S), where=den > 1e-300), Vt
 
 
 def dls_pinv(J: np.ndarray, damping: float, sv_threshold: float) -> np.ndarray:
     """Numerically filtered damped least-squares inverses of a stack J (K,m,n) -> (K,n,m).
 
     `sigma / (sigma^2 + lam^2)` with `lam^2 = damping^2 (1 - (sigma/sv_threshold)^2)` under the
-    threshold and 0 above: exact where well conditioned, bounded by 1/(2 damping)-ish near 0.
+    threshold and 0 above: exact where well conditioned, at most `1 / (2 damping)` near 0.
     """
-    U, S, Vt = np.linalg.svd(J, full_matrices=False)
-    lam2 = np.where(S < sv_threshold, damping ** 2 * (1 - (S / sv_threshold) ** 2), 0.0)
-    den = S * S + lam2
-    inv = np.divide(S, den, out=np.zeros_like(S), where=den > 1e-300)
-    return np.einsum("kji,kj,klj->kil", Vt, inv, U)
+    U, inv, Vt = _filtered_svd(J, damping, sv_threshold)
+    return (Vt.transpose(0, 2, 1) * inv[:, None, :]) @ U.transpose(0, 2, 1)
+
+
+def dls_solve(J: np.ndarray, rhs: np.ndarray, damping: float, sv_threshold: float) -> np.ndarray:
+    """`dls_pinv(J) @ rhs` for a stack, (K,m,n) and (K,m) -> (K,n), without forming the inverses."""
+    U, inv, Vt = _filtered_svd(J, damping, sv_threshold)
+    c = np.einsum("kji,kj->ki", U, rhs) * inv
+    return np.einsum("kji,kj->ki", Vt, c)
 
 
 def task_jacobians(J: np.ndarray, form: str) -> np.ndarray:
@@ -126,7 +140,7 @@ def single_qdots(J: np.ndarray, directions: np.ndarray, speed: np.ndarray, param
     """Eq. 11 for every active taxel at once: (K,nv) joint velocities of their own retractions."""
     Jt = task_jacobians(J, params.form)
     rdot = task_velocities(directions, speed, params.form)
-    return np.einsum("kij,kj->ki", dls_pinv(Jt, params.damping, params.sv_threshold), rdot)
+    return dls_solve(Jt, rdot, params.damping, params.sv_threshold)
 
 
 def constraint_rows(J: np.ndarray, directions: np.ndarray) -> np.ndarray:
@@ -134,52 +148,48 @@ def constraint_rows(J: np.ndarray, directions: np.ndarray) -> np.ndarray:
     return np.einsum("kij,ki->kj", J[:, :3, :], directions)
 
 
+def ordered_basis(A: np.ndarray, rank_tol: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """Gram-Schmidt of the rows of A (K,n) in order: an orthonormal basis U (n,m) of their span
+    and `first` (m,), the row that added each column. A row adds a column when its residual
+    against the rows before it exceeds `rank_tol` times its norm (rank-safe); each column is
+    oriented along its row's residual. At most n steps, each one batched over all rows."""
+    K, n = A.shape
+    norms = np.sqrt(np.einsum("ij,ij->i", A, A))
+    ok = norms > 1e-9 * max(float(norms.max(initial=0.0)), 1e-300)
+    res = np.divide(A, norms[:, None], out=np.zeros_like(A), where=ok[:, None])  # unit rows
+    tol2 = rank_tol * rank_tol
+    U = np.zeros((n, min(n, K)))
+    first = np.zeros(min(n, K), np.intp)
+    m, start = 0, 0
+    while m < U.shape[1] and start < K:
+        tail = res[start:]
+        hits = np.einsum("ij,ij->i", tail, tail) > tol2
+        h = int(hits.argmax())
+        if not hits[h]:
+            break
+        u = tail[h] / np.sqrt(tail[h] @ tail[h])
+        U[:, m], first[m] = u, start + h
+        start += h + 1
+        tail = res[start:]
+        tail -= (tail @ u)[:, None] * u  # residuals against the grown basis (modified Gram-Schmidt)
+        m += 1
+    return U[:, :m], first[:m]
+
+
 def merge(qdots: np.ndarray, A: np.ndarray, epsilon: float, rank_tol: float = 1e-3) -> np.ndarray:
     """Prioritised sum (module docstring) of joint velocities `qdots` (K,n), highest first,
-    with constraint rows `A` (K,n). Vectorised: the basis only grows at most n times, so the
-    tasks between two growths are projected as one batch."""
-    K, n = qdots.shape
-    out = np.zeros(n)
-    if K == 0:
-        return out
-    out += qdots[0]
-    U = np.zeros((n, 0))
-    norms = np.linalg.norm(A, axis=1)
-    scale = max(float(norms.max()), 1e-300)
-    start = 0  # A[start] is the next candidate direction; tasks > start are not yet summed
-    while start < K:
-        # residual of every remaining direction against the current basis
-        rest = A[start:]
-        res = rest - (rest @ U) @ U.T if U.shape[1] else rest
-        rn = np.linalg.norm(res, axis=1)
-        new = (rn > rank_tol * norms[start:]) & (norms[start:] > 1e-9 * scale) if U.shape[1] < n else np.zeros(len(rn), bool)
-        hit = np.flatnonzero(new)
-        stop = start + (int(hit[0]) if len(hit) else K - start)  # A[stop] grows the basis
-        # tasks start+1 .. stop are projected with the basis of A[0 .. start] (A[start] included
-        # once it is added below); here the basis spans A[0 .. start-1] and A[start] adds nothing
-        # new unless start == stop.
-        if stop == start:
-            u = res[0] / rn[0]
-            u -= U @ (U.T @ u)  # re-orthogonalise (twice is enough)
-            U = np.column_stack([U, u / np.linalg.norm(u)])
-            _add_projected(out, qdots[start + 1:start + 2], U, epsilon)
-            start += 1
-            continue
-        _add_projected(out, qdots[start + 1:stop + 1], U, epsilon)
-        start = stop
-    return out
-
-
-def _add_projected(out: np.ndarray, Q: np.ndarray, U: np.ndarray, epsilon: float) -> None:
-    """out += sum of rows of Q, each minus eps (helping) or all (opposing) of its part along U."""
-    if len(Q) == 0:
-        return
-    total = Q.sum(axis=0)
-    if U.shape[1]:
-        C = Q @ U  # (b, m) components
-        gamma = np.where(C >= 0, epsilon, 1.0)
-        total -= U @ (gamma * C).sum(axis=0)
-    out += total
+    with constraint rows `A` (K,n): task j is projected by the basis columns that rows before
+    it added, `qd_j - sum_c gamma_jc (u_c . qd_j) u_c`, gamma = eps (helping) or 1 (opposing)."""
+    if len(qdots) == 1:
+        return qdots[0].copy()
+    total = qdots.sum(axis=0)
+    U, first = ordered_basis(A, rank_tol)
+    if U.shape[1] == 0:
+        return total
+    C = qdots @ U  # (K, m)
+    after = np.arange(len(qdots))[:, None] > first[None, :]
+    G = np.where(C >= 0, epsilon, 1.0) * C * after
+    return total - U @ G.sum(axis=0)
 
 
 def merge_loop(qdots: np.ndarray, A: np.ndarray, epsilon: float, rank_tol: float = 1e-3) -> np.ndarray:
@@ -228,11 +238,11 @@ def merge_paper(J: np.ndarray, directions: np.ndarray, speed: np.ndarray, params
 def limit(qdot: np.ndarray, prev: np.ndarray, vel_limits: np.ndarray, acc_limits: np.ndarray, dt: float) -> np.ndarray:
     """Scale qdot uniformly into the velocity limits, then the step from `prev` into the
     acceleration limits (direction of the step kept). Non-finite input gives `prev` held."""
-    if not np.all(np.isfinite(qdot)):
-        qdot = prev.copy()
-    peak = np.max(np.abs(qdot) / vel_limits)
+    peak = float(np.max(np.abs(qdot) / vel_limits))
+    if not np.isfinite(peak):
+        qdot, peak = prev, 1.0
     if peak > 1:
         qdot = qdot / peak
     step = qdot - prev
-    over = np.max(np.abs(step) / (acc_limits * dt))
+    over = float(np.max(np.abs(step) / (acc_limits * dt)))
     return prev + step / over if over > 1 else qdot

@@ -73,7 +73,7 @@ def train_tdm(model: TactileDangerModel, states, actions, dangers, epochs: int =
     """Fit the model by binary cross-entropy on (states (B,S), actions (B,A), dangers (B,N) in {0,1}).
 
     `pos_weight` (scalar or (N,)) up-weights the rare positive (contact) labels. Returns the history
-    {"loss": per-epoch mean loss}. Deterministic for a given `seed`.
+    {"loss": per-epoch mean loss}. Deterministic for a given model initialisation and `seed`.
     """
     s = _as_float(states, "states")
     n = s.shape[0]
@@ -88,8 +88,7 @@ def train_tdm(model: TactileDangerModel, states, actions, dangers, epochs: int =
         raise ValueError("train_tdm: no samples; log some (state, action, danger) data first")
     if ((d != 0) & (d != 1)).any():
         raise ValueError("train_tdm: 'dangers' must be 0/1 per taxel (threshold readings with core.events)")
-    gen = torch.Generator().manual_seed(int(seed))
-    torch.manual_seed(int(seed))
+    gen = torch.Generator().manual_seed(int(seed))  # batch order; leaves the global RNG alone
     pw = None if pos_weight is None else torch.as_tensor(pos_weight, dtype=torch.float32)
     loss_fn = nn.BCEWithLogitsLoss(pos_weight=pw)
     opt = torch.optim.Adam(model.parameters(), lr=lr, weight_decay=weight_decay)
@@ -105,7 +104,7 @@ def train_tdm(model: TactileDangerModel, states, actions, dangers, epochs: int =
             opt.zero_grad()
             loss.backward()
             opt.step()
-            total += float(loss) * len(idx)
+            total += float(loss.detach()) * len(idx)
         history["loss"].append(total / n)
         bar.set_postfix(loss=f"{history['loss'][-1]:.4f}")
     model.eval()

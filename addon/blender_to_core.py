@@ -1,0 +1,139 @@
+"""Blender -> core: read the scene's robot, pose, link meshes, modules and stored design into
+skinsafe.core objects (bulk reads through `foreach_get`)."""
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+from skinsafe.core import taxel_map
+from skinsafe.core.robots import load_robot  # noqa: F401 (operators refuse files early)
+from skinsafe.core.skin import DesignError, Module, RobotRef
+from skinsafe.core.surface import Surface
+
+TEXT_NAME = "skinsafe_taxel_map.json"
+_robots: dict = {}  # (kind, name, path) -> Robot
+_designs: dict = {}  # scene name -> (design_rev, SkinDesign)
+_surfaces: dict = {}  # object name -> (key, Surface)
+
+
+def clear_caches() -> None:
+    _robots.clear(), _designs.clear(), _surfaces.clear()
+
+
+def robot_ref(scene) -> RobotRef | None:
+    s = scene.skinsafe
+    if not s.robot_kind:
+        return None
+    return RobotRef(s.robot_kind, s.robot_name, s.robot_path or None)
+
+
+def robot_for(scene):
+    """The scene's robot (MuJoCo model and limits), loaded once per reference."""
+    ref = robot_ref(scene)
+    if ref is None:
+        raise DesignError("scene: no robot imported; import one first (skinsafe panel > Robot)")
+    key = (ref.kind, ref.name, ref.path)
+    if key not in _robots:
+        _robots[key] = load_robot(ref)
+    return _robots[key]
+
+
+def body_objects(scene) -> dict:
+    """Body name -> Blender object of the scene's imported robot."""
+    return {o["skinsafe_body"]: o for o in scene.objects if "skinsafe_body" in o}
+
+
+def pose(scene) -> np.ndarray:
+    """qpos of the scene's pose: the robot's home, with every joint in the panel applied."""
+    robot = robot_for(scene)
+    m = robot.model
+    q = robot.home.copy()
+    for j in scene.skinsafe.joints:
+        jid = m.joint(j.name).id
+        q[m.jnt_qposadr[jid]] = j.value
+    return q
+
+
+def surface_of(obj) -> Surface:
+    """The object's mesh (object frame = body frame) as a core Surface with its corner normals."""
+    me = obj.data
+    nv, nt = len(me.vertices), len(me.loop_triangles) if me.loop_triangles else 0
+    if nt == 0:
+        me.calc_loop_triangles()
+        nt = len(me.loop_triangles)
+    co = np.empty(nv * 3)
+    me.vertices.foreach_get("co", co)
+    key = (me.name, nv, nt, float(co.sum()))
+    hit = _surfaces.get(obj.name)
+    if hit and hit[0] == key:
+        return hit[1]
+    tri = np.empty(nt * 3, dtype=np.int64)
+    me.loop_triangles.foreach_get("vertices", tri)
+    loops = np.empty(nt * 3, dtype=np.int64)
+    me.loop_triangles.foreach_get("loops", loops)
+    cn = np.empty(len(me.loops) * 3)
+    me.corner_normals.foreach_get("vector", cn)
+    surf = Surface.from_mesh(co.reshape(-1, 3), tri.reshape(-1, 3), cn.reshape(-1, 3)[loops].reshape(-1, 3, 3),
+                             name=obj["skinsafe_body"])
+    _surfaces[obj.name] = (key, surf)
+    return surf
+
+
+def module_objects(scene) -> list:
+    return [o for o in scene.objects if o.skinsafe_module.is_module]
+
+
+def settings_module(settings, module_id: int, name: str, body: str) -> Module:
+    """The core Module described by template settings (a module object's or the scene's)."""
+    s = settings
+    return Module(id=int(module_id), name=name, body=body, template=s.template, rows=s.rows, cols=s.cols,
+                  pitch=s.pitch, taxel_diameter=s.taxel_diameter, margin=s.margin, min_bend_radius=s.min_bend_radius)
+
+
+def outline_of(settings) -> np.ndarray | None:
+    """A curve object's points (its local x, y in m) as the 'curve' template's outline."""
+    cu = settings.outline
+    if settings.template != "curve" or cu is None or cu.type != "CURVE":
+        return None
+    pts = []
+    for sp in cu.data.splines:
+        seq = sp.bezier_points if sp.type == "BEZIER" else sp.points
+        pts += [tuple(p.co[:2]) for p in seq]
+    return np.asarray(pts, dtype=float) * np.asarray(cu.scale[:2])
+
+
+def placement_of(obj) -> tuple[np.ndarray, np.ndarray]:
+    """Anchor and row direction of a module object in its body's frame (its local matrix)."""
+    M = np.array(obj.matrix_basis)  # parent inverse is identity: basis = local = body frame
+    return M[:3, 3].copy(), M[:3, 0] / max(np.linalg.norm(M[:3, 0]), 1e-12)
+
+
+def matrix_key(obj) -> list[float]:
+    return [c for row in obj.matrix_basis for c in row]
+
+
+def moved(obj) -> bool:
+    """Whether a module object's transform changed since it was last placed."""
+    return not np.allclose(matrix_key(obj), list(obj.skinsafe_module.placed_matrix), atol=1e-7)
+
+
+def design_of(scene):
+    """The scene's skin design (from the cache, or parsed from the .blend's taxel-map text)."""
+    rev = scene.skinsafe.design_rev
+    hit = _designs.get(scene.name)
+    if hit and hit[0] == rev:
+        return hit[1]
+    text = bpy.data.texts.get(TEXT_NAME)
+    if text is None or not text.as_string().strip():
+        return None
+    import json
+    design = taxel_map.from_dict(json.loads(text.as_string()), f"text '{TEXT_NAME}'")
+    _designs[scene.name] = (rev, design)
+    return design
+
+
+def world_matrix(obj) -> np.ndarray:
+    return np.array(obj.matrix_world)
+
+
+def to_matrix(a) -> Matrix:
+    return Matrix([list(r) for r in np.asarray(a)])

@@ -1,0 +1,284 @@
+"""Operators: each a thin call into designer / core with poll(), undo and a report."""
+from pathlib import Path
+
+import bpy
+import numpy as np
+from bpy.props import EnumProperty, FloatProperty, FloatVectorProperty, StringProperty
+from bpy_extras.io_utils import ExportHelper, ImportHelper
+
+from skinsafe.core import taxel_map
+from skinsafe.core.coverage import format_report
+from skinsafe.core.skin import DesignError, RobotRef
+from skinsafe.core.surface import check_urdf
+
+from . import blender_to_core as b2c
+from . import core_to_blender as c2b
+from . import designer
+
+
+def _fail(op, scene, e: Exception):
+    scene.skinsafe.error = str(e)
+    op.report({"ERROR"}, str(e))
+    return {"CANCELLED"}
+
+
+def _ok(op, scene, msg: str):
+    scene.skinsafe.error = ""
+    scene.skinsafe.message = msg
+    op.report({"INFO"}, msg)
+    return {"FINISHED"}
+
+
+def _has_robot(context):
+    return bool(context.scene.skinsafe.robot_kind)
+
+
+def _has_skin(context):
+    return _has_robot(context) and any(o.skinsafe_module.is_module for o in context.scene.objects)
+
+
+class SKINSAFE_OT_import_robot(bpy.types.Operator, ImportHelper):
+    """Import the built-in UR5 or Panda, or a URDF/MJCF file (one object per body)"""
+
+    bl_idname = "skinsafe.import_robot"
+    bl_label = "Import Robot"
+    bl_options = {"REGISTER", "UNDO"}
+
+    source: EnumProperty(name="Robot", items=[("ur5", "UR5", "built-in UR5"), ("panda", "Panda", "built-in 7-DoF arm"),
+                                              ("FILE", "URDF/MJCF file", "a robot file")], default="ur5")
+    filter_glob: StringProperty(default="*.urdf;*.xml;*.mjcf", options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        if self.source == "FILE":
+            return ImportHelper.invoke(self, context, event)
+        return self.execute(context)
+
+    def execute(self, context):
+        scene = context.scene
+        try:
+            if self.source == "FILE":
+                path = Path(bpy.path.abspath(self.filepath))
+                kind = "urdf" if path.suffix.lower() == ".urdf" else "mjcf"
+                if kind == "urdf":
+                    check_urdf(path)
+                ref = RobotRef(kind, path.stem, str(path))
+                b2c.load_robot(ref)  # refuse before touching the scene
+            else:
+                ref = RobotRef("builtin", self.source)
+            root = c2b.build_robot(scene, ref)
+        except DesignError as e:
+            return _fail(self, scene, e)
+        return _ok(self, scene, f"imported {root['skinsafe_robot']}: {len(b2c.body_objects(scene)) - 1} bodies, "
+                                f"{len(scene.skinsafe.joints)} joints")
+
+
+class SKINSAFE_OT_set_pose(bpy.types.Operator):
+    """Set one joint, or all joints to the home or zero pose (the scene follows)"""
+
+    bl_idname = "skinsafe.set_pose"
+    bl_label = "Set Pose"
+    bl_options = {"REGISTER", "UNDO"}
+
+    preset: EnumProperty(items=[("JOINT", "Joint", ""), ("HOME", "Home", ""), ("ZERO", "Zero", "")], default="HOME")
+    joint: StringProperty()
+    value: FloatProperty()
+
+    poll = classmethod(lambda cls, context: _has_robot(context))
+
+    def execute(self, context):
+        scene = context.scene
+        joints = scene.skinsafe.joints
+        robot = b2c.robot_for(scene)
+        if self.preset == "JOINT":
+            if self.joint not in joints:
+                return _fail(self, scene, DesignError(f"pose: joint '{self.joint}' is unknown; use one of "
+                                                      f"{[j.name for j in joints]}"))
+            joints[self.joint]["value"] = self.value
+        else:
+            for j in joints:
+                jid = robot.model.joint(j.name).id
+                j["value"] = float(robot.home[robot.model.jnt_qposadr[jid]]) if self.preset == "HOME" else 0.0
+        c2b.apply_pose(scene)
+        if any(o.skinsafe_module.is_module for o in scene.objects):
+            designer.map_jacobians(scene)
+        return _ok(self, scene, "pose set")
+
+
+class SKINSAFE_OT_place_module(bpy.types.Operator):
+    """Wrap a new FPC module onto the link at the picked point (the 3D cursor) or a given anchor"""
+
+    bl_idname = "skinsafe.place_module"
+    bl_label = "Place Module"
+    bl_options = {"REGISTER", "UNDO"}
+
+    body: StringProperty(name="Body", description="body to place on (default: the active object's)")
+    anchor: FloatVectorProperty(name="Anchor", size=3, subtype="TRANSLATION",
+                                description="point in the body frame (used when 'Use cursor' is off)")
+    direction: FloatVectorProperty(name="Row direction", size=3, default=(1.0, 0.0, 0.0),
+                                   description="body-frame hint for the rows (projected onto the surface)")
+    use_cursor: bpy.props.BoolProperty(name="Use cursor", default=True)
+
+    poll = classmethod(lambda cls, context: _has_robot(context))
+
+    def execute(self, context):
+        scene = context.scene
+        body = self.body
+        if not body:
+            act = context.active_object
+            body = act.get("skinsafe_body", "") if act is not None else ""
+        try:
+            bodies = b2c.body_objects(scene)
+            if body not in bodies:
+                raise DesignError(f"place: no body selected; select a link of the robot or give body= one of "
+                                  f"{sorted(bodies)}")
+            anchor = np.array(self.anchor)
+            if self.use_cursor:
+                W = np.linalg.inv(np.array(bodies[body].matrix_world))
+                anchor = W[:3, :3] @ np.array(scene.cursor.location) + W[:3, 3]
+            obj, placed = designer.place(scene, body, anchor, np.array(self.direction))
+        except DesignError as e:
+            return _fail(self, scene, e)
+        return _ok(self, scene, f"placed {obj.name}: {len(placed)} taxels on {body}")
+
+
+class SKINSAFE_OT_regenerate(bpy.types.Operator):
+    """Re-generate moved/rotated/resized modules (or the active one) on the surface"""
+
+    bl_idname = "skinsafe.regenerate"
+    bl_label = "Re-generate Modules"
+    bl_options = {"REGISTER", "UNDO"}
+
+    poll = classmethod(lambda cls, context: _has_skin(context))
+
+    def execute(self, context):
+        scene = context.scene
+        act = context.active_object
+        try:
+            if act is not None and act.skinsafe_module.is_module:
+                designer.regenerate(scene, act)
+                errors = []
+            else:
+                errors = designer.regenerate_moved(scene)
+        except DesignError as e:
+            return _fail(self, scene, e)
+        if errors:
+            return _fail(self, scene, DesignError("; ".join(errors)))
+        return _ok(self, scene, "modules re-generated")
+
+
+class SKINSAFE_OT_remove_module(bpy.types.Operator):
+    """Remove the active skin module"""
+
+    bl_idname = "skinsafe.remove_module"
+    bl_label = "Remove Module"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return context.active_object is not None and context.active_object.skinsafe_module.is_module
+
+    def execute(self, context):
+        name = context.active_object.name
+        designer.remove(context.scene, context.active_object)
+        return _ok(self, context.scene, f"removed {name}")
+
+
+class SKINSAFE_OT_assign_boards(bpy.types.Operator):
+    """Assign whole modules to interface boards of the given channel capacity"""
+
+    bl_idname = "skinsafe.assign_boards"
+    bl_label = "Assign Boards"
+    bl_options = {"REGISTER", "UNDO"}
+
+    poll = classmethod(lambda cls, context: _has_skin(context))
+
+    def execute(self, context):
+        try:
+            d = designer.assign_boards(context.scene)
+        except DesignError as e:
+            return _fail(self, context.scene, e)
+        return _ok(self, context.scene, f"{len(d.modules)} modules on {len(d.boards)} boards")
+
+
+class SKINSAFE_OT_map_jacobians(bpy.types.Operator):
+    """Heat map of per-taxel retractability |J_p^T z| at the current pose"""
+
+    bl_idname = "skinsafe.map_jacobians"
+    bl_label = "Map Jacobians"
+    bl_options = {"REGISTER", "UNDO"}
+
+    poll = classmethod(lambda cls, context: _has_skin(context))
+
+    def execute(self, context):
+        try:
+            v = designer.map_jacobians(context.scene)
+        except DesignError as e:
+            return _fail(self, context.scene, e)
+        for area in context.screen.areas if context.screen else ():
+            for space in area.spaces:
+                if space.type == "VIEW_3D":
+                    space.shading.color_type = "VERTEX"
+        return _ok(self, context.scene, f"retractability min {v.min():.3f}, median {np.median(v):.3f} m/s per rad/s")
+
+
+class SKINSAFE_OT_coverage(bpy.types.Operator):
+    """Coverage report: skinned area, taxel count and density per link"""
+
+    bl_idname = "skinsafe.coverage"
+    bl_label = "Coverage Report"
+    bl_options = {"REGISTER", "UNDO"}
+
+    poll = classmethod(lambda cls, context: _has_skin(context))
+
+    def execute(self, context):
+        rep = designer.coverage(context.scene)
+        context.scene.skinsafe.coverage_text = format_report(rep)
+        t = rep["total"]
+        return _ok(self, context.scene, f"{t['taxels']} taxels, {t['modules']} modules, {t['boards']} boards")
+
+
+class SKINSAFE_OT_export_taxel_map(bpy.types.Operator, ExportHelper):
+    """Save the skin design as a taxel map (JSON)"""
+
+    bl_idname = "skinsafe.export_taxel_map"
+    bl_label = "Export Taxel Map"
+    filename_ext = ".json"
+
+    poll = classmethod(lambda cls, context: _has_skin(context))
+
+    def execute(self, context):
+        scene = context.scene
+        try:
+            path = taxel_map.save(b2c.design_of(scene), self.filepath, b2c.robot_for(scene).body_names)
+        except (DesignError, OSError) as e:
+            return _fail(self, scene, e)
+        return _ok(self, scene, f"wrote {path}")
+
+
+class SKINSAFE_OT_toggle_frames(bpy.types.Operator):
+    """Draw the taxel frames (axes or normals) in the viewport"""
+
+    bl_idname = "skinsafe.toggle_frames"
+    bl_label = "Toggle Taxel Frames"
+
+    def execute(self, context):
+        s = context.scene.skinsafe
+        s.show_frames = not s.show_frames
+        for area in context.screen.areas if context.screen else ():
+            area.tag_redraw()
+        return {"FINISHED"}
+
+
+CLASSES = (SKINSAFE_OT_import_robot, SKINSAFE_OT_set_pose, SKINSAFE_OT_place_module, SKINSAFE_OT_regenerate,
+           SKINSAFE_OT_remove_module, SKINSAFE_OT_assign_boards, SKINSAFE_OT_map_jacobians, SKINSAFE_OT_coverage,
+           SKINSAFE_OT_export_taxel_map, SKINSAFE_OT_toggle_frames)
+
+
+def register():
+    for c in CLASSES:
+        bpy.utils.register_class(c)
+
+
+def unregister():
+    for c in reversed(CLASSES):
+        bpy.utils.unregister_class(c)

@@ -1,0 +1,72 @@
+"""Build the Blender extension zip: the add-on files, a skinsafe wheel built from this checkout
+and (unless --no-deps) the wheels of its runtime dependencies that Blender does not ship.
+
+    python addon/package.py [--out dist] [--no-deps]
+
+Runs Blender's own extension builder (`blender --command extension build`, here through the bpy
+module's bundled `blender_ext.py`), which validates the manifest and writes
+`skinsafe-<version>.zip`. Not shipped in the zip (see blender_manifest.toml)."""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+# Runtime dependencies of skinsafe.core that Blender's Python lacks (Blender ships numpy).
+DEPS = ["mujoco", "scipy", "tqdm"]
+PLATFORM = ["--platform", "manylinux_2_28_x86_64", "--platform", "manylinux2014_x86_64",
+            "--python-version", "3.11", "--only-binary=:all:"]
+
+
+def blender_ext() -> Path:
+    spec = importlib.util.find_spec("bpy")
+    if spec is None or spec.origin is None:
+        sys.exit("package: the bpy module is not installed; run with the project's venv python")
+    found = sorted(Path(spec.origin).parent.glob("*/scripts/addons_core/bl_pkg/cli/blender_ext.py"))
+    if not found:
+        sys.exit("package: blender_ext.py not found in the bpy module; use `blender --command extension build`")
+    return found[-1]
+
+
+def build(out: Path, with_deps: bool = True) -> Path:
+    stage = ROOT / "build" / "addon" / "skinsafe"
+    shutil.rmtree(stage, ignore_errors=True)
+    wheels = stage / "wheels"
+    wheels.mkdir(parents=True)
+    for f in list(HERE.glob("*.py")) + [HERE / "blender_manifest.toml"]:
+        if f.name != "package.py":
+            shutil.copy2(f, stage / f.name)
+    pip = [sys.executable, "-m", "pip", "--disable-pip-version-check", "-q"]
+    subprocess.run(pip + ["wheel", "--no-deps", "--no-build-isolation", "-w", str(wheels), str(ROOT)], check=True)
+    if with_deps:
+        subprocess.run(pip + ["download", "--no-deps", "-d", str(wheels)] + PLATFORM + DEPS, check=True)
+    names = sorted(f"./wheels/{w.name}" for w in wheels.glob("*.whl"))
+    manifest = stage / "blender_manifest.toml"
+    text = re.sub(r"(?m)^wheels = \[\]$", "wheels = [\n" + "".join(f'  "{n}",\n' for n in names) + "]",
+                  manifest.read_text())
+    manifest.write_text(text)
+    out.mkdir(parents=True, exist_ok=True)
+    version = re.search(r'(?m)^version = "([^"]+)"', text).group(1)
+    target = out / f"skinsafe-{version}.zip"
+    subprocess.run([sys.executable, str(blender_ext()), "build", "--source-dir", str(stage),
+                    "--output-filepath", str(target)], check=True, cwd=stage)
+    return target
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", default=str(ROOT / "dist"), help="folder for the zip (default dist/)")
+    p.add_argument("--no-deps", action="store_true", help="bundle only the skinsafe wheel (offline builds, tests)")
+    a = p.parse_args()
+    print(build(Path(a.out), not a.no_deps))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

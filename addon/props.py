@@ -1,0 +1,79 @@
+"""Properties: the scene's robot, pose and new-module settings; each module object's template."""
+import bpy
+from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty, FloatVectorProperty,
+                       IntProperty, PointerProperty, StringProperty)
+
+TEMPLATES = [("rect", "Rectangle", "rows x cols grid"), ("strip", "Strip", "one row of taxels"),
+             ("curve", "Curve outline", "the grid cells inside a closed curve")]
+METHODS = [("geodesic", "Geodesic", "walk the surface: spacing on the surface equals the pitch"),
+           ("projection", "Projection", "drop a flat grid onto the surface")]
+
+
+def _pose_changed(self, context):
+    from .core_to_blender import apply_pose
+    apply_pose(context.scene)
+
+
+class SkinsafeJoint(bpy.types.PropertyGroup):
+    value: FloatProperty(name="Angle", update=_pose_changed, precision=4)
+    lower: FloatProperty()
+    upper: FloatProperty()
+
+
+class SkinsafeTemplate(bpy.types.PropertyGroup):
+    """An FPC module template (on the scene: for new modules; on a module object: its own)."""
+
+    template: EnumProperty(name="Template", items=TEMPLATES, default="rect")
+    method: EnumProperty(name="Wrap", items=METHODS, default="geodesic")
+    rows: IntProperty(name="Rows", default=8, min=1, max=256)
+    cols: IntProperty(name="Cols", default=8, min=1, max=256)
+    pitch: FloatProperty(name="Pitch", default=0.01, min=1e-4, max=0.2, unit="LENGTH", precision=4)
+    taxel_diameter: FloatProperty(name="Taxel diameter", default=0.006, min=1e-4, max=0.2, unit="LENGTH", precision=4)
+    margin: FloatProperty(name="Margin", default=0.002, min=0.0, max=0.1, unit="LENGTH", precision=4)
+    min_bend_radius: FloatProperty(name="Min bend radius", default=0.01, min=0.0, max=10.0, unit="LENGTH", precision=4)
+    outline: PointerProperty(name="Outline", type=bpy.types.Object, description="closed curve for the 'curve' template")
+
+
+class SkinsafeModule(bpy.types.PropertyGroup):
+    is_module: BoolProperty(default=False)
+    module_id: IntProperty(default=-1)
+    body: StringProperty()
+    settings: PointerProperty(type=SkinsafeTemplate)
+    placed_matrix: FloatVectorProperty(size=16)  # matrix_local at the last placement (to detect moves)
+    error: StringProperty()
+
+
+class SkinsafeScene(bpy.types.PropertyGroup):
+    robot_kind: StringProperty(default="")
+    robot_name: StringProperty(default="")
+    robot_path: StringProperty(default="", subtype="FILE_PATH")
+    joints: CollectionProperty(type=SkinsafeJoint)
+    new_module: PointerProperty(type=SkinsafeTemplate)
+    board_capacity: IntProperty(name="Board channels", default=256, min=1, max=65536)
+    force_threshold: FloatProperty(name="Force threshold (N)", default=2.0, min=0.0)
+    auto_regenerate: BoolProperty(name="Re-generate on move", default=True)
+    show_frames: BoolProperty(name="Show frames", default=False)
+    frame_style: EnumProperty(name="Draw", items=[("AXES", "Axes", "x, y, z per taxel"),
+                                                  ("NORMALS", "Normals", "z only")], default="AXES")
+    frame_scale: FloatProperty(name="Axis length", default=0.01, min=1e-4, unit="LENGTH")
+    message: StringProperty(default="")
+    error: StringProperty(default="")
+    coverage_text: StringProperty(default="")
+    design_rev: IntProperty(default=0)  # bumped with every stored design (undo-safe cache key)
+
+
+CLASSES = (SkinsafeJoint, SkinsafeTemplate, SkinsafeModule, SkinsafeScene)
+
+
+def register():
+    for c in CLASSES:
+        bpy.utils.register_class(c)
+    bpy.types.Scene.skinsafe = PointerProperty(type=SkinsafeScene)
+    bpy.types.Object.skinsafe_module = PointerProperty(type=SkinsafeModule)
+
+
+def unregister():
+    del bpy.types.Object.skinsafe_module
+    del bpy.types.Scene.skinsafe
+    for c in reversed(CLASSES):
+        bpy.utils.unregister_class(c)

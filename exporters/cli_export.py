@@ -1,0 +1,45 @@
+"""`skinsafe export MAP OUT_DIR`: a taxel map to a MuJoCo scene folder (scene.xml, meshes/, taxel_map.json)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from ..core import taxel_map
+from ..core.robots import load_robot
+from ..core.skin import DesignError
+from .mjcf import ExportOptions, Obstacle, export_scene
+from .meshes import MODES
+
+
+def add_arguments(p) -> None:
+    d = ExportOptions()
+    p.add_argument("map", help="taxel map JSON (from the add-on or `skinsafe sample`)")
+    p.add_argument("out_dir", help="folder to write scene.xml, meshes/ and taxel_map.json into")
+    p.add_argument("--collision", choices=MODES, default=d.collision,
+                   help="collision geometry of mesh robots (default %(default)s)")
+    p.add_argument("--target-faces", type=int, default=d.target_faces, help="faces for --collision decimate")
+    p.add_argument("--no-visual", action="store_true", help="drop visual-only meshes")
+    p.add_argument("--no-sites", action="store_true", help="no taxel sites")
+    p.add_argument("--touch", action="store_true", help="add one MuJoCo touch sensor per taxel (slow reference)")
+    p.add_argument("--no-prune", action="store_true", help="keep contacts on bodies nothing can touch")
+    p.add_argument("--timestep", type=float, default=None, help="physics timestep, s (default: the robot's)")
+    p.add_argument("--probe", type=float, default=None, metavar="RADIUS",
+                   help="add a mocap sphere 'probe' of this radius (m) to poke the skin with")
+
+
+def run(args) -> int:
+    path = Path(args.map)
+    try:
+        design = taxel_map.load(path)
+        robot = load_robot(design.robot, base_dir=path.parent)
+        options = ExportOptions(collision=args.collision, target_faces=args.target_faces, visual=not args.no_visual,
+                                taxel_sites=not args.no_sites, touch_sensors=args.touch,
+                                prune_contacts=not args.no_prune, timestep=args.timestep)
+        obstacles = [Obstacle("probe", "sphere", (args.probe,), pos=(0, 0, -1), mocap=True)] if args.probe else []
+        scene = export_scene(design, robot, args.out_dir, obstacles, options)
+    except (DesignError, ValueError) as e:
+        print(f"skinsafe export: {e}", file=sys.stderr)
+        return 1
+    print(f"wrote {scene} ({design.n_taxels} taxels on {len(design.bodies)} bodies) and "
+          f"{Path(args.out_dir) / 'taxel_map.json'}")
+    return 0
