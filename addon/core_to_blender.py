@@ -163,7 +163,8 @@ def show_heat(scene, design, values: np.ndarray) -> None:
 def store_design(scene, design) -> None:
     """Keep the design in the .blend (text datablock, taxel-map JSON) and in the session cache."""
     text = bpy.data.texts.get(TEXT_NAME) or bpy.data.texts.new(TEXT_NAME)
-    text.from_string(json.dumps(taxel_map.to_dict(design), separators=(",", ":"), allow_nan=False))
+    # One value per line: Blender's text editor is quadratic in the length of a line.
+    text.from_string(json.dumps(taxel_map.to_dict(design), indent=0, separators=(",", ":"), allow_nan=False))
     scene.skinsafe.design_rev += 1
     _designs[scene.name] = (scene.skinsafe.design_rev, design)
 

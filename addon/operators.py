@@ -255,6 +255,31 @@ class SKINSAFE_OT_export_taxel_map(bpy.types.Operator, ExportHelper):
         return _ok(self, scene, f"wrote {path}")
 
 
+class SKINSAFE_OT_export_mjcf(bpy.types.Operator):
+    """Export the robot with its skin as a MuJoCo scene (scene.xml, meshes/, taxel_map.json)"""
+
+    bl_idname = "skinsafe.export_mjcf"
+    bl_label = "Export MuJoCo Scene"
+
+    directory: StringProperty(name="Folder", subtype="DIR_PATH")
+
+    poll = classmethod(lambda cls, context: _has_skin(context))
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        from skinsafe.exporters.mjcf import export_scene
+
+        scene = context.scene
+        try:
+            path = export_scene(b2c.design_of(scene), b2c.robot_for(scene), bpy.path.abspath(self.directory))
+        except (DesignError, OSError) as e:
+            return _fail(self, scene, e)
+        return _ok(self, scene, f"wrote {path}")
+
+
 class SKINSAFE_OT_toggle_frames(bpy.types.Operator):
     """Draw the taxel frames (axes or normals) in the viewport"""
 
@@ -271,7 +296,7 @@ class SKINSAFE_OT_toggle_frames(bpy.types.Operator):
 
 CLASSES = (SKINSAFE_OT_import_robot, SKINSAFE_OT_set_pose, SKINSAFE_OT_place_module, SKINSAFE_OT_regenerate,
            SKINSAFE_OT_remove_module, SKINSAFE_OT_assign_boards, SKINSAFE_OT_map_jacobians, SKINSAFE_OT_coverage,
-           SKINSAFE_OT_export_taxel_map, SKINSAFE_OT_toggle_frames)
+           SKINSAFE_OT_export_taxel_map, SKINSAFE_OT_export_mjcf, SKINSAFE_OT_toggle_frames)
 
 
 def register():

@@ -18,8 +18,9 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-# Runtime dependencies of skinsafe.core that Blender's Python lacks (Blender ships numpy).
-DEPS = ["mujoco", "scipy", "tqdm"]
+# Runtime dependencies of skinsafe.core that Blender's Python lacks (Blender ships numpy; mujoco 4 keeps
+# its compiled library in mujoco-core; its viewer packages are not needed).
+DEPS = ["mujoco", "mujoco-core", "scipy", "tqdm"]
 PLATFORM = ["--platform", "manylinux_2_28_x86_64", "--platform", "manylinux2014_x86_64",
             "--python-version", "3.11", "--only-binary=:all:"]
 
@@ -45,7 +46,9 @@ def build(out: Path, with_deps: bool = True) -> Path:
     pip = [sys.executable, "-m", "pip", "--disable-pip-version-check", "-q"]
     subprocess.run(pip + ["wheel", "--no-deps", "--no-build-isolation", "-w", str(wheels), str(ROOT)], check=True)
     if with_deps:
-        subprocess.run(pip + ["download", "--no-deps", "-d", str(wheels)] + PLATFORM + DEPS, check=True)
+        from importlib.metadata import version  # the versions this checkout is tested with
+        pinned = [f"{d}=={version(d)}" for d in DEPS]
+        subprocess.run(pip + ["download", "--no-deps", "-d", str(wheels)] + PLATFORM + pinned, check=True)
     names = sorted(f"./wheels/{w.name}" for w in wheels.glob("*.whl"))
     manifest = stage / "blender_manifest.toml"
     text = re.sub(r"(?m)^wheels = \[\]$", "wheels = [\n" + "".join(f'  "{n}",\n' for n in names) + "]",

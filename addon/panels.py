@@ -74,6 +74,7 @@ class SKINSAFE_PT_analysis(_Panel, bpy.types.Panel):
         for line in s.coverage_text.splitlines():
             col.label(text=line)
         col.operator("skinsafe.export_taxel_map")
+        col.operator("skinsafe.export_mjcf")
 
 
 def _wrap(text: str, width: int = 60):

@@ -13,8 +13,8 @@ import numpy as np
 import torch
 
 from .modulation import ModulationLayer, modulate
-from .potential import (DangerPotential, EulerDynamics, UniformPolicy, nstep_trade,
-                        potential_and_normal)
+from .potential import (DangerPotential, EulerDynamics, UniformPolicy, nstep_trade, potential_and_normal,
+                        single_thread_blas)
 from .tdm import TactileDangerModel
 from .timing import median_ms
 
@@ -62,6 +62,7 @@ def nstep_rows(hidden: int) -> list[dict]:
 
 def rows(args) -> list[dict]:
     torch.set_num_threads(1)
+    single_thread_blas()
     out = modulation_rows(args.taxels, args.hidden, args.repeat)
     if not args.no_full:
         from .safety_stack import full_tick_rows

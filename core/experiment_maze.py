@@ -131,13 +131,14 @@ def plot_curves(runs: list[dict], methods: list[str], path: Path, window: int = 
                 curves = np.array([r[key] for r in runs if r["method"] == m], float)
                 if curves.size == 0:
                     continue
-                k = max(1, min(window, curves.shape[1]))
+                k = max(1, min(window, curves.shape[1] // 3))
                 smooth = np.array([np.convolve(c, np.ones(k) / k, mode="valid") for c in curves])
                 mean = smooth.mean(0)
                 half = 1.96 * smooth.std(0, ddof=1) / np.sqrt(len(smooth)) if len(smooth) > 1 else 0 * mean
                 x = np.arange(len(mean)) + k
-                ax.plot(x, mean, label=m, lw=2 if m.endswith("-TDM") else 1.2)
-                ax.fill_between(x, mean - half, mean + half, alpha=0.2)
+                color = f"C{METHODS.index(m)}"
+                ax.plot(x, mean, label=m, color=color, marker=".", lw=2 if m.endswith("-TDM") else 1.2)
+                ax.fill_between(x, mean - half, mean + half, color=color, alpha=0.2)
             ax.set_ylabel("episode return" if key == "returns" else "contact events per episode")
             ax.grid(alpha=0.3)
             if row == 1:
@@ -145,7 +146,7 @@ def plot_curves(runs: list[dict], methods: list[str], path: Path, window: int = 
             if row == 0:
                 ax.set_title(["SAC and AC: plain, -RP, -TDM", "-TDM vs safe-RL baselines"][col])
                 ax.legend(fontsize=8)
-    fig.suptitle(f"Maze (paper Fig. 9): mean over seeds, 95% confidence band, moving average of {window}")
+    fig.suptitle("Maze (paper Fig. 9): mean over seeds with 95% confidence band (moving average)")
     fig.tight_layout()
     tmp = path.with_name(f".{path.name}.tmp.png")
     fig.savefig(tmp, dpi=110)

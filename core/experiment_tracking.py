@@ -35,6 +35,7 @@ from .potential import DangerPotential, EulerDynamics, NStepConfig, UniformPolic
 from .tdm import TactileDangerModel, train_tdm
 
 METHODS = ("vanilla", "tdm", "tdm2")
+STATE = 4  # s = (pan, lift, elbow, wrist 1) angles, a = their commanded velocities
 
 
 @dataclass
@@ -47,6 +48,7 @@ class TrackingConfig:
     duration: float = 6.0  # s per episode (one sweep out and back)
     control_dt: float = 0.02  # s per control tick
     gain: float = 3.0  # 1/s, joint-space position feedback
+    max_error: float = 0.15  # rad, the feedback error is saturated here (no wind-up into an obstacle)
     lead: float = 0.2  # rad, most the servo target may run ahead of the joint (anti wind-up)
     pitch: float = 0.01  # sample skin pitch (m)
     n_balls: int = 3
@@ -54,20 +56,24 @@ class TrackingConfig:
     penetration: float = 0.02  # m the balls reach into the nominal sweep of the arm
     ball_solimp: tuple = (0.0, 0.1, 0.05, 0.5, 2.0)  # compliant balls (MuJoCo solimp): the arm pushes through
     jitter: float = 0.01  # m, ball position noise per seed
-    traj_noise: float = 0.03  # rad, trajectory offset noise per episode
+    traj_noise: float = 0.01  # rad, trajectory offset noise per episode
     hidden: int = 64
-    epochs: int = 25
+    steps: int = 400  # gradient steps per re-training (warm start), spread over all experience
+    batch_size: int = 64
+    augment: int = 3  # noisy copies of each state in the TDM's training set
+    state_noise: float = 0.03  # rad, their noise (also the n-step distillation's neighbourhood)
     lr: float = 3e-3
     horizon: int = 2
     gamma: float = 0.9
-    samples: int = 16
+    samples: int = 8
     rollout_dt: float = 0.15  # s per step of the n-step rollouts
     action_range: float = 1.0  # rad/s, the uniform policy's box
     distill_epochs: int = 40
+    distill_points: int = 1500  # experience states (at most) the n-step targets are estimated at
 
     @staticmethod
     def quick() -> "TrackingConfig":
-        return TrackingConfig(episodes=3, seeds=(0,), pitch=0.02, duration=4.0, epochs=20, distill_epochs=25, samples=8)
+        return TrackingConfig(episodes=3, seeds=(0,), pitch=0.02, steps=200, distill_epochs=25, samples=8)
 
 
 @dataclass
@@ -77,8 +83,8 @@ class Episode:
     contacts: int  # control ticks with a tactile danger event
     onsets: int  # ticks where contact starts after a free tick
     tracking_error: float  # m, mean end-effector distance to the desired path
-    states: np.ndarray = field(repr=False)  # (T, 6) q
-    actions: np.ndarray = field(repr=False)  # (T, 6) commanded velocity (the TDM's action)
+    states: np.ndarray = field(repr=False)  # (T, STATE) q of the moving joints
+    actions: np.ndarray = field(repr=False)  # (T, STATE) their nominal commanded velocity (the TDM's action)
     dangers: np.ndarray = field(repr=False)  # (T, N) bool events during the tick
     ee: np.ndarray = field(repr=False)  # (T, 3)
     ee_desired: np.ndarray = field(repr=False)  # (T, 3)
@@ -118,9 +124,9 @@ class TrackingScene:
                                         "wrist_1_joint", "wrist_2_joint", "wrist_3_joint")])
 
     def desired(self, t: float, offset: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """q_d(t) and its rate: a pan sweep from -1 rad to 1 and back, the elbow bobbing."""
+        """q_d(t) and its rate: a pan sweep from -1 rad to 1 and back."""
         w = 2 * np.pi / self.cfg.duration
-        amp = np.array([-1.0, 0.12, -0.18, 0.1, 0.0, 0.0])
+        amp = np.array([-1.0, 0.0, 0.0, 0.0, 0.0, 0.0])
         freq = np.array([w, 2 * w, 2 * w, 2 * w, 0, 0])
         shift = np.array([np.pi / 2, 0, 0, 0, 0, 0])  # pan = -cos(w t)
         q = self.robot.home + amp * np.sin(freq * t + shift) + (0 if offset is None else offset)
@@ -164,8 +170,10 @@ def run_episode(scene: TrackingScene, layer: ModulationLayer | None, rng: np.ran
         t = k * cfg.control_dt
         q = d.qpos[scene.qadr].copy()
         qd_, vd_ = scene.desired(t + cfg.control_dt, offset)
-        v_nom = vd_ + cfg.gain * (qd_ - q)
-        v = v_nom if layer is None else layer(q, v_nom)[0]
+        v_nom = vd_ + cfg.gain * np.clip(qd_ - q, -cfg.max_error, cfg.max_error)
+        v = v_nom.copy()
+        if layer is not None:  # the modulated state: the joints the task moves (wrist 2 and 3 are held)
+            v[:STATE] = layer(q[:STATE], v_nom[:STATE])[0]
         v = v * min(1.0, float(np.min(vmax / np.maximum(np.abs(v), 1e-12))))
         # integrate the command; the servo target never runs more than `lead` ahead (anti wind-up)
         q_cmd = np.clip(q_cmd + v * cfg.control_dt, q - cfg.lead, q + cfg.lead)
@@ -175,8 +183,8 @@ def run_episode(scene: TrackingScene, layer: ModulationLayer | None, rng: np.ran
             mujoco.mj_step(m, d)
             peak = np.maximum(peak, scene.readout.read(d))
         dangers[k] = peak > scene.thresholds
-        S.append(q)
-        A.append(v_nom)
+        S.append(q[:STATE])
+        A.append(v_nom[:STATE])
         X.append(d.site_xpos[scene.flange].copy())
         scene.kin.update(scene.desired(t + cfg.control_dt, offset)[0])
         XD.append(scene.kin.data.site_xpos[scene.kin_flange].copy())
@@ -197,7 +205,7 @@ class Learner:
     def __init__(self, cfg: TrackingConfig, n_taxels: int, nstep: bool, seed: int):
         self.cfg, self.nstep, self.seed = cfg, nstep, seed
         torch.manual_seed(seed)
-        self.tdm = TactileDangerModel(6, 6, n_taxels, (cfg.hidden, cfg.hidden))
+        self.tdm = TactileDangerModel(STATE, STATE, n_taxels, (cfg.hidden, cfg.hidden))
         with torch.no_grad():  # prior: 1% total danger spread over the taxels, not 1% per taxel
             self.tdm.head.bias.fill_(float(np.log(0.01 / n_taxels)))
         self.net = None
@@ -209,13 +217,22 @@ class Learner:
         self.A.append(ep.actions)
         self.D.append(ep.dangers)
         S, A, D = np.concatenate(self.S), np.concatenate(self.A), np.concatenate(self.D).astype(np.float32)
-        train_tdm(self.tdm, S, A, D, epochs=cfg.epochs, lr=cfg.lr, batch_size=256, seed=self.seed, progress=False)
+        # augmentation: copies of the states with small noise and the same labels, so the TDM is
+        # flat where the data does not vary (its gradient is the modulation's normal)
+        rng = np.random.default_rng(self.seed + len(self.S))
+        k = cfg.augment
+        S = np.concatenate([S] + [S + rng.normal(0, cfg.state_noise, S.shape) for _ in range(k)])
+        A, D = np.tile(A, (k + 1, 1)), np.tile(D, (k + 1, 1))
+        epochs = max(1, int(np.ceil(cfg.steps * cfg.batch_size / len(S))))
+        train_tdm(self.tdm, S, A, D, epochs=epochs, lr=cfg.lr, batch_size=cfg.batch_size, seed=self.seed + len(self.S),
+                  progress=False)
         pot = DangerPotential(self.tdm.eval())
         if not self.nstep:
             return ModulationLayer(pot)
         r = cfg.action_range
-        self.net, _ = distill_nstep(pot, S, A, EulerDynamics(cfg.rollout_dt), UniformPolicy(-r * np.ones(6), r * np.ones(6)),
-                                    NStepConfig(cfg.horizon, cfg.gamma, cfg.samples), state_noise=0.05,
+        pick = np.random.default_rng(self.seed).permutation(len(S))[: cfg.distill_points]
+        self.net, _ = distill_nstep(pot, S[pick], A[pick], EulerDynamics(cfg.rollout_dt), UniformPolicy(-r * np.ones(STATE), r * np.ones(STATE)),
+                                    NStepConfig(cfg.horizon, cfg.gamma, cfg.samples), state_noise=cfg.state_noise,
                                     epochs=cfg.distill_epochs, seed=self.seed, net=self.net)
         return ModulationLayer(self.net.eval())
 

@@ -91,8 +91,7 @@ class FastPotential:
             else:
                 raise TypeError(f"FastPotential: layer {type(m).__name__} is not supported (Linear, ReLU, Tanh)")
 
-    def __call__(self, s, a) -> tuple[np.ndarray, np.ndarray]:
-        """f (B,) and df/ds (B, d) for states (B, d) or (d,) and actions (B, m) or (m,)."""
+    def _forward(self, s, a) -> list[np.ndarray]:
         s = np.atleast_2d(np.asarray(s, dtype=np.float32))
         x = np.concatenate([s, np.atleast_2d(np.asarray(a, dtype=np.float32))], axis=1)
         if self.mean is not None:
@@ -105,6 +104,19 @@ class FastPotential:
             elif kind == "tanh":
                 x = np.tanh(x)
             acts.append(x)
+        return acts
+
+    def log_safety(self, s, a) -> np.ndarray:
+        """log p(not D | s, a) (B,) of a TDM potential (eq. 1 in log space), no gradient."""
+        if self.output != "total_danger":
+            raise TypeError("FastPotential.log_safety needs a DangerPotential over a TDM")
+        return log_expit(-self._forward(s, a)[-1]).sum(axis=1, dtype=np.float64)
+
+    def __call__(self, s, a) -> tuple[np.ndarray, np.ndarray]:
+        """f (B,) and df/ds (B, d) for states (B, d) or (d,) and actions (B, m) or (m,)."""
+        d = np.shape(s)[-1]
+        acts = self._forward(s, a)
+        x = acts[-1]
         if self.output == "total_danger":
             log_safe = log_expit(-x).sum(axis=1, dtype=np.float64)  # eq. 1 in log space
             f = -np.expm1(log_safe)
@@ -121,7 +133,28 @@ class FastPotential:
             g = g @ w
         if self.std is not None:
             g = g / self.std
-        return f, g[:, :s.shape[1]].astype(np.float64)
+        return f, g[:, :d].astype(np.float64)
+
+
+def single_thread_blas() -> bool:
+    """Pin numpy's OpenBLAS to one thread (for control ticks of single-row products: on a busy
+    machine its worker threads make a 0.3 ms tick take 15 ms). True if a BLAS was found."""
+    import ctypes
+
+    try:
+        with open("/proc/self/maps") as f:
+            paths = {line.split()[-1] for line in f if "openblas" in line.lower() and line.strip().endswith(".so")
+                     or "openblas" in line.lower() and ".so" in line.split()[-1]}
+    except OSError:
+        return False
+    done = False
+    for path in paths:
+        lib = ctypes.CDLL(path)
+        for name in ("openblas_set_num_threads64_", "openblas_set_num_threads", "scipy_openblas_set_num_threads64_"):
+            if hasattr(lib, name):
+                getattr(lib, name)(1)
+                done = True
+    return done
 
 
 # ---------------------------------------------------------------- n-step potential (eq. 8)

@@ -5,11 +5,13 @@ deploy_s: measured wall time of deploy + verify (verify "readback": the whole co
 --baud (8N1); wire_s: the bytes each link carried x 10 bits / baud (the
 slowest link; boards deploy in parallel). decode_x_wire: how many times faster than real time
 one second of streaming from all channels at --rate is parsed (CRCs checked), decoded to newtons
-and put in taxel order; speedup_vs_loop compares with decoding frame by frame via FSRModel.decode.
+and put in taxel order (wall-time median; decode_cpu_x_wire the same from this process's CPU
+time, which a loaded machine skews less); speedup_vs_loop compares with decoding frame by frame via FSRModel.decode.
 """
 from __future__ import annotations
 
 import tempfile
+import time
 
 import numpy as np
 
@@ -19,7 +21,7 @@ from . import protocol as P
 from .board_config import board_configs, channel_rows, default_sensor
 from .deploy import deploy
 from .emulator import EmulatorProcess
-from .stream import decode_payloads, decode_table
+from .stream import decode_frames, decode_table
 
 
 def flat_design(n_taxels: int, n_boards: int, threshold: float = 5.0, uid_base: int = 0x5C1A0000) -> SkinDesign:
@@ -66,13 +68,13 @@ def decode_all(design: SkinDesign, wires: list[bytes], table: np.ndarray, read_s
     """Parse and decode every board's bytes (read in `read_size` pieces) into the latest (N,) forces."""
     force = np.full(design.n_taxels, np.nan)
     for b, wire in zip(design.boards, wires):
-        parser = P.FrameParser()
+        parser = P.FrameParser(runs=True)
         rows = channel_rows(design, b)
         channels = design.taxels.channel[rows]
         for i in range(0, len(wire), read_size):
             frames = parser.feed(wire[i:i + read_size])
             if frames:
-                _, f = decode_payloads([x.payload for x in frames], b.capacity, channels, table)
+                _, f = decode_frames(frames, b.capacity, channels, table)
                 force[rows] = f[-1]
     return force
 
@@ -86,6 +88,16 @@ def decode_loop(design: SkinDesign, wires: list[bytes], decode, n_frames: int) -
         for fr in P.FrameParser().feed(wire)[:n_frames]:
             force[rows] = decode(np.frombuffer(fr.payload, "<u2", b.capacity, P.STREAM_HEAD.size)[channels])
     return force
+
+
+def cpu_median_ms(fn, repeat: int) -> float:
+    """Median CPU time of this process for `fn()`, ms: the decode figure other processes' load does not skew."""
+    times = []
+    for _ in range(repeat):
+        t0 = time.process_time()
+        fn()
+        times.append(time.process_time() - t0)
+    return float(np.median(times) * 1e3)
 
 
 def rows(args) -> list[dict]:
@@ -112,6 +124,7 @@ def rows(args) -> list[dict]:
                 pushes[verify] = (median_ms(push, repeat=args.repeat, warmup=1), list(reports))
         wires = stream_bytes(design, args.rate)
         fast_ms = median_ms(lambda: decode_all(design, wires, table), repeat=args.repeat, warmup=1)
+        cpu_ms = cpu_median_ms(lambda: decode_all(design, wires, table), args.repeat)
         n_ref = max(1, args.rate // 20)
         loop_ms = median_ms(lambda: decode_loop(design, wires, fsr.decode, n_ref), repeat=args.repeat, warmup=1)
         check = decode_all(design, [w[:len(w) // args.rate * n_ref] for w in wires], table)
@@ -125,6 +138,7 @@ def rows(args) -> list[dict]:
                 "wire_bytes": sum(r.tx_bytes + r.rx_bytes for r in reports),
                 "decode_ms_per_s": fast_ms,
                 "decode_x_wire": 1e3 / fast_ms,
+                "decode_cpu_x_wire": 1e3 / cpu_ms,
                 "speedup_vs_loop": loop_ms * args.rate / n_ref / fast_ms,
             })
     return out

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import collections
+import select
 import time
 
 import numpy as np
@@ -37,7 +38,7 @@ class BoardClient:
         except (serial.SerialException, OSError, ValueError) as e:
             raise BoardError(f"{port}: cannot open the serial port ({e}); check the path and permissions") from None
         self.ser.reset_input_buffer()
-        self.parser = P.FrameParser()
+        self.parser = P.FrameParser(runs=True)
         self.stream = collections.deque(maxlen=100_000)
         self.seq = 0
         self.tx_bytes = self.rx_bytes = self.resent = 0
@@ -60,7 +61,10 @@ class BoardClient:
 
     # -- transport ---------------------------------------------------------------------------
     def _read(self) -> list[P.Frame]:
-        data = self.ser.read(self.ser.in_waiting or 1)
+        try:
+            data = self.ser.read(self.ser.in_waiting or 1)
+        except (serial.SerialException, OSError) as e:
+            raise BoardError(f"{self.port}: the serial link failed ({e}); check the cable and the board") from None
         self.rx_bytes += len(data)
         frames = []
         for f in self.parser.feed(data) if data else ():
@@ -84,7 +88,10 @@ class BoardClient:
                 time.sleep(min(self.backoff * 2 ** (attempt - 1), 1.0))
             self.seq = (self.seq + 1) & 0xFFFF
             frame = P.encode_frame(msg_type, self.seq, self.uid, payload)
-            self.ser.write(frame)
+            try:
+                self.ser.write(frame)
+            except (serial.SerialException, OSError) as e:
+                raise BoardError(f"{self.port}: the serial link failed ({e}); check the cable and the board") from None
             self.tx_bytes += len(frame)
             wire = (len(frame) + self.max_chunk + 2 * P.OVERHEAD) * BITS_PER_BYTE / self.baud
             deadline = time.monotonic() + self.timeout + wire
@@ -166,14 +173,10 @@ class BoardClient:
     def reset(self) -> None:
         self.request(P.RESET)
 
-    def read_stream(self, max_wait: float = 0.01) -> list[P.Frame]:
-        """Stream frames received so far (waiting up to `max_wait` for the first bytes)."""
-        deadline = time.monotonic() + max_wait
-        while True:
-            n = self.ser.in_waiting
-            if n or time.monotonic() >= deadline:
-                break
-            time.sleep(0.0005)
+    def read_stream(self, max_wait: float = 0.01) -> list:
+        """Stream frames (Frame or FrameRun) received so far, waiting up to `max_wait` for the first bytes."""
+        if max_wait > 0 and not self.ser.in_waiting:
+            select.select([self.ser.fileno()], [], [], max_wait)
         while self.ser.in_waiting:
             self._read()
         out = list(self.stream)

@@ -29,7 +29,7 @@ import numpy as np
 from ..core.files import atomic_write
 from ..core.skin import DesignError
 from . import protocol as P
-from .board_config import ENTRY, GAIN_ONE, BoardConfig, default_sensor
+from .board_config import ENTRY, GAIN_ONE, BoardConfig, channel_rows, default_sensor
 from .board_config import HEADER as CONFIG_HEADER
 
 BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
@@ -63,6 +63,7 @@ class EmulatedBoard:
     """One board: a pty, a flash file, a protocol handler and a streaming clock."""
 
     BOOT_S = 0.05
+    OVERRUN_S = 0.5  # how long a full link may block a send before the rest of the frame is dropped
 
     def __init__(self, spec: BoardSpec, flash_path: str | Path, baud: int | None = None,
                  replay: np.ndarray | None = None, encode=None):
@@ -91,9 +92,11 @@ class EmulatedBoard:
         if self.flash_path.exists():
             data = self.flash_path.read_bytes()
             try:
-                self.config, self.config_bytes = BoardConfig.from_bytes(data, str(self.flash_path)), data
+                cfg = BoardConfig.from_bytes(data, str(self.flash_path))
             except DesignError:
-                pass  # an unreadable flash boots without a config
+                cfg = None  # an unreadable flash boots without a config, as does one for another board
+            if cfg is not None and (cfg.uid, cfg.capacity) == (self.spec.uid, self.spec.n_channels):
+                self.config, self.config_bytes = cfg, data
         self._params_from_config()
 
     def _params_from_config(self) -> None:
@@ -140,11 +143,11 @@ class EmulatedBoard:
     def send(self, frame: bytes) -> None:
         self._pace("wire_tx", len(frame))
         data = memoryview(self._wire(frame))
-        deadline = time.monotonic() + 0.05
+        deadline = time.monotonic() + self.OVERRUN_S
         while data:
             try:
                 data = data[os.write(self.master, data):]
-            except BlockingIOError:  # nobody reads: a UART would overrun, drop after a short wait
+            except BlockingIOError:  # a slow host holds the board back (USB flow control); a gone one loses data
                 if time.monotonic() > deadline:
                     self.tx_dropped += len(data)
                     return
@@ -328,7 +331,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--flash-dir", required=True, help="folder holding one flash file per board")
     p.add_argument("--baud", type=int, default=None, help="pace the link like a UART at this rate (8N1)")
     p.add_argument("--link-dir", help="also create symlinks board-UID -> pty here (for `deploy --all --glob`)")
-    p.add_argument("--replay", help=".npy of forces (T, channels) in N to stream instead of the synthetic press")
+    p.add_argument("--replay", help=".npy of forces in N to stream instead of the synthetic press: (T, channels), "
+                   "or (T, taxels) in the --map's taxel order (e.g. recorded from a MuJoCo simulation)")
     p.add_argument("--firmware", default="1.0.0", help="firmware version to report (fault: a wrong version)")
     p.add_argument("--protocol", type=int, default=P.PROTOCOL_VERSION, help="protocol version to speak")
     p.add_argument("--max-chunk", type=int, default=1024, help="largest config chunk the board accepts")
@@ -342,7 +346,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--exit-on-stdin-eof", action="store_true", help="stop when stdin closes (parent died)")
 
 
-def _specs(args) -> list[BoardSpec]:
+def _specs(args):
+    """(BoardSpec, the map's Board or None) per emulated board, and the map (or None)."""
     faults = Faults(args.drop, args.flip, args.delay, args.delay_p, args.reset_at_chunk, args.resets, args.seed)
     try:
         fw = tuple(int(x) for x in args.firmware.split("."))
@@ -354,21 +359,40 @@ def _specs(args) -> list[BoardSpec]:
     for b in args.board:
         uid, _, n = b.partition(":")
         try:
-            pairs.append((int(uid, 0), int(n or 256)))
+            pairs.append((int(uid, 0), int(n or 256), None))
         except ValueError:
             raise SystemExit(f"--board {b!r}: give UID:CHANNELS, e.g. 0x5C1A0000:256") from None
+    design = None
     if args.map:
         from ..core.taxel_map import load
-        pairs += [(b.uid, b.capacity) for b in load(args.map).boards]
+        design = load(args.map)
+        pairs += [(b.uid, b.capacity, b) for b in design.boards]
     if not pairs:
         raise SystemExit("give at least one --board UID:CHANNELS or --map skin.json")
-    return [BoardSpec(uid, n, fw, args.protocol, args.max_chunk, faults=faults) for uid, n in pairs]
+    return [(BoardSpec(uid, n, fw, args.protocol, args.max_chunk, faults=faults), b) for uid, n, b in pairs], design
+
+
+def board_replay(forces: np.ndarray, spec: BoardSpec, board, design) -> np.ndarray:
+    """A board's (T, channels) forces from a replay of (T, channels), or of (T, taxels) in the map's order
+    (e.g. `SkinReadout.read` recorded every step of a MuJoCo simulation)."""
+    if forces.ndim == 2 and design is not None and board is not None and forces.shape[1] == design.n_taxels:
+        rows = channel_rows(design, board)
+        out = np.zeros((len(forces), spec.n_channels))
+        out[:, design.taxels.channel[rows]] = forces[:, rows]
+        return out
+    if forces.ndim == 2 and forces.shape[1] == spec.n_channels:
+        return forces
+    taxels = f" or (T, {design.n_taxels}) taxels of the map" if design is not None else ""
+    raise SystemExit(f"--replay has shape {forces.shape}; board {spec.uid:#x} needs (T, {spec.n_channels}) "
+                     f"channels{taxels}")
 
 
 def serve(args, out=sys.stdout) -> int:
     """Start the boards, print `board UID PORT` lines and `ready`, run until a signal (or stdin EOF)."""
+    specs, design = _specs(args)
     replay = np.load(args.replay) if args.replay else None
-    boards = [EmulatedBoard(s, flash_path(args.flash_dir, s.uid), args.baud, replay) for s in _specs(args)]
+    boards = [EmulatedBoard(s, flash_path(args.flash_dir, s.uid), args.baud,
+                            None if replay is None else board_replay(replay, s, b, design)) for s, b in specs]
     links = []
     if args.link_dir:
         Path(args.link_dir).mkdir(parents=True, exist_ok=True)

@@ -7,6 +7,7 @@ boards' sample counters; corrupt frames are those whose CRC failed.
 """
 from __future__ import annotations
 
+import select
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -16,6 +17,7 @@ import numpy as np
 from ..core.skin import SkinDesign
 from .board_config import board_configs, channel_rows, default_sensor
 from .client import BoardClient, BoardError
+from .protocol import FrameRun
 
 
 def decode_table(decode: Callable | None = None) -> np.ndarray:
@@ -29,18 +31,18 @@ def frame_dtype(n_channels: int) -> np.dtype:
                      ("counts", "<u2", (n_channels,))])
 
 
-def decode_payloads(payloads: list[bytes], n_channels: int, channels: np.ndarray, table: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Stream payloads of one board -> (sample counters (F,), forces (F, len(channels)) in N).
+def decode_frames(frames: list, n_channels: int, channels: np.ndarray, table: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Stream frames (Frame or FrameRun) of one board -> (sample counters (F,), forces (F, len(channels)) in N).
 
-    Payloads of the wrong size (a board with another channel count) raise ValueError.
+    Frames of the wrong size (a board with another channel count) raise ValueError.
     """
     dt = frame_dtype(n_channels)
-    buf = b"".join(payloads)
-    if len(buf) != dt.itemsize * len(payloads):
-        bad = next(len(p) for p in payloads if len(p) != dt.itemsize)
+    parts = [f.payloads if isinstance(f, FrameRun) else np.frombuffer(f.payload, np.uint8)[None] for f in frames]
+    bad = next((p.shape[1] for p in parts if p.shape[1] != dt.itemsize), None)
+    if bad is not None:
         raise ValueError(f"stream frame of {bad} bytes, expected {dt.itemsize} for {n_channels} channels")
-    rec = np.frombuffer(buf, dt)
+    rec = (parts[0] if len(parts) == 1 else np.concatenate(parts)).view(dt)[:, 0]
     counts = rec["counts"]
     if len(channels) != n_channels or (channels != np.arange(n_channels)).any():
         counts = counts[:, channels]
@@ -140,15 +142,17 @@ class SkinStream:
         peak = np.full(self.design.n_taxels, np.nan)
         frames = 0
         per_board = {}
+        if max_wait > 0 and not any(s.client.ser.in_waiting for s in self.boards):
+            select.select([s.client.ser.fileno() for s in self.boards], [], [], max_wait)
         for s in self.boards:
-            got = s.client.read_stream(max_wait)
+            got = s.client.read_stream(0.0)
             if got:
-                samples, forces = decode_payloads([f.payload for f in got], s.n_channels, s.channels, self.table)
+                samples, forces = decode_frames(got, s.n_channels, s.channels, self.table)
                 s.lost += self._lost(s, samples)
-                s.frames += len(got)
+                s.frames += len(samples)
                 self.force[s.rows] = forces[-1]
                 peak[s.rows] = forces.max(axis=0)
-                frames += len(got)
+                frames += len(samples)
             per_board[s.board_id] = (s.frames, s.lost, s.client.parser.crc_errors)
         lost = sum(v[1] for v in per_board.values())
         corrupt = sum(v[2] for v in per_board.values())

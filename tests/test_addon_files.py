@@ -106,3 +106,17 @@ def test_extension_zip_builds_and_installs(tmp_path):
     r = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
     assert "INSTALLED-OK" in r.stdout, r.stdout[-2000:] + r.stderr[-3000:]
     assert list((tmp_path / "user").rglob("skinsafe/blender_manifest.toml"))
+
+
+def test_sample_blend_asset_holds_a_full_skin():
+    path = ROOT / "blend_assets" / "ur5_skin.blend"
+    if not path.exists():
+        pytest.skip("blend_assets/ur5_skin.blend not built; run blend_assets/build_sample.py")
+    bpy.ops.wm.open_mainfile(filepath=str(path))
+    scene = bpy.context.scene
+    d = b2c.design_of(scene)
+    assert d.n_taxels >= 2000 and len(d.boards) >= 2
+    assert {"upper_arm_link", "forearm_link", "wrist_1_link"} <= {m.body for m in d.modules}
+    assert sum(len(o.data.polygons) for o in b2c.module_objects(scene)) == d.n_taxels
+    for m in d.modules:  # each module on one board, within capacity
+        assert set(d.taxels.board[d.taxels.module == m.id].tolist()) == {m.board}

@@ -161,6 +161,9 @@ def test_jacobian_map_boards_coverage_export_and_blend_round_trip(scene, tmp_pat
     assert bpy.ops.skinsafe.export_taxel_map(filepath=str(out)) == {"FINISHED"}
     saved = taxel_map.load(out)
     assert saved.n_taxels == 192 and len(saved.boards) == 3
+    assert bpy.ops.skinsafe.export_mjcf(directory=str(tmp_path / "scene")) == {"FINISHED"}
+    m = mujoco.MjModel.from_xml_path(str(tmp_path / "scene" / "scene.xml"))
+    assert m.nbody >= 7 and taxel_map.load(tmp_path / "scene" / "taxel_map.json").n_taxels == 192
 
     blend = tmp_path / "skin.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))

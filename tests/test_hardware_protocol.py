@@ -46,6 +46,12 @@ def test_parser_byte_by_byte_with_garbage_between():
     assert p.bytes_skipped == 10 + 3 * (len(frames) - 1)  # the garbage, not the trailing half sync word
     whole = P.FrameParser().feed(wire)
     assert whole == got
+    runs = P.FrameParser(runs=True)
+    items = runs.feed(wire)
+    assert P.expand(items) == got and runs.frames == len(got)
+    items = P.FrameParser(runs=True).feed(b"".join(frames))  # back to back: the stream frames form a run
+    assert [type(x).__name__ for x in items] == ["Frame"] * 3 + ["FrameRun", "Frame"]
+    assert P.expand(items) == got and items[3].seqs.tolist() == [1, 2, 3, 4, 5]
 
 
 def test_damaged_frames_are_dropped_and_the_rest_recovered():
@@ -83,7 +89,9 @@ def test_fuzz_mutated_frames_recover_every_untouched_frame(mutations, step):
         pos += len(f)
     wire = bytearray(b"".join(frames))
     touched = set()
-    for kind, i, value in sorted(((k, w % pos, v) for k, w, v in mutations), key=lambda m: -m[1]):  # back to front
+    order = {"flip": 0, "insert": 1, "drop": 2}  # back to front; at one offset, drop last so it hits that byte
+    muts = {(k, w % pos, 0 if k == "drop" else v) for k, w, v in mutations}  # one drop per offset
+    for kind, i, value in sorted(muts, key=lambda m: (-m[1], order[m[0]], m[2])):
         touched |= {k for k, (a, b) in enumerate(spans) if (a < i if kind == "insert" else a <= i) and i < b}
         if kind == "flip":
             wire[i] ^= 1 << (value % 8)
@@ -91,8 +99,10 @@ def test_fuzz_mutated_frames_recover_every_untouched_frame(mutations, step):
             del wire[i]
         else:
             wire[i:i] = bytes([value])
-    p = P.FrameParser()
+    p, pr = P.FrameParser(), P.FrameParser(runs=True)
     got = [f for i in range(0, len(wire), step) for f in p.feed(bytes(wire[i:i + step]))]
+    assert P.expand([x for i in range(0, len(wire), step) for x in pr.feed(bytes(wire[i:i + step]))]) == got
+    assert (pr.frames, pr.crc_errors, pr.bytes_skipped) == (p.frames, p.crc_errors, p.bytes_skipped)
     encoded = [P.encode_frame(f.type, f.seq, f.uid, f.payload) for f in got]
     assert all(e in frames for e in encoded)  # nothing invented
     for k, f in enumerate(frames):

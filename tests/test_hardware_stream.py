@@ -12,7 +12,7 @@ from skinsafe.hardware.board_config import channel_rows
 from skinsafe.hardware.client import BoardClient, BoardError
 from skinsafe.hardware.deploy import deploy
 from skinsafe.hardware.emulator import EmulatorProcess
-from skinsafe.hardware.stream import SkinStream, decode_payloads, decode_table
+from skinsafe.hardware.stream import SkinStream, decode_frames, decode_table
 
 THRESHOLD = 5.0
 
@@ -31,12 +31,17 @@ def test_decode_table_matches_fsr_model_exactly():
     fsr = FSRModel()
     table = decode_table(fsr.decode)
     counts = np.random.default_rng(0).integers(0, 65536, (50, 64)).astype(np.uint16)
-    payloads = [P.STREAM_HEAD.pack(0, k, 64, 0) + c.astype("<u2").tobytes() for k, c in enumerate(counts)]
-    samples, forces = decode_payloads(payloads, 64, np.array([5, 1, 63]), table)
+    wire = b"".join(P.encode_frame(P.STREAM_DATA, k, 9, P.STREAM_HEAD.pack(0, k, 64, 0) + c.astype("<u2").tobytes())
+                    for k, c in enumerate(counts))
+    items = P.FrameParser(runs=True).feed(wire)
+    assert [type(x).__name__ for x in items] == ["Frame", "FrameRun"] and len(items[1].seqs) == 49
+    samples, forces = decode_frames(items, 64, np.array([5, 1, 63]), table)
     assert samples.tolist() == list(range(50))
     assert np.array_equal(forces, fsr.decode(counts[:, [5, 1, 63]]))
+    frames = P.expand(items)
+    short = P.Frame(*frames[1][:4], frames[1].payload[:-2])
     with pytest.raises(ValueError, match="frame of 142 bytes, expected 144 for 64 channels"):
-        decode_payloads(payloads[:1] + [payloads[1][:-2]], 64, np.arange(64), table)
+        decode_frames([frames[0], short], 64, np.arange(64), table)
     d = flat_design(96, 3)
     wires = stream_bytes(d, 5)
     assert np.array_equal(decode_all(d, wires, table), decode_loop(d, wires, fsr.decode, 5))
@@ -100,8 +105,9 @@ def test_set_params_gain_and_reset_over_the_wire(tmp_path):
             got = []
             while not got:
                 got = c.read_stream(0.1)
-            head = P.STREAM_HEAD.unpack_from(got[-1].payload)
-            counts = np.frombuffer(got[-1].payload, "<u2", 16, P.STREAM_HEAD.size)
+            last = P.expand(got)[-1].payload
+            head = P.STREAM_HEAD.unpack_from(last)
+            counts = np.frombuffer(last, "<u2", 16, P.STREAM_HEAD.size)
             base = fsr.encode(forces[0])
             assert counts[3] == 2 * base[3] and counts[5] == base[5] and counts[0] == base[0]
             assert head[3] == 5  # over threshold on the board: channels 0-2 (8 N > 5 N) and 3-4 (threshold 0)
