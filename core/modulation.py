@@ -11,6 +11,9 @@ the paper is silent (all tested in tests/test_modulation_*.py):
 - **Velocity already pointing away** (n . v < 0): by default its normal component is not slowed
   (`keep_away=True`), so the robot can always leave danger (e.g. retract from a contact); the
   paper's M (which also slows leaving motions) is `keep_away=False`. Both are continuous in v.
+- **Tangential gain**: the paper's tangential eigenvalue is `1 + f`; `tangent_gain` g makes it
+  `1 + g f` (g = 1 the paper, g = 0 never speeds a motion up: with a learned, imperfect normal,
+  amplifying "tangential" motion can drive the robot into danger faster - seen in the desk scene).
 - **f outside [0, 1]** is clipped; a **non-finite f** counts as f = 1 with no direction (stop);
   a non-finite normal counts as no direction.
 """
@@ -44,16 +47,15 @@ def _prepare(f, n, eps_grad: float):
     return f, unit, b
 
 
-def modulation_matrix(f, n, eps_grad: float = EPS_GRAD) -> np.ndarray:
+def modulation_matrix(f, n, eps_grad: float = EPS_GRAD, tangent_gain: float = 1.0) -> np.ndarray:
     """M (B, d, d) for potentials f (B,) and gradients n (B, d) (eq. 7, toward-danger form)."""
     f, u, b = _prepare(f, n, eps_grad)
     d = u.shape[1]
-    b2 = b * b
-    lam_t = (1.0 - f) + 2.0 * f * b2
-    return lam_t[:, None, None] * np.eye(d) - (2.0 * f * b2)[:, None, None] * np.einsum("bi,bj->bij", u, u)
+    lam_t = (1.0 - f) + (1.0 + tangent_gain) * f * b * b
+    return lam_t[:, None, None] * np.eye(d) - (lam_t - (1.0 - f))[:, None, None] * np.einsum("bi,bj->bij", u, u)
 
 
-def modulate(v, f, n, eps_grad: float = EPS_GRAD, keep_away: bool = True) -> np.ndarray:
+def modulate(v, f, n, eps_grad: float = EPS_GRAD, keep_away: bool = True, tangent_gain: float = 1.0) -> np.ndarray:
     """Modulated velocities `M v` (B, d) for velocities v (B, d) or (d,), f (B,), n (B, d).
 
     Computed without forming M: `lam_t v + (lam_n - lam_t) u (u . v)`.
@@ -63,7 +65,7 @@ def modulate(v, f, n, eps_grad: float = EPS_GRAD, keep_away: bool = True) -> np.
     v2 = v[None] if single else v
     f, u, b = _prepare(f, n, eps_grad)
     b2 = b * b
-    lam_t = (1.0 - f) + 2.0 * f * b2
+    lam_t = (1.0 - f) + (1.0 + tangent_gain) * f * b2
     vn = np.einsum("bi,bi->b", u, v2)
     lam_n = 1.0 - f
     if keep_away:
@@ -82,8 +84,8 @@ class ModulationLayer:
     training), others by autograd.
     """
 
-    def __init__(self, potential, eps_grad: float = EPS_GRAD, keep_away: bool = True):
-        self.eps_grad, self.keep_away = float(eps_grad), bool(keep_away)
+    def __init__(self, potential, eps_grad: float = EPS_GRAD, keep_away: bool = True, tangent_gain: float = 1.0):
+        self.eps_grad, self.keep_away, self.tangent_gain = float(eps_grad), bool(keep_away), float(tangent_gain)
         self.set_potential(potential)
 
     def set_potential(self, potential) -> None:
@@ -99,5 +101,5 @@ class ModulationLayer:
         single = np.ndim(v) == 1
         a = v if a is None else a
         f, n = self._eval(s, a)
-        out = modulate(v, f, n, self.eps_grad, self.keep_away)
+        out = modulate(v, f, n, self.eps_grad, self.keep_away, self.tangent_gain)
         return (out, float(f[0])) if single else (out, f)

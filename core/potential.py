@@ -6,8 +6,10 @@
 - The n-step potential w_phi (eq. 8): Monte Carlo rollouts through the learned potential with a
   configurable policy pi' (uniform by default), horizon T and discount gamma
   (`nstep_targets`), distilled into a small network (`NStepPotential`, `distill_nstep`) that is
-  used in place of f. w is divided by sum_t gamma^t so it stays in [0, 1] like f (the
-  modulation eigenvalue 1 - w must stay in [0, 1]); D_t is replaced by its expectation
+  used in place of f. w (a discounted sum, up to sum_t gamma^t) is clipped at 1: the
+  modulation eigenvalue 1 - w must stay in [0, 1], and "danger within the horizon for sure" is
+  all the modulation needs (dividing by sum_t gamma^t instead would cap the foresight at
+  1 / sum_t gamma^t of a certain danger one step ahead). D_t is replaced by its expectation
   f(s_t, a_t) (same mean as sampling D_t, less variance); rollouts do not stop at a danger event.
 """
 from __future__ import annotations
@@ -203,14 +205,13 @@ class NStepConfig:
 @torch.no_grad()
 def nstep_targets(potential: Potential, s0, a0, dynamics, policy, cfg: NStepConfig,
                   seed: int = 0, chunk: int = 65536) -> np.ndarray:
-    """w(s0, a0) / sum_t gamma^t (B,) estimated with `cfg.samples` rollouts of `cfg.horizon` steps
+    """min(w(s0, a0), 1) (B,) estimated with `cfg.samples` rollouts of `cfg.horizon` steps
     (evaluated `chunk` rollouts at a time to bound memory)."""
     cfg.check()
     gen = torch.Generator().manual_seed(seed)
     s_all = _as_tensor(s0, torch.float32)
     a_all = _as_tensor(a0, torch.float32)
     k = cfg.samples if cfg.horizon > 1 else 1
-    norm = sum(cfg.gamma ** t for t in range(cfg.horizon))
     rows = max(1, chunk // k)
     out = []
     for i in range(0, s_all.shape[0], rows):
@@ -222,7 +223,7 @@ def nstep_targets(potential: Potential, s0, a0, dynamics, policy, cfg: NStepConf
                 s = dynamics(s, a)
                 a = policy(s, gen)
             total += cfg.gamma ** t * potential(s, a)
-        out.append((total / norm).view(-1, k).mean(1))
+        out.append(total.view(-1, k).mean(1).clamp(max=1.0))
     return torch.cat(out).double().numpy() if out else np.zeros(0)
 
 

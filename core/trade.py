@@ -235,6 +235,8 @@ COLLISION_VALUES = ("full", "decimate2000", "decimate500", "decimate100", "hull"
 
 def collision_point(value: str, quick: bool) -> dict:
     """The sliding-probe scene on a UR5 whose links are fine meshes, collision geometry as asked."""
+    import mujoco
+
     from .bench_sensing import mesh_ur5
     from .sample_skin import make_sample_design
     from .sensing import SkinReadout
@@ -248,8 +250,6 @@ def collision_point(value: str, quick: bool) -> dict:
         model, data, step = _probe_scene(design, robot, collision=mode, target_faces=faces, taxel_sites=False)
         readout = SkinReadout(model, design)
         ms, forces = _timed_run(step, lambda: readout.read(data), steps, every=2)
-        import mujoco
-
         coll = [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH
                 and (model.geom_contype[g] or model.geom_conaffinity[g])]
         nfaces = int(sum(model.mesh_facenum[model.geom_dataid[g]] for g in coll))

@@ -33,8 +33,8 @@ def add_arguments(p) -> None:
                    help="readback: read the config back and hash it here (default); hash: the board hashes its flash")
 
 
-def find_ports(design: SkinDesign, args) -> tuple[dict[int, str], list[str]]:
-    """Board id -> port for the boards found (matched by uid), and problems to report (each a failure)."""
+def find_ports(design: SkinDesign, args) -> tuple[dict[int, str], list[str], list[str]]:
+    """Board id -> port for the boards found (matched by uid), problems (failures) and notes."""
     if not args.all and not args.port:
         raise DesignError("give --port PORT (repeatable) or --all to find the boards")
     if getattr(args, "board", None):
@@ -44,24 +44,23 @@ def find_ports(design: SkinDesign, args) -> tuple[dict[int, str], list[str]]:
         if b is None:
             raise DesignError(f"--board {args.board!r} is not a board of the map; "
                               f"use one of {[b.name for b in design.boards]}")
-        return {b.id: args.port[0]}, []
+        return {b.id: args.port[0]}, [], []
     candidates = candidate_ports(args.glob, not args.no_system_ports) if args.all else args.port
     found = discover(candidates, timeout=args.timeout, baud=args.baud)
     p = plan(design, found)
-    problems = [f"{port}: board uid {uid:#x} is not in the map; it was left alone" for uid, port in p.strangers.items()]
-    if args.all:
-        problems += [f"board {b.id} '{b.name}' uid {b.uid:#x}: not found on any port" for b in p.missing]
-    else:
-        answered = {port for port, _ in found.values()}
-        problems += [f"{port}: no board answered" for port in args.port if port not in answered]
-    return p.ports, problems
+    strangers = [f"{port}: board uid {uid:#x} is not in the map; it was left alone" for uid, port in p.strangers.items()]
+    if args.all:  # other boards on the bus are fine; a board of the map that is not there is not
+        return p.ports, [f"board {b.id} '{b.name}' uid {b.uid:#x}: not found on any port" for b in p.missing], strangers
+    answered = {port for port, _ in found.values()}
+    problems = [f"{port}: no board answered" for port in args.port if port not in answered]
+    return p.ports, problems + strangers, []  # a port given by hand holding a stranger is a mistake
 
 
 def run(args) -> int:
     try:
         design = load(args.map)
         configs = board_configs(design)
-        ports, problems = find_ports(design, args)
+        ports, problems, notes = find_ports(design, args)
     except DesignError as e:
         print(f"skinsafe deploy: {e}", file=sys.stderr)
         return 2
@@ -75,6 +74,8 @@ def run(args) -> int:
     bar.close()
     for rep in reports:
         print(rep.line())
+    for msg in notes:
+        print(f"note: {msg}")
     for msg in problems:
         print(f"problem: {msg}")
     failed = [r for r in reports if not r.ok]

@@ -48,12 +48,12 @@ class DangerPrinter:
 def run(args) -> int:
     try:
         design = load(args.map)
-        ports, problems = find_ports(design, args)
+        ports, problems, notes = find_ports(design, args)
     except DesignError as e:
         print(f"skinsafe stream: {e}", file=sys.stderr)
         return 2
-    for msg in problems:
-        print(f"problem: {msg}", file=sys.stderr)
+    for msg in notes + problems:
+        print(f"{'note' if msg in notes else 'problem'}: {msg}", file=sys.stderr)
     if not ports:
         print("skinsafe stream: no board of the map was found", file=sys.stderr)
         return 1

@@ -64,8 +64,9 @@ class BoardState:
 
 @dataclass
 class StreamUpdate:
-    """What arrived since the previous poll. `force` holds the latest reading per taxel (NaN: none yet),
-    `peak` the largest over every frame of this poll (NaN: no frame), so no contact between polls is missed."""
+    """What arrived since the previous poll. `force` holds the latest reading per taxel (NaN: none yet;
+    the stream's live array, copy it to keep), `peak` the largest over every frame of this poll (NaN:
+    no frame), so no contact between polls is missed."""
 
     t: float
     force: np.ndarray
@@ -164,12 +165,13 @@ class SkinStream:
         if s.last_sample is not None:
             seq = np.concatenate([[s.last_sample], seq])
         s.last_sample = int(seq[-1])
-        gaps = (np.diff(seq) - 1) % (1 << 32)  # the counter wraps at 2^32
-        return int(gaps.sum())
+        d = np.diff(seq)
+        return int(np.where(d > 0, d - 1, 0).sum())  # a counter that goes back: the board restarted (or wrapped)
 
     def run(self, callback: Callable[[StreamUpdate], object], seconds: float | None = None,
             period_s: float = 0.01) -> None:
-        """Poll every `period_s` and hand each update to `callback` (until `seconds` pass or it returns False)."""
+        """Poll (waiting up to `period_s` for data) and hand each update to `callback`, until `seconds` pass
+        or the callback returns False."""
         end = None if seconds is None else time.monotonic() + seconds
         while end is None or time.monotonic() < end:
             if callback(self.poll(period_s)) is False:

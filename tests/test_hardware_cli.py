@@ -74,6 +74,8 @@ def test_deploy_cli_errors(tmp_path, capsys):
     assert "give --port PORT" in capsys.readouterr().err
     assert main(["deploy", str(tmp_path / "skin.json"), "--port", str(tmp_path / "nope")]) == 1
     assert "no board answered" in capsys.readouterr().out
+    assert main(["deploy", str(tmp_path / "skin.json"), "--all", "--no-system-ports", "--glob", str(tmp_path / "x*")]) == 1
+    assert "problem: board 0 'board0' uid 0x5c1a0000: not found on any port" in capsys.readouterr().out
 
 
 def test_bench_serial_rows(capsys):

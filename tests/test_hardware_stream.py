@@ -133,3 +133,12 @@ def test_stream_refuses_a_board_running_another_map(tmp_path):
             SkinStream(other, {0: port})
         SkinStream(d, {0: port}).close()
         assert channel_rows(d, d.boards[0]).tolist() == list(range(32))
+
+
+def test_lost_frames_from_sample_counter_gaps():
+    from skinsafe.hardware.stream import BoardState
+    s = BoardState(0, 1, None, 4, np.arange(4), np.arange(4))
+    assert SkinStream._lost(s, np.array([0, 1, 2, 5, 6], np.uint32)) == 2
+    assert SkinStream._lost(s, np.array([9, 10], np.uint32)) == 2  # 7 and 8 went missing between two polls
+    assert SkinStream._lost(s, np.array([0, 1], np.uint32)) == 0  # the board restarted: its counter went back
+    assert s.last_sample == 1

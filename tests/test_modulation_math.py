@@ -108,3 +108,12 @@ def test_never_gains_toward_higher_potential(f, n, v, keep):
         assert on <= (1 - f) * vn + tol
     else:
         assert on <= tol  # still moving away
+
+
+def test_tangent_gain_zero_never_speeds_up():
+    rng = np.random.default_rng(5)
+    v, n, f = rng.normal(size=(40, 5)), rng.normal(size=(40, 5)), rng.uniform(0, 1, 40)
+    out = modulate(v, f, n, tangent_gain=0.0)
+    assert (np.linalg.norm(out, axis=1) <= np.linalg.norm(v, axis=1) + 1e-12).all()
+    w = np.linalg.eigvalsh(modulation_matrix(0.4, n[0], tangent_gain=0.0)[0])
+    assert np.allclose(np.sort(w), [0.6, 1, 1, 1, 1])
