@@ -106,14 +106,19 @@ def main(argv: list[str] | None = None) -> int:
     return 2
 
 
-def _run_module(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False) -> int:
+def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False) -> argparse.Namespace:
+    """Parse `argv` with the module's own arguments (the demo uses this to run commands in-process)."""
     p = argparse.ArgumentParser(prog=prog, description=helptext)
     if bench:
         p.add_argument("--json", action="store_true", help="print one JSON list of flat rows")
     p.set_defaults(command_name=name)  # one module may serve several names
     if hasattr(mod, "add_arguments"):
         mod.add_arguments(p)
-    args = p.parse_args(argv)
+    return p.parse_args(argv)
+
+
+def _run_module(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False) -> int:
+    args = module_args(mod, prog, helptext, argv, name, bench)
     try:
         if bench:
             print_rows(mod.rows(args), args.json)

@@ -215,14 +215,14 @@ def collaboration(args) -> dict:
     design = make_sample_design("ur5", pitch=args.pitch, robot=robot)
     kin = TaxelKinematics(robot.model, design)
     T = args.duration
-    # the human forearm stands where the robot's forearm passes at 60% of the delivery, beside it
+    # the human forearm reaches to where the robot's forearm passes at 60% of the delivery
     pos, _ = kin.poses(_delivery(0.6 * T, T)[0])
     fore = design.taxels.body == design.bodies.index("forearm_link")
     spot = pos[fore].mean(0)
     pan = _delivery(0.6 * T, T)[0][0]
-    side = np.array([-np.sin(pan), np.cos(pan), 0.0])  # the direction the arm sweeps
+    side = np.array([np.sin(pan), -np.cos(pan), 0.0])  # the direction the forearm sweeps (d/dpan of -r(cos, sin))
     human_at = spot + side * 0.02  # overlaps the sweep: the arm would run into it
-    away = human_at + np.array([0, 0, 0.6])
+    away = human_at + side * 0.5  # the human reaches in from ahead of the sweep
     quat = (np.cos(np.pi / 4), 0, np.sin(np.pi / 4), 0)  # capsule axis horizontal (along x)
     obstacles = [Obstacle("human", "capsule", (0.045, 0.15), pos=tuple(away), quat=quat, mocap=True)]
     sc = Scene(obstacles, args.pitch)
@@ -239,20 +239,23 @@ def collaboration(args) -> dict:
             total, v = [], np.zeros(6)
             for k in range(int((T + 0.5) / sc.control_dt)):
                 t = k * sc.control_dt
-                # the human reaches in at 30% of the delivery and stays
-                sc.data.mocap_pos[0] = human_at if t >= 0.3 * T else away
+                # the human reaches in (0.3 s, smooth) at 10% of the delivery and stays
+                u = np.clip((t - 0.1 * T) / 0.3, 0, 1)
+                sc.data.mocap_pos[0] = away + (human_at - away) * (3 * u ** 2 - 2 * u ** 3)
                 force = sc.step(v)
                 total.append(float(force.sum()))
                 v = stack.run(source, t, sc.q, {"force": force}, sc.control_dt)
             total = np.array(total)
             over = np.flatnonzero(total > design.taxels.thresholds["force"].min())
             first = int(over[0]) if len(over) else None
-            clear = None
+            clear, first_peak = None, 0.0
             if first is not None:
                 free = np.flatnonzero(total[first:] <= 0)
                 clear = float(free[0] * sc.control_dt) if len(free) else None
+                end = first + int(free[0]) if len(free) else len(total)
+                first_peak = float(total[first:end].max())
             out["runs"][f"{src_name}, {'safety stack' if safe else 'no safety'}"] = {
-                "peak_force_N": float(total.max()), "time_to_clear_s": clear,
+                "peak_force_N": float(total.max()), "first_contact_peak_N": first_peak, "time_to_clear_s": clear,
                 "contact_s": float(np.count_nonzero(total > 0) * sc.control_dt),
                 "force_N": total.round(2).tolist()}
     return out

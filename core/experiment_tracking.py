@@ -68,6 +68,7 @@ class TrackingConfig:
     samples: int = 8
     rollout_dt: float = 0.15  # s per step of the n-step rollouts
     action_range: float = 1.0  # rad/s, the uniform policy's box
+    tangent_gain: float = 1.0  # modulation's tangential eigenvalue 1 + g f (1: the paper)
     distill_epochs: int = 40
     distill_points: int = 1500  # experience states (at most) the n-step targets are estimated at
 
@@ -228,13 +229,13 @@ class Learner:
                   progress=False)
         pot = DangerPotential(self.tdm.eval())
         if not self.nstep:
-            return ModulationLayer(pot)
+            return ModulationLayer(pot, tangent_gain=cfg.tangent_gain)
         r = cfg.action_range
         pick = np.random.default_rng(self.seed).permutation(len(S))[: cfg.distill_points]
         self.net, _ = distill_nstep(pot, S[pick], A[pick], EulerDynamics(cfg.rollout_dt), UniformPolicy(-r * np.ones(STATE), r * np.ones(STATE)),
                                     NStepConfig(cfg.horizon, cfg.gamma, cfg.samples), state_noise=cfg.state_noise,
                                     epochs=cfg.distill_epochs, seed=self.seed, net=self.net)
-        return ModulationLayer(self.net.eval())
+        return ModulationLayer(self.net.eval(), tangent_gain=cfg.tangent_gain)
 
 
 def run_experiment(cfg: TrackingConfig, progress: bool = True) -> dict:

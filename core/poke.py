@@ -28,6 +28,7 @@ from .kinematics import TaxelKinematics
 from .retraction import RetractionParams, profile
 from .robots import Robot, build_ur5
 from .sample_skin import make_sample_design
+from . import taxel_map
 from .skin import SkinDesign
 
 PROBE_RADIUS = 0.012  # m
@@ -284,6 +285,7 @@ def plots(sweep: dict, multi: list[dict], params: RetractionParams, out: Path) -
 
 def add_arguments(p) -> None:
     p.add_argument("--out", default="poke_out", help="folder for the PNG plots and poke_results.json")
+    p.add_argument("--map", default=None, help="taxel map of a UR5 skin (default: the generated sample skin)")
     p.add_argument("--depths", default="0.0004,0.0008,0.0012,0.0016,0.002,0.0025,0.003",
                    help="probe depths past the skin in m, one poke each (comma-separated)")
     p.add_argument("--alpha", type=float, default=0.01, help="sensitivity alpha, m/N")
@@ -304,7 +306,7 @@ def run(args) -> int:
         raise SystemExit("skinsafe poke: --depths must be positive distances in m")
     out = Path(args.out)
     robot = build_ur5()
-    design = make_sample_design("ur5", robot=robot)
+    design = taxel_map.load(args.map, robot.body_names) if args.map else make_sample_design("ur5", robot=robot)
     sweep = force_sweep(design, robot, params, depths)
     if len(sweep["force"]) < 2:
         raise SystemExit("skinsafe poke: fewer than two pokes triggered the skin; use deeper --depths")
