@@ -4,8 +4,9 @@ Rows: `layer` ("modulation": potential + gradient + M v for one UR5 state; "full
 stack's strategy filter + modulation + defensiveness with `active` contacts), `n_taxels`,
 `active`, `ms` (median, one thread) and `ms_ref`/`speedup_vs_ref` against the simple reference
 in the same run (autograd for the normal, the layers one after another without the fast paths).
-With `--nstep`, rows `layer` = "nstep" add the Monte Carlo trade of eq. 8: horizon and samples
-vs the RMS error of w against 1,024 rollouts and the time for 256 states.
+With `--nstep`, rows `layer` = "nstep" add the Monte Carlo trade of eq. 8 on a sharp potential:
+horizon and samples vs the RMS error of w against 1,024 rollouts, the time for 256 states, and
+`reach` (how much danger w already shows 0.1 before the edge, where f is about 0.02).
 """
 from __future__ import annotations
 
@@ -13,8 +14,8 @@ import numpy as np
 import torch
 
 from .modulation import ModulationLayer, modulate
-from .potential import (DangerPotential, EulerDynamics, UniformPolicy, nstep_trade, potential_and_normal,
-                        single_thread_blas)
+from .potential import (DangerPotential, EulerDynamics, NStepConfig, UniformPolicy, nstep_targets, nstep_trade,
+                        potential_and_normal, single_thread_blas)
 from .tdm import TactileDangerModel
 from .timing import median_ms
 
@@ -50,14 +51,29 @@ def modulation_rows(taxels, hidden: int, repeat: int) -> list[dict]:
     return rows
 
 
-def nstep_rows(hidden: int) -> list[dict]:
-    pot = DangerPotential(_tdm(1024, hidden))
+class SharpBall(torch.nn.Module):
+    """A step-like potential (a TDM's sharp edge, Fig. 5): f = sigmoid(40 (0.5 - |s|)), 6-D."""
+
+    def forward(self, s, a):
+        return torch.sigmoid(40.0 * (0.5 - s.norm(dim=1)))
+
+
+def nstep_rows() -> list[dict]:
+    """Eq. 8's Monte Carlo on a sharp potential: error vs samples and horizon, and the time for
+    256 states; `reach` is the mean w at states 0.1 outside the edge moving toward it (f ~ 0.02)."""
     rng = np.random.default_rng(1)
-    s = rng.uniform(-1, 1, (256, 6))
+    s = rng.normal(size=(256, 6))
+    s *= (rng.uniform(0.3, 0.9, 256) / np.linalg.norm(s, axis=1))[:, None]
     a = rng.uniform(-1, 1, (256, 6))
-    rows = nstep_trade(pot, s, a, EulerDynamics(0.1), UniformPolicy(-np.ones(6), np.ones(6)),
-                       horizons=(1, 2, 4, 8), samples=(1, 4, 16, 64))
-    return [{"layer": "nstep", "n_taxels": 1024, "active": 0, **r} for r in rows]
+    dyn, pol = EulerDynamics(0.1), UniformPolicy(-np.ones(6), np.ones(6))
+    rows = nstep_trade(SharpBall(), s, a, dyn, pol, horizons=(1, 2, 4, 8), samples=(1, 4, 16, 64))
+    probe = rng.normal(size=(256, 6))
+    probe *= (0.6 / np.linalg.norm(probe, axis=1))[:, None]
+    toward = -probe / 0.6  # unit speed toward the centre
+    for r in rows:
+        w = nstep_targets(SharpBall(), probe, toward, dyn, pol, NStepConfig(r["horizon"], 0.9, 64))
+        r["reach"] = float(w.mean())
+    return [{"layer": "nstep", "n_taxels": 0, "active": 0, **r} for r in rows]
 
 
 def rows(args) -> list[dict]:
@@ -69,5 +85,5 @@ def rows(args) -> list[dict]:
 
         out += full_tick_rows(args.taxels, args.active, args.hidden, args.repeat)
     if args.nstep:
-        out += nstep_rows(args.hidden)
+        out += nstep_rows()
     return out
