@@ -31,7 +31,8 @@ from tqdm.auto import tqdm
 
 from .files import atomic_write
 from .modulation import ModulationLayer
-from .potential import DangerPotential, EulerDynamics, NStepConfig, UniformPolicy, distill_nstep
+from .potential import (DangerPotential, EulerDynamics, NStepConfig, UniformPolicy, distill_nstep,
+                        single_thread_blas)
 from .tdm import TactileDangerModel, train_tdm
 
 METHODS = ("vanilla", "tdm", "tdm2")
@@ -241,6 +242,7 @@ class Learner:
 def run_experiment(cfg: TrackingConfig, progress: bool = True) -> dict:
     """All methods x seeds x episodes; returns the results dict (also holds per-episode logs)."""
     torch.set_num_threads(1)
+    single_thread_blas()
     results = {"config": asdict(cfg), "runs": {}, "logs": {}}
     total = len(cfg.seeds) * len(cfg.methods) * cfg.episodes
     bar = tqdm(total=total, desc="tracking", disable=not progress)
