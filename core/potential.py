@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 import torch
-from scipy.special import expit, log_expit
+from scipy.special import expit
 from torch import nn
 
 from .danger import total_danger
@@ -59,6 +59,11 @@ def potential_and_normal(potential: Potential, s, a, dtype=torch.float32) -> tup
         f = potential(s_t, a_t)
         (n,) = torch.autograd.grad(f.sum(), s_t)
     return f.detach().double().numpy(), n.double().numpy()
+
+
+def _log_safety(z: np.ndarray) -> np.ndarray:
+    """sum_i log(1 - sigmoid(z_i)) = -sum_i softplus(z_i) per row, stable, summed in float64."""
+    return -(np.maximum(z, 0) + np.log1p(np.exp(-np.abs(z)))).sum(axis=1, dtype=np.float64)
 
 
 class FastPotential:
@@ -112,7 +117,7 @@ class FastPotential:
         """log p(not D | s, a) (B,) of a TDM potential (eq. 1 in log space), no gradient."""
         if self.output != "total_danger":
             raise TypeError("FastPotential.log_safety needs a DangerPotential over a TDM")
-        return log_expit(-self._forward(s, a)[-1]).sum(axis=1, dtype=np.float64)
+        return _log_safety(self._forward(s, a)[-1])
 
     def __call__(self, s, a) -> tuple[np.ndarray, np.ndarray]:
         """f (B,) and df/ds (B, d) for states (B, d) or (d,) and actions (B, m) or (m,)."""
@@ -120,7 +125,7 @@ class FastPotential:
         acts = self._forward(s, a)
         x = acts[-1]
         if self.output == "total_danger":
-            log_safe = log_expit(-x).sum(axis=1, dtype=np.float64)  # eq. 1 in log space
+            log_safe = _log_safety(x)  # eq. 1 in log space
             f = -np.expm1(log_safe)
             g = np.exp(log_safe).astype(np.float32)[:, None] * expit(x)  # df/dz_i = (1 - f) sigmoid(z_i)
         else:

@@ -58,7 +58,10 @@ def test_quick_sweep_rows_for_every_knob(quick):
         mine = [r for r in rows if r["knob"] == name]
         assert [r["value"] for r in mine] == list(knob.quick)
         ref = mine[0]
-        assert ref["error"] == 0.0 and ref["speedup_vs_reference"] == 1.0 and ref["pareto"]
+        assert ref["error"] == 0.0 and ref["speedup_vs_reference"] == 1.0
+        # the reference is on the front unless an equally exact point is faster (nearest kernel vs touch)
+        exact_faster = any(r["error"] == 0.0 and r["speedup_vs_reference"] > 1.0 for r in mine[1:])
+        assert ref["pareto"] != exact_faster
         for r in mine:
             assert np.isfinite(r["error"]) and r["error"] >= 0
             assert np.isfinite(r["ms"]) and r["ms"] > 0
