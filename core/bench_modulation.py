@@ -16,6 +16,7 @@ import torch
 from .modulation import ModulationLayer, modulate
 from .potential import (DangerPotential, EulerDynamics, NStepConfig, UniformPolicy, nstep_targets, nstep_trade,
                         potential_and_normal, single_thread_blas)
+from .safety_stack import SafetyStack, StrategyFilter
 from .tdm import TactileDangerModel
 from .timing import median_ms
 
@@ -76,13 +77,55 @@ def nstep_rows() -> list[dict]:
     return [{"layer": "nstep", "n_taxels": 0, "active": 0, **r} for r in rows]
 
 
+def full_tick_rows(taxels, actives, hidden: int, repeat: int) -> list[dict]:
+    """Bench rows for the full three-layer tick on the UR5 with `a` active contacts out of `n` taxels."""
+    from .defensiveness import DefensivenessLayer
+    from .kinematics import TaxelKinematics
+    from .potential import DangerPotential
+    from .robots import build_ur5
+    from .sample_skin import make_sample_design
+
+    robot = build_ur5()
+    base = make_sample_design("ur5", robot=robot)
+    rows = []
+    rng = np.random.default_rng(0)
+    for n in taxels:
+        idx = np.resize(np.arange(base.n_taxels), n)  # repeat the sample skin's taxels up to n
+        t = base.taxels.subset(idx)
+        t.ids = np.arange(n, dtype=np.int64)
+        design = base.with_taxels(t)
+        kin = TaxelKinematics(robot.model, design)
+        tdm = _tdm(n, hidden)
+        for a in actives:
+            force = np.zeros(n)
+            force[rng.choice(n, a, replace=False)] = 10.0
+            readings = {"force": force}
+            q = robot.home.copy()
+            cmd = rng.uniform(-0.5, 0.5, 6)
+
+            def make(fast: bool):
+                d = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits)
+                mod = ModulationLayer(DangerPotential(tdm))
+                if not fast:
+                    from .potential import potential_and_normal
+                    mod._eval = lambda s, a_: potential_and_normal(mod.potential, s, a_)
+                stack = SafetyStack(robot.vel_limits, d, mod, StrategyFilter(tdm))
+                clock = iter(np.arange(10 ** 6) * 0.002)
+                return lambda: stack.tick(next(clock), q, readings, cmd, 0.002)
+
+            torch.set_num_threads(1)
+            ms = median_ms(make(True), repeat)
+            ms_ref = median_ms(make(False), max(10, repeat // 4))
+            rows.append({"layer": "full", "n_taxels": n, "active": a, "ms": ms, "ms_ref": ms_ref,
+                         "speedup_vs_ref": ms_ref / ms})
+    return rows
+
+
 def rows(args) -> list[dict]:
     torch.set_num_threads(1)
     single_thread_blas()
     out = modulation_rows(args.taxels, args.hidden, args.repeat)
     if not args.no_full:
-        from .safety_stack import full_tick_rows
-
         out += full_tick_rows(args.taxels, args.active, args.hidden, args.repeat)
     if args.nstep:
         out += nstep_rows()

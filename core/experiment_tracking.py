@@ -1,21 +1,25 @@
 """`skinsafe experiment tracking`: the modulation layer on a UR5 tracking among balls (paper Fig. 11).
 
-The UR5 with the sample skin (whole arm: upper arm, forearm, wrists) follows a sweeping joint
-trajectory `q_d(t)` with a velocity controller `qd = qd_d + K (q_d - q)`; solid balls sit where
-the arm's underside passes. Contacts come from the skin readout (`SkinReadout`) of the exported
-MuJoCo scene: a control tick is a contact when any taxel's force exceeded its threshold during
-the tick. Three methods, each over `episodes` episodes and several seeds (the balls jittered per
-seed, the trajectory per episode):
+The UR5 with the sample skin (whole arm: upper arm, forearm, wrists) follows a joint-space
+sweep `q_d(t)` (pan -1 -> 1 -> -1 rad) with the velocity controller
+`qd = qd_d + K clip(q_d - q)`; compliant solid balls (soft MuJoCo contact, so the unmodulated
+arm pushes through them as in the paper's collision-detection simulation) sit under the arm's
+sweep. Contacts come from the skin readout (`SkinReadout`) of the exported MuJoCo scene: a
+control tick is a contact when any taxel's force exceeded its threshold during the tick. Three
+methods, each over `episodes` episodes and several seeds (balls jittered per seed, trajectory
+offset per episode):
 
 - `vanilla`: the velocity controller as is;
-- `tdm`: modulated by f_phi (eq. 4-7) of a TDM over all taxels, s = q, a = the command;
+- `tdm`: modulated by f_phi (eq. 4-7) of a TDM over all taxels, s = the four moving joints'
+  angles, a = their nominal commanded velocity (wrist 2 and 3 are held and not modulated);
 - `tdm2`: modulated by the distilled 2-step potential w_phi (eq. 8, uniform policy).
 
-After every episode the method's TDM is re-trained (warm start) on all its experience so far;
-before any experience there is nothing to modulate with (episode 0 runs unmodulated). Writes
-`tracking.json` (per method/seed/episode: contacts, contact onsets, tracking error),
-`contacts.png` (Fig. 11e: contacts per episode, mean and min-max over seeds) and
-`trajectories.png` (Fig. 11b-d: end-effector paths with contact points, last episode of seed 0).
+After every episode the method's TDM is re-trained (warm start, fixed step budget, states
+augmented with small noise) on all its experience so far; before any experience there is
+nothing to modulate with (episode 0 runs unmodulated). Writes `tracking.json` (per
+method/seed/episode: contacts, contact onsets, tracking error), `contacts.png` (Fig. 11e:
+contacts per episode, mean and min-max band over seeds) and `trajectories.png` (Fig. 11b-d:
+end-effector paths with contact points, last episode of the first seed).
 """
 from __future__ import annotations
 
