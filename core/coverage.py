@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import mujoco
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .skin import SkinDesign
 
@@ -41,9 +42,27 @@ def body_area(model: mujoco.MjModel, body: str) -> float:
     return float(sum(geom_area(model, g) for g in np.flatnonzero(model.geom_bodyid == bid)))
 
 
+def gaps(design: SkinDesign, model: mujoco.MjModel, body_index: int, pitch: float) -> dict:
+    """Where the skin leaves the link bare: the share of the link's surface (its tessellation,
+    vertices weighted by area) farther than one pitch from every taxel, and `largest_gap_mm`, the
+    farthest any surface point is from a taxel (the radius of the biggest bare patch)."""
+    from .surface import body_surface
+
+    on = design.taxels.body == body_index
+    surf = body_surface(model, design.bodies[body_index])
+    v, tri = surf.vertices, surf.triangles
+    if not on.any():
+        return {"bare_fraction": 1.0, "largest_gap_mm": float("inf")}
+    # each vertex stands for a third of the area of its triangles
+    area = 0.5 * np.linalg.norm(np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]]), axis=1)
+    weight = np.bincount(tri.ravel(), np.repeat(area / 3, 3), len(v))
+    d, _ = cKDTree(design.taxels.positions[on]).query(v)
+    return {"bare_fraction": float(weight[d > pitch].sum() / weight.sum()), "largest_gap_mm": float(d.max() * 1e3)}
+
+
 def coverage_report(design: SkinDesign, model: mujoco.MjModel) -> dict:
-    """Per skinned body: taxel count, skinned area (module pitch^2 per taxel), link area, fraction
-    and density (taxels per cm^2 of skin); plus totals."""
+    """Per skinned body: taxel count, skinned area (module pitch^2 per taxel), link area, fraction,
+    density (taxels per cm^2 of skin) and gaps (see `gaps`); plus totals."""
     t = design.taxels
     pitch = {m.id: m.pitch for m in design.modules}
     cell = np.array([pitch.get(int(m), 0.0) ** 2 for m in t.module])
@@ -60,6 +79,7 @@ def coverage_report(design: SkinDesign, model: mujoco.MjModel) -> dict:
             "fraction": skinned / area if area > 0 else 0.0,
             "density_per_cm2": n / (skinned * 1e4) if skinned > 0 else 0.0,
             "modules": len({int(m) for m in t.module[on]}),
+            **gaps(design, model, i, float(np.sqrt(cell[on].mean())) if n else 0.0),
         }
     out["total"] = {
         "taxels": len(t),
@@ -72,12 +92,14 @@ def coverage_report(design: SkinDesign, model: mujoco.MjModel) -> dict:
 
 def format_report(report: dict) -> str:
     """The coverage report as an aligned text table."""
-    lines = [f"{'body':<16}{'taxels':>8}{'modules':>9}{'skin cm2':>10}{'link cm2':>10}{'covered':>9}{'per cm2':>9}"]
+    lines = [f"{'body':<16}{'taxels':>8}{'modules':>9}{'skin cm2':>10}{'link cm2':>10}{'covered':>9}{'per cm2':>9}"
+             f"{'bare':>7}{'gap mm':>8}"]
     for name, r in report.items():
         if name == "total":
             continue
         lines.append(f"{name:<16}{r['taxels']:>8}{r['modules']:>9}{r['skinned_area_m2'] * 1e4:>10.1f}"
-                     f"{r['link_area_m2'] * 1e4:>10.1f}{r['fraction'] * 100:>8.1f}%{r['density_per_cm2']:>9.2f}")
+                     f"{r['link_area_m2'] * 1e4:>10.1f}{r['fraction'] * 100:>8.1f}%{r['density_per_cm2']:>9.2f}"
+                     f"{r['bare_fraction'] * 100:>6.0f}%{r['largest_gap_mm']:>8.0f}")
     tot = report["total"]
     lines.append(f"{'total':<16}{tot['taxels']:>8}{tot['modules']:>9}{tot['skinned_area_m2'] * 1e4:>10.1f}"
                  f"   on {tot['boards']} boards")
