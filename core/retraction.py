@@ -45,6 +45,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 FORMS = ("3d", "6d")
@@ -119,10 +120,31 @@ def dls_pinv(J: np.ndarray, damping: float, sv_threshold: float) -> np.ndarray:
 
 
 def dls_solve(J: np.ndarray, rhs: np.ndarray, damping: float, sv_threshold: float) -> np.ndarray:
-    """`dls_pinv(J) @ rhs` for a stack, (K,m,n) and (K,m) -> (K,n), without forming the inverses."""
-    U, inv, Vt = _filtered_svd(J, damping, sv_threshold)
-    c = np.einsum("kji,kj->ki", U, rhs) * inv
-    return np.einsum("kji,kj->ki", Vt, c)
+    """`dls_pinv(J) @ rhs` for a stack, (K,m,n) and (K,m) -> (K,n), without forming the inverses
+    (compiled: one small SVD per matrix, no per-call array overhead)."""
+    return _dls_solve(np.ascontiguousarray(J, dtype=np.float64), np.ascontiguousarray(rhs, dtype=np.float64),
+                      float(damping), float(sv_threshold))
+
+
+@numba.njit(cache=True, nogil=True)
+def _dls_solve(J, rhs, damping, sv_threshold):
+    K, m, n = J.shape
+    out = np.zeros((K, n))
+    for k in range(K):
+        U, S, Vt = np.linalg.svd(J[k], full_matrices=False)
+        for i in range(S.shape[0]):
+            s = S[i]
+            lam2 = damping ** 2 * (1.0 - (s / sv_threshold) ** 2) if s < sv_threshold else 0.0
+            den = s * s + lam2
+            if den <= 1e-300:
+                continue
+            c = 0.0
+            for j in range(m):
+                c += U[j, i] * rhs[k, j]
+            c *= s / den
+            for j in range(n):
+                out[k, j] += Vt[i, j] * c
+    return out
 
 
 def task_jacobians(J: np.ndarray, form: str) -> np.ndarray:
@@ -152,28 +174,42 @@ def ordered_basis(A: np.ndarray, rank_tol: float = 1e-3) -> tuple[np.ndarray, np
     """Gram-Schmidt of the rows of A (K,n) in order: an orthonormal basis U (n,m) of their span
     and `first` (m,), the row that added each column. A row adds a column when its residual
     against the rows before it exceeds `rank_tol` times its norm (rank-safe); each column is
-    oriented along its row's residual. At most n steps, each one batched over all rows."""
-    K, n = A.shape
-    norms = np.sqrt(np.einsum("ij,ij->i", A, A))
-    ok = norms > 1e-9 * max(float(norms.max(initial=0.0)), 1e-300)
-    res = np.divide(A, norms[:, None], out=np.zeros_like(A), where=ok[:, None])  # unit rows
-    tol2 = rank_tol * rank_tol
-    U = np.zeros((n, min(n, K)))
-    first = np.zeros(min(n, K), np.intp)
-    m, start = 0, 0
-    while m < U.shape[1] and start < K:
-        tail = res[start:]
-        hits = np.einsum("ij,ij->i", tail, tail) > tol2
-        h = int(hits.argmax())
-        if not hits[h]:
-            break
-        u = tail[h] / np.sqrt(tail[h] @ tail[h])
-        U[:, m], first[m] = u, start + h
-        start += h + 1
-        tail = res[start:]
-        tail -= (tail @ u)[:, None] * u  # residuals against the grown basis (modified Gram-Schmidt)
-        m += 1
+    oriented along its row's residual. Compiled: one pass over the rows, at most n columns."""
+    U, first, m = _ordered_basis(np.ascontiguousarray(A, dtype=np.float64), rank_tol)
     return U[:, :m], first[:m]
+
+
+@numba.njit(cache=True, nogil=True)
+def _ordered_basis(A, rank_tol):
+    K, n = A.shape
+    cols = min(n, K)
+    U = np.zeros((n, cols))
+    first = np.zeros(cols, np.intp)
+    scale = 0.0
+    for i in range(K):
+        scale = max(scale, np.sqrt(np.dot(A[i], A[i])))
+    m = 0
+    r = np.empty(n)
+    for i in range(K):
+        if m == cols:
+            break
+        na = np.sqrt(np.dot(A[i], A[i]))
+        if na <= 1e-9 * max(scale, 1e-300):
+            continue
+        r[:] = A[i] / na
+        for _ in range(2):  # modified Gram-Schmidt, twice for orthogonality
+            for c in range(m):
+                d = 0.0
+                for j in range(n):
+                    d += U[j, c] * r[j]
+                for j in range(n):
+                    r[j] -= d * U[j, c]
+        nr = np.sqrt(np.dot(r, r))
+        if nr > rank_tol:
+            U[:, m] = r / nr
+            first[m] = i
+            m += 1
+    return U, first, m
 
 
 def merge(qdots: np.ndarray, A: np.ndarray, epsilon: float, rank_tol: float = 1e-3) -> np.ndarray:
