@@ -132,6 +132,13 @@ def stage_tracking(ctx) -> Section:
                                             "tracking_error_mm: mean end-effector deviation from the path.")])
 
 
+MEANING = {
+    "desk": "min_clearance_mm: closest the arm came to the desk (negative: it pressed into it); desk_force_N: peak force on the desk.",
+    "collaboration": "first_contact_peak_N: peak force of the first accidental contact; time_to_clear_s: until the arm "
+                     "left the human (None: never); contact_s: total time in contact.",
+}
+
+
 def stage_scenes(ctx) -> Section:
     sections = []
     for name in ("desk", "collaboration"):
@@ -141,9 +148,9 @@ def stage_scenes(ctx) -> Section:
     images, tables = [], []
     for name, out in sections:
         images += [(str(p), f"{name}: {p.stem.replace('_', ' ')}") for p in sorted(out.glob("*.png"))]
-        for js in sorted(out.glob("*.json")):
-            doc = json.loads(js.read_text())
-            tables.append(([{k: v for k, v in doc.items() if not isinstance(v, (list, dict))}], f"{name} ({js.name})"))
+        runs = json.loads((out / f"{name}.json").read_text())["runs"]
+        tables.append(([{"run": run, **{k: v for k, v in r.items() if not isinstance(v, (list, dict))}}
+                        for run, r in runs.items()], MEANING[name]))
     return Section("Layers together: desk and collaboration scenes (paper Fig. 14, 15)",
                    "A touch on top of the arm triggers retraction toward a desk, modulation stops it before the desk; "
                    "an accidental contact with a human arm during a delivery triggers retraction.",
