@@ -18,6 +18,18 @@ _SKEW = np.array([[[0, 0, 0], [0, 0, -1], [0, 1, 0]],
                   [[0, -1, 0], [1, 0, 0], [0, 0, 0]]], dtype=float)
 
 
+def body_ids(model: mujoco.MjModel, design: SkinDesign) -> np.ndarray:
+    """MuJoCo body ids of `design.bodies`; an unknown body is a DesignError naming it."""
+    ids = []
+    for name in design.bodies:
+        bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+        if bid < 0:
+            raise DesignError(f"design: body '{name}' does not exist in the MuJoCo model; use a body of the robot "
+                              "the skin was designed for (or export the scene from this design: skinsafe export)")
+        ids.append(bid)
+    return np.asarray(ids, dtype=np.int64)
+
+
 class TaxelKinematics:
     """Poses and Jacobians `(N, 6, nv)` (rows: linear velocity of the taxel point, angular
     velocity; world frame) of a design's taxels on a MuJoCo model."""
@@ -26,15 +38,8 @@ class TaxelKinematics:
         self.model = model
         self.data = data if data is not None else mujoco.MjData(model)
         t = design.taxels
-        ids = []
-        for name in design.bodies:
-            bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
-            if bid < 0:
-                raise DesignError(f"design: body '{name}' does not exist in the robot model; "
-                                  "use a body name of the robot the skin was designed for")
-            ids.append(bid)
         self.n = n = len(t)
-        self.body_id = np.asarray(ids, dtype=np.int32)[t.body] if n else np.zeros(0, np.int32)
+        self.body_id = body_ids(model, design).astype(np.int32)[t.body] if n else np.zeros(0, np.int32)
         self.local_pos = np.ascontiguousarray(t.positions)
         self.local_frames = np.ascontiguousarray(t.frames)
         self._lh = np.hstack([np.ones((n, 1)), t.positions])  # homogeneous local positions (N,4)

@@ -19,20 +19,10 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .kinematics import body_ids
 from .skin import DesignError, SkinDesign
 
 BODY_GAP = 1.0e3  # m between bodies when spacing is estimated over all bodies at once
-
-
-def _body_ids(model: mujoco.MjModel, design: SkinDesign) -> np.ndarray:
-    ids = []
-    for name in design.bodies:
-        bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
-        if bid < 0:
-            raise DesignError(f"design: body '{name}' does not exist in the MuJoCo model; "
-                              "export the scene from this design (skinsafe export) or fix the body name")
-        ids.append(bid)
-    return np.asarray(ids, dtype=np.int64)
 
 
 def default_footprint(design: SkinDesign) -> float:
@@ -69,7 +59,7 @@ class SkinReadout:
         self.radius = float(footprint_radius) if footprint_radius is not None else default_footprint(design)
         if not self.radius > 0:
             raise ValueError(f"footprint_radius is {footprint_radius}; give a positive radius in m")
-        self.body_ids = _body_ids(model, design)
+        self.body_ids = body_ids(model, design)
         # geom -> index into design.bodies, -1 where the geom's body carries no skin
         lut = -np.ones(model.nbody, dtype=np.int64)
         lut[self.body_ids] = np.arange(len(self.body_ids))
