@@ -299,11 +299,4 @@ CLASSES = (SKINSAFE_OT_import_robot, SKINSAFE_OT_set_pose, SKINSAFE_OT_place_mod
            SKINSAFE_OT_export_taxel_map, SKINSAFE_OT_export_mjcf, SKINSAFE_OT_toggle_frames)
 
 
-def register():
-    for c in CLASSES:
-        bpy.utils.register_class(c)
-
-
-def unregister():
-    for c in reversed(CLASSES):
-        bpy.utils.unregister_class(c)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)

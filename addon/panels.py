@@ -91,11 +91,4 @@ def _wrap(text: str, width: int = 60):
 CLASSES = (SKINSAFE_PT_robot, SKINSAFE_PT_modules, SKINSAFE_PT_analysis)
 
 
-def register():
-    for c in CLASSES:
-        bpy.utils.register_class(c)
-
-
-def unregister():
-    for c in reversed(CLASSES):
-        bpy.utils.unregister_class(c)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)

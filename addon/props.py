@@ -65,9 +65,11 @@ class SkinsafeScene(bpy.types.PropertyGroup):
 CLASSES = (SkinsafeJoint, SkinsafeTemplate, SkinsafeModule, SkinsafeScene)
 
 
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(CLASSES)
+
+
 def register():
-    for c in CLASSES:
-        bpy.utils.register_class(c)
+    _register_classes()
     bpy.types.Scene.skinsafe = PointerProperty(type=SkinsafeScene)
     bpy.types.Object.skinsafe_module = PointerProperty(type=SkinsafeModule)
 
@@ -75,5 +77,4 @@ def register():
 def unregister():
     del bpy.types.Object.skinsafe_module
     del bpy.types.Scene.skinsafe
-    for c in reversed(CLASSES):
-        bpy.utils.unregister_class(c)
+    _unregister_classes()

@@ -220,10 +220,14 @@ def compare_forms(design, robot, params, stride: int = 25, force: float = 40.0) 
     return out
 
 
-def _save_png(fig, path: Path) -> None:
+def _save_png(fig, path: Path) -> Path:
+    """Write the figure atomically, close it, return the path."""
+    import matplotlib.pyplot as plt
+
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
-    atomic_write(path, buf.getvalue())
+    plt.close(fig)
+    return atomic_write(path, buf.getvalue())
 
 
 def plots(sweep: dict, multi: list[dict], params: RetractionParams, out: Path) -> list[Path]:
@@ -245,9 +249,7 @@ def plots(sweep: dict, multi: list[dict], params: RetractionParams, out: Path) -
     ax.set_title("Retraction vs poke force (Fig. 8/12)")
     ax.legend()
     fig.tight_layout()
-    paths.append(out / "poke_force_distance.png")
-    _save_png(fig, paths[-1])
-    plt.close(fig)
+    paths.append(_save_png(fig, out / "poke_force_distance.png"))
 
     fig, ax = plt.subplots(figsize=(5, 4))
     for tt, disp, fp in sweep["curves"]:
@@ -259,9 +261,7 @@ def plots(sweep: dict, multi: list[dict], params: RetractionParams, out: Path) -
     ax.set_title("Displacement vs eq. 10 (dotted)")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    paths.append(out / "poke_displacement.png")
-    _save_png(fig, paths[-1])
-    plt.close(fig)
+    paths.append(_save_png(fig, out / "poke_displacement.png"))
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 4), sharey=True)
     for ax, kind in zip(axes, ("joint", "paper")):
@@ -277,9 +277,7 @@ def plots(sweep: dict, multi: list[dict], params: RetractionParams, out: Path) -
         ax.set_ylabel("achieved / own retraction distance")
         ax.legend(fontsize=7)
     fig.tight_layout()
-    paths.append(out / "poke_multicontact.png")
-    _save_png(fig, paths[-1])
-    plt.close(fig)
+    paths.append(_save_png(fig, out / "poke_multicontact.png"))
     return paths
 
 

@@ -3,20 +3,13 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
 from skinsafe.core import experiment_maze
 from skinsafe.core.maze_env import BACKWARD, FORWARD, LEFT, RIGHT, MazeEnv, MazeFeatures, parse_layout
 from skinsafe.core.safe_rl import AGENTS, make_agent
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """Tiny networks: one thread avoids oversubscribing the shared 2-core machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -7,13 +7,7 @@ from skinsafe.core.maze_env import MazeEnv, MazeFeatures
 from skinsafe.core.tdm import TactileDangerModel, load_tdm, one_hot, save_tdm, train_tdm
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """Tiny networks: one thread avoids oversubscribing the shared 2-core machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 class Evil:
