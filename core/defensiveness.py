@@ -10,12 +10,12 @@ The maths is in `retraction.py`.
 """
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from .events import danger_events
 from .kinematics import TaxelKinematics
-from .retraction import (RetractionParams, constraint_rows, limit, merge, merge_paper, profile, profile_rate,
-                         single_qdots)
+from .retraction import RetractionParams, limit, merge_paper, profile, retract_qdot
 
 
 class DefensivenessLayer:
@@ -89,15 +89,9 @@ class DefensivenessLayer:
             rows[:, 0], rows[:, 1], rows[:, 2] = new, t, 0.0
             rows[:, 3:6], rows[:, 6:9] = pos[len(st):], frames[len(st):, :, 2]
             st = np.concatenate([st, rows])
-        st[:, 2] = np.maximum(st[:, 2], self._severity_now(readings, idx))
-        D = np.minimum(st[:, 2], 12 * p.max_distance)
-        back = -st[:, 6:9]  # retraction directions -z(tau)
-        done = np.einsum("ki,ki->k", pos - st[:, 3:6], back)
-        w = D / 12 - done  # eq. 12
-        order = np.argsort(-w, kind="stable")
-        self._state, self.priorities, self.retracted = st[order], w[order], done[order]
-        speed = D[order] * profile_rate((t - self._state[:, 1]) / p.T) / p.T
-        qdot = self._merged(J[order], back[order], speed)
+        order, w, done, speed = _rank(st, pos, self._severity_now(readings, idx), t, p.T, p.max_distance)
+        self._state, self.priorities, self.retracted = st[order], w, done
+        qdot = self._merged(J[order], -self._state[:, 6:9], speed)
         self.last = limit(qdot, self.last, self.vel_limits, self.acc_limits, dt)
         return self.last.copy()
 
@@ -117,7 +111,7 @@ class DefensivenessLayer:
         p = self.params
         if p.merge == "paper":
             return merge_paper(J, back, speed, p)
-        return merge(single_qdots(J, back, speed, p), constraint_rows(J, back), p.epsilon, p.rank_tol)
+        return retract_qdot(J, back, speed, p)
 
     def _severity_now(self, readings: dict[str, np.ndarray], idx: np.ndarray) -> np.ndarray:
         out = np.zeros(len(idx))
@@ -134,3 +128,25 @@ def _positive(x, n: int, name: str) -> np.ndarray:
     if not np.all((x > 0) & np.isfinite(x)):
         raise ValueError(f"DefensivenessLayer: '{name}' must be {n} positive finite numbers (one per joint), got {x}")
     return x
+
+
+@numba.njit(cache=True, nogil=True)
+def _rank(st, pos, severity, t, T, max_distance):
+    """Eq. 12 for the pool rows `st` (updated in place: peak severity): the priority order
+    (stable, highest first) and, in that order, priorities, distances retracted and speeds."""
+    K = st.shape[0]
+    D, w, done = np.empty(K), np.empty(K), np.empty(K)
+    for k in range(K):
+        if severity[k] > st[k, 2]:
+            st[k, 2] = severity[k]
+        D[k] = min(st[k, 2], 12 * max_distance)
+        done[k] = -((pos[k, 0] - st[k, 3]) * st[k, 6] + (pos[k, 1] - st[k, 4]) * st[k, 7]
+                    + (pos[k, 2] - st[k, 5]) * st[k, 8])  # along -z(tau)
+        w[k] = D[k] / 12 - done[k]
+    order = np.argsort(-w, kind="mergesort")
+    speed = np.empty(K)
+    for i in range(K):
+        k = order[i]
+        u = min(max((t - st[k, 1]) / T, 0.0), 1.0)
+        speed[i] = D[k] * u * (1 - u) ** 2 / T  # eq. 10's rate, zero at both ends
+    return order, w[order], done[order], speed

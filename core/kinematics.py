@@ -8,6 +8,7 @@ taxel on a body is one small matrix product `[1, p_local] @ B_body`: one GEMM pe
 from __future__ import annotations
 
 import mujoco
+import numba
 import numpy as np
 
 from .skin import DesignError, SkinDesign
@@ -117,19 +118,8 @@ class TaxelKinematics:
         d, m = self.data, self.model
         for k, bid in enumerate(self._bodies):
             mujoco.mj_jacBody(m, d, self._jb[k, :3], self._jb[k, 3:], int(bid))
-        index = np.asarray(index, dtype=np.intp)
-        bid = self.body_id[index]
-        R = d.xmat[bid].reshape(-1, 3, 3)
-        r = np.einsum("kij,kj->ki", R, self.local_pos[index])  # offset from the body origin, world
-        pos = r + d.xpos[bid]
-        frames = R @ self.local_frames[index]
-        J = self._jb[self._slot[index]]  # a new array (fancy indexing)
-        jr = J[:, 3:]
-        rx, ry, rz = r[:, 0:1], r[:, 1:2], r[:, 2:3]
-        J[:, 0] += jr[:, 1] * rz - jr[:, 2] * ry
-        J[:, 1] += jr[:, 2] * rx - jr[:, 0] * rz
-        J[:, 2] += jr[:, 0] * ry - jr[:, 1] * rx
-        return J, pos, frames
+        return _gather(self._jb, self._slot, self.body_id, d.xmat, d.xpos, self.local_pos, self.local_frames,
+                       np.asarray(index, dtype=np.intp))
 
     def jacobians_loop(self, q: np.ndarray | None = None) -> np.ndarray:
         """Reference: one `mj_jac` call per taxel (slow, for benchmarks and tests)."""
@@ -140,6 +130,35 @@ class TaxelKinematics:
             mujoco.mj_jac(self.model, self.data, jp, jr, pos[i], int(self.body_id[i]))
             out[i, :3], out[i, 3:] = jp, jr
         return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _gather(jb, slot, body_id, xmat, xpos, local_pos, local_frames, index):
+    """jacobians_of's per-taxel part: the body Jacobian `jb` moved to the taxel point
+    (`J_p += J_r x r` column by column, r the world offset from the body origin), the world
+    position and the world frame of each taxel in `index`."""
+    K, nv, n = len(index), jb.shape[2], len(body_id)
+    J, pos, frames = np.empty((K, 6, nv)), np.empty((K, 3)), np.zeros((K, 3, 3))
+    r = np.empty(3)
+    for k in range(K):
+        i = index[k]
+        if i < 0 or i >= n:
+            raise IndexError("jacobians_of: a taxel index is out of range (0 <= index < number of taxels)")
+        b = body_id[i]
+        for a in range(3):
+            r[a] = xmat[b, 3 * a] * local_pos[i, 0] + xmat[b, 3 * a + 1] * local_pos[i, 1] \
+                + xmat[b, 3 * a + 2] * local_pos[i, 2]
+            pos[k, a] = r[a] + xpos[b, a]
+            for c in range(3):
+                for e in range(3):
+                    frames[k, a, c] += xmat[b, 3 * a + e] * local_frames[i, e, c]
+        J[k] = jb[slot[i]]
+        for j in range(nv):
+            wx, wy, wz = J[k, 3, j], J[k, 4, j], J[k, 5, j]
+            J[k, 0, j] += wy * r[2] - wz * r[1]
+            J[k, 1, j] += wz * r[0] - wx * r[2]
+            J[k, 2, j] += wx * r[1] - wy * r[0]
+    return J, pos, frames
 
 
 def retractability(J: np.ndarray, frames: np.ndarray) -> np.ndarray:

@@ -19,6 +19,7 @@ the paper is silent (all tested in tests/test_modulation_*.py):
 """
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 EPS_GRAD = 1e-3
@@ -26,25 +27,41 @@ EPS_GRAD = 1e-3
 
 
 def _prepare(f, n, eps_grad: float):
+    """Clipped f (B,), unit normals (B, d) and blend weights b (B,) in [0, 1] (module docstring)."""
     n = np.asarray(n, dtype=float)
     if n.ndim == 1:
         n = n[None]
     f = np.asarray(f, dtype=float).reshape(-1)
     if f.shape[0] != n.shape[0]:
         f = np.broadcast_to(f, (n.shape[0],))
-    if not (np.isfinite(f).all() and np.isfinite(n).all()):
-        bad_f = ~np.isfinite(f)
-        f = np.where(bad_f, 1.0, f)
-        n = np.where((~np.isfinite(n).all(axis=1) | bad_f)[:, None], 0.0, n)
-    f = np.minimum(np.maximum(f, 0.0), 1.0)
-    # Unit normal and blend weight b in [0, 1].
-    norm = np.sqrt(np.einsum("bi,bi->b", n, n))
-    if not np.isfinite(norm).all():  # huge gradients: scale before squaring
-        scale = np.abs(n).max(axis=1)
-        norm = np.linalg.norm(n / np.where(scale > 0, scale, 1.0)[:, None], axis=1) * scale
-    unit = n / np.where(norm > 0, norm, 1.0)[:, None]
-    b = np.minimum(norm / eps_grad, 1.0) if eps_grad > 0 else (norm > 0).astype(float)
-    return f, unit, b
+    return _unit(np.ascontiguousarray(f), np.ascontiguousarray(n), float(eps_grad))
+
+
+@numba.njit(cache=True, nogil=True)
+def _unit(f, n, eps_grad):
+    B, d = n.shape
+    fc, u, b = np.empty(B), np.zeros((B, d)), np.zeros(B)
+    for r in range(B):
+        fr = f[r]
+        direction = np.isfinite(fr)
+        if not direction:
+            fr = 1.0  # unknown danger: stop, no direction
+        scale = 0.0
+        for j in range(d):
+            if not np.isfinite(n[r, j]):
+                direction = False
+            scale = max(scale, abs(n[r, j]))
+        fc[r] = min(max(fr, 0.0), 1.0)
+        if not direction or scale == 0.0:
+            continue
+        norm = 0.0
+        for j in range(d):  # scaled before squaring: huge gradients stay finite
+            norm += (n[r, j] / scale) ** 2
+        norm = np.sqrt(norm) * scale
+        for j in range(d):
+            u[r, j] = n[r, j] / norm
+        b[r] = min(norm / eps_grad, 1.0) if eps_grad > 0 else 1.0
+    return fc, u, b
 
 
 def modulation_matrix(f, n, eps_grad: float = EPS_GRAD, tangent_gain: float = 1.0) -> np.ndarray:
@@ -62,17 +79,30 @@ def modulate(v, f, n, eps_grad: float = EPS_GRAD, keep_away: bool = True, tangen
     """
     v = np.asarray(v, dtype=float)
     single = v.ndim == 1
-    v2 = v[None] if single else v
     f, u, b = _prepare(f, n, eps_grad)
-    b2 = b * b
-    lam_t = (1.0 - f) + (1.0 + tangent_gain) * f * b2
-    vn = np.einsum("bi,bi->b", u, v2)
-    lam_n = 1.0 - f
-    if keep_away:
-        # Leaving danger: normal component kept (blended toward (1-f) where the normal fades).
-        lam_n = np.where(vn < 0, 1.0 - f * (1.0 - b2), lam_n)
-    out = lam_t[:, None] * v2 + ((lam_n - lam_t) * vn)[:, None] * u
+    v2 = v[None] if single else v
+    if len(v2) != len(u):  # one velocity for many states, or the reverse
+        rows = max(len(u), len(v2))
+        v2, f, u, b = (np.ascontiguousarray(np.broadcast_to(x, (rows,) + x.shape[1:])) for x in (v2, f, u, b))
+    out = _apply(np.ascontiguousarray(v2), f, u, b, bool(keep_away), float(tangent_gain))
     return out[0] if single else out
+
+
+@numba.njit(cache=True, nogil=True)
+def _apply(v, f, u, b, keep_away, tangent_gain):
+    B, d = v.shape
+    out = np.empty((B, d))
+    for r in range(B):
+        b2 = b[r] * b[r]
+        lam_t = (1.0 - f[r]) + (1.0 + tangent_gain) * f[r] * b2
+        vn = 0.0
+        for j in range(d):
+            vn += u[r, j] * v[r, j]
+        # leaving danger (keep_away): the normal component is kept, blended toward (1-f) where the normal fades
+        lam_n = 1.0 - f[r] * (1.0 - b2) if keep_away and vn < 0 else 1.0 - f[r]
+        for j in range(d):
+            out[r, j] = lam_t * v[r, j] + (lam_n - lam_t) * vn * u[r, j]
+    return out
 
 
 class ModulationLayer:

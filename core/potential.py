@@ -61,11 +61,6 @@ def potential_and_normal(potential: Potential, s, a, dtype=torch.float32) -> tup
     return f.detach().double().numpy(), n.double().numpy()
 
 
-def _log_safety(z: np.ndarray) -> np.ndarray:
-    """sum_i log(1 - sigmoid(z_i)) = -sum_i softplus(z_i) per row, stable, summed in float64."""
-    return -(np.maximum(z, 0) + np.log1p(np.exp(-np.abs(z)))).sum(axis=1, dtype=np.float64)
-
-
 class FastPotential:
     """A numpy snapshot of a potential whose network is Linear/ReLU/Tanh layers, with the
     gradient written out (no autograd, float32 layers, float64 total danger): the same f and n
@@ -98,14 +93,15 @@ class FastPotential:
             else:
                 raise TypeError(f"FastPotential: layer {type(m).__name__} is not supported (Linear, ReLU, Tanh)")
 
-    def _forward(self, s, a) -> list[np.ndarray]:
+    def _forward(self, s, a, layers) -> list[np.ndarray]:
+        """The input and the outputs of `layers` (after their activations), float32."""
         s = np.atleast_2d(np.asarray(s, dtype=np.float32))
         x = np.concatenate([s, np.atleast_2d(np.asarray(a, dtype=np.float32))], axis=1)
         if self.mean is not None:
             x = (x - self.mean) / self.std
-        acts = []
-        for w, b, kind in self.layers:
-            x = x @ w.T + b
+        acts = [x]
+        for w, b, kind in layers:
+            x = _rows_times(x, w.T) + b
             if kind == "relu":
                 x = np.maximum(x, 0.0)
             elif kind == "tanh":
@@ -113,34 +109,55 @@ class FastPotential:
             acts.append(x)
         return acts
 
+    def _danger(self, s, a, grad: bool):
+        """The trunk's activations, log p(not D) (B,) and, with `grad`, `sum_i sigmoid(z_i) W_i`
+        (the gradient at the head's input up to the factor 1 - f) of the head's logits z."""
+        acts = self._forward(s, a, self.layers[:-1])
+        w, b, _ = self.layers[-1]
+        z = torch.from_numpy(_rows_times(acts[-1], w.T) + b)
+        log_safe = -nn.functional.softplus(z).sum(dim=1, dtype=torch.float64).numpy()  # eq. 1 in log space
+        return acts, log_safe, _rows_times(torch.sigmoid(z).numpy(), w) if grad else None
+
     def log_safety(self, s, a) -> np.ndarray:
         """log p(not D | s, a) (B,) of a TDM potential (eq. 1 in log space), no gradient."""
         if self.output != "total_danger":
             raise TypeError("FastPotential.log_safety needs a DangerPotential over a TDM")
-        return _log_safety(self._forward(s, a)[-1])
+        return self._danger(s, a, False)[1]
 
     def __call__(self, s, a) -> tuple[np.ndarray, np.ndarray]:
         """f (B,) and df/ds (B, d) for states (B, d) or (d,) and actions (B, m) or (m,)."""
         d = np.shape(s)[-1]
-        acts = self._forward(s, a)
-        x = acts[-1]
         if self.output == "total_danger":
-            log_safe = _log_safety(x)  # eq. 1 in log space
+            acts, log_safe, g = self._danger(s, a, True)
             f = -np.expm1(log_safe)
-            g = np.exp(log_safe).astype(np.float32)[:, None] * expit(x)  # df/dz_i = (1 - f) sigmoid(z_i)
+            g *= np.exp(log_safe).astype(np.float32)[:, None]  # df/dz_i = (1 - f) sigmoid(z_i)
+            top = len(self.layers) - 2  # g is already the gradient at the head's input
         else:
-            f = expit(x[:, 0].astype(np.float64))
+            acts = self._forward(s, a, self.layers)
+            f = expit(acts[-1][:, 0].astype(np.float64))
             g = (f * (1.0 - f)).astype(np.float32)[:, None]
-        for i in range(len(self.layers) - 1, -1, -1):
+            top = len(self.layers) - 1
+        for i in range(top, -1, -1):
             w, _, kind = self.layers[i]
             if kind == "relu":
-                g = g * (acts[i] > 0)
+                g = g * (acts[i + 1] > 0)
             elif kind == "tanh":
-                g = g * (1.0 - acts[i] ** 2)
-            g = g @ w
+                g = g * (1.0 - acts[i + 1] ** 2)
+            g = _rows_times(g, w)
         if self.std is not None:
             g = g / self.std
         return f, g[:, :d].astype(np.float64)
+
+
+def _rows_times(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """x @ w; for a few rows one matrix-vector product per row (OpenBLAS's GEMM with 2-8 rows
+    is several times slower than that many GEMVs on a 4,096-row TDM head)."""
+    if not 1 < len(x) <= 8:
+        return x @ w
+    out = np.empty((len(x), w.shape[1]), dtype=np.result_type(x, w))
+    for r in range(len(x)):
+        np.dot(x[r], w, out=out[r])
+    return out
 
 
 def single_thread_blas() -> bool:

@@ -81,12 +81,21 @@ class StrategyFilter:
         if prior.shape != self.scales.shape or (prior <= 0).any():
             raise ValueError(f"StrategyFilter: give one positive prior weight per scale ({len(self.scales)})")
         self.log_prior = np.log(prior / prior.sum())
+        self.order = np.argsort(-self.log_prior, kind="stable")
 
     def __call__(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
-        k = len(self.scales)
-        cand = self.scales[:, None] * a[None]
-        log_safe = self.fast.log_safety(np.broadcast_to(s, (k, len(s))), cand)
-        return cand[int(np.argmax(self.log_prior + log_safe))]
+        """The MAP candidate. Candidates are scored in order of their prior, and scoring stops once
+        the best score so far beats every remaining prior (log p(not D) <= 0 can only lower a
+        score): the same argmax, usually from one TDM evaluation instead of one per candidate."""
+        best, best_score = None, -np.inf
+        for i in self.order:
+            if best_score >= self.log_prior[i]:
+                break
+            cand = self.scales[i] * a
+            score = self.log_prior[i] + self.fast.log_safety(s, cand)[0]
+            if score > best_score or best is None:
+                best, best_score = cand, score
+        return best
 
 
 class SafetyStack:

@@ -95,6 +95,25 @@ def test_strategy_filter_slows_down_into_learned_danger():
     assert np.allclose(stack.tick(0.0, s, None, np.array([1.0, 0.0]), 0.01), 0.0)
 
 
+def test_strategy_filter_stops_early_with_the_exhaustive_argmax():
+    """Scoring in prior order with the bound gives eq. 3's MAP over all candidates."""
+    torch.manual_seed(1)
+    tdm = TactileDangerModel(3, 3, 50, (16,))
+    with torch.no_grad():
+        tdm.head.bias.uniform_(-6.0, 1.0)
+    f = StrategyFilter(tdm, scales=(1.0, 0.6, 0.3, 0.0), prior=(0.7, 0.15, 0.1, 0.05))
+    rng = np.random.default_rng(0)
+    picks = set()
+    for _ in range(200):
+        s, a = rng.normal(size=3), rng.normal(size=3) * rng.choice([0.1, 1.0, 10.0])
+        cand = f.scales[:, None] * a
+        scores = f.log_prior + f.fast.log_safety(np.broadcast_to(s, cand.shape), cand)
+        want = cand[int(np.argmax(scores))]
+        assert np.array_equal(f(s, a), want)
+        picks.add(int(np.argmax(scores)))
+    assert len(picks) >= 3  # the states reach past the first candidate
+
+
 @pytest.mark.parametrize("scene", ["desk", "collaboration"])
 def test_scenes_run_and_report(tmp_path, scene):
     from skinsafe.core import experiment_scenes as es
