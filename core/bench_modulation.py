@@ -3,7 +3,9 @@
 Rows: `layer` ("modulation": potential + gradient + M v for one UR5 state; "full": the safety
 stack's strategy filter + modulation + defensiveness with `active` contacts), `n_taxels`,
 `active`, `ms` (median, one thread) and `ms_ref`/`speedup_vs_ref` against the simple reference
-in the same run (autograd for the normal, the layers one after another without the fast paths).
+in the same run (autograd for the normal, the layers one after another without the fast paths);
+full rows add `ms_worst`, the tick when the strategy filter must score every candidate, and
+`max_abs_diff` between the commands of the two paths.
 With `--nstep`, rows `layer` = "nstep" add the Monte Carlo trade of eq. 8 on a sharp potential:
 horizon and samples vs the RMS error of w against 1,024 rollouts, the time for 256 states, and
 `reach` (how much danger w already shows 0.1 before the edge, where f is about 0.02).
@@ -16,7 +18,7 @@ import torch
 from .modulation import ModulationLayer, modulate
 from .potential import (DangerPotential, EulerDynamics, NStepConfig, UniformPolicy, nstep_targets, nstep_trade,
                         potential_and_normal, single_thread_blas)
-from .safety_stack import SafetyStack, StrategyFilter
+from .safety_stack import PRIOR, SafetyStack, StrategyFilter
 from .tdm import TactileDangerModel
 from .timing import median_ms
 
@@ -103,21 +105,25 @@ def full_tick_rows(taxels, actives, hidden: int, repeat: int) -> list[dict]:
             q = robot.home.copy()
             cmd = rng.uniform(-0.5, 0.5, 6)
 
-            def make(fast: bool):
+            def make(fast: bool, prior=PRIOR):
                 d = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits)
                 mod = ModulationLayer(DangerPotential(tdm))
                 if not fast:
                     from .potential import potential_and_normal
                     mod._eval = lambda s, a_: potential_and_normal(mod.potential, s, a_)
-                stack = SafetyStack(robot.vel_limits, d, mod, StrategyFilter(tdm))
+                stack = SafetyStack(robot.vel_limits, d, mod, StrategyFilter(tdm, prior=prior))
                 clock = iter(np.arange(10 ** 6) * 0.002)
                 return lambda: stack.tick(next(clock), q, readings, cmd, 0.002)
 
             torch.set_num_threads(1)
+            fast, ref = make(True), make(False)
+            diff = max(float(np.abs(fast() - ref()).max()) for _ in range(3))  # same commands, both paths
             ms = median_ms(make(True), repeat)
+            # worst case: a flat prior never lets the strategy filter stop early (all candidates scored)
+            ms_worst = median_ms(make(True, prior=np.ones(len(PRIOR))), repeat)
             ms_ref = median_ms(make(False), max(10, repeat // 4))
-            rows.append({"layer": "full", "n_taxels": n, "active": a, "ms": ms, "ms_ref": ms_ref,
-                         "speedup_vs_ref": ms_ref / ms})
+            rows.append({"layer": "full", "n_taxels": n, "active": a, "ms": ms, "ms_worst": ms_worst,
+                         "ms_ref": ms_ref, "speedup_vs_ref": ms_ref / ms, "max_abs_diff": diff})
     return rows
 
 

@@ -18,8 +18,10 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
+import numba
 import numpy as np
 import torch
+from numba import typed
 from scipy.special import expit
 from torch import nn
 
@@ -62,13 +64,15 @@ def potential_and_normal(potential: Potential, s, a, dtype=torch.float32) -> tup
 
 
 class FastPotential:
-    """A numpy snapshot of a potential whose network is Linear/ReLU/Tanh layers, with the
+    """A compiled snapshot of a potential whose network is Linear/ReLU/Tanh layers, with the
     gradient written out (no autograd, float32 layers, float64 total danger): the same f and n
-    as `potential_and_normal`, a few times faster for one state per control tick. Rebuild it
+    as `potential_and_normal`, several times faster for one state per control tick. Rebuild it
     after every training.
 
     Supports `DangerPotential` over a TDM with `trunk` (Sequential) and `head` (Linear), and
-    `NStepPotential`; anything else raises TypeError (use `potential_and_normal`).
+    `NStepPotential`; anything else raises TypeError (use `potential_and_normal`). The small
+    layers run in one compiled call each way (`_mlp_forward`, `_mlp_backward`); a TDM's wide head
+    is two BLAS matrix-vector products around one compiled pass over its logits (`_head_terms`).
     """
 
     def __init__(self, potential: nn.Module):
@@ -82,41 +86,42 @@ class FastPotential:
         else:
             raise TypeError(f"FastPotential: {type(potential).__name__} is not a DangerPotential over a TDM "
                             "or an NStepPotential; use potential_and_normal instead")
-        self.layers: list[tuple[np.ndarray, np.ndarray, str]] = []
+        layers: list[list] = []
         for m in mods:
             if isinstance(m, nn.Linear):
-                self.layers.append((m.weight.detach().float().numpy().copy(),
-                                    m.bias.detach().float().numpy().copy(), "linear"))
+                layers.append([m.weight.detach().float().numpy().copy(), m.bias.detach().float().numpy().copy(), 0])
             elif isinstance(m, (nn.ReLU, nn.Tanh)):
-                w, b, _ = self.layers[-1]
-                self.layers[-1] = (w, b, "relu" if isinstance(m, nn.ReLU) else "tanh")
+                layers[-1][2] = 1 if isinstance(m, nn.ReLU) else 2
             else:
                 raise TypeError(f"FastPotential: layer {type(m).__name__} is not supported (Linear, ReLU, Tanh)")
+        self.head = tuple(layers.pop()[:2]) if self.output == "total_danger" else None
+        n_in = layers[0][0].shape[1] if layers else self.head[0].shape[1]
+        self.mean = np.zeros(n_in, np.float32) if self.mean is None else self.mean
+        self.std = np.ones(n_in, np.float32) if self.std is None else self.std
+        self._W = typed.List.empty_list(numba.float32[:, ::1])
+        self._b = typed.List.empty_list(numba.float32[::1])
+        for w, b, _ in layers:
+            self._W.append(np.ascontiguousarray(w))
+            self._b.append(np.ascontiguousarray(b))
+        self._kinds = np.array([k for _, _, k in layers], dtype=np.int64)
 
-    def _forward(self, s, a, layers) -> list[np.ndarray]:
-        """The input and the outputs of `layers` (after their activations), float32."""
-        s = np.atleast_2d(np.asarray(s, dtype=np.float32))
-        x = np.concatenate([s, np.atleast_2d(np.asarray(a, dtype=np.float32))], axis=1)
-        if self.mean is not None:
-            x = (x - self.mean) / self.std
-        acts = [x]
-        for w, b, kind in layers:
-            x = _rows_times(x, w.T) + b
-            if kind == "relu":
-                x = np.maximum(x, 0.0)
-            elif kind == "tanh":
-                x = np.tanh(x)
-            acts.append(x)
-        return acts
+    def _trunk(self, s, a):
+        """The activations of the compiled layers (input first) for states and actions."""
+        s, a = np.atleast_2d(np.asarray(s, dtype=np.float64)), np.atleast_2d(np.asarray(a, dtype=np.float64))
+        if s.shape[0] != a.shape[0]:
+            raise ValueError(f"potential: states have {s.shape[0]} rows but actions {a.shape[0]}; give one action per state")
+        if s.shape[1] + a.shape[1] != len(self.mean):
+            raise ValueError(f"potential: a state of {s.shape[1]} and an action of {a.shape[1]} values; the network "
+                             f"takes {len(self.mean)} inputs in all (state then action)")
+        return _mlp_forward(s, a, self.mean, self.std, self._W, self._b, self._kinds)
 
     def _danger(self, s, a, grad: bool):
         """The trunk's activations, log p(not D) (B,) and, with `grad`, `sum_i sigmoid(z_i) W_i`
         (the gradient at the head's input up to the factor 1 - f) of the head's logits z."""
-        acts = self._forward(s, a, self.layers[:-1])
-        w, b, _ = self.layers[-1]
-        z = torch.from_numpy(_rows_times(acts[-1], w.T) + b)
-        log_safe = -nn.functional.softplus(z).sum(dim=1, dtype=torch.float64).numpy()  # eq. 1 in log space
-        return acts, log_safe, _rows_times(torch.sigmoid(z).numpy(), w) if grad else None
+        acts = self._trunk(s, a)
+        w, b = self.head
+        log_safe, sig = _head_terms(_rows_times(acts[len(acts) - 1], w.T) + b, grad)
+        return acts, log_safe, _rows_times(sig, w) if grad else None
 
     def log_safety(self, s, a) -> np.ndarray:
         """log p(not D | s, a) (B,) of a TDM potential (eq. 1 in log space), no gradient."""
@@ -129,24 +134,94 @@ class FastPotential:
         d = np.shape(s)[-1]
         if self.output == "total_danger":
             acts, log_safe, g = self._danger(s, a, True)
-            f = -np.expm1(log_safe)
+            f = -np.expm1(log_safe)  # eq. 1 in log space
             g *= np.exp(log_safe).astype(np.float32)[:, None]  # df/dz_i = (1 - f) sigmoid(z_i)
-            top = len(self.layers) - 2  # g is already the gradient at the head's input
         else:
-            acts = self._forward(s, a, self.layers)
-            f = expit(acts[-1][:, 0].astype(np.float64))
+            acts = self._trunk(s, a)
+            f = expit(acts[len(acts) - 1][:, 0].astype(np.float64))
             g = (f * (1.0 - f)).astype(np.float32)[:, None]
-            top = len(self.layers) - 1
-        for i in range(top, -1, -1):
-            w, _, kind = self.layers[i]
-            if kind == "relu":
-                g = g * (acts[i + 1] > 0)
-            elif kind == "tanh":
-                g = g * (1.0 - acts[i + 1] ** 2)
-            g = _rows_times(g, w)
-        if self.std is not None:
-            g = g / self.std
-        return f, g[:, :d].astype(np.float64)
+        return f, _mlp_backward(g, self.std, self._W, acts, self._kinds)[:, :d].astype(np.float64)
+
+
+_FAST = {"reassoc", "contract", "nsz", "arcp"}  # reorder sums, keep inf and NaN semantics
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _mlp_forward(s, a, mean, std, Ws, bs, kinds):
+    """Activations (input first) of the layers `Ws, bs` with `kinds` (0 linear, 1 ReLU, 2 tanh)
+    on the normalised input `([s, a] - mean) / std`, float32."""
+    B, ds = s.shape
+    x = np.empty((B, ds + a.shape[1]), np.float32)
+    for r in range(B):
+        for j in range(x.shape[1]):
+            x[r, j] = ((s[r, j] if j < ds else a[r, j - ds]) - mean[j]) / std[j]
+    acts = typed.List()
+    acts.append(x)
+    for k in range(len(Ws)):
+        W, bias = Ws[k], bs[k]
+        y = np.empty((B, W.shape[0]), np.float32)
+        for r in range(B):
+            for o in range(W.shape[0]):
+                acc = bias[o]
+                for i in range(W.shape[1]):
+                    acc += W[o, i] * x[r, i]
+                if kinds[k] == 1:
+                    acc = max(acc, np.float32(0.0))
+                elif kinds[k] == 2:
+                    acc = np.tanh(acc)
+                y[r, o] = acc
+        acts.append(y)
+        x = y
+    return acts
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _mlp_backward(g, std, Ws, acts, kinds):
+    """The gradient `g` at the last layer's output taken back to the (unnormalised) input."""
+    B = g.shape[0]
+    for k in range(len(Ws) - 1, -1, -1):
+        W, y = Ws[k], acts[k + 1]
+        if kinds[k] == 1:
+            g = np.where(y > 0, g, np.float32(0.0))
+        elif kinds[k] == 2:
+            g = g * (np.float32(1.0) - y * y)
+        out = np.zeros((B, W.shape[1]), np.float32)
+        for r in range(B):
+            for o in range(W.shape[0]):
+                go = g[r, o]
+                for i in range(W.shape[1]):
+                    out[r, i] += go * W[o, i]
+        g = out
+    return g / std
+
+
+def _head_terms(z: np.ndarray, grad: bool):
+    """From logits z (B, N) float32: log p(not D) = -sum_i softplus(z_i) (B,) float64 and, with
+    `grad`, sigmoid(z) (B, N). softplus(z) = max(z, 0) + log(1 + e) with e = exp(-|z|) (numpy's
+    vectorised exp); no log1p: the logs of 64 factors (1 + e) in (1, 2] are taken as one log of
+    their float64 product (exact to ~1e-14; float32 1 + e would drop every e under 6e-8)."""
+    return _head_sums(z, np.exp(-np.abs(z)), grad)
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _head_sums(z, e, grad):
+    B, N = z.shape
+    log_safe = np.empty(B)
+    sig = np.empty((B, N) if grad else (0, 0), np.float32)
+    for r in range(B):
+        total = 0.0
+        for i in range(N):
+            total += max(z[r, i], np.float32(0.0))
+        for start in range(0, N, 64):
+            prod = 1.0
+            for i in range(start, min(start + 64, N)):
+                prod *= 1.0 + e[r, i]
+            total += np.log(prod)
+        log_safe[r] = -total
+        if grad:
+            for i in range(N):
+                sig[r, i] = (np.float32(1.0) if z[r, i] >= 0 else e[r, i]) / (np.float32(1.0) + e[r, i])
+    return log_safe, sig
 
 
 def _rows_times(x: np.ndarray, w: np.ndarray) -> np.ndarray:

@@ -84,18 +84,23 @@ class StrategyFilter:
         self.order = np.argsort(-self.log_prior, kind="stable")
 
     def __call__(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
-        """The MAP candidate. Candidates are scored in order of their prior, and scoring stops once
-        the best score so far beats every remaining prior (log p(not D) <= 0 can only lower a
-        score): the same argmax, usually from one TDM evaluation instead of one per candidate."""
-        best, best_score = None, -np.inf
-        for i in self.order:
-            if best_score >= self.log_prior[i]:
-                break
-            cand = self.scales[i] * a
-            score = self.log_prior[i] + self.fast.log_safety(s, cand)[0]
-            if score > best_score or best is None:
-                best, best_score = cand, score
-        return best
+        """The MAP candidate. The candidate with the highest prior is scored first; the others
+        only when one of them could still beat it (log p(not D) <= 0 can only lower a score), all
+        in one batch: the same argmax, usually from one TDM evaluation. A NaN safety counts as
+        certain danger; ties go to the higher prior."""
+        first, rest = self.order[0], self.order[1:]
+        best = self.scales[first] * a
+        score = self._scores(s, best[None], self.log_prior[first:first + 1])[0]
+        if len(rest) == 0 or score >= self.log_prior[rest].max():
+            return best
+        cand = self.scales[rest, None] * a
+        scores = self._scores(s, cand, self.log_prior[rest])
+        k = int(np.argmax(scores))
+        return cand[k] if scores[k] > score else best
+
+    def _scores(self, s, cand, log_prior):
+        log_safe = self.fast.log_safety(np.broadcast_to(s, (len(cand), len(s))), cand)
+        return log_prior + np.where(np.isnan(log_safe), -np.inf, log_safe)
 
 
 class SafetyStack:

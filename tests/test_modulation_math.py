@@ -117,3 +117,15 @@ def test_tangent_gain_zero_never_speeds_up():
     assert (np.linalg.norm(out, axis=1) <= np.linalg.norm(v, axis=1) + 1e-12).all()
     w = np.linalg.eigvalsh(modulation_matrix(0.4, n[0], tangent_gain=0.0)[0])
     assert np.allclose(np.sort(w), [0.6, 1, 1, 1, 1])
+
+
+def test_bench_modulation_rows_fast_path_matches_reference():
+    import argparse
+
+    from skinsafe.core.bench_modulation import rows
+
+    out = rows(argparse.Namespace(taxels=[256], active=[8], hidden=32, repeat=3, nstep=False, no_full=False))
+    assert [(r["layer"], r["n_taxels"]) for r in out] == [("modulation", 256), ("full", 256)]
+    full = out[1]
+    assert full["active"] == 8 and full["ms"] > 0 and full["ms_worst"] > 0 and full["ms_ref"] > 0
+    assert full["max_abs_diff"] < 1e-4  # the fast potential, modulation and retraction give the same command
