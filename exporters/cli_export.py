@@ -1,14 +1,17 @@
-"""`skinsafe export MAP OUT_DIR`: a taxel map to a MuJoCo scene folder (scene.xml, meshes/, taxel_map.json)."""
+"""`skinsafe export MAP OUT_DIR`: a taxel map to a MuJoCo scene folder (scene.xml, meshes/, taxel_map.json),
+with `--urdf` also robot_skin.urdf (robot tree, taxel links, tactile sensors) for ROS."""
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
 from ..core import taxel_map
+from ..core.files import atomic_write
 from ..core.robots import load_robot
 from ..core.skin import DesignError
 from .mjcf import ExportOptions, Obstacle, export_scene
 from .meshes import MODES
+from .urdf import URDF_FILE, build_urdf
 
 
 def add_arguments(p) -> None:
@@ -25,6 +28,8 @@ def add_arguments(p) -> None:
     p.add_argument("--timestep", type=float, default=None, help="physics timestep, s (default: the robot's)")
     p.add_argument("--probe", type=float, default=None, metavar="RADIUS",
                    help="add a mocap sphere 'probe' of this radius (m) to poke the skin with")
+    p.add_argument("--urdf", action="store_true",
+                   help=f"also write OUT_DIR/{URDF_FILE}: the robot, one fixed link per taxel, tactile sensors (ROS)")
 
 
 def run(args) -> int:
@@ -36,10 +41,13 @@ def run(args) -> int:
                                 taxel_sites=not args.no_sites, touch_sensors=args.touch,
                                 prune_contacts=not args.no_prune, timestep=args.timestep)
         obstacles = [Obstacle("probe", "sphere", (args.probe,), pos=(0, 0, -1), mocap=True)] if args.probe else []
+        urdf = build_urdf(design, robot) if args.urdf else None  # check it before writing anything
         scene = export_scene(design, robot, args.out_dir, obstacles, options)
+        if urdf is not None:
+            atomic_write(Path(args.out_dir) / URDF_FILE, urdf)
     except (DesignError, ValueError) as e:
         print(f"skinsafe export: {e}", file=sys.stderr)
         return 1
     print(f"wrote {scene} ({design.n_taxels} taxels on {len(design.bodies)} bodies) and "
-          f"{Path(args.out_dir) / 'taxel_map.json'}")
+          f"{Path(args.out_dir) / 'taxel_map.json'}" + (f" and {Path(args.out_dir) / URDF_FILE}" if args.urdf else ""))
     return 0
