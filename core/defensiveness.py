@@ -15,7 +15,7 @@ import numpy as np
 
 from .events import danger_events
 from .kinematics import TaxelKinematics
-from .retraction import RetractionParams, limit, merge_paper, profile, retract_qdot
+from .retraction import RetractionParams, limit, merge_paper, profile, profile_rate, retract_qdot
 
 
 class DefensivenessLayer:
@@ -147,6 +147,5 @@ def _rank(st, pos, severity, t, T, max_distance):
     speed = np.empty(K)
     for i in range(K):
         k = order[i]
-        u = min(max((t - st[k, 1]) / T, 0.0), 1.0)
-        speed[i] = D[k] * u * (1 - u) ** 2 / T  # eq. 10's rate, zero at both ends
+        speed[i] = D[k] * profile_rate((t - st[k, 1]) / T) / T
     return order, w[order], done[order], speed

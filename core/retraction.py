@@ -96,9 +96,11 @@ def profile(u: np.ndarray) -> np.ndarray:
     return u ** 4 / 4 - 2 * u ** 3 / 3 + u ** 2 / 2
 
 
-def profile_rate(u: np.ndarray) -> np.ndarray:
-    """ds/du = u (1-u)^2, zero at both ends, peak 4/27 at u = 1/3; 0 outside [0, 1]."""
-    u = np.clip(u, 0.0, 1.0)
+@numba.vectorize(["float64(float64)"], cache=True)
+def profile_rate(u):
+    """ds/du = u (1-u)^2, zero at both ends, peak 4/27 at u = 1/3; 0 outside [0, 1] (a ufunc,
+    also callable from compiled code)."""
+    u = min(max(u, 0.0), 1.0)
     return u * (1 - u) ** 2
 
 
