@@ -4,7 +4,7 @@ adapts Blender data and draws.
 
 Registers properties, then operators, then panels, drawing and handlers; unregisters in reverse.
 """
-from . import drawing, handlers, operators, panels, props
+from skinsafe.addon import drawing, handlers, operators, panels, props
 
 _MODULES = (props, operators, panels, drawing, handlers)
 
@@ -17,5 +17,5 @@ def register():
 def unregister():
     for m in reversed(_MODULES):
         m.unregister()
-    from . import blender_to_core
+    from skinsafe.addon import blender_to_core
     blender_to_core.clear_caches()

@@ -4,10 +4,10 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from skinsafe.core import taxel_map
-from skinsafe.core.robots import load_robot  # noqa: F401 (operators refuse files early)
-from skinsafe.core.skin import DesignError, Module, RobotRef
-from skinsafe.core.surface import Surface
+from skinsafe.core.design.surface import Surface
+from skinsafe.core.robot.models import load_robot  # noqa: F401 (operators refuse files early)
+from skinsafe.core.skin import taxel_map
+from skinsafe.core.skin.model import DesignError, Module, RobotRef
 
 TEXT_NAME = "skinsafe_taxel_map.json"
 _robots: dict = {}  # (kind, name, path) -> Robot

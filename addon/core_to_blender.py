@@ -6,10 +6,9 @@ import bpy
 import mujoco
 import numpy as np
 
-from skinsafe.core import taxel_map
-from skinsafe.core.surface import body_surface
-
-from .blender_to_core import TEXT_NAME, _designs, body_objects, matrix_key, pose, robot_for, to_matrix
+from skinsafe.addon.blender_to_core import TEXT_NAME, _designs, body_objects, matrix_key, pose, robot_for, to_matrix
+from skinsafe.core.design.surface import body_surface
+from skinsafe.core.skin import taxel_map
 
 COLLECTION = "skinsafe robot"
 # viridis at 0, .25, .5, .75, 1

@@ -2,14 +2,19 @@
 assign boards, map Jacobians. Geometry and checks are skinsafe.core's; this glues them to objects."""
 import numpy as np
 
-from skinsafe.core.coverage import coverage_report
-from skinsafe.core.kinematics import TaxelKinematics, retractability
-from skinsafe.core.placement import (PlacementError, build_design, place_module, placed_from_design,
-                                     placement_record, replace_module)
-from skinsafe.core.skin import DesignError
-
-from . import blender_to_core as b2c
-from . import core_to_blender as c2b
+from skinsafe.addon import blender_to_core as b2c
+from skinsafe.addon import core_to_blender as c2b
+from skinsafe.core.design.coverage import coverage_report
+from skinsafe.core.design.placement import (
+    PlacementError,
+    build_design,
+    place_module,
+    placed_from_design,
+    placement_record,
+    replace_module,
+)
+from skinsafe.core.robot.kinematics import TaxelKinematics, retractability
+from skinsafe.core.skin.model import DesignError
 
 
 def _others(design, body: str, skip: int | None = None):

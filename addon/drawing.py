@@ -4,9 +4,8 @@ Only registered with a screen (never in background mode, where no viewport draws
 import bpy
 import numpy as np
 
-from skinsafe.core.kinematics import TaxelKinematics
-
-from . import blender_to_core as b2c
+from skinsafe.addon import blender_to_core as b2c
+from skinsafe.core.robot.kinematics import TaxelKinematics
 
 _handle = None
 

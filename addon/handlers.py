@@ -4,8 +4,8 @@ removed on unregister (a bpy process hangs at exit otherwise); the re-generation
 import bpy
 from bpy.app.handlers import persistent
 
-from . import blender_to_core as b2c
-from . import designer
+from skinsafe.addon import blender_to_core as b2c
+from skinsafe.addon import designer
 
 _busy = False
 

@@ -13,8 +13,8 @@ from pathlib import Path
 import bpy  # first: before anything that could import pymeshlab
 import numpy as np
 
-from . import blender_to_core as b2c
-from . import register, unregister
+from skinsafe.addon import blender_to_core as b2c
+from skinsafe.addon import register, unregister
 
 
 def _bounds(objs) -> tuple[np.ndarray, np.ndarray]:

@@ -6,14 +6,13 @@ import numpy as np
 from bpy.props import EnumProperty, FloatProperty, FloatVectorProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from skinsafe.core import taxel_map
-from skinsafe.core.coverage import format_report
-from skinsafe.core.skin import DesignError, RobotRef
-from skinsafe.core.surface import check_urdf
-
-from . import blender_to_core as b2c
-from . import core_to_blender as c2b
-from . import designer
+from skinsafe.addon import blender_to_core as b2c
+from skinsafe.addon import core_to_blender as c2b
+from skinsafe.addon import designer
+from skinsafe.core.design.coverage import format_report
+from skinsafe.core.design.surface import check_urdf
+from skinsafe.core.skin import taxel_map
+from skinsafe.core.skin.model import DesignError, RobotRef
 
 
 def _fail(op, scene, e: Exception):

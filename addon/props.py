@@ -1,7 +1,15 @@
 """Properties: the scene's robot, pose and new-module settings; each module object's template."""
 import bpy
-from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty, FloatVectorProperty,
-                       IntProperty, PointerProperty, StringProperty)
+from bpy.props import (
+    BoolProperty,
+    CollectionProperty,
+    EnumProperty,
+    FloatProperty,
+    FloatVectorProperty,
+    IntProperty,
+    PointerProperty,
+    StringProperty,
+)
 
 TEMPLATES = [("rect", "Rectangle", "rows x cols grid"), ("strip", "Strip", "one row of taxels"),
              ("curve", "Curve outline", "the grid cells inside a closed curve")]
@@ -10,7 +18,7 @@ METHODS = [("geodesic", "Geodesic", "walk the surface: spacing on the surface eq
 
 
 def _pose_changed(self, context):
-    from .core_to_blender import apply_pose
+    from skinsafe.addon.core_to_blender import apply_pose
     apply_pose(context.scene)
 
 

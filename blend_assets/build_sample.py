@@ -11,9 +11,9 @@ import bpy  # first: before anything that could import pymeshlab
 
 import skinsafe.addon as addon
 from skinsafe.addon import blender_to_core as b2c
-from skinsafe.core.placement import ring_layout
-from skinsafe.core.sample_skin import SAMPLE_BODIES
-from skinsafe.core.skin import DesignError, Module
+from skinsafe.core.design.placement import ring_layout
+from skinsafe.core.design.sample import SAMPLE_BODIES
+from skinsafe.core.skin.model import DesignError, Module
 
 PITCH = 0.008
 TEMPLATE = Module(id=0, name="fpc8", body="", rows=8, cols=8, pitch=PITCH, taxel_diameter=0.6 * PITCH,

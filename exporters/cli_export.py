@@ -5,17 +5,18 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ..core import taxel_map
-from ..core.files import atomic_write
-from ..core.robots import load_robot
-from ..core.skin import DesignError
-from .mjcf import ExportOptions, Obstacle, export_scene
-from .meshes import MODES
-from .urdf import URDF_FILE, build_urdf
+from skinsafe.core.robot.meshes import MODES
+from skinsafe.core.robot.models import load_robot
+from skinsafe.core.sim.scene import Obstacle, SceneOptions
+from skinsafe.core.skin import taxel_map
+from skinsafe.core.skin.files import atomic_write
+from skinsafe.core.skin.model import DesignError
+from skinsafe.exporters.mjcf import export_scene
+from skinsafe.exporters.urdf import URDF_FILE, build_urdf
 
 
 def add_arguments(p) -> None:
-    d = ExportOptions()
+    d = SceneOptions()
     p.add_argument("map", help="taxel map JSON (from the add-on or `skinsafe sample`)")
     p.add_argument("out_dir", help="folder to write scene.xml, meshes/ and taxel_map.json into")
     p.add_argument("--collision", choices=MODES, default=d.collision,
@@ -37,7 +38,7 @@ def run(args) -> int:
     try:
         design = taxel_map.load(path)
         robot = load_robot(design.robot, base_dir=path.parent)
-        options = ExportOptions(collision=args.collision, target_faces=args.target_faces, visual=not args.no_visual,
+        options = SceneOptions(collision=args.collision, target_faces=args.target_faces, visual=not args.no_visual,
                                 taxel_sites=not args.no_sites, touch_sensors=args.touch,
                                 prune_contacts=not args.no_prune, timestep=args.timestep)
         obstacles = [Obstacle("probe", "sphere", (args.probe,), pos=(0, 0, -1), mocap=True)] if args.probe else []

@@ -42,9 +42,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from ..core.files import atomic_write
-from ..core.robots import Robot
-from ..core.skin import SkinDesign
+from skinsafe.core.robot.models import Robot
+from skinsafe.core.skin.files import atomic_write
+from skinsafe.core.skin.model import SkinDesign
 
 URDF_FILE = "robot_skin.urdf"
 DEFAULT_EFFORT = 100.0  # N m (or N) where the model gives no actuator force range

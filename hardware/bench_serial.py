@@ -15,13 +15,13 @@ import time
 
 import numpy as np
 
-from ..core.skin import Board, Module, RobotRef, SkinDesign, Taxels, frames_from_normals
-from ..core.timing import median_ms
-from . import protocol as P
-from .board_config import board_configs, channel_rows, default_sensor
-from .deploy import deploy
-from .emulator import EmulatorProcess
-from .stream import decode_frames, decode_table
+from skinsafe.core.bench.timing import median_ms
+from skinsafe.core.skin.model import Board, Module, RobotRef, SkinDesign, Taxels, frames_from_normals
+from skinsafe.hardware import protocol as P
+from skinsafe.hardware.board_config import board_configs, channel_rows, default_sensor
+from skinsafe.hardware.deploy import deploy
+from skinsafe.hardware.emulator import EmulatorProcess
+from skinsafe.hardware.stream import decode_frames, decode_table
 
 
 def flat_design(n_taxels: int, n_boards: int, threshold: float = 5.0, uid_base: int = 0x5C1A0000) -> SkinDesign:

@@ -13,7 +13,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..core.skin import Board, DesignError, SkinDesign
+from skinsafe.core.skin.model import Board, DesignError, SkinDesign
 
 MAGIC = b"SKCF"
 FORMAT_VERSION = 1
@@ -25,7 +25,7 @@ GAIN_ONE = 256  # Q8.8
 
 def default_sensor():
     """The FSR model shared by simulation and hardware (counts <-> newtons)."""
-    from ..core.sensor_model import FSRModel
+    from skinsafe.core.sim.sensor_model import FSRModel
     return FSRModel()
 
 

@@ -5,10 +5,10 @@ import sys
 
 from tqdm import tqdm
 
-from ..core.skin import DesignError, SkinDesign
-from ..core.taxel_map import load
-from .board_config import board_configs
-from .deploy import BoardReport, candidate_ports, deploy, discover, plan
+from skinsafe.core.skin.model import DesignError, SkinDesign
+from skinsafe.core.skin.taxel_map import load
+from skinsafe.hardware.board_config import board_configs
+from skinsafe.hardware.deploy import BoardReport, candidate_ports, deploy, discover, plan
 
 
 def add_port_arguments(p) -> None:

@@ -1,7 +1,7 @@
 """`skinsafe emulate`: run board emulators on pseudo-terminals and print their ports (until Ctrl-C)."""
 from __future__ import annotations
 
-from .emulator import add_arguments, serve
+from skinsafe.hardware.emulator import add_arguments, serve
 
 __all__ = ["add_arguments", "run"]
 

@@ -6,12 +6,12 @@ import time
 
 import numpy as np
 
-from ..core.events import danger_events
-from ..core.skin import DesignError
-from ..core.taxel_map import load
-from .cli_deploy import add_port_arguments, find_ports
-from .client import BoardError
-from .stream import SkinStream, StreamUpdate
+from skinsafe.core.safety.events import danger_events
+from skinsafe.core.skin.model import DesignError
+from skinsafe.core.skin.taxel_map import load
+from skinsafe.hardware.cli_deploy import add_port_arguments, find_ports
+from skinsafe.hardware.client import BoardError
+from skinsafe.hardware.stream import SkinStream, StreamUpdate
 
 
 def add_arguments(p) -> None:

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import serial
 
-from . import protocol as P
+from skinsafe.hardware import protocol as P
 
 BITS_PER_BYTE = 10  # 8N1
 

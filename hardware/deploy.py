@@ -11,10 +11,10 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
-from ..core.skin import Board, SkinDesign
-from . import protocol as P
-from .board_config import BoardConfig, board_configs, diff
-from .client import BoardClient, BoardError
+from skinsafe.core.skin.model import Board, SkinDesign
+from skinsafe.hardware import protocol as P
+from skinsafe.hardware.board_config import BoardConfig, board_configs, diff
+from skinsafe.hardware.client import BoardClient, BoardError
 
 
 @dataclass

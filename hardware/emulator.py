@@ -26,11 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.files import atomic_write
-from ..core.skin import DesignError
-from . import protocol as P
-from .board_config import ENTRY, GAIN_ONE, BoardConfig, channel_rows, default_sensor
-from .board_config import HEADER as CONFIG_HEADER
+from skinsafe.core.skin.files import atomic_write
+from skinsafe.core.skin.model import DesignError
+from skinsafe.hardware import protocol as P
+from skinsafe.hardware.board_config import ENTRY, GAIN_ONE, BoardConfig, channel_rows, default_sensor
+from skinsafe.hardware.board_config import HEADER as CONFIG_HEADER
 
 BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
 
@@ -364,7 +364,7 @@ def _specs(args):
             raise SystemExit(f"--board {b!r}: give UID:CHANNELS, e.g. 0x5C1A0000:256") from None
     design = None
     if args.map:
-        from ..core.taxel_map import load
+        from skinsafe.core.skin.taxel_map import load
         design = load(args.map)
         pairs += [(b.uid, b.capacity, b) for b in design.boards]
     if not pairs:

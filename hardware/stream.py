@@ -14,10 +14,10 @@ from typing import Callable
 
 import numpy as np
 
-from ..core.skin import SkinDesign
-from .board_config import board_configs, channel_rows, default_sensor
-from .client import BoardClient, BoardError
-from .protocol import FrameRun
+from skinsafe.core.skin.model import SkinDesign
+from skinsafe.hardware.board_config import board_configs, channel_rows, default_sensor
+from skinsafe.hardware.client import BoardClient, BoardError
+from skinsafe.hardware.protocol import FrameRun
 
 
 def decode_table(decode: Callable | None = None) -> np.ndarray:

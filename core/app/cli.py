@@ -1,0 +1,133 @@
+"""The `skinsafe` command line.
+
+Each subcommand lives in its own module, imported only when used (so `skinsafe deploy` never
+loads torch or bpy). A command module exposes `add_arguments(parser)` and `run(args) -> int`.
+A benchmark module exposes `add_arguments(parser)` (optional) and `rows(args) -> list[dict]`;
+`skinsafe bench NAME` prints the rows as a table, or as one JSON list with `--json`.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+
+from skinsafe.core.skin.model import DesignError
+
+COMMANDS = {
+    "demo": ("skinsafe.core.app.demo", "run the whole product on the bundled sample scene and write a report"),
+    "sample": ("skinsafe.core.design.sample", "generate the sample skin on a built-in robot and save its taxel map"),
+    "check": ("skinsafe.core.app.check", "validate a taxel map against its robot and print a summary"),
+    "export": ("skinsafe.exporters.cli_export", "export a skin design to a MuJoCo scene (MJCF) and taxel map"),
+    "poke": ("skinsafe.core.experiments.poke", "poke taxels in simulation and plot the retraction (paper Fig. 8/12, Fig. 7)"),
+    "deploy": ("skinsafe.hardware.cli_deploy", "push a taxel map to the interface boards over serial and verify it"),
+    "stream": ("skinsafe.hardware.cli_stream", "stream readings from the boards, mapped to taxels"),
+    "emulate": ("skinsafe.hardware.cli_emulate", "run a board emulator on a pseudo-terminal"),
+    "trade": ("skinsafe.core.app.trade", "sweep speed-vs-accuracy knobs (Ray) and plot the Pareto front"),
+}
+EXPERIMENTS = {
+    "maze": ("skinsafe.core.experiments.maze", "strategy layer: safe RL in the maze (paper Fig. 9)"),
+    "tracking": ("skinsafe.core.experiments.tracking", "modulation layer: UR5 tracking among balls (Fig. 11)"),
+    "desk": ("skinsafe.core.experiments.scenes", "retraction toward a desk stopped by modulation (Fig. 14)"),
+    "collaboration": ("skinsafe.core.experiments.scenes", "delivering parts next to a human arm (Fig. 15)"),
+}
+BENCHES = {
+    "jacobians": ("skinsafe.core.bench.jacobians", "batched taxel Jacobians vs a per-taxel loop"),
+    "design": ("skinsafe.core.bench.design", "placing modules and re-generating one after a move"),
+    "sensing": ("skinsafe.core.bench.sensing", "vectorised skin readout vs per-taxel touch sensors"),
+    "retraction": ("skinsafe.core.bench.retraction", "one defensiveness tick vs a loop"),
+    "modulation": ("skinsafe.core.bench.modulation", "modulation tick and full three-layer tick"),
+    "serial": ("skinsafe.hardware.bench_serial", "deploy and stream decoding over a pseudo-terminal"),
+}
+
+
+def _load(module: str, what: str):
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as e:
+        if e.name == module:
+            sys.exit(f"skinsafe: {what} is not available in this installation ({module} missing)")
+        raise
+
+
+def print_rows(rows: list[dict], as_json: bool) -> None:
+    """A benchmark's rows as a JSON list or an aligned table."""
+    if as_json:
+        print(json.dumps(rows))
+        return
+    if not rows:
+        print("(no rows)")
+        return
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    cells = [[_fmt(r.get(k, "")) for k in keys] for r in rows]
+    width = [max(len(k), *(len(c[i]) for c in cells)) for i, k in enumerate(keys)]
+    print("  ".join(k.rjust(w) for k, w in zip(keys, width)))
+    for c in cells:
+        print("  ".join(v.rjust(w) for v, w in zip(c, width)))
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="skinsafe", description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (_, helptext) in COMMANDS.items():
+        sub.add_parser(name, help=helptext, add_help=False)
+    ex = sub.add_parser("experiment", help="run one of the paper's experiments")
+    ex.add_argument("name", choices=sorted(EXPERIMENTS), help="; ".join(f"{k}: {v[1]}" for k, v in EXPERIMENTS.items()))
+    b = sub.add_parser("bench", help="measure speed (and accuracy) against a simple reference")
+    b.add_argument("name", choices=sorted(BENCHES), help="; ".join(f"{k}: {v[1]}" for k, v in BENCHES.items()))
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    if not argv or argv[0] in ("-h", "--help"):
+        parser.print_help()
+        return 0
+    cmd = argv[0]
+    if cmd in COMMANDS:
+        module, helptext = COMMANDS[cmd]
+        return _run_module(_load(module, f"'{cmd}'"), f"skinsafe {cmd}", helptext, argv[1:], cmd)
+    if cmd in ("experiment", "bench") and len(argv) > 1 and not argv[1].startswith("-"):
+        table = EXPERIMENTS if cmd == "experiment" else BENCHES
+        name = argv[1]
+        if name not in table:
+            parser.error(f"unknown {cmd} '{name}'; choose from {', '.join(sorted(table))}")
+        module, helptext = table[name]
+        return _run_module(_load(module, f"{cmd} '{name}'"), f"skinsafe {cmd} {name}", helptext, argv[2:], name,
+                           bench=cmd == "bench")
+    parser.parse_args(argv)  # prints usage and exits for anything else
+    return 2
+
+
+def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False) -> argparse.Namespace:
+    """Parse `argv` with the module's own arguments (the demo uses this to run commands in-process)."""
+    p = argparse.ArgumentParser(prog=prog, description=helptext)
+    if bench:
+        p.add_argument("--json", action="store_true", help="print one JSON list of flat rows")
+    p.set_defaults(command_name=name)  # one module may serve several names
+    if hasattr(mod, "add_arguments"):
+        mod.add_arguments(p)
+    return p.parse_args(argv)
+
+
+def _run_module(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False) -> int:
+    args = module_args(mod, prog, helptext, argv, name, bench)
+    try:
+        if bench:
+            print_rows(mod.rows(args), args.json)
+            return 0
+        return int(mod.run(args) or 0)
+    except (DesignError, FileNotFoundError) as e:
+        print(f"skinsafe {name}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

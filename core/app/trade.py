@@ -1,0 +1,216 @@
+"""`skinsafe trade`: speed against accuracy for the knobs users turn, swept in parallel with Ray.
+
+Each knob is swept over a few values; every point is one Ray task that measures its speed
+(median wall time of its unit of work) and returns what it computed. The error of a point is
+measured against the knob's most accurate setting (the reference, error 0, speedup 1):
+
+- `density`, the sample skin's pitch (m): readout + all taxels' Jacobians per control tick;
+  contact localisation (force-weighted centroid of the lit taxels) vs the densest skin, mm.
+- `timestep`, MuJoCo's timestep (s): wall ms per simulated second; taxel forces vs the
+  smallest timestep (relative L1, median over samples).
+- `collision`, `SceneOptions.collision` (+ target faces): physics step; taxel forces vs the
+  full mesh (relative L1).
+- `sensing`, the readout model: physics step + readout; taxel forces vs per-taxel MuJoCo
+  touch sensors (relative L1, median).
+- `nstep`, Monte Carlo rollouts per (s, a) of eq. 8: the targets of a batch of states; RMS of
+  w vs the most samples.
+- `damping`, the DLS damping: one defensiveness tick; the taxel path vs the undamped inverse,
+  max mm.
+
+For `damping` the trade is accuracy against the peak joint speed the retraction asks for near
+the UR5 elbow singularity (compute time hardly changes): its Pareto front uses `peak_qdot`.
+Every other knob's front uses `ms`. Outputs in `--out`: `trade.png` (one panel per knob, error
+against speedup or peak joint speed, Pareto points filled), `trade.md` and `trade.json`.
+
+Ray: `--address` joins an existing cluster (`auto` for one started with `ray start` on this
+machine; every node needs skinsafe installed); without it a new local Ray starts by itself and
+stops at the end.
+"""
+from __future__ import annotations
+
+import io
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from skinsafe.core.app.knobs import KNOBS
+from skinsafe.core.skin.files import atomic_write
+
+# --- Pareto front ---------------------------------------------------------------------------
+
+def pareto_front(cost, error) -> np.ndarray:
+    """(K,) True where no other point is at least as good in both (lower cost, lower error) and
+    strictly better in one. Equal points are all on the front."""
+    c, e = np.asarray(cost, float), np.asarray(error, float)
+    if c.shape != e.shape or c.ndim != 1:
+        raise ValueError(f"pareto_front: cost {c.shape} and error {e.shape} must be 1-D of the same length")
+    le = (c[None, :] <= c[:, None]) & (e[None, :] <= e[:, None])
+    lt = (c[None, :] < c[:, None]) | (e[None, :] < e[:, None])
+    return ~(le & lt).any(axis=1)
+
+
+# --- the sweep --------------------------------------------------------------------------------
+
+def _task(knob: str, value, quick: bool) -> dict:
+    """One sweep point (runs in a Ray worker)."""
+    return KNOBS[knob].point(value, quick)
+
+
+def parse_knobs(text: str | list | tuple) -> list[str]:
+    names = [k.strip() for k in text.split(",")] if isinstance(text, str) else list(text)
+    names = [k for k in names if k]
+    bad = [k for k in names if k not in KNOBS]
+    if bad or not names:
+        raise ValueError(f"knobs {bad or '(none)'} unknown; choose from {', '.join(KNOBS)} (comma-separated)")
+    return list(dict.fromkeys(names))
+
+
+def rows_from_results(results: dict[tuple[str, object], dict], knobs: list[str], quick: bool) -> list[dict]:
+    """Flat rows (one per point, knob by knob in sweep order) with errors, speedups and Pareto flags."""
+    rows = []
+    for name in knobs:
+        knob = KNOBS[name]
+        values = knob.sweep(quick)
+        ref = results[(name, values[0])]
+        mine = []
+        for v in values:
+            r = results[(name, v)]
+            extras = {k: x for k, x in r.items() if k not in ("ms", "unit", "out")}
+            mine.append({"knob": name, "value": v, "ms": r["ms"], "unit": r["unit"],
+                         "speedup_vs_reference": ref["ms"] / r["ms"],
+                         "error": 0.0 if v == values[0] else knob.error(r["out"], ref["out"]),
+                         "error_metric": knob.error_metric, "pareto": False, **extras})
+        flags = pareto_front([r[knob.cost] for r in mine], [r["error"] for r in mine])
+        for r, f in zip(mine, flags):
+            r["pareto"] = bool(f)
+        rows += mine
+    return rows
+
+
+def run_sweep(knobs=tuple(KNOBS), quick: bool = False, address: str | None = None, out: str | Path | None = "out/trade",
+              progress: bool = True) -> list[dict]:
+    """Sweep the knobs as Ray tasks (one per point) and return the rows; with `out`, also write
+    `trade.png`, `trade.md` and `trade.json` there. Joins the cluster at `address`, else starts a
+    local Ray (and stops it at the end) unless one is already initialised in this process."""
+    import ray
+    from tqdm import tqdm
+
+    names = parse_knobs(knobs)
+    started = not ray.is_initialized()
+    if started:
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            # "local": a new Ray of our own, even where `ray start` left a cluster on this machine
+            ray.init(address="local", include_dashboard=False, log_to_driver=False,
+                     object_store_memory=256 * 2 ** 20)
+    try:
+        task = ray.remote(num_cpus=1)(_task)
+        points = [(n, v) for n in names for v in KNOBS[n].sweep(quick)]
+        refs = {task.remote(n, v, quick): (n, v) for n, v in points}
+        results: dict = {}
+        pending = list(refs)
+        with tqdm(total=len(pending), desc="trade sweep", disable=not progress, file=sys.stderr) as bar:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                for ref in done:
+                    key = refs[ref]
+                    results[key] = ray.get(ref)
+                    bar.set_postfix_str(f"{key[0]}={key[1]}")
+                    bar.update()
+    finally:
+        if started:
+            ray.shutdown()
+    rows = rows_from_results(results, names, quick)
+    if out is not None:
+        write_outputs(rows, Path(out))
+    return rows
+
+
+# --- outputs ----------------------------------------------------------------------------------
+
+CORE = ("knob", "value", "ms", "unit", "speedup_vs_reference", "error", "error_metric", "pareto")
+
+
+def markdown(rows: list[dict]) -> str:
+    """The rows as a markdown table; per-knob extra columns go into `details`."""
+    def fmt(v):
+        return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+    lines = ["| " + " | ".join(CORE) + " | details |", "|" + " --- |" * (len(CORE) + 1)]
+    for r in rows:
+        details = ", ".join(f"{k}={fmt(v)}" for k, v in r.items() if k not in CORE)
+        lines.append("| " + " | ".join(fmt(r[k]) for k in CORE) + f" | {details} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows: list[dict], path: Path) -> Path:
+    """One panel per knob: error against speedup (or peak joint speed), Pareto points filled."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import ScalarFormatter
+
+    knobs = list(dict.fromkeys(r["knob"] for r in rows))
+    cols = min(3, len(knobs))
+    nrows = int(np.ceil(len(knobs) / cols))
+    fig, axes = plt.subplots(nrows, cols, figsize=(5 * cols, 4 * nrows), squeeze=False)
+    for ax, name in zip(axes.ravel(), knobs):
+        mine = [r for r in rows if r["knob"] == name]
+        peak = KNOBS[name].cost == "peak_qdot"
+        x = np.array([r["peak_qdot"] if peak else r["speedup_vs_reference"] for r in mine])
+        y = np.array([r["error"] for r in mine])
+        front = np.array([r["pareto"] for r in mine])
+        ax.plot(x[~front], y[~front], "o", mfc="none", color="C0", label="dominated")
+        order = np.argsort(x[front])
+        ax.plot(x[front][order], y[front][order], "o-", color="C3", label="Pareto-optimal")
+        for xi, yi, r in zip(x, y, mine):
+            ax.annotate(str(r["value"]), (xi, yi), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        if x.max() / x.min() > 5:
+            ax.set_xscale("log")
+            ax.xaxis.set_major_formatter(ScalarFormatter())
+        ax.set_xlabel("peak joint speed asked [rad/s] (lower is safer)" if peak else
+                      f"speedup vs reference ({mine[0]['unit']})")
+        ax.set_ylabel(mine[0]["error_metric"], fontsize=8)
+        ax.set_title(f"{name} (reference {mine[0]['value']})")
+        ax.legend(fontsize=7)
+    for ax in axes.ravel()[len(knobs):]:
+        ax.axis("off")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    return atomic_write(path, buf.getvalue())
+
+
+def write_outputs(rows: list[dict], out: Path) -> list[Path]:
+    return [plot(rows, out / "trade.png"), atomic_write(out / "trade.md", markdown(rows)),
+            atomic_write(out / "trade.json", json.dumps(rows, indent=1))]
+
+
+# --- CLI ----------------------------------------------------------------------------------------
+
+def add_arguments(p) -> None:
+    p.add_argument("--knobs", default=",".join(KNOBS), help=f"comma-separated, from: {', '.join(KNOBS)}")
+    p.add_argument("--quick", action="store_true", help="a reduced sweep (a few points per knob, smaller scenes)")
+    p.add_argument("--address", default=None, help="an existing Ray cluster (host:6379, ray://host:10001, or auto "
+                   "for one started with `ray start` here); default: start a local Ray")
+    p.add_argument("--out", default="out/trade", help="folder for trade.png, trade.md, trade.json")
+    p.add_argument("--json", action="store_true", help="print the rows as one JSON list")
+
+
+def run(args) -> int:
+    from skinsafe.core.app.cli import print_rows
+
+    try:
+        knobs = parse_knobs(args.knobs)
+    except ValueError as e:
+        raise SystemExit(f"skinsafe trade: --knobs: {e}")
+    rows = run_sweep(knobs, quick=args.quick, address=args.address, out=args.out)
+    print_rows(rows, args.json)
+    for name in ("trade.png", "trade.md", "trade.json"):
+        print(f"wrote {Path(args.out) / name}", file=sys.stderr)
+    return 0

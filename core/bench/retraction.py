@@ -1,0 +1,77 @@
+"""`skinsafe bench retraction`: one defensiveness tick with K active taxels out of N, against a
+straightforward loop (one `mj_jac`, one SVD and one Gram-Schmidt step per active taxel)."""
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from skinsafe.core.bench.timing import median_ms
+from skinsafe.core.design.sample import design_with
+from skinsafe.core.robot.kinematics import TaxelKinematics
+from skinsafe.core.robot.models import build_ur5
+from skinsafe.core.safety.defensiveness import DefensivenessLayer
+from skinsafe.core.safety.retraction import RetractionParams, dls_pinv, merge_loop, task_jacobians, task_velocities
+
+
+class LoopLayer(DefensivenessLayer):
+    """The same layer with its hot path written as per-taxel loops (the reference)."""
+
+    def _jacobians(self, idx, q):
+        kin = self.kin
+        pos, frames = kin.poses(q)
+        J = np.zeros((len(idx), 6, kin.model.nv))
+        for k, i in enumerate(idx):
+            jp, jr = np.zeros((3, kin.model.nv)), np.zeros((3, kin.model.nv))
+            mujoco.mj_jac(kin.model, kin.data, jp, jr, pos[i], int(kin.body_id[i]))
+            J[k, :3], J[k, 3:] = jp, jr
+        return J, pos[idx].copy(), frames[idx].copy()
+
+    def _merged(self, J, back, speed):
+        p = self.params
+        qdots, rows = np.zeros((len(J), J.shape[2])), np.zeros((len(J), J.shape[2]))
+        for k in range(len(J)):
+            Jt = task_jacobians(J[k:k + 1], p.form)
+            rdot = task_velocities(back[k:k + 1], speed[k:k + 1], p.form)
+            qdots[k] = dls_pinv(Jt, p.damping, p.sv_threshold)[0] @ rdot[0]
+            rows[k] = J[k, :3].T @ back[k]
+        return merge_loop(qdots, rows, p.epsilon, p.rank_tol)
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--taxels", type=int, default=4096, help="skin size N")
+    p.add_argument("--active", default="1,8,64,512", help="active taxel counts K (comma-separated)")
+    p.add_argument("--repeat", type=int, default=200, help="timed repeats per K")
+    p.add_argument("--epsilon", type=float, default=1.0, help="merge tuning factor")
+
+
+def primed(layer: DefensivenessLayer, q: np.ndarray, active: np.ndarray, n: int) -> dict:
+    """Trigger `active` at t=0 and return the readings; ticks at t>0 then retract."""
+    force = np.zeros(n)
+    force[active] = np.linspace(5.0, 20.0, len(active))
+    readings = {"force": force}
+    layer.tick(0.0, q, readings)
+    return readings
+
+
+def rows(args) -> list[dict]:
+    robot = build_ur5()
+    design, _ = design_with(args.taxels, robot)
+    kin = TaxelKinematics(robot.model, design)
+    params = RetractionParams(epsilon=args.epsilon)
+    rng = np.random.default_rng(0)
+    q = robot.home + rng.normal(0, 0.2, robot.model.nq)
+    th = design.taxels.thresholds
+    out = []
+    for k in (int(s) for s in args.active.split(",")):
+        active = np.sort(rng.choice(args.taxels, k, replace=False))
+        fast = DefensivenessLayer(kin, th, robot.vel_limits, robot.acc_limits, params)
+        loop = LoopLayer(kin, th, robot.vel_limits, robot.acc_limits, params)
+        readings = primed(fast, q, active, args.taxels)
+        primed(loop, q, active, args.taxels)
+        t = 0.1 * params.T
+        diff = float(np.abs(fast.tick(t, q, readings) - loop.tick(t, q, readings)).max())
+        ms = median_ms(lambda: fast.tick(t, q, readings), repeat=args.repeat, warmup=5)
+        ms_loop = median_ms(lambda: loop.tick(t, q, readings), repeat=max(5, args.repeat // 10), warmup=2)
+        out.append({"active": k, "n_taxels": args.taxels, "ms": round(ms, 4), "loop_ms": round(ms_loop, 3),
+                    "speedup_vs_loop": round(ms_loop / ms, 1), "max_abs_diff": diff})
+    return out

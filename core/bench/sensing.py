@@ -1,0 +1,244 @@
+"""`skinsafe bench sensing`: the vectorised skin readout against per-taxel MuJoCo touch sensors,
+collision-mesh simplification and the timestep, on the UR5 sample skin.
+
+Scene: the UR5 held at home by its position servos, three mocap probes pressing 5 mm into the
+tops of the upper arm, forearm and wrist and sliding along them (1 Hz, +-2 cm), a fixed box
+beside the robot. Rows (one per setting):
+
+- `sweep="taxels"`: `n_taxels`, `readout` ("vectorised" | "touch"), `steps_per_s` (physics plus
+  readout), `overhead_vs_bare` (readout time / bare physics step of the same scene without touch
+  sensors), `force_err` (sum |f - f_touch| / sum f_touch per step, median), `lit_recall` (share of
+  the taxels touch lights that the readout lights), `missed` (contacts sensed by no taxel).
+- `sweep="collision"`: mesh UR5 (links as fine meshes), each `SceneOptions.collision` mode:
+  collision faces, steps/s, force error against the full mesh.
+- `sweep="timestep"`: a 0.5 kg box resting on the upper arm: force error against m g,
+  penetration, steps/s and real-time factor.
+"""
+from __future__ import annotations
+
+import io
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import mujoco
+import numpy as np
+from tqdm import tqdm
+
+from skinsafe.core.bench.timing import median_ms
+from skinsafe.core.design.sample import make_sample_design
+from skinsafe.core.robot.models import build_ur5, mesh_ur5
+from skinsafe.core.sim.probes import BASE_PITCH, Probes, design_for, probe_scene
+from skinsafe.core.sim.readout import SkinReadout, TouchReadout
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--sizes", default="256,1024,4096,16384", help="target taxel counts (comma separated)")
+    p.add_argument("--steps", type=int, default=300, help="steps per agreement run and timing")
+    p.add_argument("--timesteps", default="0.0005,0.001,0.002,0.004,0.008", help="timesteps (s) to sweep")
+    p.add_argument("--sweeps", default="taxels,collision,timestep", help="which sweeps to run")
+    p.add_argument("--plot", default="out/bench_sensing.png", help="PNG to write ('' for none)")
+
+
+def _stepper(model, data, probes):
+    def step():
+        probes.move(data, data.time)
+        mujoco.mj_step(model, data)
+    return step
+
+
+def taxel_rows(sizes, steps: int) -> list[dict]:
+    rows = []
+    robot = build_ur5()
+    for n_target in tqdm(sizes, desc="taxels sweep"):
+        design = design_for(n_target)
+        n = design.n_taxels
+        probes = Probes(design, robot)
+        m0, d0 = probe_scene(design, robot, probes.obstacles, probes.q, taxel_sites=False)
+        mb, db = probe_scene(design, robot, probes.obstacles, probes.q)
+        mt, dt = probe_scene(design, robot, probes.obstacles, probes.q, touch_sensors=True)
+        for _ in range(50):  # settle the contacts
+            _stepper(mb, db, probes)()
+        bare_nosites = median_ms(_stepper(m0, d0, probes), repeat=steps)
+        bare = median_ms(_stepper(mb, db, probes), repeat=steps)
+        touch_step = median_ms(_stepper(mt, dt, probes), repeat=steps)
+        readers = {k: SkinReadout(mb, design, kernel=k) for k in ("linear", "nearest")}
+        read_ms = {k: median_ms(lambda r=r: r.read(db), repeat=steps) for k, r in readers.items()}
+        agree = _agreement(mt, dt, design, probes, steps)
+        for kernel in ("linear", "nearest"):
+            rows.append(dict(sweep="taxels", n_taxels=n, readout="vectorised", kernel=kernel,
+                             steps_per_s=1e3 / (bare + read_ms[kernel]), read_us=read_ms[kernel] * 1e3,
+                             bare_step_us=bare * 1e3, bare_nosites_us=bare_nosites * 1e3,
+                             overhead_vs_bare=read_ms[kernel] / bare, **agree[kernel]))
+        rows.append(dict(sweep="taxels", n_taxels=n, readout="touch", kernel="cell", steps_per_s=1e3 / touch_step,
+                         read_us=(touch_step - bare) * 1e3, bare_step_us=bare * 1e3,
+                         bare_nosites_us=bare_nosites * 1e3, overhead_vs_bare=(touch_step - bare) / bare,
+                         force_err=0.0, lit_recall=1.0, missed=agree["touch_missed"],
+                         speedup_vs_touch=1.0))
+        for r in rows[-3:-1]:
+            r["speedup_vs_touch"] = (touch_step - bare) / (r["read_us"] / 1e3)
+    return rows
+
+
+def _agreement(model, data, design, probes, steps: int) -> dict:
+    """Vectorised readouts against the touch sensors of the same simulation, step by step."""
+    touch = TouchReadout(model, design)
+    readers = {k: SkinReadout(model, design, kernel=k) for k in ("linear", "nearest")}
+    err = {k: [] for k in readers}
+    recall = {k: [] for k in readers}
+    missed = {k: 0 for k in readers}
+    touch_missed = 0
+    step = _stepper(model, data, probes)
+    for _ in range(steps):
+        step()
+        ref = touch.read(data)
+        lit_ref = ref > 1e-6
+        if not lit_ref.any():
+            touch_missed += 1
+            continue
+        for k, r in readers.items():
+            f = r.read(data)
+            err[k].append(np.abs(f - ref).sum() / ref.sum())
+            recall[k].append((f[lit_ref] > 1e-6).mean())
+            missed[k] += r.last_missed
+    out = {k: dict(force_err=float(np.median(err[k])), lit_recall=float(np.mean(recall[k])), missed=missed[k])
+           for k in readers}
+    out["touch_missed"] = touch_missed
+    return out
+
+
+def collision_rows(steps: int) -> list[dict]:
+    rows = []
+    design = make_sample_design("ur5", pitch=BASE_PITCH)
+    with tempfile.TemporaryDirectory() as tmp:
+        robot = mesh_ur5(Path(tmp))
+        probes = Probes(design, build_ur5())
+        runs = {}
+        for mode, faces in tqdm([("full", 0), ("decimate", 2000), ("decimate", 500), ("decimate", 100),
+                                 ("hull", 0), ("primitive", 0)], desc="collision sweep"):
+            model, data = probe_scene(design, robot, probes.obstacles, probes.q, collision=mode,
+                                 target_faces=max(faces, 4))
+            reader = SkinReadout(model, design)
+            step = _stepper(model, data, probes)
+            forces = []
+            for _ in range(steps):
+                step()
+                forces.append(reader.read(data))
+            ms = median_ms(step, repeat=steps)
+            coll = [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH
+                    and (model.geom_contype[g] or model.geom_conaffinity[g])]
+            nfaces = int(sum(model.mesh_facenum[model.geom_dataid[g]] for g in coll))
+            runs[(mode, faces)] = np.array(forces)
+            ref = runs[("full", 0)]
+            err = float(np.abs(runs[(mode, faces)] - ref).sum() / max(ref.sum(), 1e-12))
+            rows.append(dict(sweep="collision", collision=mode, target_faces=faces or "", faces=nfaces,
+                             steps_per_s=1e3 / ms, step_us=ms * 1e3, force_err=err))
+    return rows
+
+
+# --- timestep -------------------------------------------------------------------------------
+
+REST_Q = np.array([0.0, 0.0, 0.0, -np.pi / 2, 0.0, 0.0])  # upper arm and forearm level
+
+
+def timestep_rows(timesteps=(0.0005, 0.001, 0.002, 0.004, 0.008), mass: float = 0.5) -> list[dict]:
+    from skinsafe.core.sim.scene import Obstacle, SceneOptions, build_scene
+
+    design = make_sample_design("ur5", pitch=BASE_PITCH)
+    robot = build_ur5()
+    rows = []
+    data0 = mujoco.MjData(robot.model)
+    data0.qpos[:] = REST_Q
+    mujoco.mj_kinematics(robot.model, data0)
+    bid = mujoco.mj_name2id(robot.model, mujoco.mjtObj.mjOBJ_BODY, "upper_arm_link")
+    top = data0.xpos[bid] + data0.xmat[bid].reshape(3, 3) @ np.array([-0.2, 0, 0.13585])
+    box = Obstacle("load", "box", (0.04, 0.04, 0.01), pos=tuple(top + [0, 0, 0.05 + 0.011]), free=True, mass=mass)
+    for ts in tqdm(timesteps, desc="timestep sweep"):
+        model = build_scene(design, robot, [box], SceneOptions(timestep=ts)).compile()
+        data = mujoco.MjData(model)
+        data.qpos[:6] = REST_Q
+        data.qpos[6:9] = box.pos
+        data.qpos[9:13] = [1, 0, 0, 0]
+        data.ctrl[:] = REST_Q
+        reader = SkinReadout(model, design)
+        settle, window = int(round(1.0 / ts)), int(round(0.2 / ts))
+        load_geom = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "load")
+        t0 = time.perf_counter()
+        for _ in range(settle):
+            mujoco.mj_step(model, data)
+        wall = (time.perf_counter() - t0) / settle
+        total, pen = [], []
+        for _ in range(window):
+            mujoco.mj_step(model, data)
+            total.append(reader.read(data).sum())
+            c = data.contact
+            mine = (c.geom[:data.ncon] == load_geom).any(axis=1)
+            pen.append(float(-c.dist[:data.ncon][mine].min()) if mine.any() else 0.0)
+        weight = mass * float(-model.opt.gravity[2])
+        rows.append(dict(sweep="timestep", timestep=ts, force_err=abs(float(np.mean(total)) - weight) / weight,
+                         penetration_mm=float(np.mean(pen)) * 1e3, steps_per_s=1.0 / wall,
+                         realtime_factor=ts / wall, on_arm=bool(data.qpos[8] > 0.05)))
+    return rows
+
+
+def plot(rows: list[dict], path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from skinsafe.core.skin.files import atomic_write
+
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.2))
+    tx = [r for r in rows if r["sweep"] == "taxels"]
+    for (readout, kernel), style in {("vectorised", "linear"): "o-", ("vectorised", "nearest"): "s--",
+                                     ("touch", "cell"): "^-"}.items():
+        pts = [(r["n_taxels"], r["steps_per_s"]) for r in tx if r["readout"] == readout and r["kernel"] == kernel]
+        if pts:
+            ax[0].plot(*zip(*pts), style, label=f"{readout} ({kernel})")
+    bare = sorted({(r["n_taxels"], 1e6 / r["bare_step_us"]) for r in tx})
+    if bare:
+        ax[0].plot(*zip(*bare), "k:", label="bare physics")
+    ax[0].set(xscale="log", yscale="log", xlabel="taxels", ylabel="steps / s", title="UR5 + probes: readout cost")
+    ax[0].legend(fontsize=8)
+    co = [r for r in rows if r["sweep"] == "collision"]
+    if co:
+        a2 = ax[1].twinx()
+        labels = [f"{r['collision']}{r['target_faces']}" for r in co]
+        ax[1].bar(range(len(co)), [r["steps_per_s"] for r in co], color="C0")
+        a2.plot(range(len(co)), [100 * r["force_err"] for r in co], "C3o-")
+        ax[1].set_xticks(range(len(co)), labels, rotation=30, fontsize=8)
+        ax[1].set(ylabel="steps / s (bars)", title="collision geometry")
+        a2.set_ylabel("taxel force error vs full mesh, % (red)")
+    ts = [r for r in rows if r["sweep"] == "timestep"]
+    if ts:
+        a3 = ax[2].twinx()
+        x = [r["timestep"] * 1e3 for r in ts]
+        ax[2].plot(x, [100 * r["force_err"] for r in ts], "C3o-", label="force error %")
+        ax[2].plot(x, [r["penetration_mm"] for r in ts], "C2s-", label="penetration mm")
+        a3.plot(x, [r["realtime_factor"] for r in ts], "C0^--", label="real-time factor")
+        ax[2].set(xscale="log", xlabel="timestep, ms", title="0.5 kg box resting on the upper arm")
+        a3.set_ylabel("real-time factor (blue)")
+        ax[2].legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    atomic_write(path, buf.getvalue())
+
+
+def rows(args) -> list[dict]:
+    sizes = [int(s) for s in str(args.sizes).split(",") if s]
+    sweeps = set(str(args.sweeps).split(","))
+    out = []
+    if "taxels" in sweeps:
+        out += taxel_rows(sizes, args.steps)
+    if "collision" in sweeps:
+        out += collision_rows(args.steps)
+    if "timestep" in sweeps:
+        out += timestep_rows([float(x) for x in str(args.timesteps).split(",") if x])
+    if args.plot:
+        plot(out, args.plot)
+        print(f"wrote {Path(args.plot)}", file=sys.stderr)
+    return out

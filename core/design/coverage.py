@@ -1,0 +1,106 @@
+"""Coverage report: how much of each link the skin covers."""
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+from scipy.spatial import cKDTree
+
+from skinsafe.core.skin.model import SkinDesign
+
+G = mujoco.mjtGeom
+
+
+def geom_area(model: mujoco.MjModel, g: int) -> float:
+    """Surface area of one geom in m^2 (primitives analytically, meshes from their triangles)."""
+    t, s = int(model.geom_type[g]), model.geom_size[g]
+    if t == G.mjGEOM_CAPSULE:
+        return 2 * np.pi * s[0] * 2 * s[1] + 4 * np.pi * s[0] ** 2
+    if t == G.mjGEOM_CYLINDER:
+        return 2 * np.pi * s[0] * 2 * s[1] + 2 * np.pi * s[0] ** 2
+    if t == G.mjGEOM_SPHERE:
+        return 4 * np.pi * s[0] ** 2
+    if t == G.mjGEOM_ELLIPSOID:  # Knud Thomsen's approximation
+        p = 1.6075
+        a, b, c = s ** p
+        return 4 * np.pi * ((a * b + a * c + b * c) / 3) ** (1 / p)
+    if t == G.mjGEOM_BOX:
+        x, y, z = 2 * s
+        return 2 * (x * y + y * z + x * z)
+    if t == G.mjGEOM_MESH:
+        m = model.geom_dataid[g]
+        v0, nv = model.mesh_vertadr[m], model.mesh_vertnum[m]
+        f0, nf = model.mesh_faceadr[m], model.mesh_facenum[m]
+        v = model.mesh_vert[v0:v0 + nv]
+        f = model.mesh_face[f0:f0 + nf]
+        return float(0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum())
+    return 0.0
+
+
+def body_area(model: mujoco.MjModel, body: str) -> float:
+    """Surface area of a body's geoms (where geoms overlap, counted twice)."""
+    bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
+    return float(sum(geom_area(model, g) for g in np.flatnonzero(model.geom_bodyid == bid)))
+
+
+def gaps(design: SkinDesign, model: mujoco.MjModel, body_index: int, pitch: float) -> dict:
+    """Where the skin leaves the link bare: the share of the link's surface (its tessellation,
+    vertices weighted by area) farther than one pitch from every taxel, and `largest_gap_mm`, the
+    farthest any surface point is from a taxel (the radius of the biggest bare patch)."""
+    from skinsafe.core.design.surface import body_surface
+
+    on = design.taxels.body == body_index
+    surf = body_surface(model, design.bodies[body_index])
+    v, tri = surf.vertices, surf.triangles
+    if not on.any():
+        return {"bare_fraction": 1.0, "largest_gap_mm": float("inf")}
+    # each vertex stands for a third of the area of its triangles
+    area = 0.5 * np.linalg.norm(np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]]), axis=1)
+    weight = np.bincount(tri.ravel(), np.repeat(area / 3, 3), len(v))
+    d, _ = cKDTree(design.taxels.positions[on]).query(v)
+    return {"bare_fraction": float(weight[d > pitch].sum() / weight.sum()), "largest_gap_mm": float(d.max() * 1e3)}
+
+
+def coverage_report(design: SkinDesign, model: mujoco.MjModel) -> dict:
+    """Per skinned body: taxel count, skinned area (module pitch^2 per taxel), link area, fraction,
+    density (taxels per cm^2 of skin) and gaps (see `gaps`); plus totals."""
+    t = design.taxels
+    pitch = {m.id: m.pitch for m in design.modules}
+    cell = np.array([pitch.get(int(m), 0.0) ** 2 for m in t.module])
+    out = {}
+    for i, name in enumerate(design.bodies):
+        on = t.body == i
+        n = int(on.sum())
+        skinned = float(cell[on].sum())
+        area = body_area(model, name)
+        out[name] = {
+            "taxels": n,
+            "skinned_area_m2": skinned,
+            "link_area_m2": area,
+            "fraction": skinned / area if area > 0 else 0.0,
+            "density_per_cm2": n / (skinned * 1e4) if skinned > 0 else 0.0,
+            "modules": len({int(m) for m in t.module[on]}),
+            **gaps(design, model, i, float(np.sqrt(cell[on].mean())) if n else 0.0),
+        }
+    out["total"] = {
+        "taxels": len(t),
+        "skinned_area_m2": float(cell.sum()),
+        "modules": len(design.modules),
+        "boards": len(design.boards),
+    }
+    return out
+
+
+def format_report(report: dict) -> str:
+    """The coverage report as an aligned text table."""
+    lines = [f"{'body':<16}{'taxels':>8}{'modules':>9}{'skin cm2':>10}{'link cm2':>10}{'covered':>9}{'per cm2':>9}"
+             f"{'bare':>7}{'gap mm':>8}"]
+    for name, r in report.items():
+        if name == "total":
+            continue
+        lines.append(f"{name:<16}{r['taxels']:>8}{r['modules']:>9}{r['skinned_area_m2'] * 1e4:>10.1f}"
+                     f"{r['link_area_m2'] * 1e4:>10.1f}{r['fraction'] * 100:>8.1f}%{r['density_per_cm2']:>9.2f}"
+                     f"{r['bare_fraction'] * 100:>6.0f}%{r['largest_gap_mm']:>8.0f}")
+    tot = report["total"]
+    lines.append(f"{'total':<16}{tot['taxels']:>8}{tot['modules']:>9}{tot['skinned_area_m2'] * 1e4:>10.1f}"
+                 f"   on {tot['boards']} boards")
+    return "\n".join(lines)

@@ -1,0 +1,133 @@
+"""The sample skin: FPC grid modules wrapped around the capsule/cylinder link shapes of a
+built-in robot (`skinsafe sample`).
+
+On a cylinder, wrapping is exact and geodesic: a module's rows run along the axis, its columns
+around the circumference, at the module pitch in arc length. Taxel frames: x along a row
+(around the link), y along the axis, z = the outward radial normal.
+"""
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from skinsafe.core.design.coverage import coverage_report, format_report
+from skinsafe.core.robot.models import BUILTIN, Robot, build_ur5
+from skinsafe.core.skin.boards import assign_boards, number_channels
+from skinsafe.core.skin.model import DesignError, Module, RobotRef, SkinDesign, Taxels
+
+SAMPLE_BODIES = {
+    "ur5": ["upper_arm_link", "forearm_link", "wrist_1_link", "wrist_2_link", "wrist_3_link"],
+    "panda": ["link2", "link3", "link4", "link5", "link6", "link7"],
+}
+
+
+def wrap_cylinder(model: mujoco.MjModel, geom: int, pitch: float, rows: int, cols: int, margin: float,
+                  first_module: int, first_taxel: int, body_index: int, body_name: str,
+                  taxel_diameter: float, threshold: float) -> tuple[list[Module], Taxels]:
+    """Cover the cylindrical part of a capsule/cylinder geom with rows x cols modules."""
+    if int(model.geom_type[geom]) not in (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER)):
+        raise DesignError(f"geom {model.geom(geom).name}: only capsules and cylinders can be wrapped")
+    r, half = model.geom_size[geom][:2]
+    n_around = int(np.floor(2 * np.pi * r / pitch))
+    n_along = int(np.floor((2 * half - 2 * margin) / pitch)) + 1
+    if n_around < 1 or n_along < 1:
+        return [], None
+    R = np.zeros(9)
+    mujoco.mju_quat2Mat(R, model.geom_quat[geom])
+    R = R.reshape(3, 3)
+    c = model.geom_pos[geom]
+    modules, parts = [], []
+    mid, tid = first_module, first_taxel
+    for r0 in range(0, n_along, rows):
+        for c0 in range(0, n_around, cols):
+            ii, jj = np.meshgrid(np.arange(r0, min(r0 + rows, n_along)), np.arange(c0, min(c0 + cols, n_around)),
+                                 indexing="ij")
+            ii, jj = ii.ravel(), jj.ravel()
+            phi = 2 * np.pi * jj / n_around
+            z = -half + margin + ii * pitch + (2 * half - 2 * margin - (n_along - 1) * pitch) / 2
+            radial = np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], 1)
+            tangent = np.stack([-np.sin(phi), np.cos(phi), np.zeros_like(phi)], 1)
+            axis = np.broadcast_to([0.0, 0.0, 1.0], radial.shape)
+            local = r * radial + z[:, None] * axis
+            frames = np.stack([tangent, axis, radial], axis=2)  # x around, y along, z out
+            k = len(phi)
+            parts.append(Taxels(
+                ids=np.arange(tid, tid + k, dtype=np.int64),
+                body=np.full(k, body_index, np.int32),
+                positions=local @ R.T + c,
+                frames=np.einsum("ij,njk->nik", R, frames),
+                module=np.full(k, mid, np.int32),
+                board=np.zeros(k, np.int32),
+                channel=np.zeros(k, np.int32),
+                area=np.full(k, np.pi * (taxel_diameter / 2) ** 2),
+                enabled=np.ones(k, bool),
+                thresholds={"force": np.full(k, threshold)},
+            ))
+            modules.append(Module(
+                id=mid, name=f"{body_name}_m{mid - first_module}", body=body_name, template="rect",
+                rows=int(ii.max() - r0 + 1), cols=int(jj.max() - c0 + 1), pitch=pitch,
+                taxel_diameter=taxel_diameter, margin=margin, min_bend_radius=min(0.01, r),
+                placement={"method": "cylinder_wrap", "geom": model.geom(geom).name,
+                           "row0": int(r0), "col0": int(c0), "n_around": n_around},
+            ))
+            mid, tid = mid + 1, tid + k
+    return modules, Taxels.concatenate(parts)
+
+
+def make_sample_design(robot_name: str = "ur5", pitch: float = 0.01, rows: int = 8, cols: int = 8,
+                       board_capacity: int = 512, threshold: float = 2.0, robot: Robot | None = None) -> SkinDesign:
+    """A skin of rows x cols modules on the main capsule of each sample body of a built-in robot."""
+    if robot_name not in SAMPLE_BODIES:
+        raise DesignError(f"sample skin: robot '{robot_name}' unknown; use one of {sorted(SAMPLE_BODIES)}")
+    if not (0 < pitch < 1):
+        raise DesignError(f"sample skin: pitch {pitch} m is outside (0, 1); use e.g. 0.01")
+    robot = robot or BUILTIN[robot_name]()
+    model = robot.model
+    bodies = SAMPLE_BODIES[robot_name]
+    modules: list[Module] = []
+    parts: list[Taxels] = []
+    for bi, name in enumerate(bodies):
+        bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+        geom = int(np.flatnonzero(model.geom_bodyid == bid)[0])
+        ms, tx = wrap_cylinder(model, geom, pitch, rows, cols, margin=0.5 * pitch,
+                               first_module=len(modules), first_taxel=sum(len(p) for p in parts),
+                               body_index=bi, body_name=name, taxel_diameter=0.6 * pitch, threshold=threshold)
+        modules += ms
+        if tx is not None:
+            parts.append(tx)
+    taxels = Taxels.concatenate(parts)
+    sizes = {m.id: int((taxels.module == m.id).sum()) for m in modules}
+    boards, of = assign_boards(taxels.module, sizes, board_capacity)
+    modules = [Module(**{**m.__dict__, "board": of[m.id]}) for m in modules]
+    taxels.board = np.array([of[int(m)] for m in taxels.module], dtype=np.int32)
+    taxels.channel = number_channels(taxels.module, taxels.board)
+    design = SkinDesign(RobotRef("builtin", robot_name), bodies, modules, boards, taxels)
+    design.coverage = coverage_report(design, model)
+    design.validate("sample skin", robot.body_names)
+    return design
+
+
+def design_with(n: int, robot=None):
+    """The sample UR5 skin resampled (pitch chosen, then cut or tiled) to exactly n taxels."""
+    robot = robot or build_ur5()
+    base = make_sample_design("ur5", robot=robot)
+    idx = np.resize(np.arange(base.n_taxels), n)
+    t = base.taxels.subset(np.sort(idx))
+    t.ids = np.arange(n, dtype=np.int64)
+    return base.with_taxels(t), robot
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--robot", default="ur5", choices=sorted(SAMPLE_BODIES), help="built-in robot")
+    p.add_argument("--pitch", type=float, default=0.01, help="taxel pitch in m (default 0.01)")
+    p.add_argument("--out", default="out/sample_skin.json", help="taxel map to write")
+
+
+def run(args) -> int:
+    from skinsafe.core.skin.taxel_map import save
+
+    design = make_sample_design(args.robot, args.pitch)
+    path = save(design, args.out)
+    print(format_report(design.coverage))
+    print(f"wrote {path} ({design.n_taxels} taxels, {len(design.modules)} modules, {len(design.boards)} boards)")
+    return 0

@@ -1,0 +1,363 @@
+"""Body surfaces: triangle meshes of a MuJoCo body's geoms in the body frame, with closest-point
+and normal queries (pure numpy + scipy).
+
+Primitives (sphere, capsule, cylinder, ellipsoid, box) are tessellated finely enough that the
+mesh stays within `tol` (default 0.05 mm) of the true shape, with exact normals at the vertices;
+mesh geoms come from the model. Triangles buried inside another primitive of the same body are
+dropped, so the surface is the outside of the union. Every triangle corner carries its own normal
+(smooth across a curved patch, split at creases), interpolated barycentrically at query points.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+from scipy.spatial import cKDTree
+
+from skinsafe.core.skin.model import DesignError
+
+G = mujoco.mjtGeom
+
+
+@dataclass
+class Surface:
+    """A triangle mesh with per-corner normals and a centroid k-d tree for closest-point queries."""
+
+    vertices: np.ndarray  # (V, 3) float64
+    triangles: np.ndarray  # (T, 3) int64, counter-clockwise seen from outside
+    corner_normals: np.ndarray  # (T, 3, 3) unit normal at each corner of each triangle
+    name: str = "surface"
+
+    def __post_init__(self):
+        if len(self.triangles) == 0:
+            raise DesignError(f"surface '{self.name}': no triangles; the body has no geometry to place a skin on")
+        tri = self.vertices[self.triangles]
+        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+        self._a, self._b, self._c = a, b, c
+        # Per triangle, packed for one gather per query: a, ab, ac, bc, n/|n|^2, 1/|ab|^2, 1/|ac|^2, 1/|bc|^2.
+        ab, ac, bc = b - a, c - a, c - b
+        n = np.cross(ab, ac)
+        inv = lambda e: 1.0 / np.maximum(np.sum(e * e, axis=1, keepdims=True), 1e-300)  # noqa: E731
+        self._pack = np.ascontiguousarray(np.concatenate(
+            [a, ab, ac, bc, n * inv(n), inv(ab), inv(ac), inv(bc)], axis=1))
+        centroids = tri.mean(axis=1)
+        self._tree = cKDTree(centroids)
+        self._k = int(min(8, len(self.triangles)))
+        self._reach = float(np.linalg.norm(tri - centroids[:, None, :], axis=2).max())  # centroid to farthest corner
+
+    def _nearest(self, p, index, k):
+        """Best of the k nearest-centroid triangles; also which `index` entries may miss a closer one."""
+        dc, cand = self._tree.query(p, k=k)
+        dc, cand = dc.reshape(len(p), -1), cand.reshape(len(p), -1)
+        q, w, d2 = closest_on_packed(p[:, None, :], self._pack[cand])
+        best = np.argmin(d2, axis=1)
+        rows = np.arange(len(p))
+        d2 = d2[rows, best]
+        # Any triangle left out has its centroid beyond dc[:, -1], so no point of it nearer than that - reach.
+        unsure = (np.sqrt(d2) + self._reach > dc[:, -1]) & (k < len(self.triangles))
+        return q[rows, best], w[rows, best], d2, cand[rows, best], index[unsure]
+
+    @classmethod
+    def from_mesh(cls, vertices, triangles, corner_normals=None, name: str = "surface",
+                  crease_deg: float = 45.0) -> "Surface":
+        """A surface from arrays; without corner normals, area-weighted vertex normals are used,
+        except where one differs from its face's normal by more than `crease_deg` (a crease)."""
+        v = np.asarray(vertices, dtype=float).reshape(-1, 3)
+        t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+        if t.size and (t.min() < 0 or t.max() >= len(v)):
+            raise DesignError(f"surface '{name}': triangle index outside 0..{len(v) - 1}; fix the mesh")
+        fn = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+        area2 = np.linalg.norm(fn, axis=1)
+        keep = area2 > 1e-14
+        t, fn, area2 = t[keep], fn[keep], area2[keep]
+        if corner_normals is None:
+            unit = fn / area2[:, None]
+            vn = np.zeros_like(v)
+            for k in range(3):
+                np.add.at(vn, t[:, k], fn)
+            vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
+            cn = vn[t]
+            sharp = np.einsum("tkj,tj->tk", cn, unit) < np.cos(np.radians(crease_deg))
+            cn[sharp] = np.repeat(unit[:, None, :], 3, axis=1)[sharp]
+        else:
+            cn = np.asarray(corner_normals, dtype=float).reshape(-1, 3, 3)[keep]
+            cn = cn / np.linalg.norm(cn, axis=2, keepdims=True)
+        return cls(v, t, cn, name)
+
+    @property
+    def face_normals(self) -> np.ndarray:
+        n = np.cross(self._b - self._a, self._c - self._a)
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    @property
+    def area(self) -> float:
+        return float(0.5 * np.linalg.norm(np.cross(self._b - self._a, self._c - self._a), axis=1).sum())
+
+    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Closest surface points (m,3), interpolated unit normals (m,3), triangle index (m,) and
+        distance (m,) for query points (m,3)."""
+        p = np.asarray(points, dtype=float).reshape(-1, 3)
+        q, bary, d2, tri, unsure = self._nearest(p, np.arange(len(p)), self._k)
+        if len(unsure):  # a triangle beyond the k nearest centroids may be closer: look wider
+            q2, b2, dd2, t2, still = self._nearest(p[unsure], unsure, min(6 * self._k, len(self.triangles)))
+            q[unsure], bary[unsure], d2[unsure], tri[unsure] = q2, b2, dd2, t2
+            for i in still:  # exhaustive within d + reach (rare: huge triangles)
+                ball = np.asarray(self._tree.query_ball_point(p[i], np.sqrt(d2[i]) + self._reach))
+                qi, wi, di = closest_on_packed(p[i][None, :], self._pack[ball])
+                j = int(np.argmin(di))
+                if di[j] < d2[i]:
+                    q[i], bary[i], d2[i], tri[i] = qi[j], wi[j], di[j], ball[j]
+        n = np.einsum("mk,mkj->mj", bary, self.corner_normals[tri])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        return q, n, tri, np.sqrt(d2)
+
+
+def _dot(u, v):
+    return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1] + u[..., 2] * v[..., 2]
+
+
+def _cross(u, v):
+    return np.stack([u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1], u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2],
+                     u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]], axis=-1)
+
+
+def closest_on_packed(p, pk):
+    """Closest points on packed triangles pk (..., 19) to points p (broadcast ..., 3): points,
+    barycentric weights (..., 3) and squared distances."""
+    a, ab, ac, bc, n_over = pk[..., 0:3], pk[..., 3:6], pk[..., 6:9], pk[..., 9:12], pk[..., 12:15]
+    ap = p - a
+    v = _dot(_cross(ap, ac), n_over)
+    w = _dot(_cross(ab, ap), n_over)
+    u = 1.0 - v - w
+    best_q = a + v[..., None] * ab + w[..., None] * ac
+    best_w = np.stack([u, v, w], axis=-1)
+    inside = (u >= 0) & (v >= 0) & (w >= 0)
+    best_d = np.where(inside, _dot(p - best_q, p - best_q), np.inf)
+    b = a + ab
+    for i, (s, se, inv) in enumerate(((a, ab, pk[..., 15]), (b, bc, pk[..., 17]), (a + ac, -ac, pk[..., 16]))):
+        t = np.clip(_dot(p - s, se) * inv, 0.0, 1.0)
+        q = s + t[..., None] * se
+        d = _dot(p - q, p - q)
+        better = d < best_d
+        best_d = np.where(better, d, best_d)
+        best_q = np.where(better[..., None], q, best_q)
+        wt = np.zeros(t.shape + (3,))
+        wt[..., i] = 1.0 - t
+        wt[..., (i + 1) % 3] = t
+        best_w = np.where(better[..., None], wt, best_w)
+    return best_q, best_w, best_d
+
+
+# ---- tessellation of MuJoCo geoms -------------------------------------------------------------
+
+def _revolve(patches, n_seg):
+    """Surfaces of revolution about z from profile patches [(rho, z, n_rho, n_z), ...] (arrays);
+    returns vertices, triangles and vertex normals (patches keep their own vertices: creases)."""
+    phi = np.linspace(0, 2 * np.pi, n_seg, endpoint=False)
+    cs, sn = np.cos(phi), np.sin(phi)
+    verts, norms, tris, base = [], [], [], 0
+    for rho, z, nr, nz in patches:
+        k = len(rho)
+        verts.append(np.stack([np.outer(rho, cs), np.outer(rho, sn), np.repeat(z[:, None], n_seg, 1)], -1).reshape(-1, 3))
+        norms.append(np.stack([np.outer(nr, cs), np.outer(nr, sn), np.repeat(nz[:, None], n_seg, 1)], -1).reshape(-1, 3))
+        i, j = np.meshgrid(np.arange(k - 1), np.arange(n_seg), indexing="ij")
+        a = base + i * n_seg + j
+        b = base + i * n_seg + (j + 1) % n_seg
+        c, d = a + n_seg, b + n_seg
+        tris.append(np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)]))
+        base += k * n_seg
+    return np.concatenate(verts), np.concatenate(tris), np.concatenate(norms)
+
+
+def _n_seg(r: float, tol: float) -> int:
+    return int(np.clip(np.ceil(np.pi / np.arccos(max(1 - tol / r, -1.0))), 12, 256))
+
+
+def _arc(r, z0, a0, a1, n):
+    ang = np.linspace(a0, a1, n)
+    return (r * np.cos(ang), z0 + r * np.sin(ang), np.cos(ang), np.sin(ang))
+
+
+def _line(r0, z0, r1, z1, nr, nz, n):
+    s = np.linspace(0, 1, n)
+    return (r0 + s * (r1 - r0), z0 + s * (z1 - z0), np.full(n, nr), np.full(n, nz))
+
+
+def tessellate_geom(gtype: int, size: np.ndarray, tol: float = 5e-5, max_edge: float = 0.005):
+    """Vertices, triangles and vertex normals of a primitive geom in its own frame."""
+    r = float(size[0])
+    n_arc = lambda rr, angle: max(3, int(np.ceil(angle / np.arccos(max(1 - tol / rr, -1.0)))) + 1)  # noqa: E731
+    n_len = lambda length: max(2, int(np.ceil(length / max_edge)) + 1)  # noqa: E731
+    if gtype in (G.mjGEOM_SPHERE, G.mjGEOM_ELLIPSOID):
+        rr = float(np.max(size)) if gtype == G.mjGEOM_ELLIPSOID else r
+        v, t, n = _revolve([_arc(1.0, 0.0, -np.pi / 2, np.pi / 2, n_arc(rr, np.pi))], _n_seg(rr, tol))
+        s = np.asarray(size[:3] if gtype == G.mjGEOM_ELLIPSOID else [r, r, r], dtype=float)
+        return v * s, t, n / s
+    if gtype == G.mjGEOM_CAPSULE:
+        h = float(size[1])
+        return _revolve([_arc(r, -h, -np.pi / 2, 0, n_arc(r, np.pi / 2)), _line(r, -h, r, h, 1, 0, n_len(2 * h)),
+                         _arc(r, h, 0, np.pi / 2, n_arc(r, np.pi / 2))], _n_seg(r, tol))
+    if gtype == G.mjGEOM_CYLINDER:
+        h = float(size[1])
+        return _revolve([_line(0, -h, r, -h, 0, -1, n_len(r)), _line(r, -h, r, h, 1, 0, n_len(2 * h)),
+                         _line(r, h, 0, h, 0, 1, n_len(r))], _n_seg(r, tol))
+    if gtype == G.mjGEOM_BOX:
+        return _box(np.asarray(size[:3], dtype=float), max_edge)
+    raise DesignError(f"geom type {gtype} cannot be tessellated; use a sphere, capsule, cylinder, ellipsoid, box or mesh")
+
+
+def _box(s, max_edge):
+    verts, tris, norms, base = [], [], [], 0
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            u_ax, v_ax = (axis + 1) % 3, (axis + 2) % 3
+            nu, nv = (max(2, int(np.ceil(2 * s[a] / max_edge)) + 1) for a in (u_ax, v_ax))
+            uu, vv = np.meshgrid(np.linspace(-s[u_ax], s[u_ax], nu), np.linspace(-s[v_ax], s[v_ax], nv), indexing="ij")
+            p = np.zeros((nu * nv, 3))
+            p[:, axis], p[:, u_ax], p[:, v_ax] = sign * s[axis], uu.ravel(), vv.ravel()
+            n = np.zeros_like(p)
+            n[:, axis] = sign
+            i, j = np.meshgrid(np.arange(nu - 1), np.arange(nv - 1), indexing="ij")
+            a = base + i * nv + j
+            b, c, d = a + nv, a + 1, a + nv + 1
+            t = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+            verts.append(p), norms.append(n), tris.append(t)
+            base += len(p)
+    return np.concatenate(verts), np.concatenate(tris), np.concatenate(norms)
+
+
+def _subdivide(v, t, max_edge):
+    """Split triangles until no edge is longer than max_edge (midpoint 1-to-4 subdivision)."""
+    for _ in range(8):
+        e = np.linalg.norm(v[t] - v[np.roll(t, -1, axis=1)], axis=2).max(axis=1)
+        if e.max() <= max_edge:
+            break
+        big, small = t[e > max_edge], t[e <= max_edge]
+        mids = {}
+        new_v = [v]
+        count = len(v)
+
+        def mid(i, j):
+            nonlocal count
+            key = (min(i, j), max(i, j))
+            if key not in mids:
+                mids[key] = count
+                new_v.append(((v[i] + v[j]) / 2)[None])
+                count += 1
+            return mids[key]
+
+        out = []
+        for a, b, c in big.tolist():
+            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+            out += [(a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca)]
+        v = np.concatenate(new_v)
+        t = np.concatenate([small, np.asarray(out, dtype=np.int64)])
+    return v, t
+
+
+def _inside_primitive(p, gtype, size, tol=1e-6):
+    """Points (geom frame) strictly inside a primitive geom (mesh geoms: never)."""
+    r = size[0]
+    if gtype == G.mjGEOM_SPHERE:
+        return np.linalg.norm(p, axis=1) < r - tol
+    if gtype == G.mjGEOM_CAPSULE:
+        zc = np.clip(p[:, 2], -size[1], size[1])
+        return np.linalg.norm(p - np.stack([0 * zc, 0 * zc, zc], 1), axis=1) < r - tol
+    if gtype == G.mjGEOM_CYLINDER:
+        return (np.hypot(p[:, 0], p[:, 1]) < r - tol) & (np.abs(p[:, 2]) < size[1] - tol)
+    if gtype == G.mjGEOM_BOX:
+        return (np.abs(p) < size[:3] - tol).all(axis=1)
+    if gtype == G.mjGEOM_ELLIPSOID:
+        return np.sum((p / size[:3]) ** 2, axis=1) < (1 - tol / max(size[:3])) ** 2
+    return np.zeros(len(p), bool)
+
+
+def _geom_pose(model, g):
+    R = np.zeros(9)
+    mujoco.mju_quat2Mat(R, model.geom_quat[g])
+    return R.reshape(3, 3), model.geom_pos[g].copy()
+
+
+def body_surface(model: mujoco.MjModel, body: str, tol: float = 5e-5, max_edge: float = 0.005) -> Surface:
+    """The outside surface of one body's geoms (collision and visual) in the body frame."""
+    bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
+    if bid < 0:
+        raise DesignError(f"surface: body '{body}' does not exist in the robot model; "
+                          f"use one of {[model.body(i).name for i in range(model.nbody)]}")
+    geoms = [int(g) for g in np.flatnonzero(model.geom_bodyid == bid) if model.geom_type[g] != G.mjGEOM_PLANE]
+    if not geoms:
+        raise DesignError(f"surface: body '{body}' has no geoms; give the link a mesh or primitive to place a skin on")
+    poses = {g: _geom_pose(model, g) for g in geoms}
+    verts, tris, corners, owner, base = [], [], [], [], 0
+    for g in geoms:
+        gtype = int(model.geom_type[g])
+        R, c = poses[g]
+        if gtype == G.mjGEOM_MESH:
+            m = model.geom_dataid[g]
+            v0, nv = model.mesh_vertadr[m], model.mesh_vertnum[m]
+            f0, nf = model.mesh_faceadr[m], model.mesh_facenum[m]
+            v, t = _subdivide(model.mesh_vert[v0:v0 + nv].astype(float), model.mesh_face[f0:f0 + nf].astype(np.int64),
+                              max_edge)
+            part = Surface.from_mesh(v @ R.T + c, t, name=body)
+            v, t, cn = part.vertices, part.triangles, part.corner_normals
+        else:
+            v, t, n = tessellate_geom(gtype, model.geom_size[g], tol, max_edge)
+            v = v @ R.T + c
+            n = (n / np.linalg.norm(n, axis=1, keepdims=True)) @ R.T
+            ok = _nondegenerate(v, t)
+            t = t[ok]
+            cn = n[t]
+        verts.append(v)
+        tris.append(t + base)
+        corners.append(cn)
+        owner.append(np.full(len(t), g))
+        base += len(v)
+    v, t, cn, owner = (np.concatenate(a) for a in (verts, tris, corners, owner))
+    # Drop triangles whose centroid lies inside another primitive of the same body.
+    cen = v[t].mean(axis=1)
+    keep = np.ones(len(t), bool)
+    for g in geoms:
+        R, c = poses[g]
+        inside = _inside_primitive((cen - c) @ R, int(model.geom_type[g]), model.geom_size[g])
+        keep &= ~(inside & (owner != g))
+    return Surface(v, t[keep], cn[keep], body)
+
+
+def _nondegenerate(v, t):
+    return np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1) > 1e-14
+
+
+def body_surfaces(model: mujoco.MjModel, bodies: list[str] | None = None, **kw) -> dict[str, Surface]:
+    """Surfaces of the named bodies (default: every body with geoms except the world)."""
+    if bodies is None:
+        bodies = [model.body(i).name for i in range(1, model.nbody)
+                  if any(model.geom_type[g] != G.mjGEOM_PLANE for g in np.flatnonzero(model.geom_bodyid == i))]
+    return {b: body_surface(model, b, **kw) for b in bodies}
+
+
+URDF_JOINTS = ("revolute", "continuous", "prismatic", "fixed")
+
+
+def check_urdf(path) -> None:
+    """Refuse a URDF that the skin designer cannot use faithfully: a mesh file that is missing
+    (paths relative to the URDF) or a joint type other than revolute/continuous/prismatic/fixed."""
+    import xml.etree.ElementTree as ET
+    from pathlib import Path
+
+    path = Path(path)
+    try:
+        root = ET.parse(path).getroot()
+    except (OSError, ET.ParseError) as e:
+        raise DesignError(f"robot file '{path}': cannot be read as URDF ({e}); check the path and the XML") from None
+    for j in root.iter("joint"):
+        if j.get("type") not in URDF_JOINTS:
+            raise DesignError(f"robot file '{path}': joint '{j.get('name')}' has type '{j.get('type')}', which skinsafe "
+                              f"does not support; use one of {', '.join(URDF_JOINTS)}")
+    for link in root.iter("link"):
+        for mesh in link.iter("mesh"):
+            name = mesh.get("filename", "")
+            local = name.split("://", 1)[-1] if name.startswith(("package://", "file://")) else name
+            if not (path.parent / local).is_file() and not Path(local).is_file():
+                raise DesignError(f"robot file '{path}': link '{link.get('name')}' uses mesh '{name}', which is not at "
+                                  f"'{path.parent / local}'; put the mesh there or fix the filename (relative to the URDF)")

@@ -1,0 +1,167 @@
+"""Taxel world poses and Jacobians for all taxels at once.
+
+One MuJoCo body Jacobian per skinned body (`mj_jacBody`), then every taxel on that body gets
+`J_p = J_p,body - [r]_x J_r` (r its offset from the body origin, world frame). Since r is the
+body rotation applied to the taxel's fixed local position, the whole (6 x nv) block of every
+taxel on a body is one small matrix product `[1, p_local] @ B_body`: one GEMM per body.
+"""
+from __future__ import annotations
+
+import mujoco
+import numba
+import numpy as np
+
+from skinsafe.core.skin.model import DesignError, SkinDesign
+
+# S(e_a) for a = x, y, z: the cross-product matrices of the unit vectors.
+_SKEW = np.array([[[0, 0, 0], [0, 0, -1], [0, 1, 0]],
+                  [[0, 0, 1], [0, 0, 0], [-1, 0, 0]],
+                  [[0, -1, 0], [1, 0, 0], [0, 0, 0]]], dtype=float)
+
+
+def body_ids(model: mujoco.MjModel, design: SkinDesign) -> np.ndarray:
+    """MuJoCo body ids of `design.bodies`; an unknown body is a DesignError naming it."""
+    ids = []
+    for name in design.bodies:
+        bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+        if bid < 0:
+            raise DesignError(f"design: body '{name}' does not exist in the MuJoCo model; use a body of the robot "
+                              "the skin was designed for (or export the scene from this design: skinsafe export)")
+        ids.append(bid)
+    return np.asarray(ids, dtype=np.int64)
+
+
+class TaxelKinematics:
+    """Poses and Jacobians `(N, 6, nv)` (rows: linear velocity of the taxel point, angular
+    velocity; world frame) of a design's taxels on a MuJoCo model."""
+
+    def __init__(self, model: mujoco.MjModel, design: SkinDesign, data: mujoco.MjData | None = None):
+        self.model = model
+        self.data = data if data is not None else mujoco.MjData(model)
+        t = design.taxels
+        self.n = n = len(t)
+        self.body_id = body_ids(model, design).astype(np.int32)[t.body] if n else np.zeros(0, np.int32)
+        self.local_pos = np.ascontiguousarray(t.positions)
+        self.local_frames = np.ascontiguousarray(t.frames)
+        self._lh = np.hstack([np.ones((n, 1)), t.positions])  # homogeneous local positions (N,4)
+        self._ft = np.ascontiguousarray(t.frames.transpose(0, 2, 1)).reshape(3 * n, 3)  # local axes as rows
+        # Taxel groups by body: contiguous slices when the design keeps bodies together.
+        self.groups = []
+        for bid in np.unique(self.body_id):
+            idx = np.flatnonzero(self.body_id == bid)
+            contiguous = idx[-1] - idx[0] + 1 == len(idx)
+            self.groups.append((int(bid), slice(idx[0], idx[-1] + 1) if contiguous else idx))
+        nv = model.nv
+        self._jacp = np.zeros((3, nv))
+        self._jacr = np.zeros((3, nv))
+        self._B = np.zeros((4, 6, nv))
+        self.positions = np.zeros((n, 3))
+        self._frames_t = np.zeros((n, 3, 3))
+        self.frames = self._frames_t.transpose(0, 2, 1)  # (N,3,3) view: columns x, y, z in world
+        self.jac = np.zeros((n, 6, nv))
+        # for jacobians_of: the skinned bodies and each taxel's slot among them
+        self._bodies = np.unique(self.body_id)
+        self._slot = np.searchsorted(self._bodies, self.body_id)
+        self._jb = np.zeros((len(self._bodies), 6, nv))
+
+    def update(self, q: np.ndarray | None = None) -> None:
+        """Forward kinematics at configuration q (or the data's current qpos)."""
+        if q is not None:
+            self.data.qpos[:] = q
+        mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_comPos(self.model, self.data)
+
+    def poses(self, q: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """World positions (N,3) and frames (N,3,3) of all taxels."""
+        self.update(q)
+        d = self.data
+        T = np.empty((4, 3))
+        ft2 = self._frames_t.reshape(3 * self.n, 3)
+        for bid, sel in self.groups:
+            R = d.xmat[bid].reshape(3, 3)
+            T[0], T[1:] = d.xpos[bid], R.T
+            if isinstance(sel, slice):
+                np.matmul(self._lh[sel], T, out=self.positions[sel])
+                np.matmul(self._ft[3 * sel.start:3 * sel.stop], R.T, out=ft2[3 * sel.start:3 * sel.stop])
+            else:
+                self.positions[sel] = self._lh[sel] @ T
+                self._frames_t[sel] = self.local_frames[sel].transpose(0, 2, 1) @ R.T
+        return self.positions, self.frames
+
+    def jacobians(self, q: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Jacobians (N,6,nv), world positions (N,3) and frames (N,3,3) at q.
+
+        The returned arrays are reused by the next call; copy them to keep them.
+        """
+        pos, frames = self.poses(q)
+        d, m, B = self.data, self.model, self._B
+        nv = m.nv
+        J2 = self.jac.reshape(self.n, 6 * nv)
+        for bid, sel in self.groups:
+            mujoco.mj_jacBody(m, d, self._jacp, self._jacr, bid)
+            R = d.xmat[bid].reshape(3, 3)
+            B[0, :3], B[0, 3:] = self._jacp, self._jacr
+            # row 1+b: d J_p / d p_local[b] = -S(R e_b) J_r  (angular rows do not depend on position)
+            B[1:, :3] = -np.einsum("ab,aij,jk->bik", R, _SKEW, self._jacr)
+            B[1:, 3:] = 0.0
+            if isinstance(sel, slice):
+                np.matmul(self._lh[sel], B.reshape(4, 6 * nv), out=J2[sel])
+            else:
+                J2[sel] = self._lh[sel] @ B.reshape(4, 6 * nv)
+        return self.jac, pos, frames
+
+    def jacobians_of(self, index: np.ndarray, q: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Jacobians (K,6,nv), world positions (K,3) and frames (K,3,3) of the taxels `index` only
+        (new arrays), for control ticks where few taxels matter: one `mj_jacBody` per skinned
+        body, then gathers (no per-body loop over the taxels)."""
+        self.update(q)
+        d, m = self.data, self.model
+        for k, bid in enumerate(self._bodies):
+            mujoco.mj_jacBody(m, d, self._jb[k, :3], self._jb[k, 3:], int(bid))
+        return _gather(self._jb, self._slot, self.body_id, d.xmat, d.xpos, self.local_pos, self.local_frames,
+                       np.asarray(index, dtype=np.intp))
+
+    def jacobians_loop(self, q: np.ndarray | None = None) -> np.ndarray:
+        """Reference: one `mj_jac` call per taxel (slow, for benchmarks and tests)."""
+        pos, _ = self.poses(q)
+        out = np.zeros((self.n, 6, self.model.nv))
+        jp, jr = np.zeros((3, self.model.nv)), np.zeros((3, self.model.nv))
+        for i in range(self.n):
+            mujoco.mj_jac(self.model, self.data, jp, jr, pos[i], int(self.body_id[i]))
+            out[i, :3], out[i, 3:] = jp, jr
+        return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _gather(jb, slot, body_id, xmat, xpos, local_pos, local_frames, index):
+    """jacobians_of's per-taxel part: the body Jacobian `jb` moved to the taxel point
+    (`J_p += J_r x r` column by column, r the world offset from the body origin), the world
+    position and the world frame of each taxel in `index`."""
+    K, nv, n = len(index), jb.shape[2], len(body_id)
+    J, pos, frames = np.empty((K, 6, nv)), np.empty((K, 3)), np.zeros((K, 3, 3))
+    r = np.empty(3)
+    for k in range(K):
+        i = index[k]
+        if i < 0 or i >= n:
+            raise IndexError("jacobians_of: a taxel index is out of range (0 <= index < number of taxels)")
+        b = body_id[i]
+        for a in range(3):
+            r[a] = xmat[b, 3 * a] * local_pos[i, 0] + xmat[b, 3 * a + 1] * local_pos[i, 1] \
+                + xmat[b, 3 * a + 2] * local_pos[i, 2]
+            pos[k, a] = r[a] + xpos[b, a]
+            for c in range(3):
+                for e in range(3):
+                    frames[k, a, c] += xmat[b, 3 * a + e] * local_frames[i, e, c]
+        J[k] = jb[slot[i]]
+        for j in range(nv):
+            wx, wy, wz = J[k, 3, j], J[k, 4, j], J[k, 5, j]
+            J[k, 0, j] += wy * r[2] - wz * r[1]
+            J[k, 1, j] += wz * r[0] - wx * r[2]
+            J[k, 2, j] += wx * r[1] - wy * r[0]
+    return J, pos, frames
+
+
+def retractability(J: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """How well the robot can move each taxel along its -z: `|J_p^T z|` (N,), m/s per rad/s."""
+    z = frames[:, :, 2]
+    return np.linalg.norm(np.einsum("nij,ni->nj", J[:, :3, :], z), axis=1)

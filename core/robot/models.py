@@ -1,0 +1,280 @@
+"""Robots: the built-in UR5 and Franka Panda, generated with MjSpec from published kinematics,
+and any URDF or MJCF the user has.
+
+A `Robot` bundles the MuJoCo spec and model with what MuJoCo does not keep: joint velocity and
+acceleration limits and a home configuration.
+"""
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from skinsafe.core.skin.model import DesignError, RobotRef
+
+HINGE = mujoco.mjtJoint.mjJNT_HINGE
+CAPSULE = mujoco.mjtGeom.mjGEOM_CAPSULE
+CYLINDER = mujoco.mjtGeom.mjGEOM_CYLINDER
+BOX = mujoco.mjtGeom.mjGEOM_BOX
+
+# UR5 (CB3) standard DH parameters, from Universal Robots' published kinematics.
+UR5_DH = dict(
+    d=[0.089159, 0.0, 0.0, 0.10915, 0.09465, 0.0823],
+    a=[0.0, -0.425, -0.39225, 0.0, 0.0, 0.0],
+    alpha=[np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0],
+)
+UR5_JOINTS = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint",
+              "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]
+UR5_BODIES = ["shoulder_link", "upper_arm_link", "forearm_link", "wrist_1_link", "wrist_2_link", "wrist_3_link"]
+UR5_MASS = [3.7, 8.393, 2.275, 1.219, 1.219, 0.1879]
+UR5_HOME = np.array([0.0, -1.2, 1.6, -1.97, -1.5708, 0.0])
+
+# Franka Emika Panda modified (Craig) DH parameters and limits, from Franka's published data.
+PANDA_MDH = dict(
+    a=[0.0, 0.0, 0.0, 0.0825, -0.0825, 0.0, 0.088],
+    d=[0.333, 0.0, 0.316, 0.0, 0.384, 0.0, 0.0],
+    alpha=[0.0, -np.pi / 2, np.pi / 2, np.pi / 2, -np.pi / 2, np.pi / 2, np.pi / 2],
+)
+PANDA_FLANGE_D = 0.107
+PANDA_RANGE = [(-2.8973, 2.8973), (-1.7628, 1.7628), (-2.8973, 2.8973), (-3.0718, -0.0698),
+               (-2.8973, 2.8973), (-0.0175, 3.7525), (-2.8973, 2.8973)]
+PANDA_VMAX = [2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61]
+PANDA_AMAX = [15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0]
+PANDA_MASS = [4.97, 0.646, 3.228, 3.587, 1.226, 1.666, 0.735]
+PANDA_HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+
+
+@dataclass
+class Robot:
+    """A robot ready for simulation and kinematics."""
+
+    name: str
+    spec: mujoco.MjSpec
+    model: mujoco.MjModel
+    vel_limits: np.ndarray  # (nv,) rad/s or m/s
+    acc_limits: np.ndarray  # (nv,)
+    home: np.ndarray  # (nq,)
+    arm_bodies: list[str] = field(default_factory=list)  # bodies of the kinematic chain, base to tip
+
+    @property
+    def body_names(self) -> set[str]:
+        return {self.model.body(i).name for i in range(self.model.nbody)}
+
+
+def _quat_x(angle: float) -> list[float]:
+    return [np.cos(angle / 2), np.sin(angle / 2), 0.0, 0.0]
+
+
+def _add_table(spec: mujoco.MjSpec, top: float = 0.0) -> None:
+    spec.worldbody.add_geom(name="table", type=BOX, size=[0.6, 0.6, 0.02], pos=[0.0, 0.0, top - 0.02],
+                            rgba=[0.55, 0.45, 0.35, 1])
+    spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.1],
+                            pos=[0, 0, -0.75], rgba=[0.8, 0.8, 0.8, 1])
+
+
+def _add_position_actuators(spec: mujoco.MjSpec, joints: list[str], kp: list[float]) -> None:
+    for name, k in zip(joints, kp):
+        act = spec.add_actuator(name=f"{name}_pos", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        act.set_to_position(kp=k, dampratio=1.0)
+
+
+def _exclude_near_links(spec: mujoco.MjSpec, bodies: list[str], reach: int = 2) -> None:
+    """No contacts between links at most `reach` apart in the chain (their shapes meet at joints)."""
+    for i, a in enumerate(bodies):
+        for b in bodies[i + 1:i + 1 + reach]:
+            spec.add_exclude(bodyname1=a, bodyname2=b)
+
+
+def build_ur5() -> Robot:
+    """UR5 from its DH parameters; links are capsules/cylinders sized to the real arm (SI units)."""
+    spec = mujoco.MjSpec()
+    spec.modelname = "ur5"
+    spec.option.timestep = 0.002
+    spec.compiler.degree = False  # angles (joint ranges) in radians
+    _add_table(spec)
+    base = spec.worldbody.add_body(name="base_link")
+    base.add_geom(name="base", type=CYLINDER, size=[0.075, 0.043, 0], pos=[0, 0, 0.043], mass=4.0,
+                  rgba=[0.3, 0.3, 0.35, 1])
+    # Offsets of the link tubes along the shoulder/elbow axes (they sum to d4 in the DH model).
+    shoulder_off, elbow_off = 0.13585, 0.13585 - 0.1197
+    geoms = {
+        "shoulder_link": [
+            dict(type=CYLINDER, fromto=[0, 0, 0.05, 0, 0, UR5_DH["d"][0]], size=[0.06, 0, 0]),
+            dict(type=CYLINDER, fromto=[0, 0.0, UR5_DH["d"][0], 0, -shoulder_off - 0.06, UR5_DH["d"][0]], size=[0.06, 0, 0]),
+        ],
+        "upper_arm_link": [
+            dict(type=CAPSULE, fromto=[-0.03, 0, shoulder_off, -0.395, 0, shoulder_off], size=[0.05, 0, 0]),
+            dict(type=CYLINDER, fromto=[-0.425, 0, elbow_off - 0.05, -0.425, 0, shoulder_off + 0.06], size=[0.05, 0, 0]),
+        ],
+        "forearm_link": [
+            dict(type=CAPSULE, fromto=[-0.02, 0, elbow_off, -0.36, 0, elbow_off], size=[0.04, 0, 0]),
+        ],
+        "wrist_1_link": [
+            dict(type=CYLINDER, fromto=[0, 0, elbow_off - 0.04, 0, 0, UR5_DH["d"][3] + 0.04], size=[0.0375, 0, 0]),
+        ],
+        "wrist_2_link": [
+            dict(type=CYLINDER, fromto=[0, 0, -0.04, 0, 0, UR5_DH["d"][4] + 0.0], size=[0.0375, 0, 0]),
+        ],
+        "wrist_3_link": [
+            dict(type=CYLINDER, fromto=[0, 0, 0.0, 0, 0, UR5_DH["d"][5] - 0.01], size=[0.0375, 0, 0]),
+        ],
+    }
+    parent, pos, quat = base, [0, 0, 0], [1, 0, 0, 0]
+    for i, (bname, jname) in enumerate(zip(UR5_BODIES, UR5_JOINTS)):
+        body = parent.add_body(name=bname, pos=pos, quat=quat)
+        body.add_joint(name=jname, type=HINGE, axis=[0, 0, 1], range=[-2 * np.pi, 2 * np.pi],
+                       limited=mujoco.mjtLimited.mjLIMITED_TRUE, damping=1.0, armature=0.1)
+        for k, g in enumerate(geoms[bname]):
+            body.add_geom(name=f"{bname}_{k}", mass=UR5_MASS[i] if k == 0 else 0.2,
+                          rgba=[0.7, 0.72, 0.75, 1] if k == 0 else [0.2, 0.4, 0.8, 1], **g)
+        # Frame of the next joint: Tz(d) Tx(a) Rx(alpha) (standard DH).
+        pos, quat = [UR5_DH["a"][i], 0, UR5_DH["d"][i]], _quat_x(UR5_DH["alpha"][i])
+        parent = body
+    parent.add_site(name="flange", pos=pos, quat=quat)
+    _add_position_actuators(spec, UR5_JOINTS, [3000, 3000, 1500, 300, 300, 300])
+    _exclude_near_links(spec, ["base_link"] + UR5_BODIES)
+    spec.add_key(name="home", qpos=UR5_HOME.tolist())
+    model = spec.compile()
+    return Robot("ur5", spec, model, vel_limits=np.full(6, np.pi), acc_limits=np.full(6, 15.0),
+                 home=UR5_HOME.copy(), arm_bodies=["base_link"] + UR5_BODIES)
+
+
+def build_panda() -> Robot:
+    """Franka Panda (7 DoF) from its modified DH parameters, links as capsules."""
+    spec = mujoco.MjSpec()
+    spec.modelname = "panda"
+    spec.option.timestep = 0.002
+    spec.compiler.degree = False  # angles (joint ranges) in radians
+    _add_table(spec)
+    base = spec.worldbody.add_body(name="link0")
+    base.add_geom(name="link0_0", type=CYLINDER, fromto=[-0.04, 0, 0.0, -0.04, 0, 0.14], size=[0.09, 0, 0],
+                  mass=3.06, rgba=[0.9, 0.9, 0.9, 1])
+    # Capsules along each link, from this joint's frame toward the next one.
+    link_geoms = [
+        [dict(fromto=[0, 0, -0.19, 0, 0, -0.03], size=[0.075, 0, 0])],
+        [dict(fromto=[0, 0, -0.06, 0, 0, 0.06], size=[0.06, 0, 0]), dict(fromto=[0, -0.05, 0, 0, -0.25, 0], size=[0.055, 0, 0])],
+        [dict(fromto=[0, 0, -0.18, 0, 0, -0.06], size=[0.06, 0, 0]), dict(fromto=[0.0825, 0, -0.05, 0.0825, 0, 0.03], size=[0.055, 0, 0])],
+        [dict(fromto=[0, 0, -0.05, 0, 0, 0.05], size=[0.055, 0, 0]), dict(fromto=[-0.0825, 0.03, 0, -0.0825, 0.10, 0], size=[0.055, 0, 0])],
+        [dict(fromto=[0, 0, -0.26, 0, 0, -0.08], size=[0.045, 0, 0]), dict(fromto=[0, 0.08, -0.1, 0, 0.08, -0.2], size=[0.035, 0, 0])],
+        [dict(fromto=[0, 0, -0.03, 0, 0, 0.02], size=[0.05, 0, 0]), dict(fromto=[0.02, 0, 0, 0.088, 0, 0], size=[0.045, 0, 0])],
+        [dict(fromto=[0, 0, -0.01, 0, 0, 0.08], size=[0.045, 0, 0])],
+    ]
+    parent = base
+    a, d, al = PANDA_MDH["a"], PANDA_MDH["d"], PANDA_MDH["alpha"]
+    joints = [f"joint{i + 1}" for i in range(7)]
+    bodies = [f"link{i + 1}" for i in range(7)]
+    for i in range(7):
+        # Modified DH: Rx(alpha_{i-1}) Tx(a_{i-1}) Rz(theta_i) Tz(d_i).
+        pos = [a[i], -np.sin(al[i]) * d[i], np.cos(al[i]) * d[i]]
+        body = parent.add_body(name=bodies[i], pos=pos, quat=_quat_x(al[i]))
+        body.add_joint(name=joints[i], type=HINGE, axis=[0, 0, 1], range=list(PANDA_RANGE[i]),
+                       limited=mujoco.mjtLimited.mjLIMITED_TRUE, damping=1.0, armature=0.1)
+        for k, g in enumerate(link_geoms[i]):
+            body.add_geom(name=f"{bodies[i]}_{k}", type=CAPSULE, mass=PANDA_MASS[i] if k == 0 else 0.1,
+                          rgba=[0.92, 0.92, 0.92, 1], **g)
+        parent = body
+    flange = parent.add_body(name="link8", pos=[0, 0, PANDA_FLANGE_D])
+    flange.add_site(name="flange")
+    _add_position_actuators(spec, joints, [2000, 2000, 2000, 1500, 500, 300, 200])
+    _exclude_near_links(spec, ["link0"] + bodies + ["link8"])
+    spec.add_key(name="home", qpos=PANDA_HOME.tolist())
+    model = spec.compile()
+    return Robot("panda", spec, model, vel_limits=np.array(PANDA_VMAX), acc_limits=np.array(PANDA_AMAX),
+                 home=PANDA_HOME.copy(), arm_bodies=["link0"] + bodies + ["link8"])
+
+
+BUILTIN = {"ur5": build_ur5, "panda": build_panda}
+
+
+def load_robot(ref: RobotRef, base_dir: str | Path | None = None,
+               default_vel_limit: float = np.pi, default_acc_limit: float = 15.0) -> Robot:
+    """The robot a design refers to: built in, or a URDF/MJCF file (relative to `base_dir`).
+
+    URDF links joined by fixed joints are kept as their own bodies (`fusestatic` off) so a skin
+    on them keeps its body; velocity limits come from the URDF's `<limit velocity=...>`.
+    """
+    if ref.kind == "builtin":
+        if ref.name not in BUILTIN:
+            raise DesignError(f"robot: builtin name '{ref.name}' is unknown; use one of {sorted(BUILTIN)}")
+        return BUILTIN[ref.name]()
+    if ref.kind not in ("urdf", "mjcf"):
+        raise DesignError(f"robot: field 'kind' is '{ref.kind}'; use 'builtin', 'urdf' or 'mjcf'")
+    if not ref.path:
+        raise DesignError(f"robot: kind '{ref.kind}' needs a 'path' to the file")
+    path = Path(ref.path)
+    if not path.is_absolute() and base_dir is not None:
+        path = Path(base_dir) / path
+    if not path.is_file():
+        raise DesignError(f"robot: file '{path}' not found; check the path in the taxel map")
+    try:
+        spec = mujoco.MjSpec.from_file(str(path)) if ref.kind == "mjcf" else _urdf_spec(path)
+        model = spec.compile()
+    except (ValueError, RuntimeError) as e:
+        raise DesignError(f"robot: MuJoCo could not load '{path}': {e}") from None
+    vel = np.full(model.nv, default_vel_limit)
+    if ref.kind == "urdf":
+        for name, v in _urdf_velocity_limits(path).items():
+            jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+            if jid >= 0 and v > 0:
+                vel[model.jnt_dofadr[jid]] = v
+    home = model.key_qpos[0].copy() if model.nkey else model.qpos0.copy()
+    return Robot(ref.name or path.stem, spec, model, vel_limits=vel, acc_limits=np.full(model.nv, default_acc_limit),
+                 home=home, arm_bodies=[model.body(i).name for i in range(1, model.nbody)])
+
+
+def _urdf_spec(path: Path) -> mujoco.MjSpec:
+    """Parse a URDF with MuJoCo, keeping fixed-joint links and visual geometry."""
+    text = path.read_text()
+    root = ET.fromstring(text)
+    mj = root.find("mujoco")
+    if mj is None:
+        mj = ET.SubElement(root, "mujoco")
+    comp = mj.find("compiler")
+    if comp is None:
+        comp = ET.SubElement(mj, "compiler")
+    comp.set("fusestatic", "false")
+    comp.set("discardvisual", "false")
+    comp.set("balanceinertia", "true")
+    comp.set("meshdir", str(path.parent))
+    return mujoco.MjSpec.from_string(ET.tostring(root, encoding="unicode"))
+
+
+def _urdf_velocity_limits(path: Path) -> dict[str, float]:
+    root = ET.parse(path).getroot()
+    out = {}
+    for j in root.iter("joint"):
+        lim = j.find("limit")
+        if lim is not None and lim.get("velocity"):
+            out[j.get("name")] = float(lim.get("velocity"))
+    return out
+
+
+def mesh_ur5(folder: Path, sections: int = 64) -> Robot:
+    """The UR5 with every capsule/cylinder link geom replaced by a fine STL mesh of the same shape."""
+    import trimesh
+
+    robot = build_ur5()
+    spec = robot.spec
+    model = robot.model
+    for g in list(spec.geoms):
+        gid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, g.name)
+        kind = int(model.geom_type[gid])
+        if model.body_weldid[model.geom_bodyid[gid]] == 0 or kind not in (
+                int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER)):
+            continue
+        r, half = model.geom_size[gid][:2]
+        if kind == int(mujoco.mjtGeom.mjGEOM_CAPSULE):
+            mesh = trimesh.creation.capsule(height=2 * half, radius=r, count=[sections, sections])
+        else:
+            mesh = trimesh.creation.cylinder(radius=r, height=2 * half, sections=sections)
+        path = folder / f"{g.name}.stl"
+        mesh.export(str(path))
+        spec.add_mesh(name=g.name, file=str(path))
+        mass = float(model.body_mass[model.geom_bodyid[gid]]) if g.name.endswith("_0") else 0.2
+        g.type, g.meshname, g.fromto = mujoco.mjtGeom.mjGEOM_MESH, g.name, [np.nan] * 6
+        g.pos, g.quat, g.mass = model.geom_pos[gid].tolist(), model.geom_quat[gid].tolist(), mass
+    robot.model = spec.compile()
+    return robot

@@ -1,0 +1,65 @@
+"""Probing scenes: mocap spheres pressing into the top of skinned links and sliding along them,
+on the UR5 held at home by its servos (the sensing bench and the trade sweep use them)."""
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from skinsafe.core.design.sample import make_sample_design
+from skinsafe.core.robot.kinematics import TaxelKinematics
+from skinsafe.core.robot.models import Robot
+from skinsafe.core.sim.scene import Obstacle, SceneOptions, build_scene
+
+BASE_PITCH, BASE_COUNT = 0.01, 2792  # the UR5 sample skin at 1 cm pitch has 2,792 taxels
+PROBE_BODIES = ["upper_arm_link", "forearm_link", "wrist_1_link"]
+PROBE_R, DEPTH, SLIDE, SLIDE_HZ = 0.015, 0.005, 0.02, 1.0
+
+
+def design_for(n_target: int):
+    """The UR5 sample skin with its pitch scaled to about `n_target` taxels."""
+    return make_sample_design("ur5", pitch=BASE_PITCH * np.sqrt(BASE_COUNT / n_target))
+
+
+class Probes:
+    """Mocap probes pressing into the top of some skinned links and sliding along them."""
+
+    def __init__(self, design, robot: Robot, bodies=PROBE_BODIES):
+
+        self.q = settled(robot)
+        kin = TaxelKinematics(robot.model, design)
+        pos, frames = kin.poses(self.q)
+        self.centres, self.axes = [], []
+        for b in bodies:
+            on = np.flatnonzero(np.asarray(design.bodies)[design.taxels.body] == b)
+            i = on[np.argmax(frames[on, 2, 2])]  # the taxel facing most upward
+            self.centres.append(pos[i] + frames[i][:, 2] * (PROBE_R - DEPTH))
+            self.axes.append(frames[i][:, 1])  # along the link
+        self.obstacles = [Obstacle(f"probe{k}", "sphere", (PROBE_R,), pos=tuple(c), mocap=True)
+                          for k, c in enumerate(self.centres)]
+        self.obstacles.append(Obstacle("crate", "box", (0.1, 0.1, 0.1), pos=(0.6, -0.6, 0.1)))
+
+    def move(self, data, t: float) -> None:
+        s = SLIDE * np.sin(2 * np.pi * SLIDE_HZ * t)
+        for k, (c, a) in enumerate(zip(self.centres, self.axes)):
+            data.mocap_pos[k] = c + s * a
+
+
+def settled(robot: Robot, seconds: float = 1.0) -> np.ndarray:
+    """The joint angles the servos hold under gravity with targets at home (probes must meet these)."""
+    data = mujoco.MjData(robot.model)
+    data.qpos[:] = robot.home
+    data.ctrl[:] = robot.home
+    for _ in range(int(seconds / robot.model.opt.timestep)):
+        mujoco.mj_step(robot.model, data)
+    return data.qpos.copy()
+
+
+def probe_scene(design, robot, obstacles, q=None, **opts):
+
+    model = build_scene(design, robot, obstacles, SceneOptions(**opts)).compile()
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, 0)
+    data.ctrl[:] = robot.home
+    if q is not None:
+        data.qpos[: len(q)] = q
+    return model, data

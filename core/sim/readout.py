@@ -1,0 +1,276 @@
+"""Skin readout: the normal force on every taxel, `(N,)` in newtons, from MuJoCo's contacts.
+
+`SkinReadout` does it in one vectorised pass: each contact's normal force (from `efc_force`)
+is spread over the enabled taxels of the touched body that lie within a footprint radius R of
+the contact point and face it, with weights `1 - d/R` normalised so the taxels' sum equals the
+contact's normal force. Candidates come from a precomputed voxel grid per body (body
+coordinates, voxel side R). The per-step work runs in one compiled (numba) pass over the
+contacts and their candidate taxels: a few microseconds, no Python per contact or per taxel.
+A contact with no taxel within R is on bare robot surface and is not sensed (`missed`).
+
+`TouchReadout` reads the per-taxel MuJoCo `touch` sensors the exporter adds with
+`SceneOptions(touch_sensors=True)`: exact cells, but MuJoCo loops over every contact for every
+sensor, so it is the accuracy reference, not the fast path.
+"""
+from __future__ import annotations
+
+import mujoco
+import numba
+import numpy as np
+from scipy.spatial import cKDTree
+
+from skinsafe.core.robot.kinematics import body_ids
+from skinsafe.core.skin.model import DesignError, SkinDesign
+
+BODY_GAP = 1.0e3  # m between bodies when spacing is estimated over all bodies at once
+
+
+def default_footprint(design: SkinDesign) -> float:
+    """The median module pitch of the taxels (or their median nearest-neighbour spacing)."""
+    t = design.taxels
+    if not len(t):
+        return 0.01
+    pitch = {m.id: m.pitch for m in design.modules}
+    known = [pitch[int(k)] for k in t.module if int(k) in pitch]
+    if known:
+        return float(np.median(known))
+    pts = np.concatenate([t.positions, BODY_GAP * t.body[:, None]], axis=1)
+    d, _ = cKDTree(pts).query(pts, k=2)
+    return float(np.median(d[:, 1]))
+
+
+class SkinReadout:
+    """Vectorised contact-to-taxel readout with a taxel footprint model.
+
+    After `mj_step`/`mj_forward`, `read(data)` returns a new `(N,)` array of normal forces [N].
+    `last_missed` counts the contacts of the last read that touched a skinned body but no taxel.
+    `kernel`: "linear" spreads a contact over its footprint (weights `1 - d/R`); "nearest" gives
+    it all to the nearest facing taxel within R (the cell model of MuJoCo's touch sensors).
+    """
+
+    def __init__(self, model: mujoco.MjModel, design: SkinDesign, footprint_radius: float | None = None,
+                 kernel: str = "linear"):
+        if kernel not in ("linear", "nearest"):
+            raise ValueError(f"kernel is '{kernel}'; use 'linear' or 'nearest'")
+        self.kernel = kernel
+        t = design.taxels
+        self.model = model
+        self.n = len(t)
+        self.radius = float(footprint_radius) if footprint_radius is not None else default_footprint(design)
+        if not self.radius > 0:
+            raise ValueError(f"footprint_radius is {footprint_radius}; give a positive radius in m")
+        self.body_ids = body_ids(model, design)
+        # geom -> index into design.bodies, -1 where the geom's body carries no skin
+        lut = -np.ones(model.nbody, dtype=np.int64)
+        lut[self.body_ids] = np.arange(len(self.body_ids))
+        self.geom_skin = lut[model.geom_bodyid]
+        self.grid = VoxelGrid(t.positions, t.body, t.enabled, len(design.bodies), self.radius)
+        # per voxel row: candidate positions and normals packed (rows, K, 6); the padding taxel n is
+        # far away, so its weight is always 0
+        pad = np.vstack([np.hstack([t.positions, t.normals]), [[1e9, 1e9, 1e9, 0, 0, 0]]])
+        self.packed = pad[self.grid.table]
+        self.inv_r = 1.0 / self.radius
+        rows = _contact_rows(model)
+        self.rows = None if rows is None else np.arange(rows)
+        self.pyramidal = model.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
+        self.n_rows = -1 if rows is None else rows
+        self._missed = 0
+
+    @property
+    def last_missed(self) -> int:
+        """Contacts of the last read with normal force that no taxel sensed (bare robot surface)."""
+        return self._missed
+
+    def contact_forces(self, data: mujoco.MjData, index: np.ndarray | None = None) -> np.ndarray:
+        """Normal force of the contacts `index` (default all) from `efc_force` (0 where inactive)."""
+        con = data.contact
+        adr = con.efc_address[: data.ncon] if index is None else con.efc_address[index]
+        if data.nefc == 0:
+            return np.zeros(len(adr))
+        if self.rows is not None:  # every contact has the same number of rows (same condim and cone)
+            return data.efc_force[adr[:, None] + self.rows].sum(axis=1) * (adr >= 0)
+        dim = con.dim[: data.ncon] if index is None else con.dim[index]
+        active = adr >= 0
+        if self.model.opt.cone != mujoco.mjtCone.mjCONE_PYRAMIDAL:
+            return np.where(active, data.efc_force[np.maximum(adr, 0)], 0.0)
+        # pyramidal cone: the normal force is the sum of the 2(dim-1) pyramid edge forces (1 row if dim 1)
+        rows = np.where(dim > 1, 2 * (dim - 1), 1)
+        k = np.arange(int(rows.max()) if len(rows) else 1)
+        take = active[:, None] & (k < rows[:, None])
+        return np.where(take, data.efc_force[np.where(take, adr[:, None] + k, 0)], 0.0).sum(axis=1)
+
+    def read(self, data: mujoco.MjData) -> np.ndarray:
+        out = np.zeros(self.n)
+        ncon = data.ncon
+        if ncon == 0:
+            self._missed = 0
+            return out
+        con = data.contact
+        g = self.grid
+        self._missed = _readout(
+            out, con.geom, con.pos, con.frame, con.efc_address, con.dim, data.efc_force, data.xpos, data.xmat,
+            self.geom_skin, self.body_ids, g.origin, g.last, g.stride, g.offset, g.row, g.table, self.packed,
+            1.0 / g.h, self.inv_r, self.kernel == "nearest", self.pyramidal, self.n_rows)
+        return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _readout(out, geom, pos, frame, efc_address, dim, efc_force, xpos, xmat, geom_skin, body_ids, origin, last,
+             stride, offset, row_of, table, packed, inv_h, inv_r, nearest, pyramidal, n_rows):
+    """Every contact on a skinned body -> its facing taxels within the footprint (see SkinReadout).
+    Adds the forces into `out` and returns the number of missed contacts."""
+    missed = 0
+    width = table.shape[1]
+    w = np.empty(width)
+    for c in range(geom.shape[0]):
+        adr = efc_address[c]
+        if adr < 0:
+            continue
+        if not pyramidal:
+            f = efc_force[adr]
+        else:  # pyramidal cone: the normal force is the sum of the pyramid edge forces
+            rows = n_rows if n_rows > 0 else (2 * (dim[c] - 1) if dim[c] > 1 else 1)
+            f = 0.0
+            for k in range(rows):
+                f += efc_force[adr + k]
+        if f <= 0.0:
+            continue
+        for side in range(2):
+            skin = geom_skin[geom[c, side]]
+            if skin < 0:
+                continue
+            b = body_ids[skin]
+            sign = 1.0 if side == 0 else -1.0  # the contact normal points from geom 0 to geom 1
+            # contact point and normal in body coordinates: R^T (p - x), R^T n
+            lp = np.zeros(3)
+            ln = np.zeros(3)
+            for i in range(3):
+                for j in range(3):
+                    lp[j] += xmat[b, 3 * i + j] * (pos[c, i] - xpos[b, i])
+                    ln[j] += xmat[b, 3 * i + j] * frame[c, i]
+            flat = offset[skin]
+            for j in range(3):
+                v = int((lp[j] - origin[skin, j]) * inv_h)
+                v = min(max(v, 0), last[skin, j])
+                flat += v * stride[skin, j]
+            row = row_of[flat]
+            total = 0.0
+            best, best_k = 0.0, -1
+            for k in range(width):
+                cand = packed[row, k]
+                d2 = 0.0
+                facing = 0.0
+                for j in range(3):
+                    d2 += (cand[j] - lp[j]) ** 2
+                    facing += cand[3 + j] * ln[j]
+                wk = 1.0 - np.sqrt(d2) * inv_r
+                if wk < 0.0 or facing * sign <= 0.0:
+                    wk = 0.0
+                w[k] = wk
+                total += wk
+                if wk > best:
+                    best, best_k = wk, k
+            if total <= 0.0:
+                missed += 1
+                continue
+            if nearest:
+                out[table[row, best_k]] += f
+            else:
+                scale = f / total
+                n = out.shape[0]
+                for k in range(width):
+                    t = table[row, k]
+                    if w[k] > 0.0 and t < n:
+                        out[t] += w[k] * scale
+    return missed
+
+
+def _contact_rows(model: mujoco.MjModel) -> int | None:
+    """efc rows per contact when every possible contact has the same count, else None."""
+    dims = set(model.geom_condim.tolist()) | set(model.pair_dim.tolist())
+    if len(dims) != 1:
+        return None
+    dim = dims.pop()
+    if model.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL:
+        return 2 * (dim - 1) if dim > 1 else 1
+    return 1
+
+
+class VoxelGrid:
+    """Per-body voxel grids (side h = footprint radius) in body coordinates; each voxel lists the
+    enabled taxels within `radius` of any of its points, padded with the index n to a fixed width."""
+
+    def __init__(self, positions: np.ndarray, body: np.ndarray, enabled: np.ndarray, n_bodies: int, radius: float):
+        n = len(positions)
+        self.h = radius
+        self.origin = np.zeros((n_bodies, 3))
+        self.dims = np.ones((n_bodies, 3), dtype=np.int64)
+        self.offset = np.zeros(n_bodies, dtype=np.int64)
+        voxels, members = [], []
+        total = 0
+        for b in range(n_bodies):
+            idx = np.flatnonzero((body == b) & enabled)
+            self.offset[b] = total
+            if not len(idx):
+                total += 1
+                continue
+            p = positions[idx]
+            # a border of voxels more than `radius` from every taxel: clipped lookups land there
+            lo = p.min(axis=0) - 2.01 * radius
+            dims = np.floor((p.max(axis=0) + 2.01 * radius - lo) / radius).astype(np.int64) + 1
+            self.origin[b], self.dims[b] = lo, dims
+            # voxels a taxel can reach: the index range of its radius box, kept where the box distance <= radius
+            span = np.arange(-1, 2)
+            rel = (p - lo) / radius
+            base = np.floor(rel).astype(np.int64)
+            off = np.stack(np.meshgrid(span, span, span, indexing="ij"), axis=-1).reshape(-1, 3)
+            v = base[:, None, :] + off[None]  # (m, 27, 3)
+            gap = np.maximum(np.maximum(v - rel[:, None, :], rel[:, None, :] - (v + 1)), 0.0)
+            ok = ((gap ** 2).sum(axis=2) <= 1.0 + 1e-9) & (v >= 0).all(axis=2) & (v < dims).all(axis=2)
+            flat = total + (v[..., 0] * dims[1] + v[..., 1]) * dims[2] + v[..., 2]
+            voxels.append(flat[ok])
+            members.append(np.broadcast_to(idx[:, None], ok.shape)[ok])
+            total += int(np.prod(dims))
+        vox = np.concatenate(voxels) if voxels else np.zeros(0, np.int64)
+        mem = np.concatenate(members) if members else np.zeros(0, np.int64)
+        order = np.argsort(vox, kind="stable")
+        vox, mem = vox[order], mem[order]
+        uniq, start, count = np.unique(vox, return_index=True, return_counts=True)
+        width = int(count.max()) if len(count) else 1
+        # row 0 is empty; voxel -> row through a dense int32 map
+        self.table = np.full((len(uniq) + 1, width), n, dtype=np.int64)
+        rank = np.arange(len(vox)) - np.repeat(start, count)
+        self.table[np.repeat(np.arange(1, len(uniq) + 1), count), rank] = mem
+        self.row = np.zeros(total, dtype=np.int32)
+        self.row[uniq] = np.arange(1, len(uniq) + 1)
+
+        self.stride = np.stack([self.dims[:, 1] * self.dims[:, 2], self.dims[:, 2], np.ones(n_bodies, np.int64)], 1)
+        self.last = self.dims - 1
+
+    def rows(self, local: np.ndarray, body: np.ndarray) -> np.ndarray:
+        """(k,) table rows of the voxels holding each point (body coordinates); 0 = no taxel near."""
+        v = np.clip(((local - self.origin[body]) * (1.0 / self.h)).astype(np.int64), 0, self.last[body])
+        return self.row[(v * self.stride[body]).sum(axis=1) + self.offset[body]]
+
+    def candidates(self, local: np.ndarray, body: np.ndarray) -> np.ndarray:
+        """(k, K) taxels that may lie within the radius of each point (body coordinates), n = none."""
+        return self.table[self.rows(local, body)]
+
+
+class TouchReadout:
+    """Reference readout: one MuJoCo `touch` sensor per taxel (`touch_<id>` on site `taxel_<id>`)."""
+
+    def __init__(self, model: mujoco.MjModel, design: SkinDesign):
+        t = design.taxels
+        adr = np.empty(len(t), dtype=np.int64)
+        for i, tid in enumerate(t.ids):
+            sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, f"touch_{int(tid)}")
+            if sid < 0:
+                raise DesignError(f"model: touch sensor 'touch_{int(tid)}' of taxel {int(tid)} is missing; "
+                                  "export with SceneOptions(touch_sensors=True)")
+            adr[i] = model.sensor_adr[sid]
+        self.adr = adr
+        self.enabled = t.enabled.copy()
+
+    def read(self, data: mujoco.MjData) -> np.ndarray:
+        return np.where(self.enabled, data.sensordata[self.adr], 0.0)

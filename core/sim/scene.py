@@ -1,0 +1,233 @@
+"""A skin design as one MuJoCo scene, built by editing the robot's own `MjSpec`.
+
+The scene holds the robot (collision meshes simplified as asked), one site per taxel in its
+body frame oriented as the taxel frame (`taxel_<id>`, a box the size of the taxel's cell), an
+optional MuJoCo `touch` sensor per taxel (`touch_<id>`, the accuracy reference), and the
+obstacles. `skinsafe.exporters.mjcf.export_scene` writes it to files.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from skinsafe.core.robot import meshes as meshlib
+from skinsafe.core.robot.models import Robot
+from skinsafe.core.sim.contacts import prune_contacts
+from skinsafe.core.skin.model import DesignError, SkinDesign
+
+GEOM_TYPES = {
+    "sphere": (mujoco.mjtGeom.mjGEOM_SPHERE, 1),
+    "box": (mujoco.mjtGeom.mjGEOM_BOX, 3),
+    "capsule": (mujoco.mjtGeom.mjGEOM_CAPSULE, 2),
+    "cylinder": (mujoco.mjtGeom.mjGEOM_CYLINDER, 2),
+    "mesh": (mujoco.mjtGeom.mjGEOM_MESH, 0),
+}
+MAP_FILE = "taxel_map.json"
+SITE_GROUP = 3  # hidden in the viewer by default: a dense skin would hide the robot
+
+
+@dataclass
+class Obstacle:
+    """Something in the scene the skin can touch: a body named `name` with one geom named `name`.
+
+    `mocap`: a kinematic body moved through `data.mocap_pos/mocap_quat` (probes, a human arm);
+    `free`: a dynamic body with a free joint (falls, rests on the robot); neither: fixed.
+    """
+
+    name: str
+    kind: str  # "sphere" | "box" | "capsule" | "cylinder" | "mesh"
+    size: tuple  # MuJoCo geom size semantics (sphere (r,), box half-extents, capsule (r, half-length))
+    pos: tuple = (0, 0, 0)
+    quat: tuple = (1, 0, 0, 0)
+    mocap: bool = False
+    mesh_file: str | None = None
+    rgba: tuple = (0.8, 0.3, 0.3, 1)
+    free: bool = False
+    mass: float | None = None  # kg, for free bodies (default: density of water)
+
+
+@dataclass
+class SceneOptions:
+    """Every modelling choice of the scene, with defaults that suit the vectorised readout."""
+
+    collision: str = "primitive"  # mesh robots: "primitive" | "hull" | "decimate" | "full"
+    target_faces: int = 500  # for "decimate"
+    visual: bool = True  # keep visual meshes (geoms that never collide)
+    taxel_sites: bool = True  # one site per taxel ("taxel_<id>")
+    touch_sensors: bool = False  # one MuJoCo touch sensor per taxel (accuracy reference; slow)
+    prune_contacts: bool = True  # robot bodies nothing can touch get contype/conaffinity 0
+    timestep: float | None = None
+
+    def check(self) -> None:
+        if self.collision not in meshlib.MODES:
+            raise ValueError(f"SceneOptions.collision is '{self.collision}'; use one of {meshlib.MODES}")
+        if self.collision == "decimate" and self.target_faces < 4:
+            raise ValueError(f"SceneOptions.target_faces is {self.target_faces}; give at least 4")
+        if self.touch_sensors and not self.taxel_sites:
+            raise ValueError("SceneOptions.touch_sensors needs taxel_sites=True (a touch sensor reads a site)")
+        if self.timestep is not None and not (0 < self.timestep <= 0.05):
+            raise ValueError(f"SceneOptions.timestep is {self.timestep}; give seconds in (0, 0.05]")
+
+
+def build_scene(design: SkinDesign, robot: Robot, obstacles=(), options: SceneOptions = SceneOptions()
+                ) -> mujoco.MjSpec:
+    """The scene as an `MjSpec` (an edited copy of `robot.spec`; `robot` is left as it was).
+
+    Raises DesignError naming the body, mesh or obstacle at fault; ValueError for bad options.
+    """
+    options.check()
+    design.validate("design", robot.body_names)
+    spec = robot.spec.copy()
+    if options.timestep is not None:
+        spec.option.timestep = float(options.timestep)
+    _process_meshes(spec, options)
+    _add_obstacles(spec, list(obstacles))
+    if options.taxel_sites:
+        _add_taxel_sites(spec, design, options.touch_sensors)
+    try:
+        model = spec.compile()
+    except ValueError as e:
+        raise DesignError(f"scene: MuJoCo could not compile the scene: {e}") from None
+    _drop_unused_meshes(spec, model)
+    if options.prune_contacts:
+        prune_contacts(spec, model, list(obstacles))
+    spec.add_text(name="skinsafe.taxel_map", data=MAP_FILE)
+    return spec
+
+
+# --- robot meshes -------------------------------------------------------------------------
+
+def mesh_path(spec: mujoco.MjSpec, mesh) -> Path:
+    p = Path(mesh.file)
+    if p.is_absolute():
+        return p
+    meshdir = Path(spec.meshdir or "")
+    if not meshdir.is_absolute():
+        meshdir = Path(spec.modelfiledir or ".") / meshdir
+    return meshdir / p
+
+
+def _process_meshes(spec: mujoco.MjSpec, options: SceneOptions) -> None:
+    """Check every collision mesh, simplify it as asked, drop visual meshes if not wanted."""
+    MESH = mujoco.mjtGeom.mjGEOM_MESH
+    meshes = {m.name: m for m in spec.meshes}
+    made: dict[str, str] = {}
+    for g in list(spec.geoms):
+        if g.type != MESH or g.meshname not in meshes:
+            continue
+        collides = bool(g.contype or g.conaffinity)
+        if not collides:
+            if not options.visual:
+                spec.delete(g)
+            continue
+        src = meshes[g.meshname]
+        if not src.file:  # vertices given inline: nothing to check on disk
+            continue
+        where = f"mesh '{src.name}' (geom '{g.name}' of body '{g.parent.name}')"
+        mesh = meshlib.load_checked(mesh_path(spec, src), where)
+        if options.collision == "primitive":
+            spec.compiler.fitaabb = True  # a box-fitted primitive covers the mesh; an inertia fit is smaller
+            # size 0: MuJoCo fits it; a capsule for elongated shapes, else a box
+            ext = np.sort(mesh.bounding_box_oriented.primitive.extents)
+            long = ext[2] > ext[1] * 1.2
+            g.type = mujoco.mjtGeom.mjGEOM_CAPSULE if long else mujoco.mjtGeom.mjGEOM_BOX
+            g.size = [0.0, 0.0, 0.0]
+            continue
+        if options.collision == "full":
+            continue
+        key = src.name
+        if key not in made:
+            simple = meshlib.simplify(mesh, options.collision, options.target_faces)
+            new = spec.add_mesh(name=f"{src.name}_{options.collision}", scale=src.scale)
+            new.uservert = np.asarray(simple.vertices, float).ravel().tolist()
+            new.userface = np.asarray(simple.faces, int).ravel().tolist()
+            made[key] = new.name
+        g.meshname = made[key]
+
+
+def _drop_unused_meshes(spec: mujoco.MjSpec, model: mujoco.MjModel) -> None:
+    """Freeze primitives fitted to meshes at their compiled size and pose; delete unused meshes."""
+    MESH = mujoco.mjtGeom.mjGEOM_MESH
+    used = {g.meshname for g in spec.geoms if g.type == MESH}
+    for g in spec.geoms:
+        if g.type != MESH and g.meshname:
+            g.size, g.pos, g.quat = model.geom_size[g.id].tolist(), model.geom_pos[g.id].tolist(), \
+                model.geom_quat[g.id].tolist()
+            g.meshname = ""
+    for m in list(spec.meshes):
+        if m.name not in used:
+            spec.delete(m)
+
+
+# --- skin and obstacles -------------------------------------------------------------------
+
+def _taxel_quats(frames: np.ndarray) -> np.ndarray:
+    """(N,4) MuJoCo quaternions (w, x, y, z) of taxel frames (columns x, y, z)."""
+    if not len(frames):
+        return np.zeros((0, 4))
+    q = Rotation.from_matrix(frames).as_quat()  # x, y, z, w
+    return np.concatenate([q[:, 3:], q[:, :3]], axis=1)
+
+
+def taxel_cell(design: SkinDesign) -> np.ndarray:
+    """(N,) the side of each taxel's square cell on its FPC (the module pitch), m."""
+    pitch = {m.id: m.pitch for m in design.modules}
+    return np.array([pitch[int(k)] for k in design.taxels.module], float)
+
+
+def _add_taxel_sites(spec: mujoco.MjSpec, design: SkinDesign, touch: bool) -> None:
+    t = design.taxels
+    quats = _taxel_quats(t.frames)
+    cell = taxel_cell(design)
+    BOX = mujoco.mjtGeom.mjGEOM_BOX
+    bodies = [spec.body(name) for name in design.bodies]
+    for i in range(len(t)):
+        name = f"taxel_{int(t.ids[i])}"
+        half = cell[i] / 2
+        bodies[t.body[i]].add_site(name=name, type=BOX, pos=t.positions[i].tolist(), quat=quats[i].tolist(),
+                                   size=[half, half, half / 2], group=SITE_GROUP,
+                                   rgba=[0.1, 0.8, 0.2, 0.5] if t.enabled[i] else [0.5, 0.5, 0.5, 0.5])
+        if touch:
+            spec.add_sensor(name=f"touch_{int(t.ids[i])}", type=mujoco.mjtSensor.mjSENS_TOUCH,
+                            objtype=mujoco.mjtObj.mjOBJ_SITE, objname=name)
+
+
+def _add_obstacles(spec: mujoco.MjSpec, obstacles: list[Obstacle]) -> None:
+    taken = {b.name for b in spec.bodies} | {g.name for g in spec.geoms}
+    for k, ob in enumerate(obstacles):
+        where = f"obstacle #{k} '{getattr(ob, 'name', '?')}'"
+        if not isinstance(ob, Obstacle):
+            raise DesignError(f"{where}: is a {type(ob).__name__}, expected an Obstacle")
+        if not ob.name or ob.name in taken:
+            raise DesignError(f"{where}: field 'name' is empty or already used in the robot/scene; give a unique name")
+        taken.add(ob.name)
+        if ob.kind not in GEOM_TYPES:
+            raise DesignError(f"{where}: field 'kind' is '{ob.kind}'; use one of {sorted(GEOM_TYPES)}")
+        if ob.mocap and ob.free:
+            raise DesignError(f"{where}: is both mocap and free; choose one")
+        gtype, nsize = GEOM_TYPES[ob.kind]
+        size = [float(s) for s in ob.size]
+        if len(size) != nsize or not all(np.isfinite(size)) or any(s <= 0 for s in size):
+            if ob.kind != "mesh":
+                raise DesignError(f"{where}: field 'size' is {tuple(ob.size)}; a {ob.kind} needs {nsize} positive numbers")
+        body = spec.worldbody.add_body(name=ob.name, pos=list(ob.pos), quat=list(ob.quat), mocap=bool(ob.mocap))
+        if ob.free:
+            body.add_freejoint(name=f"{ob.name}_free")
+        geom = dict(name=ob.name, type=gtype, rgba=list(ob.rgba))
+        if ob.kind == "mesh":
+            if not ob.mesh_file:
+                raise DesignError(f"{where}: kind 'mesh' needs 'mesh_file'")
+            m = meshlib.load_checked(ob.mesh_file, where)
+            mesh = spec.add_mesh(name=f"{ob.name}_mesh")
+            mesh.uservert = np.asarray(m.vertices, float).ravel().tolist()
+            mesh.userface = np.asarray(m.faces, int).ravel().tolist()
+            geom["meshname"] = mesh.name
+        else:
+            geom["size"] = size + [0.0] * (3 - nsize)
+        if ob.free and ob.mass is not None:
+            geom["mass"] = float(ob.mass)
+        body.add_geom(**geom)

@@ -1,0 +1,122 @@
+"""The add-on with robot files written here (URDF with primitives and an OBJ mesh), and the
+built extension zip installed into a fresh bpy process."""
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import bpy
+import numpy as np
+import pytest
+
+import skinsafe.addon as addon
+from skinsafe.addon import blender_to_core as b2c
+
+ROOT = Path(__file__).resolve().parents[2]
+INERTIA = '<inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial>'
+
+
+def _prism_obj(path: Path, w=0.06, h=0.3):
+    """An OBJ hexagonal prism (radius w, length h along z), outward faces."""
+    ang = np.arange(6) * np.pi / 3
+    ring = np.stack([w * np.cos(ang), w * np.sin(ang)], 1)
+    v = [(x, y, 0.0) for x, y in ring] + [(x, y, h) for x, y in ring]
+    f = [(i, (i + 1) % 6, 6 + (i + 1) % 6, 6 + i) for i in range(6)] + [tuple(range(5, -1, -1)), tuple(range(6, 12))]
+    path.write_text("".join(f"v {a} {b} {c}\n" for a, b, c in v) + "".join(
+        "f " + " ".join(str(i + 1) for i in face) + "\n" for face in f))
+
+
+def _urdf(tmp: Path, mesh="prism.obj", joint="revolute") -> Path:
+    path = tmp / "bot.urdf"
+    path.write_text(textwrap.dedent(f"""\
+        <robot name="bot">
+          <link name="base"><collision><geometry><box size="0.2 0.2 0.1"/></geometry></collision>{INERTIA}</link>
+          <link name="arm"><collision><origin xyz="0 0 0.2"/><geometry><cylinder radius="0.05" length="0.3"/></geometry>
+            </collision>{INERTIA}</link>
+          <link name="hand"><collision><geometry><mesh filename="{mesh}"/></geometry></collision>{INERTIA}</link>
+          <joint name="j1" type="{joint}"><parent link="base"/><child link="arm"/><origin xyz="0 0 0.05"/>
+            <axis xyz="0 0 1"/><limit lower="-2" upper="2" effort="1" velocity="1.5"/></joint>
+          <joint name="j2" type="revolute"><parent link="arm"/><child link="hand"/><origin xyz="0 0 0.4"/>
+            <axis xyz="0 1 0"/><limit lower="-1" upper="1" effort="1" velocity="1.5"/></joint>
+        </robot>"""))
+    return path
+
+
+@pytest.fixture(scope="module", autouse=True)
+def registered():
+    addon.register()
+    yield
+    addon.unregister()
+
+
+def test_urdf_import_place_on_mesh_and_refusals(tmp_path):
+    bpy.ops.wm.read_homefile(use_empty=True)
+    _prism_obj(tmp_path / "prism.obj")
+    path = _urdf(tmp_path)
+    assert bpy.ops.skinsafe.import_robot(source="FILE", filepath=str(path)) == {"FINISHED"}
+    scene = bpy.context.scene
+    bodies = b2c.body_objects(scene)
+    assert {"base", "arm", "hand"} <= set(bodies) and bodies["hand"].parent is bodies["arm"]
+    assert list(bodies["hand"]["joint_axis"]) == [0.0, 1.0, 0.0] and list(bodies["hand"]["joint_range"]) == [-1, 1]
+    s = scene.skinsafe.new_module
+    s.rows, s.cols, s.pitch, s.taxel_diameter, s.margin, s.min_bend_radius = 4, 6, 0.008, 0.004, 0.001, 0.005
+    # on the mesh link: a flat face of the prism (outward normal +x rotated by 30 deg: face 0 between corners 0, 1)
+    n = np.array([np.cos(np.pi / 6), np.sin(np.pi / 6), 0])
+    anchor = 0.06 * np.cos(np.pi / 6) * n + [0, 0, 0.15] + 0.01 * n
+    assert bpy.ops.skinsafe.place_module(body="hand", anchor=anchor, direction=(0, 0, 1), use_cursor=False) == {"FINISHED"}
+    d = b2c.design_of(scene)
+    assert d.n_taxels == 24
+    assert np.allclose(d.taxels.frames[:, :, 2], n, atol=1e-6)  # flat face: z = its normal
+    assert np.allclose(d.taxels.positions @ n, 0.06 * np.cos(np.pi / 6), atol=1e-6)
+    assert np.allclose(np.ptp(d.taxels.positions[:, 2]), 5 * 0.008)  # rows along z, 6 columns
+    # a cylinder link from a URDF primitive
+    assert bpy.ops.skinsafe.place_module(body="arm", anchor=(0.06, 0, 0.2), direction=(0, 0, 1),
+                                         use_cursor=False) == {"FINISHED"}
+    p = b2c.design_of(scene).taxels.positions[24:]
+    assert np.abs(np.hypot(p[:, 0], p[:, 1]) - 0.05).max() < 5e-4
+
+    bad = _urdf(tmp_path, mesh="gone.obj")
+    with pytest.raises(RuntimeError, match="link 'hand' uses mesh 'gone.obj'"):
+        bpy.ops.skinsafe.import_robot(source="FILE", filepath=str(bad))
+    bad = _urdf(tmp_path, joint="planar")
+    with pytest.raises(RuntimeError, match="joint 'j1' has type 'planar'"):
+        bpy.ops.skinsafe.import_robot(source="FILE", filepath=str(bad))
+    assert b2c.design_of(scene).n_taxels == 48  # refused imports leave the scene as it was
+
+
+def test_extension_zip_builds_and_installs(tmp_path):
+    subprocess.run([sys.executable, str(ROOT / "addon" / "package.py"), "--no-deps", "--out", str(tmp_path)],
+                   check=True, capture_output=True)
+    (zipfile,) = tmp_path.glob("skinsafe-*.zip")
+    script = textwrap.dedent(f"""\
+        import bpy, sys
+        bpy.ops.extensions.package_install_files(filepath={str(zipfile)!r}, repo="user_default", enable_on_install=True)
+        import addon_utils
+        assert "bl_ext.user_default.skinsafe" in {{m.__name__ for m in addon_utils.modules()}}
+        assert addon_utils.check("bl_ext.user_default.skinsafe")[1], "not enabled"
+        bpy.ops.wm.read_homefile(use_empty=True)  # keeps extensions enabled
+        assert bpy.ops.skinsafe.import_robot(source="ur5") == {{"FINISHED"}}
+        assert len(bpy.context.scene.skinsafe.joints) == 6
+        bpy.ops.preferences.addon_disable(module="bl_ext.user_default.skinsafe")
+        assert not hasattr(bpy.ops.skinsafe, "import_robot") or "import_robot" not in dir(bpy.ops.skinsafe)
+        print("INSTALLED-OK")
+        """)
+    env = {**os.environ, "BLENDER_USER_RESOURCES": str(tmp_path / "user")}
+    r = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+    assert "INSTALLED-OK" in r.stdout, r.stdout[-2000:] + r.stderr[-3000:]
+    assert list((tmp_path / "user").rglob("skinsafe/blender_manifest.toml"))
+
+
+def test_sample_blend_asset_holds_a_full_skin():
+    path = ROOT / "blend_assets" / "ur5_skin.blend"
+    if not path.exists():
+        pytest.skip("blend_assets/ur5_skin.blend not built; run blend_assets/build_sample.py")
+    bpy.ops.wm.open_mainfile(filepath=str(path))
+    scene = bpy.context.scene
+    d = b2c.design_of(scene)
+    assert d.n_taxels >= 2000 and len(d.boards) >= 2
+    assert {"upper_arm_link", "forearm_link", "wrist_1_link"} <= {m.body for m in d.modules}
+    assert sum(len(o.data.polygons) for o in b2c.module_objects(scene)) == d.n_taxels
+    for m in d.modules:  # each module on one board, within capacity
+        assert set(d.taxels.board[d.taxels.module == m.id].tolist()) == {m.board}

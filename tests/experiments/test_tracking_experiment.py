@@ -1,0 +1,133 @@
+"""The UR5 tracking experiment (Fig. 11), reduced, and the safety stack / scenes on the real scene."""
+import argparse
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from skinsafe.core.experiments.tracking import TrackingConfig, run_experiment, summary
+from skinsafe.core.safety.modulation import ModulationLayer
+from skinsafe.core.safety.stack import SafetyStack, StrategyFilter, TeleopStream, TrajectorySource
+from skinsafe.core.safety.tdm import TactileDangerModel
+
+
+@pytest.fixture(scope="module")
+def quick_results():
+    cfg = TrackingConfig.quick()
+    return cfg, run_experiment(cfg, progress=False)
+
+
+def test_quick_tracking_run_modulated_contacts_fewer_than_vanilla(quick_results):
+    cfg, res = quick_results
+    runs = res["runs"]
+    assert set(runs) == {"vanilla", "tdm", "tdm2"}
+    c = {m: np.array([r["contacts"] for r in runs[m]["0"]]) for m in runs}
+    assert all(len(v) == cfg.episodes for v in c.values())
+    assert c["vanilla"].min() > 20  # the balls really are in the way, felt by the skin readout
+    # episode 0 has no experience yet: every method runs unmodulated and sees the same contacts
+    assert c["tdm"][0] == c["vanilla"][0] == c["tdm2"][0]
+    # after learning, the modulated runs touch less than vanilla over the learned episodes
+    assert c["tdm2"][1:].sum() < c["vanilla"][1:].sum()
+    rows = {r["method"]: r for r in summary(res)}
+    assert rows["vanilla"]["tracking_error_mm"] < 60  # vanilla follows the path
+
+
+def test_episode_logs_are_consistent(quick_results):
+    cfg, res = quick_results
+    ep = res["logs"]["vanilla"]["0"][0]
+    ticks = int(round(cfg.duration / cfg.control_dt))
+    assert ep.states.shape == (ticks, 4) and ep.dangers.shape[0] == ticks
+    assert ep.contacts == int(ep.dangers.any(1).sum())
+    assert len(ep.contact_points) == ep.contacts
+    # contact points lie on the arm near a ball: within ball radius + arm radius + footprint
+    d = np.linalg.norm(ep.contact_points[:, None] - np.array(res["balls"]["0"])[None], axis=2).min(1)
+    assert (d < cfg.ball_radius + 0.08).all()
+
+
+def test_tracking_cli_writes_outputs(tmp_path, quick_results, monkeypatch):
+    from skinsafe.core.experiments import tracking as et
+
+    cfg, res = quick_results
+    monkeypatch.setattr(et, "run_experiment", lambda c, progress=True: res)
+    args = argparse.Namespace(out=str(tmp_path), quick=True, episodes=None, seeds=None, methods=None, no_progress=True)
+    assert et.run(args) == 0
+    doc = json.loads((tmp_path / "tracking.json").read_text())
+    assert {r["method"] for r in doc["summary"]} == {"vanilla", "tdm", "tdm2"}
+    for name in ("contacts.png", "trajectories.png"):
+        assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(SystemExit, match="episodes"):
+        et.config_from_args(argparse.Namespace(quick=True, episodes=0, seeds=None, methods=None))
+
+
+def test_stack_filters_planner_and_teleop_sources():
+    times = np.linspace(0, 1, 126)
+    targets = np.stack([np.sin(times), np.zeros_like(times)], 1)
+    stream = TeleopStream(times, targets, latency=0.1, gain=0.0)
+    planner = TrajectorySource(lambda t: (np.array([np.sin(t - 0.1), 0.0]), np.array([np.cos(t - 0.1), 0.0])), gain=0.0)
+    stack = SafetyStack(np.array([1.0, 1.0]))
+    q = np.zeros(2)
+    a = stack.run(stream, 0.5, q, None, 0.01)
+    b = stack.run(planner, 0.5, q, None, 0.01)
+    assert np.allclose(a, b, atol=2e-3) and a[0] == pytest.approx(np.cos(0.4), abs=2e-3)
+    assert np.allclose(stack.tick(0.0, q, None, np.array([5.0, -1.0]), 0.01), [1.0, -0.2])  # limits, direction kept
+    assert np.allclose(stack.tick(0.0, q, None, np.array([np.nan, 1.0]), 0.01), 0.0)  # broken command: stand still
+    with pytest.raises(ValueError, match="increase"):
+        TeleopStream([0.0, 0.0], np.zeros((2, 2)))
+
+
+def test_strategy_filter_slows_down_into_learned_danger():
+    torch.manual_seed(0)
+    tdm = TactileDangerModel(2, 2, 10, (8,))
+    with torch.no_grad():  # danger grows with the action along +x: logit = 40 a_x - 10 on every taxel
+        tdm.trunk[0].weight.zero_()
+        tdm.trunk[0].bias.fill_(1.0)
+        tdm.trunk[0].weight[0, 2] = 40.0
+        tdm.head.weight.zero_()
+        tdm.head.weight[:, 0] = 1.0
+        tdm.head.bias.fill_(-11.0)
+    f = StrategyFilter(tdm)
+    s = np.zeros(2)
+    assert np.allclose(f(s, np.array([0.05, 0.0])), [0.05, 0.0])  # safe: the command itself
+    assert np.allclose(f(s, np.array([1.0, 0.0])), [0.0, 0.0])  # certain danger: stop
+    assert np.allclose(f(s, np.array([-1.0, 0.0])), [-1.0, 0.0])  # moving away is safe
+    stack = SafetyStack(np.ones(2), strategy=f, modulation=ModulationLayer(lambda s_, a_: torch.zeros(len(s_)) + 0 * s_.sum(1)))
+    assert np.allclose(stack.tick(0.0, s, None, np.array([1.0, 0.0]), 0.01), 0.0)
+
+
+def test_strategy_filter_stops_early_with_the_exhaustive_argmax():
+    """Scoring in prior order with the bound gives eq. 3's MAP over all candidates."""
+    torch.manual_seed(1)
+    tdm = TactileDangerModel(3, 3, 50, (16,))
+    with torch.no_grad():
+        tdm.head.bias.uniform_(-6.0, 1.0)
+    f = StrategyFilter(tdm, scales=(1.0, 0.6, 0.3, 0.0), prior=(0.7, 0.15, 0.1, 0.05))
+    rng = np.random.default_rng(0)
+    picks = set()
+    for _ in range(200):
+        s, a = rng.normal(size=3), rng.normal(size=3) * rng.choice([0.1, 1.0, 10.0])
+        cand = f.scales[:, None] * a
+        scores = f.log_prior + f.fast.log_safety(np.broadcast_to(s, cand.shape), cand)
+        want = cand[int(np.argmax(scores))]
+        assert np.array_equal(f(s, a), want)
+        picks.add(int(np.argmax(scores)))
+    assert len(picks) >= 3  # the states reach past the first candidate
+
+
+@pytest.mark.parametrize("scene", ["desk", "collaboration"])
+def test_scenes_run_and_report(tmp_path, scene):
+    from skinsafe.core.experiments import scenes as es
+
+    args = argparse.Namespace(command_name=scene, out=str(tmp_path), pitch=0.02, duration=1.0 if scene == "desk" else 2.0,
+                              gap=0.1, samples=600, steps=300, tangent_gain=0.0, seed=0, no_progress=True)
+    assert es.run(args) == 0
+    res = json.loads((tmp_path / f"{scene}.json").read_text())
+    assert (tmp_path / f"{scene}.png").read_bytes()[:4] == b"\x89PNG"
+    if scene == "desk":
+        r = res["runs"]["no modulation"]
+        assert r["min_clearance_mm"] < 5  # the retraction reaches the desk without modulation
+        assert min(res["runs"][k]["min_clearance_mm"] for k in res["runs"]) >= -20
+    else:
+        off, on = res["runs"]["planner, no safety"], res["runs"]["planner, safety stack"]
+        assert off["peak_force_N"] > 100  # the arm runs into the human
+        assert on["time_to_clear_s"] is not None and on["contact_s"] < off["contact_s"]
