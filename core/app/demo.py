@@ -26,7 +26,7 @@ from skinsafe.core.design.coverage import coverage_report
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.skin.taxel_map import load
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SAMPLE_BLEND = REPO / "blend_assets" / "ur5_skin.blend"
 
 
