@@ -1,0 +1,240 @@
+"""`skinsafe experiment collaboration` (paper Fig. 15) as an ISO/TS 15066 power-and-force-limiting test.
+
+The UR5 delivers a part with a fast pan sweep (`--duration`, default 1 s) while a person
+(`core.sim.human`: lower arm and hand, the table's masses and spring constants, held by a
+compliant attachment) reaches into the wrist's path, stays `--stay` seconds and withdraws; the
+planner then completes the delivery. The same scene runs with each stack:
+
+- `none`: the joint velocity limits only (what the scene does without safety);
+- `retraction`: the tactile defensiveness layer;
+- `full`: defensiveness + modulation by a danger potential learned from static contacts with the
+  person (a TDM; the person is at the bench in a fraction `--presence` of past deliveries, so the
+  danger of a configuration is presence x p(contact), graded instead of a wall);
+- `full+pfl`: `full` + the PFL speed cap (`core.safety.pfl.PFLCap`, the person's regions).
+
+Forces are measured physically: the normal contact force between the robot's geoms and each body
+region's geom (`mj_contactForce`) at every physics step. A contact event is a run of force on a
+region (gaps under 0.1 s merged). Its transient phase is its first 0.5 s (ISO/TS 15066: transient
+contact up to 0.5 s, quasi-static beyond), checked against the transient limit (`peak_N` vs
+`limit_N`); the force after that (clamping or a sustained push) is `quasi_static_N` against the
+quasi-static limit. Task time: until the arm is within 0.02 rad of the delivery goal; the cost of
+safety is that minus the task time of the same stack with no person in the scene.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+TRANSIENT_S = 0.5  # ISO/TS 15066: transient contact lasts up to 0.5 s; after that it is quasi-static
+GAP_S = 0.1  # force-free gaps shorter than this do not end a contact event
+GOAL_TOL = 0.02  # rad: the delivery is complete when every joint is this close to the goal
+STACKS = ("none", "retraction", "full", "full+pfl")
+
+
+def _delivery(t: float, duration: float):
+    """The delivery motion: pan from -0.8 to 0.8 rad (smooth), the rest at home."""
+    from skinsafe.core.robot.models import UR5_HOME
+
+    u = np.clip(t / duration, 0, 1)
+    s = 10 * u ** 3 - 15 * u ** 4 + 6 * u ** 5
+    ds = (30 * u ** 2 - 60 * u ** 3 + 30 * u ** 4) / duration if 0 < t < duration else 0.0
+    q = UR5_HOME.copy()
+    q[0] = -0.8 + 1.6 * s
+    v = np.zeros(6)
+    v[0] = 1.6 * ds
+    return q, v
+
+
+def _person(kin, design, T: float):
+    """The person's parts (lower arm and hand) where the wrist passes at 60% of the delivery, the
+    reach direction, and the effective robot mass there (for the contact springs)."""
+    from skinsafe.core.safety.pfl import effective_mass
+    from skinsafe.core.sim.human import Human, Part
+
+    q = _delivery(0.6 * T, T)[0]
+    pos, _ = kin.poses(q)
+    wrist = np.isin(design.taxels.body, [design.bodies.index(b) for b in ("wrist_1_link", "wrist_2_link")])
+    spot = pos[wrist].mean(0)
+    pan = q[0]
+    side = np.array([np.sin(pan), -np.cos(pan), 0.0])  # where the sweep goes (d/dpan of -r(cos, sin))
+    axis = np.array([np.cos(pan), np.sin(pan), 0.0])  # the person's forearm lies along the robot's radius
+    m_r = float(np.median(np.minimum(effective_mass(kin, q)[wrist], 100.0)))
+    # capsule axis (local z) along `axis`: rotate z onto it
+    ang = np.arctan2(axis[1], axis[0])
+    quat = (np.cos(np.pi / 4) * np.cos(ang / 2), -np.sin(np.pi / 4) * np.sin(ang / 2),
+            np.sin(np.pi / 4) * np.cos(ang / 2), np.cos(np.pi / 4) * np.sin(ang / 2))
+    at = spot + side * 0.03
+    parts = [Part("lower_arm", "capsule", (0.035, 0.12), pos=tuple(at), quat=quat),
+             Part("hand", "sphere", (0.045,), pos=tuple(at + axis * 0.17))]
+    return Human(parts, robot_mass=m_r), side, m_r
+
+
+def run_scene(args) -> dict:
+    from skinsafe.core.experiments.scenes import STATE, Scene
+    from skinsafe.core.safety.modulation import ModulationLayer
+    from skinsafe.core.safety.pfl import PFLCap
+    from skinsafe.core.safety.stack import SafetyStack, TrajectorySource
+    from skinsafe.core.design.sample import make_sample_design
+    from skinsafe.core.robot.kinematics import TaxelKinematics
+    from skinsafe.core.robot.models import build_ur5
+
+    T = args.duration
+    robot = build_ur5()
+    design = make_sample_design("ur5", pitch=args.pitch, robot=robot)
+    kin = TaxelKinematics(robot.model, design)
+    human, side, m_r = _person(kin, design, T)
+    sc = Scene([], args.pitch, human=human)
+    home = [np.array(p.pos, float) for p in human.parts]
+    away = [p + side * 0.6 for p in home]
+    t_in, t_out = 0.1 * T, 0.1 * T + 0.3 + args.stay
+    t_end = t_out + 0.5 + args.finish
+    goal = _delivery(T, T)[0]
+    source = TrajectorySource(lambda t: _delivery(t, T))
+    pot = _learn_person(sc, home, away, T, args)
+    regions = tuple(args.pfl_regions or [p.region for p in human.parts])
+
+    def make(stack: str):
+        defens = sc.defensiveness() if stack != "none" else None
+        mod = ModulationLayer(pot, tangent_gain=0.0) if stack.startswith("full") else None
+        cap = PFLCap(sc.kin, regions, factor=args.pfl_factor) if stack == "full+pfl" else None
+        return SafetyStack(sc.robot.vel_limits, defens, mod, joints=STATE, pfl=cap)
+
+    def episode(stack: str, person: bool):
+        st = make(stack)
+        sc.reset(_delivery(0, T)[0])
+        for i in range(len(human.parts)):
+            human.move(i, away[i])
+            sc.data.qpos[human.slide[i]:human.slide[i] + 3] = away[i] - home[i]
+        v, forces, done = np.zeros(6), [], None
+        steps = int(t_end / sc.control_dt)
+        for k in tqdm(range(steps), desc=stack, disable=args.no_progress, leave=False):
+            t = k * sc.control_dt
+            if person:  # reach in (0.3 s, smooth), stay, withdraw (0.5 s)
+                u = np.clip((t - t_in) / 0.3, 0, 1) * (1 - np.clip((t - t_out) / 0.5, 0, 1))
+                u = 3 * u ** 2 - 2 * u ** 3
+                for i in range(len(human.parts)):
+                    human.move(i, away[i] + (home[i] - away[i]) * u)
+            force = sc.step(v)
+            forces.append(sc.human_peak.copy())
+            v = st.run(source, t, sc.q, {"force": force}, sc.control_dt)
+            if done is None and t >= T and np.max(np.abs(sc.q - goal)) < GOAL_TOL:
+                done = t
+                if not person:
+                    break
+        return np.array(forces), done
+
+    out = {"duration_s": T, "robot_mass_at_contact_kg": m_r, "pfl_regions": list(regions),
+           "pfl_factor": args.pfl_factor, "contacts": [], "runs": {}, "force_N": {}}
+    for stack in STACKS:
+        _, nominal = episode(stack, person=False)
+        forces, done = episode(stack, person=True)
+        events = contact_events(forces, [p.region for p in human.parts], sc.control_dt)
+        for e in events:
+            out["contacts"].append({"stack": stack, **e})
+        out["runs"][stack] = {
+            "events": len(events), "within": all(e["within"] for e in events),
+            "peak_N": max((e["peak_N"] for e in events), default=0.0),
+            "quasi_static_N": max((e["quasi_static_N"] for e in events), default=0.0),
+            "task_time_s": done, "nominal_task_time_s": nominal,
+            "safety_cost_s": None if done is None or nominal is None else done - nominal}
+        out["force_N"][stack] = forces.sum(1).round(2).tolist()
+    out["person_in_s"], out["person_out_s"] = t_in, t_out
+    return out
+
+
+def contact_events(forces: np.ndarray, regions: list[str], dt: float) -> list[dict]:
+    """Contact events per region from per-tick peak forces (ticks, parts): a run of force > 0
+    (gaps < GAP_S merged); transient phase the first TRANSIENT_S, quasi-static after."""
+    from skinsafe.core.sim.body_regions import region
+
+    out = []
+    gap = int(round(GAP_S / dt))
+    for j, name in enumerate(regions):
+        reg = region(name)
+        on = np.flatnonzero(forces[:, j] > 0)
+        if not len(on):
+            continue
+        breaks = np.flatnonzero(np.diff(on) > gap)
+        for a, b in zip(np.r_[on[0], on[breaks + 1]], np.r_[on[breaks], on[-1]]):
+            f = forces[a:b + 1, j]
+            n_tr = int(round(TRANSIENT_S / dt))
+            peak = float(f[:n_tr].max())
+            qs = float(f[n_tr:].max()) if len(f) > n_tr else 0.0
+            limit = reg.transient_limit()
+            out.append({"region": name, "start_s": round(a * dt, 3), "duration_s": round((b - a + 1) * dt, 3),
+                        "peak_N": peak, "limit_N": limit, "quasi_static_N": qs,
+                        "quasi_static_limit_N": reg.quasi_static_N,
+                        "within": bool(peak <= limit and qs <= reg.quasi_static_N)})
+    return sorted(out, key=lambda e: e["start_s"])
+
+
+class _Presence(torch.nn.Module):
+    """danger = presence x f_phi: the person is at the bench in a fraction of the deliveries."""
+
+    def __init__(self, f, presence: float):
+        super().__init__()
+        self.f, self.presence = f, float(presence)
+
+    def forward(self, s, a):
+        return self.presence * self.f(s, a)
+
+
+def _learn_person(sc, home, away, T: float, args):
+    """A TDM from static contacts with the person at the bench, along the delivery (labels from
+    the skin readout), as the modulation potential `presence x f_phi`."""
+    import mujoco
+
+    from skinsafe.core.experiments.scenes import STATE
+    from skinsafe.core.safety.potential import DangerPotential
+    from skinsafe.core.safety.tdm import TactileDangerModel, train_tdm
+
+    rng = np.random.default_rng(args.seed)
+    n = args.samples
+    Q = np.array([_delivery(t, T)[0] for t in rng.uniform(0, T, n)])
+    Q[:, STATE] += rng.normal(0, 0.05, (n, len(STATE)))
+    A = rng.uniform(-1, 1, (n, len(STATE)))
+    D = np.zeros((n, sc.design.n_taxels), np.float32)
+    m, d, h = sc.model, sc.data, sc.human
+    for i in tqdm(range(n), desc="contacts with the person", disable=args.no_progress, leave=False):
+        mujoco.mj_resetData(m, d)
+        d.qpos[sc.qadr] = Q[i]
+        mujoco.mj_forward(m, d)
+        D[i] = sc.readout.read(d) > 0
+    torch.manual_seed(args.seed)
+    tdm = TactileDangerModel(len(STATE), len(STATE), sc.design.n_taxels, (64, 64))
+    with torch.no_grad():
+        tdm.head.bias.fill_(float(np.log(0.01 / sc.design.n_taxels)))
+    train_tdm(tdm, Q[:, STATE], A, D, epochs=max(1, args.steps * 64 // n), lr=3e-3, batch_size=64, seed=args.seed,
+              progress=False)
+    return _Presence(DangerPotential(tdm.eval()), args.presence)
+
+
+def plot(res: dict):
+    """Total force on the person over time per stack, and each event's peak / quasi-static force
+    as a fraction of its limit."""
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 3.8))
+    for stack, f in res["force_N"].items():
+        a.plot(np.arange(len(f)) * 0.01, f, label=stack, lw=1)
+    for t in (res["person_in_s"], res["person_out_s"]):
+        a.axvline(t, color="k", lw=0.6, ls=":")
+    a.set_xlabel("time (s)")
+    a.set_ylabel("contact force on the person (N)")
+    a.set_yscale("symlog", linthresh=10)
+    a.set_title("Fig. 15: delivery next to a person (dotted: in, out)")
+    a.legend(fontsize=7)
+    xs, labels = [], []
+    for i, e in enumerate(res["contacts"]):
+        xs.append(i)
+        labels.append(f"{e['stack']}\n{e['region']}")
+        b.bar(i - 0.2, e["peak_N"] / max(e["limit_N"], 1e-9), 0.4, color="tab:red" if e["peak_N"] > e["limit_N"] else "tab:green")
+        b.bar(i + 0.2, e["quasi_static_N"] / e["quasi_static_limit_N"], 0.4,
+              color="tab:orange" if e["quasi_static_N"] > e["quasi_static_limit_N"] else "tab:olive")
+    b.axhline(1, color="k", lw=0.8)
+    b.set_xticks(xs, labels, fontsize=5, rotation=90)
+    b.set_ylabel("force / ISO/TS 15066 limit")
+    b.set_title("events: transient (left bar), quasi-static (right)")
+    fig.tight_layout()
+    return fig
