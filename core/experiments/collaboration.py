@@ -71,13 +71,13 @@ def _person(kin, design, T: float):
 
 
 def run_scene(args) -> dict:
+    from skinsafe.core.design.sample import make_sample_design
     from skinsafe.core.experiments.scenes import STATE, Scene
+    from skinsafe.core.robot.kinematics import TaxelKinematics
+    from skinsafe.core.robot.models import build_ur5
     from skinsafe.core.safety.modulation import ModulationLayer
     from skinsafe.core.safety.pfl import PFLCap
     from skinsafe.core.safety.stack import SafetyStack, TrajectorySource
-    from skinsafe.core.design.sample import make_sample_design
-    from skinsafe.core.robot.kinematics import TaxelKinematics
-    from skinsafe.core.robot.models import build_ur5
 
     T = args.duration
     robot = build_ur5()
@@ -195,7 +195,7 @@ def _learn_person(sc, home, away, T: float, args):
     Q[:, STATE] += rng.normal(0, 0.05, (n, len(STATE)))
     A = rng.uniform(-1, 1, (n, len(STATE)))
     D = np.zeros((n, sc.design.n_taxels), np.float32)
-    m, d, h = sc.model, sc.data, sc.human
+    m, d = sc.model, sc.data
     for i in tqdm(range(n), desc="contacts with the person", disable=args.no_progress, leave=False):
         mujoco.mj_resetData(m, d)
         d.qpos[sc.qadr] = Q[i]

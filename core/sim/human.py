@@ -64,7 +64,7 @@ class Human:
                 raise DesignError(f"human: '{name}' is {value}; give a positive number")
         self.robot_mass, self.attach_k = float(robot_mass), float(attach_N_per_m)
         self.attach_damping, self.contact_damping, self.friction = attach_damping, contact_damping, friction
-        
+
     def obstacles(self) -> list[Obstacle]:
         """Free bodies with the regions' effective masses (pass them to `build_scene`)."""
         return [Obstacle(p.name, p.kind, tuple(p.size), pos=tuple(p.pos), quat=tuple(p.quat), rgba=tuple(p.rgba),
