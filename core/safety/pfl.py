@@ -22,6 +22,7 @@ the body model in `skinsafe.core.sim.body_regions` (the person in a scene reads 
 from __future__ import annotations
 
 import mujoco
+import numba
 import numpy as np
 
 from skinsafe.core.robot.kinematics import TaxelKinematics
@@ -111,8 +112,11 @@ class PFLCap:
     """The PFL speed cap for the safety stack: `cap(q, qdot) -> qdot` with every taxel's velocity
     along its outward normal at most `factor * v_max` of the most sensitive of `regions`.
 
-    After a call: `last_scale` (1 = untouched), `last_taxel` (the taxel that bound, -1 none),
-    `flags` (count of non-finite inputs answered with a stop).
+    Per tick: one body Jacobian per skinned body gives `G_b` (6, nv) (`NormalRows`), `mj_solveM`
+    gives `M^-1 G_b^T`, so each taxel's `1/m_R = w^T (G_b M^-1 G_b^T) w` and normal speed
+    `w . (G_b qdot)` with its constant wrench w: a 6x6 quadratic form per taxel in one compiled
+    pass, no (N, nv) arrays. After a call: `last_scale` (1 = untouched), `last_taxel` (the taxel
+    that bound, -1 none), `vmax` (N,), `flags` (count of non-finite inputs answered with a stop).
     """
 
     def __init__(self, kin: TaxelKinematics, regions=("hand",), factor: float = 1.0):
@@ -127,39 +131,74 @@ class PFLCap:
         # v_max = c * sqrt(1/m_H + 1/m_R), per region
         self._c = np.array([factor * r.transient_limit() / np.sqrt(r.k_N_per_m) for r in regs])
         self._inv_mh = np.array([1.0 / r.mass_kg for r in regs])
-        self.normal_rows = NormalRows(kin)
+        self.wrench = normal_wrenches(kin)
+        self.bodies = np.unique(kin.body_id)
+        self.slot = np.searchsorted(self.bodies, kin.body_id).astype(np.int64)
+        nv, nb = kin.model.nv, len(self.bodies)
+        self._G = np.zeros((nb, 6, nv))
+        self._J = np.zeros((6, nv))
+        self._MG = np.zeros((nb * 6, nv))
         self.last_scale, self.last_taxel, self.flags = 1.0, -1, 0
         self.vmax = np.zeros(kin.n)
+        self.vn = np.zeros(kin.n)
 
-    def limits(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Rows `a` (N, nv) and the cap `factor * v_max` (N,) of the most sensitive region at q."""
-        rows = self.normal_rows(q)
-        inv = inverse_effective_mass(self.kin, rows)
-        vm = self._c[0] * np.sqrt(self._inv_mh[0] + inv)
-        for c, ih in zip(self._c[1:], self._inv_mh[1:]):
-            np.minimum(vm, c * np.sqrt(ih + inv), out=vm)
-        self.vmax = vm
-        return rows, vm
+    def _body_terms(self, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """H_b = G_b M^-1 G_b^T (nb, 6, 6) and G_b qdot (nb, 6) at q."""
+        kin = self.kin
+        kin.update(q)
+        m, d, G, J = kin.model, kin.data, self._G, self._J
+        for k, bid in enumerate(self.bodies):
+            mujoco.mj_jacBody(m, d, J[:3], J[3:], int(bid))
+            R = d.xmat[bid].reshape(3, 3)
+            np.matmul(R.T, J[:3], out=G[k, :3])
+            np.matmul(R.T, J[3:], out=G[k, 3:])
+        mujoco.mj_crb(m, d)
+        mujoco.mj_factorM(m, d)
+        G2 = G.reshape(-1, m.nv)
+        mujoco.mj_solveM(m, d, self._MG, G2)
+        H = np.matmul(G, self._MG.reshape(G.shape).transpose(0, 2, 1))
+        return H, G @ v
 
     def __call__(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
         v = np.asarray(v, dtype=float)
         q = np.asarray(q, dtype=float)
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
             return self._stop(v)
-        rows, vm = self.limits(q)
-        vn = rows @ v  # each taxel's velocity along its outward normal (m/s)
-        if not (np.all(np.isfinite(vn)) and np.all(np.isfinite(vm))):
+        H, gv = self._body_terms(q, v)
+        scale, k = _cap_pass(self.wrench, self.slot, H, gv, self._c, self._inv_mh, self.vmax, self.vn)
+        if not np.isfinite(scale):
             return self._stop(v)
-        out = vn > np.maximum(vm, 0.0) + 1e-12
-        if not out.any():
-            self.last_scale, self.last_taxel = 1.0, -1
-            return v
-        ratio = np.where(out, np.maximum(vm, 0.0) / np.where(out, vn, 1.0), 1.0)
-        k = int(np.argmin(ratio))
-        self.last_scale, self.last_taxel = float(ratio[k]), k
-        return v * ratio[k]
+        self.last_scale, self.last_taxel = float(scale), int(k)
+        return v * scale if k >= 0 else v
 
     def _stop(self, v: np.ndarray) -> np.ndarray:
         self.flags += 1
         self.last_scale, self.last_taxel = 0.0, -1
         return np.zeros(np.shape(v))
+
+
+@numba.njit(cache=True, nogil=True)
+def _cap_pass(wrench, slot, H, gv, c, inv_mh, vmax, vn):
+    """Per taxel: 1/m_R = w^T H w, normal speed w . gv, v_max (min over regions); returns the
+    largest scale in [0, 1] keeping every taxel within its v_max and the taxel that binds (-1:
+    none); a NaN scale when a mass or speed is not finite."""
+    scale, best = 1.0, -1
+    for i in range(wrench.shape[0]):
+        b = slot[i]
+        inv, s = 0.0, 0.0
+        for r in range(6):
+            hw = 0.0
+            for col in range(6):
+                hw += H[b, r, col] * wrench[i, col]
+            inv += wrench[i, r] * hw
+            s += wrench[i, r] * gv[b, r]
+        if not (np.isfinite(inv) and np.isfinite(s)):
+            return np.nan, -1
+        inv = max(inv, 0.0)
+        vm = np.inf
+        for k in range(c.shape[0]):
+            vm = min(vm, c[k] * np.sqrt(inv_mh[k] + inv))
+        vmax[i], vn[i] = vm, s
+        if s > vm + 1e-12 and vm < scale * s:
+            scale, best = vm / s, i
+    return scale, best
