@@ -2,7 +2,7 @@
 
 The UR5 delivers a part with a fast pan sweep (`--duration`, default 1 s) while a person
 (`core.sim.human`: lower arm and hand, the table's masses and spring constants, held by a
-compliant attachment) reaches into the wrist's path, stays `--stay` seconds and withdraws; the
+compliant attachment) reaches radially into the wrist's path, stays `--stay` seconds and withdraws; the
 planner then completes the delivery. The same scene runs with each stack:
 
 - `none`: the joint velocity limits only (what the scene does without safety);
@@ -18,7 +18,8 @@ region (gaps under 0.1 s merged). Its transient phase is its first 0.5 s (ISO/TS
 contact up to 0.5 s, quasi-static beyond), checked against the transient limit (`peak_N` vs
 `limit_N`); the force after that (clamping or a sustained push) is `quasi_static_N` against the
 quasi-static limit. Task time: until the arm is within 0.02 rad of the delivery goal; the cost of
-safety is that minus the task time of the same stack with no person in the scene.
+safety (`safety_cost_s`) is that minus the task time without a person and without safety;
+`no_person_task_time_s` is the stack's own task time without a person (what the cap costs always).
 """
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ from tqdm.auto import tqdm
 TRANSIENT_S = 0.5  # ISO/TS 15066: transient contact lasts up to 0.5 s; after that it is quasi-static
 GAP_S = 0.1  # force-free gaps shorter than this do not end a contact event
 GOAL_TOL = 0.02  # rad: the delivery is complete when every joint is this close to the goal
+REACH_S = 0.4  # s: the person reaches in (or withdraws) 0.5 m, smoothly
 STACKS = ("none", "retraction", "full", "full+pfl")
 
 
@@ -47,8 +49,10 @@ def _delivery(t: float, duration: float):
 
 
 def _person(kin, design, T: float):
-    """The person's parts (lower arm and hand) where the wrist passes at 60% of the delivery, the
-    reach direction, and the effective robot mass there (for the contact springs)."""
+    """The person's parts where the wrist passes at 60% of the delivery: the lower arm along the
+    robot's radius, the hand ahead of it toward the robot's base (the person reaches in radially,
+    across the sweep); the reach direction (outward, for withdrawing) and the effective robot mass
+    there (for the contact springs)."""
     from skinsafe.core.safety.pfl import effective_mass
     from skinsafe.core.sim.human import Human, Part
 
@@ -58,16 +62,15 @@ def _person(kin, design, T: float):
     spot = pos[wrist].mean(0)
     pan = q[0]
     side = np.array([np.sin(pan), -np.cos(pan), 0.0])  # where the sweep goes (d/dpan of -r(cos, sin))
-    axis = np.array([np.cos(pan), np.sin(pan), 0.0])  # the person's forearm lies along the robot's radius
+    out = np.array([-np.cos(pan), -np.sin(pan), 0.0])  # radially outward at the wrist (the arm points along -x)
     m_r = float(np.median(np.minimum(effective_mass(kin, q)[wrist], 100.0)))
-    # capsule axis (local z) along `axis`: rotate z onto it
-    ang = np.arctan2(axis[1], axis[0])
+    ang = np.arctan2(out[1], out[0])  # capsule axis (local z) along `out`: z -> x, then about z
     quat = (np.cos(np.pi / 4) * np.cos(ang / 2), -np.sin(np.pi / 4) * np.sin(ang / 2),
             np.sin(np.pi / 4) * np.cos(ang / 2), np.cos(np.pi / 4) * np.sin(ang / 2))
-    at = spot + side * 0.03
+    at = spot + side * 0.03 + out * 0.27  # the hand by the tool, the lower arm beyond the robot's reach
     parts = [Part("lower_arm", "capsule", (0.035, 0.12), pos=tuple(at), quat=quat),
-             Part("hand", "sphere", (0.045,), pos=tuple(at + axis * 0.17))]
-    return Human(parts, robot_mass=m_r), side, m_r
+             Part("hand", "sphere", (0.045,), pos=tuple(at - out * 0.17))]
+    return Human(parts, robot_mass=m_r), out, m_r
 
 
 def run_scene(args) -> dict:
@@ -83,12 +86,12 @@ def run_scene(args) -> dict:
     robot = build_ur5()
     design = make_sample_design("ur5", pitch=args.pitch, robot=robot)
     kin = TaxelKinematics(robot.model, design)
-    human, side, m_r = _person(kin, design, T)
+    human, out_dir, m_r = _person(kin, design, T)
     sc = Scene([], args.pitch, human=human)
     home = [np.array(p.pos, float) for p in human.parts]
-    away = [p + side * 0.6 for p in home]
-    t_in, t_out = 0.1 * T, 0.1 * T + 0.3 + args.stay
-    t_end = t_out + 0.5 + args.finish
+    away = [p + out_dir * 0.5 for p in home]
+    t_in, t_out = 0.1 * T, 0.1 * T + REACH_S + args.stay
+    t_end = t_out + REACH_S + args.finish
     goal = _delivery(T, T)[0]
     source = TrajectorySource(lambda t: _delivery(t, T))
     pot = _learn_person(sc, home, away, T, args)
@@ -106,29 +109,32 @@ def run_scene(args) -> dict:
         for i in range(len(human.parts)):
             human.move(i, away[i])
             sc.data.qpos[human.slide[i]:human.slide[i] + 3] = away[i] - home[i]
-        v, forces, done = np.zeros(6), [], None
+        v, forces, pan, done = np.zeros(6), [], [], None
         steps = int(t_end / sc.control_dt)
         for k in tqdm(range(steps), desc=stack, disable=args.no_progress, leave=False):
             t = k * sc.control_dt
-            if person:  # reach in (0.3 s, smooth), stay, withdraw (0.5 s)
-                u = np.clip((t - t_in) / 0.3, 0, 1) * (1 - np.clip((t - t_out) / 0.5, 0, 1))
+            if person:  # reach in (smooth), stay, withdraw
+                u = np.clip((t - t_in) / REACH_S, 0, 1) * (1 - np.clip((t - t_out) / REACH_S, 0, 1))
                 u = 3 * u ** 2 - 2 * u ** 3
                 for i in range(len(human.parts)):
                     human.move(i, away[i] + (home[i] - away[i]) * u)
             force = sc.step(v)
             forces.append(sc.human_peak.copy())
+            pan.append(float(sc.q[0]))
             v = st.run(source, t, sc.q, {"force": force}, sc.control_dt)
             if done is None and t >= T and np.max(np.abs(sc.q - goal)) < GOAL_TOL:
                 done = t
                 if not person:
                     break
-        return np.array(forces), done
+        return np.array(forces), np.array(pan), done
 
     out = {"duration_s": T, "robot_mass_at_contact_kg": m_r, "pfl_regions": list(regions),
-           "pfl_factor": args.pfl_factor, "contacts": [], "runs": {}, "force_N": {}}
+           "pfl_factor": args.pfl_factor, "contacts": [], "runs": {}, "force_N": {}, "pan_rad": {}}
+    _, _, bare = episode("none", person=False)  # the task itself: no person, no safety
+    out["task_time_no_person_no_safety_s"] = bare
     for stack in STACKS:
-        _, nominal = episode(stack, person=False)
-        forces, done = episode(stack, person=True)
+        nominal = episode(stack, person=False)[2] if stack != "none" else bare
+        forces, pan, done = episode(stack, person=True)
         events = contact_events(forces, [p.region for p in human.parts], sc.control_dt)
         for e in events:
             out["contacts"].append({"stack": stack, **e})
@@ -136,9 +142,10 @@ def run_scene(args) -> dict:
             "events": len(events), "within": all(e["within"] for e in events),
             "peak_N": max((e["peak_N"] for e in events), default=0.0),
             "quasi_static_N": max((e["quasi_static_N"] for e in events), default=0.0),
-            "task_time_s": done, "nominal_task_time_s": nominal,
-            "safety_cost_s": None if done is None or nominal is None else done - nominal}
+            "task_time_s": done, "no_person_task_time_s": nominal,
+            "safety_cost_s": None if done is None or bare is None else done - bare}
         out["force_N"][stack] = forces.sum(1).round(2).tolist()
+        out["pan_rad"][stack] = pan.round(4).tolist()
     out["person_in_s"], out["person_out_s"] = t_in, t_out
     return out
 
@@ -211,20 +218,27 @@ def _learn_person(sc, home, away, T: float, args):
 
 
 def plot(res: dict):
-    """Total force on the person over time per stack, and each event's peak / quasi-static force
-    as a fraction of its limit."""
+    """Force on the person and the delivery (pan joint) over time per stack, and each event's
+    transient and quasi-static force as a fraction of its limit."""
     import matplotlib.pyplot as plt
 
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 3.8))
+    fig, (a, p, b) = plt.subplots(1, 3, figsize=(14, 3.8))
     for stack, f in res["force_N"].items():
-        a.plot(np.arange(len(f)) * 0.01, f, label=stack, lw=1)
-    for t in (res["person_in_s"], res["person_out_s"]):
-        a.axvline(t, color="k", lw=0.6, ls=":")
-    a.set_xlabel("time (s)")
+        t = np.arange(len(f)) * 0.01
+        a.plot(t, f, label=stack, lw=1)
+        pan = res["pan_rad"][stack]
+        p.plot(np.arange(len(pan)) * 0.01, pan, label=f"{stack}: {res['runs'][stack]['task_time_s']:.2f} s", lw=1)
+    for ax in (a, p):
+        ax.axvspan(res["person_in_s"], res["person_out_s"], color="0.9", zorder=0)
+        ax.set_xlabel("time (s)")
+    hit = [e["start_s"] for e in res["contacts"]]
+    a.set_xlim(min(hit, default=0) - 0.1, max(hit, default=1) + 0.6)
     a.set_ylabel("contact force on the person (N)")
-    a.set_yscale("symlog", linthresh=10)
-    a.set_title("Fig. 15: delivery next to a person (dotted: in, out)")
+    a.set_title("Fig. 15: the robot meets a person (grey: present)")
     a.legend(fontsize=7)
+    p.set_ylabel("pan joint (rad)")
+    p.set_title("the delivery; task time")
+    p.legend(fontsize=7)
     xs, labels = [], []
     for i, e in enumerate(res["contacts"]):
         xs.append(i)
@@ -233,7 +247,7 @@ def plot(res: dict):
         b.bar(i + 0.2, e["quasi_static_N"] / e["quasi_static_limit_N"], 0.4,
               color="tab:orange" if e["quasi_static_N"] > e["quasi_static_limit_N"] else "tab:olive")
     b.axhline(1, color="k", lw=0.8)
-    b.set_xticks(xs, labels, fontsize=5, rotation=90)
+    b.set_xticks(xs, labels, fontsize=6, rotation=90)
     b.set_ylabel("force / ISO/TS 15066 limit")
     b.set_title("events: transient (left bar), quasi-static (right)")
     fig.tight_layout()
