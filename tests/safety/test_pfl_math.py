@@ -129,3 +129,13 @@ def test_stack_applies_cap_after_modulation(setup):
     stack = SafetyStack(robot.vel_limits, pfl=cap)
     v = stack.tick(0.0, robot.home, None, robot.vel_limits * 0.9, 0.002)
     assert 0 < cap.last_scale < 1 and np.allclose(v, cap.last_scale * robot.vel_limits * 0.9)
+
+
+def test_bench_reference_agrees_with_the_cap(setup):
+    from skinsafe.core.bench.pfl import loop_cap
+
+    robot, design, kin = setup
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        q, v = robot.home + rng.uniform(-1, 1, robot.model.nq), rng.normal(size=robot.model.nv) * 3
+        assert np.allclose(pfl.PFLCap(kin, ("hand", "chest"))(q, v), loop_cap(kin, ("hand", "chest"), q, v), atol=1e-12)
