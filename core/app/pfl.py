@@ -3,8 +3,9 @@
 At a pose: every taxel's effective robot mass along its outward normal and the highest safe
 approach speed per body region (summary per link and region; `--json FILE` writes every taxel).
 Along a trajectory (`--trajectory FILE`: CSV or .npy, rows `t, q_1..q_n`): each taxel's speed along
-its normal (finite differences of q) against its v_max; the report names the taxels and links
-where the planned trajectory exceeds it, the worst time and by how much.
+its normal (finite differences of q) against its v_max at every sample; the report names the
+taxels and links where the planned trajectory exceeds it, the worst time and by how much (the JSON
+adds every taxel's fastest approach and lowest v_max along the way).
 """
 from __future__ import annotations
 
@@ -72,8 +73,8 @@ def analyse(robot, design, regions, q=None, trajectory=None) -> dict:
     kin = TaxelKinematics(robot.model, design)
     rows_of = NormalRows(kin)
     q = robot.home.copy() if q is None else np.asarray(q, float)
-    if q.shape != (robot.model.nq,):
-        raise DesignError(f"pfl: --q has {q.size} values; the robot has {robot.model.nq} joints")
+    if q.shape != (robot.model.nq,) or not np.all(np.isfinite(q)):
+        raise DesignError(f"pfl: --q has {q.size} values ({q.tolist()}); give {robot.model.nq} finite joint values (rad)")
     inv = inverse_effective_mass(kin, rows_of(q))
     with np.errstate(divide="ignore"):
         mass = np.where(inv > 0, 1 / np.maximum(inv, 1e-300), np.inf)
@@ -87,15 +88,21 @@ def analyse(robot, design, regions, q=None, trajectory=None) -> dict:
         qd = np.gradient(qs, times, axis=0)
         worst = {r: np.zeros(design.n_taxels) for r in regions}
         when = {r: np.zeros(design.n_taxels) for r in regions}
+        lowest = {r: np.full(design.n_taxels, np.inf) for r in regions}
+        fastest = np.zeros(design.n_taxels)
         for t, qk, vk in zip(times, qs, qd):
             rows = rows_of(qk)
             inv_k = inverse_effective_mass(kin, rows)
             vn = rows @ vk
+            np.maximum(fastest, vn, out=fastest)
             for r in regions:
                 vm = v_max(r, inv_k)
+                np.minimum(lowest[r], vm, out=lowest[r])
                 ratio = np.where(vn > 0, vn / np.maximum(vm, 1e-12), 0.0)
                 more = ratio > worst[r]
                 worst[r][more], when[r][more] = ratio[more], t
+        rep["trajectory_max_normal_speed_m_s"] = fastest.round(4).tolist()
+        rep["trajectory_min_v_max_m_s"] = {r: lowest[r].round(4).tolist() for r in regions}
         rep["exceeds"] = []
         for r in regions:
             for i in np.flatnonzero(worst[r] > 1.0):

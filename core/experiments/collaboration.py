@@ -3,7 +3,8 @@
 The UR5 delivers a part with a fast pan sweep (`--duration`, default 1 s) while a person
 (`core.sim.human`: lower arm and hand, the table's masses and spring constants, held by a
 compliant attachment) reaches radially into the wrist's path, stays `--stay` seconds and withdraws; the
-planner then completes the delivery. The same scene runs with each stack:
+planner (or a teleoperation stream, `--source teleoperation`: the delivery recorded at 125 Hz,
+replayed 50 ms late) then completes the delivery. The same scene runs with each stack:
 
 - `none`: the joint velocity limits only (what the scene does without safety);
 - `retraction`: the tactile defensiveness layer;
@@ -80,7 +81,7 @@ def run_scene(args) -> dict:
     from skinsafe.core.robot.models import build_ur5
     from skinsafe.core.safety.modulation import ModulationLayer
     from skinsafe.core.safety.pfl import PFLCap
-    from skinsafe.core.safety.stack import SafetyStack, TrajectorySource
+    from skinsafe.core.safety.stack import SafetyStack, TeleopStream, TrajectorySource
 
     T = args.duration
     robot = build_ur5()
@@ -93,7 +94,12 @@ def run_scene(args) -> dict:
     t_in, t_out = 0.1 * T, 0.1 * T + REACH_S + args.stay
     t_end = t_out + REACH_S + args.finish
     goal = _delivery(T, T)[0]
-    source = TrajectorySource(lambda t: _delivery(t, T))
+    if args.source == "teleoperation":  # the same delivery recorded at 125 Hz, replayed 50 ms late
+        times = np.arange(0, t_end + 0.5, 1 / 125)
+        noise = np.random.default_rng(args.seed).normal(0, 0.002, (len(times), 6))
+        source = TeleopStream(times, np.array([_delivery(t, T)[0] for t in times]) + noise, latency=0.05)
+    else:
+        source = TrajectorySource(lambda t: _delivery(t, T))
     pot = _learn_person(sc, home, away, T, args)
     regions = tuple(args.pfl_regions or [p.region for p in human.parts])
 
@@ -128,7 +134,7 @@ def run_scene(args) -> dict:
                     break
         return np.array(forces), np.array(pan), done
 
-    out = {"duration_s": T, "robot_mass_at_contact_kg": m_r, "pfl_regions": list(regions),
+    out = {"duration_s": T, "source": args.source, "robot_mass_at_contact_kg": m_r, "pfl_regions": list(regions),
            "pfl_factor": args.pfl_factor, "contacts": [], "runs": {}, "force_N": {}, "pan_rad": {}}
     _, _, bare = episode("none", person=False)  # the task itself: no person, no safety
     out["task_time_no_person_no_safety_s"] = bare

@@ -216,6 +216,8 @@ def add_arguments(p) -> None:
     p.add_argument("--steps", type=int, default=1500, help="desk: TDM training steps (batch 64)")
     p.add_argument("--tangent-gain", type=float, default=0.0,
                    help="desk: modulation's tangential gain (1 = the paper's 1+f; 0 never speeds up)")
+    p.add_argument("--source", choices=["planner", "teleoperation"], default="planner",
+                   help="collaboration: the command source the stack filters")
     p.add_argument("--stay", type=float, default=1.5, help="collaboration: seconds the person stays in the path")
     p.add_argument("--finish", type=float, default=3.0,
                    help="collaboration: seconds after the person has left for the robot to complete the delivery")

@@ -27,6 +27,8 @@ def test_pose_and_trajectory_report(tmp_path, capsys):
     m = pfl.effective_mass(kin, robot.home)
     assert np.allclose(rep["effective_mass_kg"], np.where(np.isfinite(m), m, -1), rtol=1e-3)
     assert np.allclose(rep["v_max_m_s"]["chest"], pfl.v_max("chest", 1 / m), rtol=1e-3)
+    assert len(rep["trajectory_min_v_max_m_s"]["hand"]) == design.n_taxels
+    assert np.all(np.array(rep["trajectory_min_v_max_m_s"]["chest"]) <= np.array(rep["trajectory_min_v_max_m_s"]["hand"]))
     ex = rep["exceeds"]
     assert ex and {e["region"] for e in ex} == {"hand", "chest"}
     # the worst one, checked by hand: its normal speed at that time over its v_max
@@ -53,3 +55,5 @@ def test_bad_input_is_a_clear_error(tmp_path, capsys):
     assert "body region 'elbow' is unknown" in capsys.readouterr().err
     assert main(["pfl", "--sample", "ur5", "--q", "0", "1"]) == 2
     assert "has 2 values" in capsys.readouterr().err
+    assert main(["pfl", "--sample", "ur5", "--q", "0", "1", "nan", "0", "0", "0"]) == 2
+    assert "finite joint values" in capsys.readouterr().err
