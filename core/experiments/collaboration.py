@@ -49,7 +49,7 @@ def _delivery(t: float, duration: float):
     return q, v
 
 
-def _person(kin, design, T: float):
+def _person(kin, design, T: float, attach: float = 1500.0):
     """The person's parts where the wrist passes at 60% of the delivery: the lower arm along the
     robot's radius, the hand ahead of it toward the robot's base (the person reaches in radially,
     across the sweep); the reach direction (outward, for withdrawing) and the effective robot mass
@@ -71,7 +71,7 @@ def _person(kin, design, T: float):
     at = spot + side * 0.03 + out * 0.27  # the hand by the tool, the lower arm beyond the robot's reach
     parts = [Part("lower_arm", "capsule", (0.035, 0.12), pos=tuple(at), quat=quat),
              Part("hand", "sphere", (0.045,), pos=tuple(at - out * 0.17))]
-    return Human(parts, robot_mass=m_r), out, m_r
+    return Human(parts, robot_mass=m_r, attach_N_per_m=attach), out, m_r
 
 
 def run_scene(args) -> dict:
@@ -87,7 +87,7 @@ def run_scene(args) -> dict:
     robot = build_ur5()
     design = make_sample_design("ur5", pitch=args.pitch, robot=robot)
     kin = TaxelKinematics(robot.model, design)
-    human, out_dir, m_r = _person(kin, design, T)
+    human, out_dir, m_r = _person(kin, design, T, args.attach)
     sc = Scene([], args.pitch, human=human)
     home = [np.array(p.pos, float) for p in human.parts]
     away = [p + out_dir * 0.5 for p in home]

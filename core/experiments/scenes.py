@@ -218,6 +218,8 @@ def add_arguments(p) -> None:
                    help="desk: modulation's tangential gain (1 = the paper's 1+f; 0 never speeds up)")
     p.add_argument("--source", choices=["planner", "teleoperation"], default="planner",
                    help="collaboration: the command source the stack filters")
+    p.add_argument("--attach", type=float, default=1500.0,
+                   help="collaboration: how firmly the person holds the arm in place (N/m)")
     p.add_argument("--stay", type=float, default=1.5, help="collaboration: seconds the person stays in the path")
     p.add_argument("--finish", type=float, default=3.0,
                    help="collaboration: seconds after the person has left for the robot to complete the delivery")

@@ -9,6 +9,7 @@ from skinsafe.core.experiments.collaboration import STACKS, contact_events
 def test_collaboration_within_limits_with_pfl(tmp_path):
     args = argparse.Namespace(command_name="collaboration", out=str(tmp_path), pitch=0.02, duration=None, gap=0.1,
                               samples=400, steps=200, tangent_gain=0.0, seed=0, no_progress=True, stay=1.0, source="planner",
+                              attach=1500.0,
                               finish=2.5, presence=0.5, pfl_regions=None, pfl_factor=0.8)
     assert es.run(args) == 0
     res = json.loads((tmp_path / "collaboration.json").read_text())
