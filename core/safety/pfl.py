@@ -28,13 +28,8 @@ import numpy as np
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.sim.body_regions import REGIONS, Region, region
 
-__all__ = ["REGIONS", "Region", "region", "reduced_mass", "v_max", "NormalRows", "inverse_effective_mass",
+__all__ = ["REGIONS", "Region", "region", "v_max", "NormalRows", "inverse_effective_mass",
            "effective_mass", "taxel_speed_limits", "PFLCap"]
-
-
-def reduced_mass(m_h, m_r) -> np.ndarray:
-    """`mu = (1/m_H + 1/m_R)^-1` (kg); m_R may be inf (a taxel that cannot move along its normal)."""
-    return 1.0 / (1.0 / np.asarray(m_h, float) + 1.0 / np.asarray(m_r, float))
 
 
 def v_max(reg: Region | str, inv_m_r) -> np.ndarray:
@@ -116,7 +111,7 @@ class PFLCap:
     gives `M^-1 G_b^T`, so each taxel's `1/m_R = w^T (G_b M^-1 G_b^T) w` and normal speed
     `w . (G_b qdot)` with its constant wrench w: a 6x6 quadratic form per taxel in one compiled
     pass, no (N, nv) arrays. After a call: `last_scale` (1 = untouched), `last_taxel` (the taxel
-    that bound, -1 none), `vmax` (N,), `flags` (count of non-finite inputs answered with a stop).
+    that bound, -1 none), `vmax` and `vn` (N,: each taxel's cap and normal speed), `flags` (count of non-finite inputs answered with a stop).
     """
 
     def __init__(self, kin: TaxelKinematics, regions=("hand",), factor: float = 1.0):
