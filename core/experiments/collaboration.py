@@ -74,6 +74,24 @@ def _person(kin, design, T: float, attach: float = 1500.0):
     return Human(parts, robot_mass=m_r, attach_N_per_m=attach), out, m_r
 
 
+def check_args(args) -> None:
+    """Refuse out-of-range options with a message naming the option and the fix."""
+    from skinsafe.core.sim.body_regions import REGIONS
+
+    checks = (("--pfl-factor", args.pfl_factor, 0 < args.pfl_factor <= 1, "a fraction of v_max in (0, 1]"),
+              ("--presence", args.presence, 0 <= args.presence <= 1, "a fraction in [0, 1]"),
+              ("--stay", args.stay, args.stay >= 0, "seconds >= 0"),
+              ("--finish", args.finish, args.finish > 0, "seconds > 0"),
+              ("--attach", args.attach, args.attach > 0, "a stiffness > 0 (N/m)"),
+              ("--samples", args.samples, args.samples >= 10, "at least 10 static samples"))
+    for name, value, ok, want in checks:
+        if not (np.isfinite(value) and ok):
+            raise SystemExit(f"{name} is {value}; give {want}")
+    for r in args.pfl_regions or ():
+        if r not in REGIONS:
+            raise SystemExit(f"--pfl-regions: '{r}' is unknown; use one of {', '.join(REGIONS)}")
+
+
 def run_scene(args) -> dict:
     from skinsafe.core.design.sample import make_sample_design
     from skinsafe.core.experiments.scenes import STATE, Scene

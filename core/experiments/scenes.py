@@ -243,6 +243,9 @@ def run(args) -> int:
         args.duration = 1.5 if name == "desk" else 1.0
     if args.duration <= 0:
         raise SystemExit(f"--duration is {args.duration}; give a positive number of seconds")
+    if name == "collaboration":
+        from skinsafe.core.experiments.collaboration import check_args
+        check_args(args)
     out_dir = Path(args.out or f"results/{name}")
     t0 = time.perf_counter()
     if name == "desk":

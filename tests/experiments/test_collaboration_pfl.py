@@ -38,3 +38,15 @@ def test_contact_events_split_transient_and_quasi_static():
     assert [(e["region"], e["start_s"]) for e in ev] == [("lower_arm", 0.1), ("hand", 1.0)]
     assert ev[0]["peak_N"] == 400 and ev[0]["quasi_static_N"] == 0 and not ev[0]["within"]  # 400 > 320
     assert ev[1]["duration_s"] == 1.0 and ev[1]["quasi_static_N"] == 100 and ev[1]["within"]
+
+
+def test_bad_options_are_refused(tmp_path):
+    import pytest
+
+    from skinsafe.core.app.cli import main
+
+    for opt, msg in ((["--pfl-factor", "1.5"], "--pfl-factor is 1.5"), (["--pfl-regions", "elbow"], "'elbow' is unknown"),
+                     (["--attach", "-1"], "--attach is -1.0")):
+        with pytest.raises(SystemExit, match=msg):
+            main(["experiment", "collaboration", "--out", str(tmp_path), *opt])
+    assert not list(tmp_path.iterdir())  # nothing written
