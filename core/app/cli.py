@@ -23,6 +23,7 @@ COMMANDS = {
     "deploy": ("skinsafe.hardware.cli_deploy", "push a taxel map to the interface boards over serial and verify it"),
     "stream": ("skinsafe.hardware.cli_stream", "stream readings from the boards, mapped to taxels"),
     "emulate": ("skinsafe.hardware.cli_emulate", "run a board emulator on a pseudo-terminal"),
+    "pfl": ("skinsafe.core.app.pfl", "ISO/TS 15066: effective mass and safe approach speed per taxel, at a pose or along a trajectory"),
     "trade": ("skinsafe.core.app.trade", "sweep speed-vs-accuracy knobs (Ray) and plot the Pareto front"),
 }
 EXPERIMENTS = {
@@ -37,6 +38,7 @@ BENCHES = {
     "sensing": ("skinsafe.core.bench.sensing", "vectorised skin readout vs per-taxel touch sensors"),
     "retraction": ("skinsafe.core.bench.retraction", "one defensiveness tick vs a loop"),
     "modulation": ("skinsafe.core.bench.modulation", "modulation tick and full three-layer tick"),
+    "pfl": ("skinsafe.core.bench.pfl", "the ISO/TS 15066 speed cap tick vs a per-taxel loop"),
     "serial": ("skinsafe.hardware.bench_serial", "deploy and stream decoding over a pseudo-terminal"),
 }
 

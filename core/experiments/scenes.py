@@ -9,11 +9,9 @@ through `SafetyStack`.
   from the skin readout), used as f_phi and as the distilled 2-step w_phi. Reported: the
   clearance between arm and desk (min signed distance, negative = penetration) and the desk
   contact force, without modulation, with f_phi and with w_phi.
-- collaboration: the arm delivers parts along a sweep while a kinematic human forearm (mocap)
-  reaches into its path. The command comes from a planner or from a teleoperation stream (the
-  same delivery recorded at 125 Hz, replayed 50 ms late); the stack filters either. Reported:
-  peak contact force and time to clear contact (first over-threshold tick to no force), with
-  and without the defensiveness layer.
+- collaboration (`collaboration.py`): the arm delivers a part with a fast sweep while a person
+  (ISO/TS 15066 body regions, compliant) reaches into its path; contact events per body region
+  against the ISO/TS 15066 limits with each stack (none, retraction, full, full+pfl).
 """
 from __future__ import annotations
 
@@ -36,7 +34,7 @@ from skinsafe.core.safety.potential import (
     distill_nstep,
     single_thread_blas,
 )
-from skinsafe.core.safety.stack import SafetyStack, TeleopStream, TrajectorySource
+from skinsafe.core.safety.stack import SafetyStack
 from skinsafe.core.safety.tdm import TactileDangerModel, train_tdm
 from skinsafe.core.skin.files import atomic_write
 
@@ -48,7 +46,7 @@ class Scene:
     """UR5 + sample skin + obstacles, stepped at `control_dt` with position servos tracking a
     velocity command."""
 
-    def __init__(self, obstacles, pitch: float = 0.01, control_dt: float = 0.01):
+    def __init__(self, obstacles, pitch: float = 0.01, control_dt: float = 0.01, human=None):
         from skinsafe.core.design.sample import make_sample_design
         from skinsafe.core.robot.kinematics import TaxelKinematics
         from skinsafe.core.robot.models import build_ur5
@@ -58,7 +56,15 @@ class Scene:
 
         self.robot = build_ur5()
         self.design = make_sample_design("ur5", pitch=pitch, robot=self.robot)
-        self.model = build_scene(self.design, self.robot, obstacles).compile()
+        obstacles = list(obstacles) + (human.obstacles() if human is not None else [])
+        spec = build_scene(self.design, self.robot, obstacles)
+        if human is not None:  # a person (core.sim.human): compliant body regions with ISO/TS 15066 stiffness
+            from skinsafe.core.sim.human import robot_collision_geoms
+            human.attach(spec, robot_collision_geoms(self.robot.model, self.robot.arm_bodies))
+        self.model = spec.compile()
+        self.human = human
+        if human is not None:
+            human.bind(self.model)
         self.data = mujoco.MjData(self.model)
         self.readout = SkinReadout(self.model, self.design)
         self.kin = TaxelKinematics(self.robot.model, self.design)
@@ -87,9 +93,12 @@ class Scene:
         self.q_cmd = np.clip(self.q_cmd + v * self.control_dt, q - lead, q + lead)
         self.data.ctrl[:] = self.q_cmd
         peak = np.zeros(self.design.n_taxels)
+        self.human_peak = np.zeros(len(self.human.parts) if self.human is not None else 0)
         for _ in range(self.substeps):
             mujoco.mj_step(self.model, self.data)
             peak = np.maximum(peak, self.readout.read(self.data))
+            if self.human is not None:  # contact force on each body region, every physics step
+                self.human_peak = np.maximum(self.human_peak, self.human.forces(self.data))
         return peak
 
     def clearance(self, geom: int) -> float:
@@ -196,89 +205,30 @@ def _learn_desk(sc: Scene, desk_geom: int, args):
     return f_pot, net.eval()
 
 
-# ------------------------------------------------------------------------------- collaboration
-
-def _delivery(t: float, duration: float):
-    """The delivery motion: pan from -0.8 to 0.8 rad (smooth), the rest at home."""
-    from skinsafe.core.robot.models import UR5_HOME
-
-    u = np.clip(t / duration, 0, 1)
-    s = 10 * u ** 3 - 15 * u ** 4 + 6 * u ** 5
-    ds = (30 * u ** 2 - 60 * u ** 3 + 30 * u ** 4) / duration if 0 < t < duration else 0.0
-    q = UR5_HOME.copy()
-    q[0] = -0.8 + 1.6 * s
-    v = np.zeros(6)
-    v[0] = 1.6 * ds
-    return q, v
-
-
-def collaboration(args) -> dict:
-    from skinsafe.core.design.sample import make_sample_design
-    from skinsafe.core.robot.kinematics import TaxelKinematics
-    from skinsafe.core.robot.models import build_ur5
-    from skinsafe.core.sim.scene import Obstacle
-
-    robot = build_ur5()
-    design = make_sample_design("ur5", pitch=args.pitch, robot=robot)
-    kin = TaxelKinematics(robot.model, design)
-    T = args.duration
-    # the human forearm reaches to where the robot's forearm passes at 60% of the delivery
-    pos, _ = kin.poses(_delivery(0.6 * T, T)[0])
-    fore = design.taxels.body == design.bodies.index("forearm_link")
-    spot = pos[fore].mean(0)
-    pan = _delivery(0.6 * T, T)[0][0]
-    side = np.array([np.sin(pan), -np.cos(pan), 0.0])  # the direction the forearm sweeps (d/dpan of -r(cos, sin))
-    human_at = spot + side * 0.02  # overlaps the sweep: the arm would run into it
-    away = human_at + side * 0.5  # the human reaches in from ahead of the sweep
-    quat = (np.cos(np.pi / 4), 0, np.sin(np.pi / 4), 0)  # capsule axis horizontal (along x)
-    obstacles = [Obstacle("human", "capsule", (0.045, 0.15), pos=tuple(away), quat=quat, mocap=True)]
-    sc = Scene(obstacles, args.pitch)
-    times = np.arange(0, T + 0.5, 1 / 125)
-    rng = np.random.default_rng(args.seed)
-    recorded = np.array([_delivery(t, T)[0] for t in times]) + rng.normal(0, 0.002, (len(times), 6))
-    sources = {"planner": TrajectorySource(lambda t: _delivery(t, T)),
-               "teleoperation": TeleopStream(times, recorded, latency=0.05)}
-    out = {"runs": {}}
-    for src_name, source in sources.items():
-        for safe in (False, True):
-            stack = SafetyStack(sc.robot.vel_limits, sc.defensiveness() if safe else None)
-            sc.reset(_delivery(0, T)[0])
-            total, v = [], np.zeros(6)
-            for k in range(int((T + 0.5) / sc.control_dt)):
-                t = k * sc.control_dt
-                # the human reaches in (0.3 s, smooth) at 10% of the delivery and stays
-                u = np.clip((t - 0.1 * T) / 0.3, 0, 1)
-                sc.data.mocap_pos[0] = away + (human_at - away) * (3 * u ** 2 - 2 * u ** 3)
-                force = sc.step(v)
-                total.append(float(force.sum()))
-                v = stack.run(source, t, sc.q, {"force": force}, sc.control_dt)
-            total = np.array(total)
-            over = np.flatnonzero(total > design.taxels.thresholds["force"].min())
-            first = int(over[0]) if len(over) else None
-            clear, first_peak = None, 0.0
-            if first is not None:
-                free = np.flatnonzero(total[first:] <= 0)
-                clear = float(free[0] * sc.control_dt) if len(free) else None
-                end = first + int(free[0]) if len(free) else len(total)
-                first_peak = float(total[first:end].max())
-            out["runs"][f"{src_name}, {'safety stack' if safe else 'no safety'}"] = {
-                "peak_force_N": float(total.max()), "first_contact_peak_N": first_peak, "time_to_clear_s": clear,
-                "contact_s": float(np.count_nonzero(total > 0) * sc.control_dt),
-                "force_N": total.round(2).tolist()}
-    return out
-
-
 # ------------------------------------------------------------------------------------- command
 
 def add_arguments(p) -> None:
     p.add_argument("--out", default=None, help="output folder (default results/<scene>)")
     p.add_argument("--pitch", type=float, default=0.01, help="sample skin pitch (m)")
-    p.add_argument("--duration", type=float, default=None, help="seconds (desk 1.5, collaboration 3.0)")
+    p.add_argument("--duration", type=float, default=None, help="seconds (desk 1.5; collaboration: the delivery, 1.0)")
     p.add_argument("--gap", type=float, default=0.1, help="desk: gap between the desk and the lowest taxel (m)")
     p.add_argument("--samples", type=int, default=3000, help="desk: static contact samples for the TDM")
     p.add_argument("--steps", type=int, default=1500, help="desk: TDM training steps (batch 64)")
     p.add_argument("--tangent-gain", type=float, default=0.0,
                    help="desk: modulation's tangential gain (1 = the paper's 1+f; 0 never speeds up)")
+    p.add_argument("--source", choices=["planner", "teleoperation"], default="planner",
+                   help="collaboration: the command source the stack filters")
+    p.add_argument("--attach", type=float, default=1500.0,
+                   help="collaboration: how firmly the person holds the arm in place (N/m)")
+    p.add_argument("--stay", type=float, default=1.5, help="collaboration: seconds the person stays in the path")
+    p.add_argument("--finish", type=float, default=3.0,
+                   help="collaboration: seconds after the person has left for the robot to complete the delivery")
+    p.add_argument("--presence", type=float, default=0.5,
+                   help="collaboration: fraction of deliveries with the person at the bench (scales the learned danger)")
+    p.add_argument("--pfl-regions", nargs="+", default=None,
+                   help="collaboration: body regions the PFL cap protects (default: the person's regions)")
+    p.add_argument("--pfl-factor", type=float, default=0.8,
+                   help="collaboration: PFL cap as a fraction of v_max (margin for the servos and the sampling)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
 
@@ -290,12 +240,19 @@ def run(args) -> int:
     if name not in ("desk", "collaboration"):
         raise SystemExit(f"experiment_scenes serves 'desk' and 'collaboration', not '{name}'")
     if args.duration is None:
-        args.duration = 1.5 if name == "desk" else 3.0
+        args.duration = 1.5 if name == "desk" else 1.0
     if args.duration <= 0:
         raise SystemExit(f"--duration is {args.duration}; give a positive number of seconds")
+    if name == "collaboration":
+        from skinsafe.core.experiments.collaboration import check_args
+        check_args(args)
     out_dir = Path(args.out or f"results/{name}")
     t0 = time.perf_counter()
-    res = desk(args) if name == "desk" else collaboration(args)
+    if name == "desk":
+        res = desk(args)
+    else:
+        from skinsafe.core.experiments.collaboration import run_scene
+        res = run_scene(args)
     res["seconds"] = time.perf_counter() - t0
     atomic_write(out_dir / f"{name}.json", json.dumps(res, indent=1))
     _plot(name, res, out_dir / f"{name}.png")
@@ -312,6 +269,15 @@ def _plot(name: str, res: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    if name == "collaboration":
+        from skinsafe.core.experiments.collaboration import plot
+
+        fig = plot(res)
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=110)
+        plt.close(fig)
+        atomic_write(path, buf.getvalue())
+        return
     fig, ax = plt.subplots(figsize=(6, 3.5))
     key = "clearance_mm" if name == "desk" else "force_N"
     for label, r in res["runs"].items():

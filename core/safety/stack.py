@@ -12,7 +12,8 @@ A command source is anything callable as `source(t, q) -> qdot_planned (nv,)`: a
 2. tactile defensiveness (III-C): a retraction, when active, outranks the plan;
 3. modulation (III-B): whatever comes out - plan or retraction - is modulated by the danger
    potential (`ModulationLayer`; a retraction leaving danger keeps its speed, one heading into
-   danger, e.g. toward a desk, is slowed), then scaled into the joint velocity limits.
+   danger, e.g. toward a desk, is slowed), then (optional `pfl`) capped so no taxel approaches
+   faster than ISO/TS 15066 allows (`pfl.PFLCap`), then scaled into the joint velocity limits.
 
 Each layer is optional. The potential and the TDM see the state `s = q[joints]` and the action
 `a = qdot[joints]` (`joints` default: all).
@@ -107,8 +108,9 @@ class SafetyStack:
     """Strategy filter -> defensiveness -> modulation -> limits, for one robot and its skin."""
 
     def __init__(self, vel_limits, defensiveness=None, modulation: ModulationLayer | None = None,
-                 strategy: StrategyFilter | None = None, joints=None):
+                 strategy: StrategyFilter | None = None, joints=None, pfl=None):
         self.vel_limits = np.asarray(vel_limits, dtype=float)
+        self.pfl = pfl  # optional ISO/TS 15066 speed cap `pfl(q, qdot) -> qdot` (pfl.PFLCap), after modulation
         self.defensiveness, self.modulation, self.strategy = defensiveness, modulation, strategy
         self.joints = np.arange(len(self.vel_limits)) if joints is None else np.asarray(joints)
         self.last_f = 0.0
@@ -127,6 +129,8 @@ class SafetyStack:
             v = self.defensiveness.tick(t, q, readings or {}, v, dt)
         if self.modulation is not None:
             v[j], self.last_f = self.modulation(s, v[j])
+        if self.pfl is not None:
+            v = self.pfl(q, v)
         peak = float(np.max(np.abs(v) / self.vel_limits))
         return v / peak if peak > 1 else v
 

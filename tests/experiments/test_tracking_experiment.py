@@ -114,7 +114,7 @@ def test_strategy_filter_stops_early_with_the_exhaustive_argmax():
     assert len(picks) >= 3  # the states reach past the first candidate
 
 
-@pytest.mark.parametrize("scene", ["desk", "collaboration"])
+@pytest.mark.parametrize("scene", ["desk"])  # collaboration: tests/experiments/test_collaboration_pfl.py
 def test_scenes_run_and_report(tmp_path, scene):
     from skinsafe.core.experiments import scenes as es
 
@@ -127,7 +127,3 @@ def test_scenes_run_and_report(tmp_path, scene):
         r = res["runs"]["no modulation"]
         assert r["min_clearance_mm"] < 5  # the retraction reaches the desk without modulation
         assert min(res["runs"][k]["min_clearance_mm"] for k in res["runs"]) >= -20
-    else:
-        off, on = res["runs"]["planner, no safety"], res["runs"]["planner, safety stack"]
-        assert off["peak_force_N"] > 100  # the arm runs into the human
-        assert on["time_to_clear_s"] is not None and on["contact_s"] < off["contact_s"]
