@@ -134,8 +134,9 @@ def stage_tracking(ctx) -> Section:
 
 MEANING = {
     "desk": "min_clearance_mm: closest the arm came to the desk (negative: it pressed into it); desk_force_N: peak force on the desk.",
-    "collaboration": "first_contact_peak_N: peak force of the first accidental contact; time_to_clear_s: until the arm "
-                     "left the human (None: never); contact_s: total time in contact.",
+    "collaboration": "events: contact events with the person; within: every event under its ISO/TS 15066 limits; "
+                     "peak_N / quasi_static_N: worst transient / quasi-static force; task_time_s: delivery done; "
+                     "safety_cost_s: vs the task without person or safety.",
 }
 
 
@@ -153,7 +154,7 @@ def stage_scenes(ctx) -> Section:
                         for run, r in runs.items()], MEANING[name]))
     return Section("Layers together: desk and collaboration scenes (paper Fig. 14, 15)",
                    "A touch on top of the arm triggers retraction toward a desk, modulation stops it before the desk; "
-                   "an accidental contact with a human arm during a delivery triggers retraction.",
+                   "a person reaches into a delivery: each stack's contact forces against the ISO/TS 15066 limits.",
                    images=images, tables=tables)
 
 
