@@ -147,6 +147,9 @@ def test_board_survives_malformed_requests(tmp_path):
     from skinsafe.hardware.client import BoardClient, BoardError
     rng = np.random.default_rng(7)
     with EmulatorProcess([(0x5C1A0000, 64)], tmp_path) as em, BoardClient(em.ports[0x5C1A0000], retries=0) as c:
+        with pytest.raises(BoardError, match="config-begin failed after 1 tries"):
+            c.request(P.CONFIG_BEGIN, bytes(36))  # broadcast: only identify may be, the board ignores it
+        c.identify()  # from now on the client addresses the board's uid
         for cmd in list(P.COMMANDS) + [0x33]:
             if cmd == P.RESET:
                 continue
