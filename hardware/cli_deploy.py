@@ -91,6 +91,8 @@ def run(args) -> int:
         except DesignError as e:
             print(f"skinsafe deploy: {e}", file=sys.stderr)
             return 2
+        print(f"skinsafe deploy: {len(ports)} of {len(design.boards)} boards found; "
+              f"{'checking' if args.dry_run else 'deploying'} (Ctrl-C stops cleanly)", file=sys.stderr, flush=True)
         bar = tqdm(total=len(ports), desc="deploy", unit="board", file=sys.stderr, disable=None)
         reports = [] if stop.requested else deploy(
             design, ports, args.dry_run, args.force, configs, on_done=lambda _: bar.update(1), verify=args.verify,

@@ -55,7 +55,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 OVERRIDES = {"drop": float, "flip": float, "delay": float, "delay_p": float, "reset_at_chunk": int, "resets": int,
-             "malformed": float, "firmware": str, "protocol": int, "max_chunk": int}
+             "malformed": float, "firmware": str, "protocol": int, "max_chunk": int, "max_rate_hz": int}
 
 
 def _firmware(text: str) -> tuple[int, int, int]:
@@ -82,7 +82,8 @@ def _spec(uid: int, n: int, opts: dict, where: str) -> BoardSpec:
         raise SystemExit(f"{where}: delay {opts['delay']} s is negative")
     faults = Faults(opts["drop"], opts["flip"], opts["delay"], opts["delay_p"], opts["reset_at_chunk"], opts["resets"],
                     opts["malformed"], opts["seed"])
-    return BoardSpec(uid, n, _firmware(opts["firmware"]), opts["protocol"], opts["max_chunk"], faults=faults)
+    return BoardSpec(uid, n, _firmware(opts["firmware"]), opts["protocol"], opts["max_chunk"],
+                     opts.get("max_rate_hz", 2000), faults=faults)
 
 
 def _specs(args):
