@@ -41,6 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--protocol", type=int, default=P.PROTOCOL_VERSION, help="protocol version to speak")
     p.add_argument("--max-chunk", type=int, default=1024,
                    help=f"largest config chunk the board accepts ({P.MIN_CHUNK}..{P.MAX_CHUNK})")
+    p.add_argument("--max-rate", dest="max_rate_hz", type=int, default=2000, help="fastest stream rate, Hz")
     p.add_argument("--drop", type=float, default=0.0, help="fault: probability a byte is lost")
     p.add_argument("--flip", type=float, default=0.0, help="fault: probability a byte gets a bit flipped")
     p.add_argument("--delay", type=float, default=0.0, help="fault: seconds before a response ...")
@@ -83,7 +84,7 @@ def _spec(uid: int, n: int, opts: dict, where: str) -> BoardSpec:
     faults = Faults(opts["drop"], opts["flip"], opts["delay"], opts["delay_p"], opts["reset_at_chunk"], opts["resets"],
                     opts["malformed"], opts["seed"])
     return BoardSpec(uid, n, _firmware(opts["firmware"]), opts["protocol"], opts["max_chunk"],
-                     opts.get("max_rate_hz", 2000), faults=faults)
+                     opts["max_rate_hz"], faults=faults)
 
 
 def _specs(args):
