@@ -51,7 +51,9 @@ def storm_round(k: int, n_boards: int, rng: np.random.Generator, tmp: Path, coun
     for cfg in board_configs(old):
         if rng.random() < 0.7:  # the others are fresh boards
             flash_path(flash, cfg.uid).write_bytes(cfg.to_bytes())
-    specs = [(b.uid, 32, str(rng.choice(FAULTS)) or "max_chunk=64") for b in new.boards]
+    faults = [str(rng.choice(FAULTS)) for _ in new.boards]
+    specs = [(b.uid, 32, f if "max_chunk" in f else ",".join(filter(None, [f, "max_chunk=64"])))  # 7 chunks each
+             for b, f in zip(new.boards, faults)]
     links = tmp / "links"
     dup = rng.random() < 0.2
     interrupt, kill = rng.random() < 0.25, rng.random() < 0.15
