@@ -15,7 +15,7 @@ from skinsafe.core.skin.model import DesignError, SkinDesign
 from skinsafe.core.skin.taxel_map import load
 from skinsafe.hardware.board_config import board_configs
 from skinsafe.hardware.deploy import BoardReport, candidate_ports, deploy, discover, missing_reports, plan
-from skinsafe.hardware.interrupt import Interrupt
+from skinsafe.hardware.interrupt import Interrupt, for_command
 
 EXIT_CODES = {0: "every board runs the map", 1: "a board failed, was refused or was not found",
               2: "bad input (map file, options)", 130: "interrupted by Ctrl-C (SIGINT)",
@@ -82,7 +82,7 @@ def find_ports(design: SkinDesign, args, cancel=None
 
 
 def run(args) -> int:
-    with Interrupt() as stop:
+    with for_command() as stop:
         try:
             check_link_options(args)
             design = load(args.map)

@@ -17,7 +17,7 @@ from skinsafe.core.skin.model import DesignError
 from skinsafe.core.skin.taxel_map import load
 from skinsafe.hardware.cli_deploy import add_port_arguments, check_link_options, find_ports
 from skinsafe.hardware.client import BoardError
-from skinsafe.hardware.interrupt import Interrupt
+from skinsafe.hardware.interrupt import for_command
 from skinsafe.hardware.protocol import stream_frame_bytes
 from skinsafe.hardware.stream import SkinStream, StreamUpdate, achievable_hz
 
@@ -55,7 +55,7 @@ class DangerPrinter:
 
 
 def run(args) -> int:
-    with Interrupt() as stop:
+    with for_command() as stop:
         try:
             check_link_options(args)
             if not 1 <= args.rate <= 65535:

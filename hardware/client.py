@@ -19,9 +19,9 @@ class BoardError(Exception):
     `kind` says which, for reports: refused, timeout, not-a-board, version, malformed, link, cancelled, incompatible.
     """
 
-    def __init__(self, message: str, status: int | None = None, kind: str = "refused"):
+    def __init__(self, message: str, status: int | None = None, kind: str = "refused", uid: int | None = None):
         super().__init__(message)
-        self.status, self.kind = status, kind
+        self.status, self.kind, self.uid = status, kind, uid  # uid: the board's, where its frames said it
 
 
 class BoardClient:
@@ -76,7 +76,8 @@ class BoardClient:
         for f in self.parser.feed(data) if data else ():
             if f.version != P.PROTOCOL_VERSION:
                 raise BoardError(f"{self.port}: board {f.uid:#x} speaks protocol version {f.version}, this host "
-                                 f"speaks {P.PROTOCOL_VERSION}; update the board firmware or skinsafe", kind="version")
+                                 f"speaks {P.PROTOCOL_VERSION}; update the board firmware or skinsafe", kind="version",
+                                 uid=f.uid)
             if f.type == P.STREAM_DATA:
                 self.stream.append(f)
             else:
@@ -85,7 +86,7 @@ class BoardClient:
 
     def _malformed(self, uid: int, name: str, detail: str) -> BoardError:
         return BoardError(f"{self.port}: board {uid:#x} sent a malformed {name} answer: {detail}; "
-                          "check the board firmware against hardware/PROTOCOL.md", kind="malformed")
+                          "check the board firmware against hardware/PROTOCOL.md", kind="malformed", uid=uid)
 
     def request(self, msg_type: int, payload: bytes = b"", size: int = 0) -> bytes:
         """Send a command and return the data of its OK answer (at least `size` bytes);
@@ -133,7 +134,7 @@ class BoardClient:
             raise self._malformed(f.uid, name, f"byte 0 (the status) is {p[0]:#04x}, not a protocol status")
         self.last_uid = f.uid
         if p[0] != P.OK:
-            raise BoardError(f"{self.port}: board {f.uid:#x} refused {name}: {P.error_text(p)}", p[0])
+            raise BoardError(f"{self.port}: board {f.uid:#x} refused {name}: {P.error_text(p)}", p[0], uid=f.uid)
         if len(p) - 1 < size:
             raise self._malformed(f.uid, name, f"{len(p)} bytes, byte {len(p)} onwards missing "
                                   f"(expected status + {size} bytes)")

@@ -143,6 +143,8 @@ def deploy_board(cfg: BoardConfig, board: Board, port: str, dry_run: bool = Fals
             answered, rep.active_hash = _probe(port, cfg.uid, client_kw, quick=rep.kind == "cancelled")
             rep.state = _state(rep, answered)
             rep.message += "; " + STATES[rep.state]
+            if rep.state == "rolled back" and rep.old_hash is None:
+                rep.message = rep.message.replace("keeps its old config", "still has no config, as before")
         else:
             rep.message += "; the commit was acknowledged, so the board runs the new config (not verified)"
         return rep
@@ -183,6 +185,7 @@ class Discovery:
     found: dict[int, tuple[str, P.Identity]] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)  # port -> why no board was found there
     duplicates: dict[int, list[str]] = field(default_factory=dict)  # uid -> ports (refused: deploy to neither)
+    skipped_uids: dict[int, str] = field(default_factory=dict)  # uid -> port, for skipped ports whose frames named it
     probed: int = 0
 
 
@@ -192,18 +195,20 @@ def discover(candidates: list[str], timeout: float = 0.2, retries: int = 1, baud
     def probe(port):
         try:
             with BoardClient(port, baud=baud, timeout=timeout, retries=retries, cancel=cancel) as c:
-                return port, c.identify(), ""
+                return port, c.identify(), None
         except BoardError as e:
-            return port, None, f"{e.kind}: {e}"
+            return port, None, e
 
     out = Discovery()
     ports = sorted(set(candidates))
     out.probed = len(ports)
     seen: dict[int, list[tuple[str, P.Identity]]] = {}
     with ThreadPoolExecutor(max(1, min(16, len(ports)))) as pool:
-        for port, info, why in pool.map(probe, ports):
+        for port, info, err in pool.map(probe, ports):
             if info is None:
-                out.skipped[port] = why
+                out.skipped[port] = f"{err.kind}: {str(err).removeprefix(port + ': ')}"
+                if err.uid is not None:
+                    out.skipped_uids[err.uid] = port
             else:
                 seen.setdefault(info.uid, []).append((port, info))
     for uid, hits in seen.items():
@@ -255,6 +260,9 @@ def _why_missing(b: Board, d: Discovery) -> str:
     if b.uid in d.duplicates:
         return (f"uid {b.uid:#x} answers on {len(d.duplicates[b.uid])} ports ({', '.join(d.duplicates[b.uid])}); "
                 "not deployed to either: give each board its own uid")
+    if b.uid in d.skipped_uids:
+        port = d.skipped_uids[b.uid]
+        return f"answered on {port} ({d.skipped[port]}), so it was skipped"
     if not d.probed:
         return "no serial port to probe; connect the board, or give --port or --glob"
     skipped = [f"{port} ({why})" for port, why in sorted(d.skipped.items()) if not why.startswith("duplicate")]

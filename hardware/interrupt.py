@@ -8,16 +8,23 @@ board and exits with `exit_code` (130 for SIGINT, 143 for SIGTERM).
 from __future__ import annotations
 
 import signal
+import sys
 import threading
+from pathlib import Path
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 class Interrupt:
-    """Catches SIGINT and SIGTERM while entered (main thread only); `requested` once one arrived."""
+    """Catches SIGINT and SIGTERM while entered (main thread only); `requested` once one arrived.
 
-    def __init__(self):
+    With `restore=False` the handlers stay until the process ends, so a signal arriving after the
+    report was printed (while the interpreter shuts down) cannot end in a traceback either.
+    """
+
+    def __init__(self, restore: bool = True):
         self.signum: int | None = None
+        self.restore = restore
         self._old: dict = {}
 
     @property
@@ -42,6 +49,12 @@ class Interrupt:
         return self
 
     def __exit__(self, *exc) -> None:
-        for s, h in self._old.items():
+        for s, h in self._old.items() if self.restore else ():
             signal.signal(s, h)
         self._old = {}
+
+
+def for_command() -> Interrupt:
+    """The Interrupt of an operator command: kept to the end when this process is the `skinsafe` command,
+    restored when the command runs inside another program (tests, the demo)."""
+    return Interrupt(restore=Path(sys.argv[0]).name != "skinsafe")
