@@ -80,7 +80,7 @@ def run(args) -> int:
             if b.id in ports and args.rate > top:
                 print(f"warning: board {b.id} '{b.name}': a frame of {b.capacity} channels is "
                       f"{stream_frame_bytes(b.capacity)} bytes; at {args.baud} baud the link carries at most "
-                      f"{top:.0f} frames/s, asked {args.rate}", file=sys.stderr)
+                      f"{int(top)} frames/s, asked {args.rate}", file=sys.stderr)
         printer = DangerPrinter(design)
         try:
             stream = SkinStream(design, ports, args.rate, verify=not args.no_verify, cancel=stop,

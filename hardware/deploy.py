@@ -134,7 +134,7 @@ def deploy_board(cfg: BoardConfig, board: Board, port: str, dry_run: bool = Fals
         return rep
     except (BoardError, DesignError) as e:
         rep.kind = getattr(e, "kind", "malformed")
-        rep.status = "cancelled" if rep.kind == "cancelled" else "failed"
+        rep.status = {"cancelled": "cancelled", "incompatible": "refused"}.get(rep.kind, "failed")
         rep.message = str(e)
         if not sent:
             rep.active_hash = rep.old_hash

@@ -110,7 +110,7 @@ def test_bad_options_refused_before_any_io(tmp_path, capsys, argv, message):
 
 
 def test_stream_rate_warned_and_failed_start_stops_the_started_boards(tmp_path, capsys):
-    d = flat_design(512, 2)  # 256 channels: a 550-byte frame, 182 frames/s at 1 Mbaud
+    d = flat_design(512, 2)  # 256 channels: a 550-byte frame, 181.8 frames/s at 1 Mbaud
     save(d, tmp_path / "skin.json")
     boards = [(d.boards[0].uid, 256, "max_rate_hz=4000"), (d.boards[1].uid, 256)]
     with EmulatorProcess(boards, tmp_path, "--link-dir", str(tmp_path / "links")) as em:
@@ -121,7 +121,7 @@ def test_stream_rate_warned_and_failed_start_stops_the_started_boards(tmp_path, 
         assert main(["stream", str(tmp_path / "skin.json"), "--port", ports[0], "--port", ports[1],
                      "--rate", "3000", "--seconds", "0.2"]) == 1
         err = capsys.readouterr().err
-        assert "at 1000000 baud the link carries at most 182 frames/s, asked 3000" in err
+        assert "at 1000000 baud the link carries at most 181 frames/s, asked 3000" in err
         assert "streams at most 2000 Hz, asked 3000" in err
         from skinsafe.hardware.client import BoardClient, BoardError
         from skinsafe.hardware.stream import SkinStream
