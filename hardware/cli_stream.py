@@ -90,6 +90,8 @@ def run(args) -> int:
             return stop.exit_code if stop.requested else 1
         try:
             stream.start()
+            print(f"skinsafe stream: {len(stream.boards)} boards streaming at {args.rate} Hz (Ctrl-C stops cleanly)",
+                  file=sys.stderr, flush=True)
             stream.run(lambda u: False if stop.requested else printer(u), args.seconds)
             failed = ""
         except BoardError as e:

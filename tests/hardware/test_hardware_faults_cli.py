@@ -1,6 +1,7 @@
 """Operator faults through the real CLI against emulators on ptys: Ctrl-C, devices that are not boards,
 duplicate uids, other protocol versions, malformed answers, bad options, emulator shutdown on signals."""
 import hashlib
+import re
 import signal
 import subprocess
 import sys
@@ -134,6 +135,28 @@ def test_stream_rate_warned_and_failed_start_stops_the_started_boards(tmp_path, 
         for p in ports:
             with BoardClient(p) as c:
                 assert not c.identify().flags & 1  # nobody left streaming
+
+
+def test_ctrl_c_stops_a_stream_with_every_frame_accounted(tmp_path):
+    d = flat_design(128, 2)
+    save(d, tmp_path / "skin.json")
+    with EmulatorProcess([(b.uid, b.capacity) for b in d.boards], tmp_path / "flash", "--link-dir",
+                         str(tmp_path / "links")) as em:
+        assert main(["deploy", str(tmp_path / "skin.json"), *sum((["--port", p] for p in em.ports.values()), [])]) == 0
+        proc = subprocess.Popen([SKINSAFE, "stream", str(tmp_path / "skin.json"), "--all", "--no-system-ports",
+                                 "--glob", str(tmp_path / "links" / "board-*"), "--rate", "500"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert "2 boards streaming at 500 Hz" in proc.stderr.readline()
+        time.sleep(0.3)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130 and "Traceback" not in err, err
+    lines = [x for x in out.splitlines() if x.startswith("board ")]
+    assert len(lines) == 2
+    for line in lines:  # a clean link: every frame the board says it sent was received, none before or after lost
+        got = re.search(r"stopped; received (\d+), lost 0, corrupt 0, resynced 0 of (\d+) frames sent", line)
+        assert got and int(got[1]) == int(got[2]) > 50, line
+    assert out.splitlines()[-1].endswith("interrupted by SIGINT")
 
 
 def test_emulator_ends_within_a_second_on_sigterm_and_sigint(tmp_path):
