@@ -140,7 +140,7 @@ def deploy_board(cfg: BoardConfig, board: Board, port: str, dry_run: bool = Fals
             rep.active_hash = rep.old_hash
             rep.message += "; no config was sent, so the board keeps the one it had"
         elif rep.state != "committed":
-            answered, rep.active_hash = _probe(port, cfg.uid, client_kw, quick=rep.kind == "cancelled")
+            answered, rep.active_hash = _probe(port, cfg.uid, client_kw, quick=cancel is not None and cancel.requested)
             rep.state = _state(rep, answered)
             rep.message += "; " + STATES[rep.state]
             if rep.state == "rolled back" and rep.old_hash is None:

@@ -95,3 +95,15 @@ def test_bench_serial_rows(capsys):
     # 2 boards x 128 channels x 12 B, each way, plus framing: the wire time follows from the bytes
     assert row["wire_bytes"] > 2 * 2 * 128 * 12
     assert row["wire_s"] == pytest.approx(row["wire_bytes"] / 2 * 10 / 4e6, rel=0.05)
+
+
+def test_bench_serial_fault_storm_rows(capsys):
+    assert main(["bench", "serial", "--faults", "--json", "--rounds", "2", "--boards-per-round", "6",
+                 "--kills", "2", "--seed", "3"]) == 0
+    (row,) = json.loads(capsys.readouterr().out)
+    assert row["board_deploys"] == 12 and row["emulator_kills"] >= 2
+    assert sum(row[k] for k in ("updated", "unchanged", "refused", "failed", "cancelled", "missing")) == 12
+    for k in ("mixed_configs", "wrong_states", "tracebacks", "bad_exit_codes", "boards_without_report",
+              "not_found_without_reason", "emulator_hangs"):
+        assert row[k] == 0, k
+    assert row["not_found"] == row["missing"] and 0 < row["emulator_kill_max_s"] < 5
