@@ -30,6 +30,8 @@ from skinsafe.hardware.emulator import EmulatorProcess, flash_path
 
 FAULTS = ["", "drop=0.002", "flip=0.002", "delay=0.3,delay_p=0.3", "reset_at_chunk=2", "reset_at_chunk=2,resets=-1",
           "malformed=0.05", "firmware=2.0.0", "protocol=2", "max_chunk=16", "drop=0.01"]
+ANOMALIES = ("mixed_configs", "wrong_states", "tracebacks", "bad_exit_codes", "boards_without_report",
+             "not_found_without_reason")
 SKINSAFE = str(Path(sys.executable).with_name("skinsafe"))
 
 
@@ -48,8 +50,10 @@ def storm_round(k: int, n_boards: int, rng: np.random.Generator, tmp: Path, coun
     olds, news = {c.uid: c.sha256 for c in board_configs(old)}, {c.uid: c.sha256 for c in board_configs(new)}
     flash = tmp / "flash"
     flash.mkdir()
+    initial = {}
     for cfg in board_configs(old):
-        if rng.random() < 0.7:  # the others are fresh boards
+        initial[cfg.uid] = cfg.sha256 if rng.random() < 0.7 else None  # the others are fresh boards
+        if initial[cfg.uid]:
             flash_path(flash, cfg.uid).write_bytes(cfg.to_bytes())
     faults = [str(rng.choice(FAULTS)) for _ in new.boards]
     specs = [(b.uid, 32, f if "max_chunk" in f else ",".join(filter(None, [f, "max_chunk=64"])))  # 7 chunks each
@@ -72,6 +76,7 @@ def storm_round(k: int, n_boards: int, rng: np.random.Generator, tmp: Path, coun
                 counts["emulator_kill_max_s"] = max(counts["emulator_kill_max_s"], em.signal(signal.SIGTERM))
                 counts["emulator_kills"] += 1
         out, err = proc.communicate(timeout=300)
+    before = {key: counts.get(key, 0) for key in ANOMALIES}
     counts["tracebacks"] += ("Traceback" in out + err)
     counts["interrupted_deploys"] += interrupt
     counts["interrupt_exit_130"] += interrupt and proc.returncode == 130
@@ -87,12 +92,15 @@ def storm_round(k: int, n_boards: int, rng: np.random.Generator, tmp: Path, coun
         path = flash_path(flash, b.uid)
         running = hashlib.sha256(path.read_bytes()).digest() if path.exists() else None
         counts["mixed_configs"] += running not in (olds[b.uid], news[b.uid], None)
-        want = {"committed": {news[b.uid]}, "untouched": {olds[b.uid], None}, "rolled back": {olds[b.uid], None}}
-        counts["wrong_states"] += state in want and running not in want[state]
+        want = {"committed": news[b.uid], "untouched": initial[b.uid], "rolled back": initial[b.uid]}
+        counts["wrong_states"] += state in want and running != want[state]
         if status == "missing":
             counts["not_found"] += 1
             port = f"board-{b.uid:016x}"
             counts["not_found_without_reason"] += not (f"{port} (" in line or f"uid {b.uid:#x} answers on" in line)
+    if any(counts.get(key, 0) != v for key, v in before.items()):  # keep the evidence of anything that went wrong
+        print(f"round {k}: exit {proc.returncode}, interrupt {interrupt}, kill {kill}, faults {specs}\n{out}\n{err}",
+              file=sys.stderr)
 
 
 def kill_loop(n: int, tmp: Path, counts: dict) -> None:

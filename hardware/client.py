@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import collections
+import os
 import select
 import time
 
@@ -45,7 +46,7 @@ class BoardClient:
                              kind="link") from None
         self.parser = P.FrameParser(P.MAX_SHORT_PAYLOAD, runs=True)  # widened by identify
         self.stream = collections.deque(maxlen=100_000)
-        self.seq = 0
+        self.seq = int.from_bytes(os.urandom(2), "little")  # a stale answer to an earlier session cannot match
         self.tx_bytes = self.rx_bytes = self.resent = 0
         self.max_chunk = P.MIN_CHUNK
         self.last_uid = uid
