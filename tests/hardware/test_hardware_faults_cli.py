@@ -41,7 +41,9 @@ def test_ctrl_c_at_a_random_point_of_a_multi_board_deploy(tmp_path, seed):
         time.sleep(np.random.default_rng(seed).uniform(0.0, 0.8))  # a whole deploy takes about 0.9 s here
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=30)
-    assert "Traceback" not in err and proc.returncode in (130, 0), err
+    # -2: the signal came after the report, while Python shut down (the shell shows 130 all the same)
+    assert "Traceback" not in err and proc.returncode in (130, 0, -2), err
+    assert out.splitlines()[-1].startswith("deployed ")
     lines = _lines(out, new)
     olds, news = {c.uid: c.sha256 for c in board_configs(old)}, {c.uid: c.sha256 for c in board_configs(new)}
     for b in new.boards:
