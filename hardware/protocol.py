@@ -124,8 +124,9 @@ def crc16(data: bytes) -> int:
 class FrameParser:
     """Incremental frame parser: feed it any bytes, get whole valid frames back; never raises.
 
-    Counts `crc_errors` (a valid header whose payload CRC failed) and `bytes_skipped` (garbage
-    between frames, including frames with a damaged header). With `runs`, consecutive stream
+    Counts `crc_errors` (a valid header whose payload CRC failed), `bytes_skipped` (garbage
+    between frames, including frames with a damaged header) and `resyncs` (runs of skipped bytes).
+    `max_payload` bounds the length header (PROTOCOL.md "Length bound"): a larger one is garbage. With `runs`, consecutive stream
     frames of one board come back as one FrameRun (payloads as rows of one array) instead of
     one Frame each: the fast path for decoding thousands of frames a second.
     """
