@@ -163,3 +163,20 @@ def test_board_survives_malformed_requests(tmp_path):
         with pytest.raises(BoardError, match="refused 0x33|unknown command"):
             c.request(0x33)
         assert c.identify().uid == 0x5C1A0000 and not flash_path(tmp_path, 0x5C1A0000).exists()
+
+
+def test_each_emulated_board_draws_faults_from_its_own_seed(tmp_path):
+    from skinsafe.hardware.emulated_board import BoardSpec, EmulatedBoard, Faults
+    data = bytes(4000)
+
+    def damage(uid, seed):
+        b = EmulatedBoard(BoardSpec(uid, 8, faults=Faults(flip=0.01, seed=seed)), tmp_path / f"{uid}-{seed}")
+        try:
+            return b._wire(data)
+        finally:
+            b.close()
+
+    one, other, again, next_run = damage(1, 0), damage(2, 0), damage(1, 0), damage(1, 1)
+    assert one == again  # one run seed reproduces each board's faults ...
+    assert one != other and one != next_run  # ... and boards (and runs) do not share them
+    assert 10 < sum(x != 0 for x in one) < 80  # about 40 flipped bytes
