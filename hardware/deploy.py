@@ -212,13 +212,14 @@ def discover(candidates: list[str], timeout: float = 0.2, retries: int = 1, baud
             else:
                 seen.setdefault(info.uid, []).append((port, info))
     for uid, hits in seen.items():
-        if len(hits) == 1:
+        ports = [port for port, _ in hits] + ([out.skipped_uids[uid]] if uid in out.skipped_uids else [])
+        if len(ports) == 1:
             out.found[uid] = hits[0]
-        else:
-            out.duplicates[uid] = [port for port, _ in hits]
-            for port, _ in hits:
-                out.skipped[port] = (f"duplicate uid: board uid {uid:#x} answers on {len(hits)} ports "
-                                     f"({', '.join(out.duplicates[uid])}); give each board its own uid")
+            continue
+        out.duplicates[uid] = sorted(ports)  # a skipped port whose frames named this uid counts too
+        for port, _ in hits:
+            out.skipped[port] = (f"duplicate uid: board uid {uid:#x} answers on {len(ports)} ports "
+                                 f"({', '.join(out.duplicates[uid])}); give each board its own uid")
     return out
 
 

@@ -61,12 +61,13 @@ def test_ctrl_c_at_a_random_point_of_a_multi_board_deploy(tmp_path, seed):
 
 
 def test_discovery_says_why_each_port_was_skipped(tmp_path, capsys):
-    d = flat_design(96, 3)
+    d = flat_design(128, 4)
     save(d, tmp_path / "skin.json")
     uid = [b.uid for b in d.boards]
-    boards = [(uid[0], 32), (uid[1], 32, "protocol=2"), (uid[2], 32), (0x77, 32), (0x5C1A0099, 32, "malformed=1")]
+    boards = [(uid[0], 32), (uid[1], 32, "protocol=2"), (uid[2], 32), (uid[3], 32, "protocol=2"), (0x77, 32),
+              (0x5C1A0099, 32, "malformed=1")]
     with EmulatorProcess(boards, tmp_path / "a", "--not-a-board", "1", "--link-dir", str(tmp_path / "links")), \
-            EmulatorProcess([(uid[2], 32)], tmp_path / "b", "--link-dir", str(tmp_path / "links2")):
+            EmulatorProcess([(uid[2], 32), (uid[3], 32)], tmp_path / "b", "--link-dir", str(tmp_path / "links2")):
         argv = ["deploy", str(tmp_path / "skin.json"), "--all", "--no-system-ports", "--glob",
                 str(tmp_path / "links" / "board-*"), "--glob", str(tmp_path / "links2" / "board-*"),
                 "--timeout", "0.05", "--retries", "1"]
@@ -76,6 +77,9 @@ def test_discovery_says_why_each_port_was_skipped(tmp_path, capsys):
     assert ": updated [committed]" in lines[0]
     assert ": missing [untouched]" in lines[1] and "version: " in lines[1] and "speaks protocol version 2" in lines[1]
     assert ": missing [untouched]" in lines[2] and f"uid {uid[2]:#x} answers on 2 ports" in lines[2]
+    # one uid on two ports, one of them speaking another version: still a duplicate, deployed to neither
+    assert ": missing [untouched]" in lines[3] and f"uid {uid[3]:#x} answers on 2 ports" in lines[3]
+    assert not flash_path(tmp_path / "b", uid[3]).exists()
     other = next(x for x in out.splitlines() if "board-other-0: no board" in x)
     assert "not-a-board: " in other and "none of them a skinsafe frame" in other and "2 tries" in other
     assert "board uid 0x77 is not in the map; it was left alone" in out
