@@ -177,3 +177,14 @@ def test_emulator_ends_within_a_second_on_sigterm_and_sigint(tmp_path):
             worst = max(worst, em.signal(signal.SIGTERM if k % 2 else signal.SIGINT))
             assert em.proc.returncode == 0
     assert worst < 1.0
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--max-chunk", "8"], "max chunk 8 outside 16..65530"),
+    (["--board", "0x5:8:drop=2"], "drop 2.0 is a probability; give 0..1"),
+    (["--board", "0x5:8:colour=red"], "give UID:CHANNELS[:KEY=VALUE,...]"),
+])
+def test_emulator_refuses_options_that_cannot_work(tmp_path, extra, message):
+    r = subprocess.run([sys.executable, "-m", "skinsafe.hardware.emulator", "--flash-dir", str(tmp_path),
+                        "--board", "0x1:8", *extra], capture_output=True, text=True, timeout=30)
+    assert r.returncode == 1 and message in r.stderr and "Traceback" not in r.stderr
