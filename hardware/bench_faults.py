@@ -1,7 +1,8 @@
 """`skinsafe bench serial --faults`: a fault storm through the real `skinsafe deploy` CLI.
 
-Each round starts one emulator process whose boards each draw a fault (byte loss, bit flips, late
-answers, resets mid-transfer, truncated answers, another firmware or protocol version), plus a
+Each round starts one emulator process whose boards each draw one fault of FAULTS (byte loss, bit
+flips, late answers, resets mid-transfer, truncated answers, another firmware or protocol version,
+the smallest chunk size), plus a
 device that is not a board and sometimes a second process with a duplicate uid; boards start fresh
 or with an old config. `skinsafe deploy --all` runs as a subprocess; some rounds get Ctrl-C, some
 lose their emulator (SIGTERM) at a random moment. Then every board's flash is checked against its
@@ -28,7 +29,7 @@ from skinsafe.hardware.board_config import board_configs
 from skinsafe.hardware.client import BoardClient, BoardError
 from skinsafe.hardware.emulator import EmulatorProcess, flash_path
 
-FAULTS = ["", "drop=0.002", "flip=0.002", "delay=0.3,delay_p=0.3", "reset_at_chunk=2", "reset_at_chunk=2,resets=-1",
+FAULTS = ["drop=0.002", "flip=0.002", "delay=0.3,delay_p=0.3", "reset_at_chunk=2", "reset_at_chunk=2,resets=-1",
           "malformed=0.05", "firmware=2.0.0", "protocol=2", "max_chunk=16", "drop=0.01"]
 ANOMALIES = ("mixed_configs", "wrong_states", "tracebacks", "bad_exit_codes", "boards_without_report",
              "not_found_without_reason")
