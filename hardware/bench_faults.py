@@ -2,9 +2,8 @@
 
 Each round starts one emulator process whose boards each draw one fault of FAULTS (byte loss, bit
 flips, late answers, resets mid-transfer, truncated answers, another firmware or protocol version,
-the smallest chunk size), plus a
-device that is not a board and sometimes a second process with a duplicate uid; boards start fresh
-or with an old config. `skinsafe deploy --all` runs as a subprocess; some rounds get Ctrl-C, some
+the smallest chunk size), plus a device that is not a board and sometimes a second process with a
+duplicate uid; boards start fresh or with an old config. `skinsafe deploy --all` runs as a subprocess; some rounds get Ctrl-C, some
 lose their emulator (SIGTERM) at a random moment. Then every board's flash is checked against its
 report: mixed_configs counts flashes holding neither the old nor the new config, wrong_states
 reports whose state contradicts the flash, not_found_without_reason "missing" lines that do not
@@ -62,6 +61,7 @@ def storm_round(k: int, n_boards: int, rng: np.random.Generator, tmp: Path, coun
     links = tmp / "links"
     dup = rng.random() < 0.2
     interrupt, kill = rng.random() < 0.25, rng.random() < 0.15
+    kill = kill and not interrupt
     with EmulatorProcess(specs, flash, "--link-dir", str(links), "--not-a-board", "1", "--seed", str(k)) as em, \
             EmulatorProcess([(new.boards[0].uid, 32)] if dup else [], tmp / "dup",
                             *([] if dup else ["--board", "0x99:8"]), "--link-dir", str(links / "dup")):
