@@ -82,6 +82,7 @@ class BoardState:
     started: bool = False
     stopped: bool = False
     end_counter: int | None = None  # the stop answer, until the frames before it are read
+    malformed: int = 0  # frames with a valid CRC but the wrong size (counted as corrupt)
 
     def count(self, samples: np.ndarray) -> None:
         """Account for received sample counters; the counter starts at 0 with the stream and wraps at 2^32,
@@ -101,7 +102,7 @@ class BoardState:
     def stats(self) -> BoardStats:
         p = self.client.parser
         missing = max(0, self.sent - self.frames)
-        corrupt = min(p.crc_errors - self.crc0, missing)
+        corrupt = min(p.crc_errors - self.crc0 + self.malformed, missing)
         return BoardStats(self.frames, missing - corrupt, corrupt, p.resyncs - self.resync0)
 
 
@@ -219,6 +220,11 @@ class SkinStream:
             select.select([s.client.ser.fileno() for s in self.boards], [], [], max_wait)
         for s in self.boards:
             got = s.client.read_stream(0.0)
+            size = frame_dtype(s.n_channels).itemsize
+            bad = [f for f in got if (f.payloads.shape[1] if isinstance(f, FrameRun) else len(f.payload)) != size]
+            if bad:  # a frame with a valid CRC but the wrong size for this board: the firmware is wrong
+                s.malformed += sum(len(f.seqs) if isinstance(f, FrameRun) else 1 for f in bad)
+                got = [f for f in got if not any(f is b for b in bad)]
             if got:
                 samples, forces = decode_frames(got, s.n_channels, s.channels, self.table)
                 s.count(samples)

@@ -157,3 +157,17 @@ def test_every_frame_sent_counted_once_including_before_the_first_and_after_the_
     quiet = BoardState(0, 1, None, 4, np.arange(4), np.arange(4))
     quiet.end(7)  # nothing arrived at all: all 7 frames were lost
     assert (quiet.sent, quiet.frames) == (7, 0)
+
+
+def test_a_stream_frame_of_the_wrong_size_counts_as_corrupt_not_a_crash(tmp_path):
+    d = flat_design(32, 1, THRESHOLD)
+    with EmulatorProcess([(d.boards[0].uid, 32)], tmp_path) as em:
+        port = em.ports[d.boards[0].uid]
+        assert deploy(d, {0: port})[0].ok
+        stream = SkinStream(d, {0: port}, 100)
+        s = stream.boards[0]
+        s.client.stream.append(P.Frame(1, P.STREAM_DATA, 0, s.uid, bytes(10)))  # as if a buggy board sent it
+        s.sent = 1
+        u = stream.poll(0.0)
+        assert s.malformed == 1 and u.corrupt == 1 and u.frames == 0
+        stream.close()
