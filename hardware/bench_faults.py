@@ -93,10 +93,12 @@ def storm_round(k: int, n_boards: int, rng: np.random.Generator, tmp: Path, coun
             continue
         status, state = line.split(": ", 1)[1].split(" [")[0], line.split("[")[1].split("]")[0]
         counts[status] = counts.get(status, 0) + 1
-        path = flash_path(flash, b.uid)
+        dup_port = f"{links / 'dup'}/" in line  # deployed to the duplicate (its twin never answered): its flash
+        path = flash_path(tmp / "dup" if dup_port else flash, b.uid)
         running = hashlib.sha256(path.read_bytes()).digest() if path.exists() else None
         counts["mixed_configs"] += running not in (olds[b.uid], news[b.uid], None)
-        want = {"committed": news[b.uid], "untouched": initial[b.uid], "rolled back": initial[b.uid]}
+        first = None if dup_port else initial[b.uid]
+        want = {"committed": news[b.uid], "untouched": first, "rolled back": first}
         counts["wrong_states"] += state in want and running != want[state]
         if status == "missing":
             counts["not_found"] += 1
