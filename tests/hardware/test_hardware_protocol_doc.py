@@ -82,6 +82,9 @@ def test_prose_figures_follow_from_the_code(tmp_path):
         raw = np.asarray(board.encode(np.full(4, 3.0)), np.int64)
         counts = np.frombuffer(board.stream_frame()[P.HEADER_SIZE + P.STREAM_HEAD.size:-4], "<u2")
         assert counts.tolist() == np.minimum(raw * [256, 384, 511, 65535] >> 8, 65535).tolist()
+        board.sample = 2 ** 16 + 5  # a frame's sequence number is the low 16 bits of its sample counter
+        (frame,) = P.FrameParser().feed(board.stream_frame())
+        assert frame.seq == 5 and P.STREAM_HEAD.unpack_from(frame.payload)[1] == 2 ** 16 + 5
     finally:
         board.close()
     assert "`min(65535, (raw * gain) >> 8)`" in DOC
