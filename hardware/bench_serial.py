@@ -17,6 +17,7 @@ import numpy as np
 
 from skinsafe.core.bench.timing import median_ms
 from skinsafe.core.skin.model import Board, Module, RobotRef, SkinDesign, Taxels, frames_from_normals
+from skinsafe.hardware import bench_faults
 from skinsafe.hardware import protocol as P
 from skinsafe.hardware.board_config import board_configs, channel_rows, default_sensor
 from skinsafe.hardware.deploy import deploy
@@ -48,6 +49,7 @@ def add_arguments(p) -> None:
     p.add_argument("--rate", type=int, default=1000, help="stream frames per second per board")
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--verify", nargs="+", choices=["readback", "hash"], default=["readback", "hash"])
+    bench_faults.add_arguments(p)
 
 
 def stream_bytes(design: SkinDesign, seconds_of_frames: int, seed: int = 0) -> list[bytes]:
@@ -101,6 +103,8 @@ def cpu_median_ms(fn, repeat: int) -> float:
 
 
 def rows(args) -> list[dict]:
+    if args.faults:
+        return bench_faults.rows(args)
     fsr = default_sensor()
     table = decode_table(fsr.decode)
     out = []

@@ -91,13 +91,14 @@ def board_config(design: SkinDesign, board: Board, encode: Callable | None = Non
     encode = encode or default_sensor().encode
     thr = np.asarray(encode(t.thresholds["force"][rows]))
     g = np.ones(len(rows)) if gains is None else np.asarray(gains, float)[rows]
-    if ((g <= 0) | (g * GAIN_ONE > 65535)).any():
-        raise DesignError(f"board {board.id} '{board.name}': gains must lie in (0, 256)")
+    q = np.round(g * GAIN_ONE)  # Q8.8, round half to even (PROTOCOL.md "Gain")
+    if not (np.isfinite(q) & (q >= 1) & (q <= 65535)).all():
+        raise DesignError(f"board {board.id} '{board.name}': gains must round to 1/256 .. 65535/256 in Q8.8")
     entries = np.zeros(len(rows), ENTRY)
     entries["channel"] = t.channel[rows]
     entries["flags"] = np.where(t.enabled[rows], FLAG_ENABLED, 0)
     entries["threshold"] = np.clip(thr, 0, 65535)
-    entries["gain"] = np.round(g * GAIN_ONE)
+    entries["gain"] = q
     entries["taxel_id"] = ids
     return BoardConfig(board.uid, board.id, board.capacity, entries, rows)
 

@@ -1,6 +1,12 @@
-"""`skinsafe stream skin.json --port PORT | --all`: readings mapped to taxels, danger events, lost/corrupt counts."""
+"""`skinsafe stream skin.json --port PORT | --all`: readings mapped to taxels, danger events, lost/corrupt counts.
+
+Ends with one line per board (received, lost, corrupt, resynced of the frames it sent) and a
+summary. Exit codes: 0 streamed and stopped; 1 a board failed to start (those started are
+stopped), to stop, or was not found; 2 bad input; 130 Ctrl-C; 143 SIGTERM.
+"""
 from __future__ import annotations
 
+import math
 import sys
 import time
 
@@ -9,14 +15,17 @@ import numpy as np
 from skinsafe.core.safety.events import danger_events
 from skinsafe.core.skin.model import DesignError
 from skinsafe.core.skin.taxel_map import load
-from skinsafe.hardware.cli_deploy import add_port_arguments, find_ports
+from skinsafe.hardware.cli_deploy import add_port_arguments, check_link_options, find_ports
 from skinsafe.hardware.client import BoardError
-from skinsafe.hardware.stream import SkinStream, StreamUpdate
+from skinsafe.hardware.interrupt import for_command
+from skinsafe.hardware.protocol import stream_frame_bytes
+from skinsafe.hardware.stream import SkinStream, StreamUpdate, achievable_hz
 
 
 def add_arguments(p) -> None:
     add_port_arguments(p)
-    p.add_argument("--rate", type=int, default=100, help="frames per second per board")
+    p.add_argument("--rate", type=int, default=100, help="frames per second per board (1..65535; warned when "
+                   "more than the link carries at --baud)")
     p.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C)")
     p.add_argument("--no-verify", action="store_true", help="stream even if a board runs another config")
 
@@ -46,28 +55,62 @@ class DangerPrinter:
 
 
 def run(args) -> int:
-    try:
-        design = load(args.map)
-        ports, problems, notes = find_ports(design, args)
-    except DesignError as e:
-        print(f"skinsafe stream: {e}", file=sys.stderr)
-        return 2
-    for msg in notes + problems:
-        print(f"{'note' if msg in notes else 'problem'}: {msg}", file=sys.stderr)
-    if not ports:
-        print("skinsafe stream: no board of the map was found", file=sys.stderr)
-        return 1
-    printer = DangerPrinter(design)
-    try:
-        with SkinStream(design, ports, args.rate, verify=not args.no_verify,
-                        baud=args.baud, timeout=args.timeout, retries=args.retries) as stream:
-            stream.run(printer, args.seconds)
-            u = stream.poll(0.0)
-    except BoardError as e:
-        print(f"skinsafe stream: {e}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        return 0
-    print(f"done: {sum(v[0] for v in u.per_board.values())} frames, {u.lost} lost, {u.corrupt} corrupt, "
-          f"{printer.events} danger events")
-    return 0
+    with for_command() as stop:
+        try:
+            check_link_options(args)
+            if not 1 <= args.rate <= 65535:
+                raise DesignError(f"--rate {args.rate}: give frames per second per board, 1..65535")
+            if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
+                raise DesignError(f"--seconds {args.seconds}: give a positive duration")
+            design = load(args.map)
+            ports, missing, notes, problems = find_ports(design, args, stop)
+        except DesignError as e:
+            print(f"skinsafe stream: {e}", file=sys.stderr)
+            return 2
+        for msg in [f"note: {m}" for m in notes] + [f"problem: {m}" for m in problems] + [r.line() for r in missing]:
+            print(msg, file=sys.stderr)
+        if stop.requested:
+            print(f"skinsafe stream: interrupted by {stop.name} before streaming", file=sys.stderr)
+            return stop.exit_code
+        if not ports:
+            print("skinsafe stream: no board of the map was found", file=sys.stderr)
+            return 1
+        for b in design.boards:
+            top = achievable_hz(args.baud, b.capacity)
+            if b.id in ports and args.rate > top:
+                print(f"warning: board {b.id} '{b.name}': a frame of {b.capacity} channels is "
+                      f"{stream_frame_bytes(b.capacity)} bytes; at {args.baud} baud the link carries at most "
+                      f"{int(top)} frames/s, asked {args.rate}", file=sys.stderr)
+        printer = DangerPrinter(design)
+        try:
+            stream = SkinStream(design, ports, args.rate, verify=not args.no_verify, cancel=stop,
+                                baud=args.baud, timeout=args.timeout, retries=args.retries)
+        except BoardError as e:
+            print(f"skinsafe stream: {e}", file=sys.stderr)
+            return stop.exit_code if stop.requested else 1
+        try:
+            stream.start()
+            print(f"skinsafe stream: {len(stream.boards)} boards streaming at {args.rate} Hz (Ctrl-C stops cleanly)",
+                  file=sys.stderr, flush=True)
+            stream.run(lambda u: False if stop.requested else printer(u), args.seconds)
+            failed = ""
+        except BoardError as e:
+            failed = str(e)
+        finally:
+            unconfirmed = stream.stop()
+            stream.close()
+    by_id = {b.id: b for b in design.boards}
+    for s in stream.boards:
+        st, b = s.stats(), by_id[s.board_id]
+        state = "stopped" if s.stopped else ("stop not confirmed: " + unconfirmed[s.board_id]
+                                             if s.board_id in unconfirmed else "not started")
+        print(f"board {b.id} '{b.name}' uid {b.uid:#x} on {s.client.port}: {state}; received {st.received}, "
+              f"lost {st.lost}, corrupt {st.corrupt}, resynced {st.resynced} of {s.sent} frames sent")
+    totals = [sum(s.stats()[k] for s in stream.boards) for k in range(4)]
+    print(f"done: {totals[0]} frames, {totals[1]} lost, {totals[2]} corrupt, {totals[3]} resynced, "
+          f"{printer.events} danger events" + (f"; interrupted by {stop.name}" if stop.requested else ""))
+    if failed:
+        print(f"skinsafe stream: {failed}; the boards already started were stopped", file=sys.stderr)
+    if stop.requested:
+        return stop.exit_code
+    return 1 if failed or unconfirmed or missing or problems else 0

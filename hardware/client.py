@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import collections
+import os
 import select
 import time
 
@@ -14,11 +15,14 @@ BITS_PER_BYTE = 10  # 8N1
 
 
 class BoardError(Exception):
-    """A board refused a request, stopped answering, or speaks an incompatible protocol."""
+    """A board refused a request, stopped answering, answered malformed, or speaks another protocol.
 
-    def __init__(self, message: str, status: int | None = None):
+    `kind` says which, for reports: refused, timeout, not-a-board, version, malformed, link, cancelled, incompatible.
+    """
+
+    def __init__(self, message: str, status: int | None = None, kind: str = "refused", uid: int | None = None):
         super().__init__(message)
-        self.status = status
+        self.status, self.kind, self.uid = status, kind, uid  # uid: the board's, where its frames said it
 
 
 class BoardClient:
@@ -26,24 +30,27 @@ class BoardClient:
 
     `timeout` is the wait for an answer on top of the wire time of request and answer at `baud`;
     failed requests (timeout, CRC error) are re-sent up to `retries` times, sleeping
-    `backoff * 2**k` seconds before the k-th retry. Every request is idempotent on the board.
+    `backoff * 2**k` seconds before the k-th retry (PROTOCOL.md "Re-sending"). `cancel` (an
+    Interrupt) stops before the next request and ends a request's re-sends.
     """
 
     def __init__(self, port: str, baud: int = 1_000_000, timeout: float = 0.25, retries: int = 4,
-                 backoff: float = 0.01, uid: int = P.BROADCAST_UID):
-        self.port, self.baud, self.timeout, self.retries, self.backoff, self.uid = \
-            port, baud, timeout, retries, backoff, uid
+                 backoff: float = 0.01, uid: int = P.BROADCAST_UID, cancel=None):
+        self.port, self.baud, self.timeout, self.retries, self.backoff, self.uid, self.cancel = \
+            port, baud, timeout, retries, backoff, uid, cancel
         try:
             self.ser = serial.Serial(port, baud, timeout=0.005, write_timeout=2.0)
+            self.ser.reset_input_buffer()
         except (serial.SerialException, OSError, ValueError) as e:
-            raise BoardError(f"{port}: cannot open the serial port ({e}); check the path and permissions") from None
-        self.ser.reset_input_buffer()
-        self.parser = P.FrameParser(runs=True)
+            raise BoardError(f"{port}: cannot open the serial port ({e}); check the path and permissions",
+                             kind="link") from None
+        self.parser = P.FrameParser(P.MAX_SHORT_PAYLOAD, runs=True)  # widened by identify
         self.stream = collections.deque(maxlen=100_000)
-        self.seq = 0
+        self.seq = int.from_bytes(os.urandom(2), "little")  # a stale answer to an earlier session cannot match
         self.tx_bytes = self.rx_bytes = self.resent = 0
-        self.max_chunk = 1024
+        self.max_chunk = P.MIN_CHUNK
         self.last_uid = uid
+        self.committed = False  # a commit of this client was acknowledged
 
     def close(self) -> None:
         self.ser.close()
@@ -69,19 +76,27 @@ class BoardClient:
         frames = []
         for f in self.parser.feed(data) if data else ():
             if f.version != P.PROTOCOL_VERSION:
-                raise BoardError(f"{self.port}: board speaks protocol version {f.version}, this host speaks "
-                                 f"{P.PROTOCOL_VERSION}; update the board firmware or skinsafe")
+                raise BoardError(f"{self.port}: board {f.uid:#x} speaks protocol version {f.version}, this host "
+                                 f"speaks {P.PROTOCOL_VERSION}; update the board firmware or skinsafe", kind="version",
+                                 uid=f.uid)
             if f.type == P.STREAM_DATA:
                 self.stream.append(f)
             else:
                 frames.append(f)
         return frames
 
-    def request(self, msg_type: int, payload: bytes = b"") -> bytes:
-        """Send a command and return the data of its OK answer; raise BoardError on refusal or silence."""
+    def _malformed(self, uid: int, name: str, detail: str) -> BoardError:
+        return BoardError(f"{self.port}: board {uid:#x} sent a malformed {name} answer: {detail}; "
+                          "check the board firmware against hardware/PROTOCOL.md", kind="malformed", uid=uid)
+
+    def request(self, msg_type: int, payload: bytes = b"", size: int = 0) -> bytes:
+        """Send a command and return the data of its OK answer (at least `size` bytes);
+        raise BoardError on refusal, silence, a malformed answer or cancellation."""
         name = P.COMMANDS.get(msg_type, hex(msg_type))
-        why = "no answer"
+        why, kind = "no answer", "timeout"
         for attempt in range(self.retries + 1):
+            if self.cancel is not None and self.cancel.requested:
+                raise BoardError(f"{self.port}: {name} not sent: interrupted by {self.cancel.name}", kind="cancelled")
             if attempt:
                 self.resent += 1
                 self.parser.buf.clear()  # a half frame left by a lost byte would swallow the next answer
@@ -91,37 +106,60 @@ class BoardClient:
             try:
                 self.ser.write(frame)
             except (serial.SerialException, OSError) as e:
-                raise BoardError(f"{self.port}: the serial link failed ({e}); check the cable and the board") from None
+                raise BoardError(f"{self.port}: the serial link failed ({e}); check the cable and the board",
+                                 kind="link") from None
             self.tx_bytes += len(frame)
-            wire = (len(frame) + self.max_chunk + 2 * P.OVERHEAD) * BITS_PER_BYTE / self.baud
+            wire = (len(frame) + self.parser.max_payload + P.OVERHEAD) * BITS_PER_BYTE / self.baud
             deadline = time.monotonic() + self.timeout + wire
             crc = self.parser.crc_errors
             while time.monotonic() < deadline:
                 match = [f for f in self._read() if f.type == msg_type | P.RESPONSE and f.seq == self.seq]
                 if match:
-                    p = match[0].payload
-                    if not p:
-                        why = "empty answer"
-                        break
-                    self.last_uid = match[0].uid
-                    if p[0] != P.OK:
-                        raise BoardError(f"{self.port}: board {match[0].uid:#x} refused {name}: {P.error_text(p)}",
-                                         p[0])
-                    return p[1:]
+                    return self._answer(match[0], name, size)
                 if self.parser.crc_errors != crc:
-                    why = "CRC error"
+                    why, kind = "CRC error", "timeout"
                     break
             else:
-                why = "timeout"
+                if self.rx_bytes and not self.parser.frames:
+                    why, kind = f"{self.rx_bytes} bytes came back, none of them a skinsafe frame", "not-a-board"
+                else:
+                    why, kind = "timeout", "timeout"
         raise BoardError(f"{self.port}: {name} failed after {self.retries + 1} tries ({why}); "
-                         "check the cable, the port and that the board is powered")
+                         "check the cable, the port and that the board is powered", kind=kind)
+
+    def _answer(self, f: P.Frame, name: str, size: int) -> bytes:
+        p = f.payload
+        if not p:
+            raise self._malformed(f.uid, name, "empty payload, byte 0 (the status) missing")
+        if p[0] not in P.STATUS:
+            raise self._malformed(f.uid, name, f"byte 0 (the status) is {p[0]:#04x}, not a protocol status")
+        self.last_uid = f.uid
+        if p[0] != P.OK:
+            raise BoardError(f"{self.port}: board {f.uid:#x} refused {name}: {P.error_text(p)}", p[0], uid=f.uid)
+        if len(p) - 1 < size:
+            raise self._malformed(f.uid, name, f"{len(p)} bytes, byte {len(p)} onwards missing "
+                                  f"(expected status + {size} bytes)")
+        return p[1:]
 
     # -- commands ----------------------------------------------------------------------------
     def identify(self) -> P.Identity:
-        """Who is on this port; also sizes config chunks to what the board accepts."""
-        data = self.request(P.IDENTIFY)
+        """Who is on this port; sizes config chunks to what the board accepts, bounds the frame length
+        it may send, and (if this client was broadcasting) addresses that board from now on."""
+        data = self.request(P.IDENTIFY, size=P.IDENTIFY_RESP.size)
         info = P.Identity.unpack(self.last_uid, data)
-        self.max_chunk = max(16, min(info.max_chunk, P.MAX_PAYLOAD - 64))
+        if info.protocol != P.PROTOCOL_VERSION:
+            raise self._malformed(info.uid, "identify", f"byte 1 (protocol) is {info.protocol}, the frame said "
+                                  f"{P.PROTOCOL_VERSION}")
+        if not P.MIN_CHUNK <= info.max_chunk <= P.MAX_CHUNK:
+            raise BoardError(f"{self.port}: board {info.uid:#x} accepts chunks of {info.max_chunk} bytes, the protocol "
+                             f"needs {P.MIN_CHUNK}..{P.MAX_CHUNK}; update the board firmware", kind="incompatible")
+        if info.n_channels > P.MAX_CHANNELS:
+            raise BoardError(f"{self.port}: board {info.uid:#x} reports {info.n_channels} channels, the protocol "
+                             f"carries at most {P.MAX_CHANNELS}; update the board firmware", kind="incompatible")
+        self.max_chunk = info.max_chunk
+        self.parser.max_payload = P.board_max_payload(info.max_chunk, info.n_channels)
+        if self.uid == P.BROADCAST_UID:
+            self.uid = info.uid
         return info
 
     def write_config(self, data: bytes, digest: bytes, restarts: int = 2) -> None:
@@ -131,11 +169,13 @@ class BoardClient:
                 self.request(P.CONFIG_BEGIN, P.BEGIN_REQ.pack(len(data), digest))
                 step = self.max_chunk
                 for off in range(0, len(data), step):
-                    nxt = P.CHUNK_RESP.unpack(self.request(P.CONFIG_CHUNK, P.CHUNK_REQ.pack(off) + data[off:off + step]))[0]
+                    nxt = P.CHUNK_RESP.unpack_from(self.request(P.CONFIG_CHUNK, P.CHUNK_REQ.pack(off) + data[off:off + step],
+                                                                P.CHUNK_RESP.size))[0]
                     if nxt != min(off + step, len(data)):
                         raise BoardError(f"{self.port}: board acknowledged up to byte {nxt}, sent up to {off + step}",
                                          P.E_RANGE)
                 self.request(P.CONFIG_COMMIT, P.COMMIT_REQ.pack(digest))
+                self.committed = True
                 return
             except BoardError as e:
                 if e.status not in (P.E_NO_TRANSFER, P.E_RANGE, P.E_INCOMPLETE) or attempt == restarts:
@@ -146,10 +186,10 @@ class BoardClient:
         out = bytearray()
         while len(out) < length:
             n = min(self.max_chunk, length - len(out))
-            data = self.request(P.CONFIG_READ, P.READ_REQ.pack(len(out), n))
+            data = self.request(P.CONFIG_READ, P.READ_REQ.pack(len(out), n), P.READ_RESP.size)
             (off,) = P.READ_RESP.unpack_from(data)
             chunk = data[P.READ_RESP.size:]
-            if off != len(out) or not chunk:
+            if off != len(out) or not chunk or len(chunk) > n:
                 raise BoardError(f"{self.port}: read back returned offset {off} with {len(chunk)} bytes, "
                                  f"asked for {n} at {len(out)}")
             out += chunk
@@ -157,13 +197,16 @@ class BoardClient:
 
     def flash_hash(self) -> bytes:
         """SHA-256 the board computes over its config as re-read from flash (verify without the read-back bytes)."""
-        return self.request(P.CONFIG_VERIFY)[:32]
+        return self.request(P.CONFIG_VERIFY, size=32)[:32]
 
     def start_stream(self, rate_hz: int) -> None:
+        if not 1 <= rate_hz <= 65535:
+            raise ValueError(f"stream rate {rate_hz} Hz: the protocol carries 1..65535")
         self.request(P.STREAM_START, P.START_REQ.pack(rate_hz))
 
-    def stop_stream(self) -> None:
-        self.request(P.STREAM_STOP)
+    def stop_stream(self) -> int:
+        """Stop streaming; returns how many frames the board sent since the stream started."""
+        return P.STOP_RESP.unpack_from(self.request(P.STREAM_STOP, size=P.STOP_RESP.size))[0]
 
     def set_params(self, first: int, thresholds, gains_q8) -> None:
         """Runtime thresholds (ADC counts) and gains (Q8.8) for channels first.. (not written to flash)."""

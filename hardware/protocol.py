@@ -23,8 +23,12 @@ CRC32 = struct.Struct("<I")
 _HEAD_AND_CRC = struct.Struct("<2sBBHQHH")
 HEADER_SIZE = HEADER.size + HEADER_CRC.size  # 18
 OVERHEAD = HEADER_SIZE + CRC32.size  # 22
-MAX_PAYLOAD = 65535
-BROADCAST_UID = 0
+MAX_PAYLOAD = 65535  # what the 16-bit length field can say; receivers bound it tighter (max_payload)
+BROADCAST_UID = 0  # only identify may be broadcast
+MIN_CHUNK = 16  # a board must accept config chunks (and reads) of at least this many bytes
+MAX_SHORT_PAYLOAD = 255  # largest payload of a frame before identify: identify answer, error answers
+MAX_ERROR_TEXT = 200  # bytes of ASCII message after an error status
+RESPONSE_DEADLINE_S = 0.2  # a board answers within this after a request's last byte (plus the answer's wire time)
 
 # message types; a response has the request's type | RESPONSE and echoes its sequence number
 IDENTIFY = 0x01
@@ -49,9 +53,12 @@ OK = 0
 STATUS = {
     OK: "ok", 1: "malformed request", 2: "no config transfer in progress", 3: "chunk outside the declared length",
     4: "transfer incomplete", 5: "hash mismatch", 6: "config rejected", 7: "flash write failed",
-    8: "unknown command", 9: "bad parameter",
+    8: "unknown command", 9: "bad parameter", 10: "not allowed while streaming",
 }
-E_MALFORMED, E_NO_TRANSFER, E_RANGE, E_INCOMPLETE, E_HASH, E_CONFIG, E_FLASH, E_UNKNOWN, E_PARAM = range(1, 10)
+E_MALFORMED, E_NO_TRANSFER, E_RANGE, E_INCOMPLETE, E_HASH, E_CONFIG, E_FLASH, E_UNKNOWN, E_PARAM, E_STREAMING = \
+    range(1, 11)
+# requests a streaming board still serves; the others get E_STREAMING
+WHILE_STREAMING = frozenset({IDENTIFY, STREAM_START, STREAM_STOP, SET_PARAMS, RESET})
 
 # capability bits reported by identify
 CAP_FORCE, CAP_TEMPERATURE, CAP_CLASSIFIER, CAP_SET_PARAMS, CAP_READBACK = 1, 2, 4, 8, 16
@@ -65,9 +72,27 @@ COMMIT_REQ = struct.Struct("<32s")
 READ_REQ = struct.Struct("<IH")  # offset, length
 READ_RESP = struct.Struct("<I")  # offset, then the data
 START_REQ = struct.Struct("<H")  # rate in Hz
+STOP_RESP = struct.Struct("<I")  # frames sent since the stream started (the next sample counter)
 PARAMS_REQ = struct.Struct("<HH")  # first channel, count, then count x (threshold u16, gain u16 Q8.8)
 STREAM_HEAD = struct.Struct("<QIHH")  # timestamp us, sample counter, n channels, n channels over threshold
 FLAG_STREAMING, FLAG_CONFIG_VALID, FLAG_PARAMS_CHANGED = 1, 2, 4
+MAX_CHANNELS = (MAX_PAYLOAD - STREAM_HEAD.size) // 2  # a stream frame carries every channel
+MAX_CHUNK = MAX_PAYLOAD - 1 - READ_RESP.size  # a read answer carries status, offset and the chunk
+
+
+def board_max_payload(max_chunk: int, n_channels: int) -> int:
+    """Largest payload a board with this identity sends (the host's bound on a length header)."""
+    return max(MAX_SHORT_PAYLOAD, 1 + READ_RESP.size + max_chunk, STREAM_HEAD.size + 2 * n_channels)
+
+
+def host_max_payload(max_chunk: int, n_channels: int) -> int:
+    """Largest request payload a board with this identity accepts (the board's bound on a length header)."""
+    return max(MAX_SHORT_PAYLOAD, CHUNK_REQ.size + max_chunk, PARAMS_REQ.size + 4 * n_channels)
+
+
+def stream_frame_bytes(n_channels: int) -> int:
+    """Bytes on the wire of one stream frame of a board with `n_channels`."""
+    return OVERHEAD + STREAM_HEAD.size + 2 * n_channels
 
 
 class ProtocolError(Exception):
@@ -99,8 +124,9 @@ def crc16(data: bytes) -> int:
 class FrameParser:
     """Incremental frame parser: feed it any bytes, get whole valid frames back; never raises.
 
-    Counts `crc_errors` (a valid header whose payload CRC failed) and `bytes_skipped` (garbage
-    between frames, including frames with a damaged header). With `runs`, consecutive stream
+    Counts `crc_errors` (a valid header whose payload CRC failed), `bytes_skipped` (garbage
+    between frames, including frames with a damaged header) and `resyncs` (runs of skipped bytes).
+    `max_payload` bounds the length header (PROTOCOL.md "Length bound"): a larger one is garbage. With `runs`, consecutive stream
     frames of one board come back as one FrameRun (payloads as rows of one array) instead of
     one Frame each: the fast path for decoding thousands of frames a second.
     """
@@ -111,7 +137,15 @@ class FrameParser:
         self.max_payload = max_payload
         self.crc_errors = 0
         self.bytes_skipped = 0
+        self.resyncs = 0  # runs of discarded bytes: each one a resynchronisation
         self.frames = 0
+        self._skipping = False
+
+    def _skip(self, n: int) -> None:
+        if n > 0:
+            self.bytes_skipped += n
+            self.resyncs += not self._skipping
+            self._skipping = True
 
     def feed(self, data: bytes) -> list:
         buf = self.buf
@@ -124,16 +158,16 @@ class FrameParser:
                 i = find(SYNC, pos)
                 if i < 0:
                     keep = n - 1 if n and buf[-1] == SYNC[0] else n  # a sync word may straddle two reads
-                    self.bytes_skipped += max(0, keep - pos)
+                    self._skip(keep - pos)
                     pos = max(pos, keep)
                     break
-                self.bytes_skipped += i - pos
+                self._skip(i - pos)
                 pos = i
                 if n - i < HEADER_SIZE:
                     break
                 _, version, msg_type, seq, uid, length, hcrc = head(buf, i)
                 if crc_hqx(mv[i:i + HEADER.size], 0xFFFF) != hcrc or length > self.max_payload:
-                    self.bytes_skipped += 1
+                    self._skip(1)
                     pos = i + 1
                     continue
                 end = i + HEADER_SIZE + length
@@ -141,10 +175,11 @@ class FrameParser:
                     break
                 if crc32(mv[i:end]) != CRC32.unpack_from(buf, end)[0]:
                     self.crc_errors += 1
-                    self.bytes_skipped += 1
+                    self._skip(1)
                     pos = i + 1
                     continue
                 out.append(new(Frame, (version, msg_type, seq, uid, bytes(mv[i + HEADER_SIZE:end]))))
+                self._skipping = False
                 pos = end + CRC32.size
                 if msg_type == STREAM_DATA and n - pos >= 2 * (pos - i):
                     pos = self._run(buf, mv, i, pos, out)

@@ -47,23 +47,25 @@ def test_emulate_deploy_stream_cli(emulated, capsys):
     skin = str(tmp / "skin.json")
     assert main(["deploy", skin, *find, "--dry-run"]) == 0
     out = capsys.readouterr().out
-    assert out.count("would-update (none ->") == 2 and "channels +48 -0 ~0" in out
+    assert out.count("would-update [untouched] (none ->") == 2 and "channels +48 -0 ~0" in out
     assert not (tmp / "flash").exists() or not any((tmp / "flash").iterdir())
     assert main(["deploy", skin, *find]) == 0
     out = capsys.readouterr().out
-    assert out.count(": updated (none -> ") == 2 and "deployed 2 of 2 boards; 0 failed" in out
+    assert out.count(": updated [committed] (none -> ") == 2 and "deployed 2 of 2 boards; 0 failed" in out
     for cfg in board_configs(d):
         assert hashlib.sha256(flash_path(tmp / "flash", cfg.uid).read_bytes()).digest() == cfg.sha256
     port1 = os.readlink(tmp / "links" / f"board-{d.boards[1].uid:016x}")
     assert main(["deploy", skin, "--port", port1, "--board", "board0"]) == 1
-    assert "refused: " in capsys.readouterr().out
+    assert ": refused [untouched]: " in capsys.readouterr().out
     assert main(["stream", skin, *find, "--seconds", "1.0", "--rate", "50"]) == 0
     out = capsys.readouterr().out
     ids = [i for line in out.splitlines() if "DANGER" in line
            for i in json.loads(line[line.index("["):line.index("]") + 1])]
     assert sorted(ids) == [7, 55] and "(max 9.0 N)" in out  # taxel 7 (board 0) and 48 + 7 (board 1), once each
     done = out.strip().splitlines()[-1]
-    assert done.startswith("done: ") and done.endswith(" 0 lost, 0 corrupt, 2 danger events")
+    assert done.startswith("done: ") and done.endswith(" 0 lost, 0 corrupt, 0 resynced, 2 danger events")
+    per_board = [line for line in out.splitlines() if "stopped; received" in line]
+    assert len(per_board) == 2 and all("lost 0, corrupt 0, resynced 0 of" in line for line in per_board)
 
 
 def test_deploy_cli_errors(tmp_path, capsys):
@@ -73,9 +75,11 @@ def test_deploy_cli_errors(tmp_path, capsys):
     assert main(["deploy", str(tmp_path / "skin.json")]) == 2
     assert "give --port PORT" in capsys.readouterr().err
     assert main(["deploy", str(tmp_path / "skin.json"), "--port", str(tmp_path / "nope")]) == 1
-    assert "no board answered" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "nope: no board (link: " in out and "cannot open the serial port" in out and "1 other problems" in out
     assert main(["deploy", str(tmp_path / "skin.json"), "--all", "--no-system-ports", "--glob", str(tmp_path / "x*")]) == 1
-    assert "problem: board 0 'board0' uid 0x5c1a0000: not found on any port" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "board 0 'board0' uid 0x5c1a0000: missing [untouched]: no serial port to probe" in out
 
 
 def test_bench_serial_rows(capsys):
@@ -91,3 +95,15 @@ def test_bench_serial_rows(capsys):
     # 2 boards x 128 channels x 12 B, each way, plus framing: the wire time follows from the bytes
     assert row["wire_bytes"] > 2 * 2 * 128 * 12
     assert row["wire_s"] == pytest.approx(row["wire_bytes"] / 2 * 10 / 4e6, rel=0.05)
+
+
+def test_bench_serial_fault_storm_rows(capsys):
+    assert main(["bench", "serial", "--faults", "--json", "--rounds", "2", "--boards-per-round", "6",
+                 "--kills", "2", "--seed", "3"]) == 0
+    (row,) = json.loads(capsys.readouterr().out)
+    assert row["board_deploys"] == 12 and row["emulator_kills"] >= 2
+    assert sum(row[k] for k in ("updated", "unchanged", "refused", "failed", "cancelled", "missing")) == 12
+    for k in ("mixed_configs", "wrong_states", "tracebacks", "bad_exit_codes", "boards_without_report",
+              "not_found_without_reason", "emulator_hangs"):
+        assert row[k] == 0, k
+    assert row["not_found"] == row["missing"] and 0 < row["emulator_kill_max_s"] < 5

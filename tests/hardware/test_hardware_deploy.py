@@ -68,7 +68,7 @@ def test_deploy_four_boards_matched_by_uid_not_port_order(tmp_path):
     links = tmp_path / "links"
     with EmulatorProcess([(b.uid, b.capacity) for b in reversed(d.boards)], tmp_path, "--link-dir", str(links)):
         found = discover(candidate_ports([str(links / "board-*")], system=False))
-        assert sorted(found) == sorted(b.uid for b in d.boards)
+        assert sorted(found.found) == sorted(b.uid for b in d.boards) and not found.skipped
         p = plan(d, found)
         assert not p.missing and not p.strangers
         reports = deploy(d, p.ports)
@@ -125,15 +125,16 @@ def test_every_fault_leaves_old_or_new_config_and_is_reported(tmp_path, fault):
         assert running == (new_cfg.sha256 if outcome == "new" else old_cfg.sha256), rep.line()
     if rep.ok:
         assert rep.status == "updated" and running == new_cfg.sha256 == rep.active_hash
+        assert rep.state == "committed"
     else:
-        assert rep.status in ("failed", "refused") and rep.message
-        if rep.active_hash is not None:
-            assert rep.active_hash == running
-            assert ("kept its old config" in rep.message or rep.status == "refused") == (running == old_cfg.sha256)
-        elif "no config was sent" in rep.message:
-            assert running == old_cfg.sha256
+        assert rep.status in ("failed", "refused") and rep.message and rep.kind
+        # the reported state is what the flash holds: untouched/rolled back -> old, committed -> new
+        want = {"untouched": old_cfg.sha256, "rolled back": old_cfg.sha256, "committed": new_cfg.sha256}
+        if rep.state == "unknown":
+            assert "old or the new config" in rep.message
         else:
-            assert "either the old or the new config" in rep.message
+            assert running == want[rep.state], rep.line()
+            assert rep.state in rep.line()
     if fault.startswith("wrong firmware"):
         assert rep.status == "refused" and "firmware 2.1.0" in rep.message and rep.tx_bytes == P.OVERHEAD
     if fault.startswith("wrong protocol"):
@@ -146,6 +147,9 @@ def test_board_survives_malformed_requests(tmp_path):
     from skinsafe.hardware.client import BoardClient, BoardError
     rng = np.random.default_rng(7)
     with EmulatorProcess([(0x5C1A0000, 64)], tmp_path) as em, BoardClient(em.ports[0x5C1A0000], retries=0) as c:
+        with pytest.raises(BoardError, match="config-begin failed after 1 tries"):
+            c.request(P.CONFIG_BEGIN, bytes(36))  # broadcast: only identify may be, the board ignores it
+        c.identify()  # from now on the client addresses the board's uid
         for cmd in list(P.COMMANDS) + [0x33]:
             if cmd == P.RESET:
                 continue
@@ -159,3 +163,20 @@ def test_board_survives_malformed_requests(tmp_path):
         with pytest.raises(BoardError, match="refused 0x33|unknown command"):
             c.request(0x33)
         assert c.identify().uid == 0x5C1A0000 and not flash_path(tmp_path, 0x5C1A0000).exists()
+
+
+def test_each_emulated_board_draws_faults_from_its_own_seed(tmp_path):
+    from skinsafe.hardware.emulated_board import BoardSpec, EmulatedBoard, Faults
+    data = bytes(4000)
+
+    def damage(uid, seed):
+        b = EmulatedBoard(BoardSpec(uid, 8, faults=Faults(flip=0.01, seed=seed)), tmp_path / f"{uid}-{seed}")
+        try:
+            return b._wire(data)
+        finally:
+            b.close()
+
+    one, other, again, next_run = damage(1, 0), damage(2, 0), damage(1, 0), damage(1, 1)
+    assert one == again  # one run seed reproduces each board's faults ...
+    assert one != other and one != next_run  # ... and boards (and runs) do not share them
+    assert 10 < sum(x != 0 for x in one) < 80  # about 40 flipped bytes

@@ -108,3 +108,17 @@ def test_fuzz_mutated_frames_recover_every_untouched_frame(mutations, step):
     for k, f in enumerate(frames):
         if k not in touched:
             assert f in encoded, f"untouched frame {k} was lost"
+
+
+def test_a_lying_length_header_cannot_hold_frames_back():
+    """A header with a valid CRC claiming 60,000 payload bytes: bounded by what the board can send,
+    the parser drops it at once and the good frames behind it come out in the same read."""
+    head = P.HEADER.pack(P.SYNC, P.PROTOCOL_VERSION, P.STREAM_DATA, 1, 7, 60000)
+    liar = head + P.HEADER_CRC.pack(P.crc16(head))
+    good = [P.encode_frame(P.STREAM_DATA, k, 7, P.STREAM_HEAD.pack(0, k, 32, 0) + bytes(64)) for k in range(3)]
+    wire = liar + b"".join(good)
+    bounded = P.FrameParser(P.board_max_payload(64, 32))
+    assert [f.seq for f in bounded.feed(wire)] == [0, 1, 2] and bounded.resyncs == 1
+    unbounded = P.FrameParser()
+    assert unbounded.feed(wire) == []  # waits for 60,004 more bytes before it can resynchronise
+    assert P.board_max_payload(64, 32) == P.MAX_SHORT_PAYLOAD and P.board_max_payload(4096, 32) == 4101
