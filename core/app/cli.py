@@ -10,9 +10,8 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import signal
 import sys
-
-from skinsafe.core.skin.model import DesignError
 
 COMMANDS = {
     "demo": ("skinsafe.core.app.demo", "run the whole product on the bundled sample scene and write a report"),
@@ -87,6 +86,30 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; Ctrl-C anywhere (even while a command module is still importing, where
+    a C extension may turn the interrupt into an ImportError) ends with exit code 130 and one
+    line, never a traceback."""
+    interrupted = []
+
+    def on_sigint(signum, frame):
+        interrupted.append(True)
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        return _main(argv)
+    except BaseException:
+        if not interrupted:
+            raise
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # one Ctrl-C, one clean exit
+        print("skinsafe: interrupted", file=sys.stderr)
+        return 130
+    finally:
+        if not interrupted:
+            signal.signal(signal.SIGINT, previous)
+
+
+def _main(argv: list[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     if not argv or argv[0] in ("-h", "--help"):
@@ -120,6 +143,8 @@ def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench
 
 
 def _run_module(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False) -> int:
+    from skinsafe.core.skin.model import DesignError  # here: the CLI starts (and takes Ctrl-C) before numpy loads
+
     args = module_args(mod, prog, helptext, argv, name, bench)
     try:
         if bench:
