@@ -11,7 +11,7 @@ import pytest
 
 @pytest.mark.parametrize("delay", [0.2, 0.6, 1.2, 2.0])
 def test_ctrl_c_exits_130_without_traceback(delay):
-    proc = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", "bench", "jacobians", "--sizes", "16384"],
+    proc = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", "bench", "jacobians", "--sizes", ",".join(["16384"] * 60)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(delay)
     proc.send_signal(signal.SIGINT)
