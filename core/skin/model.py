@@ -22,12 +22,15 @@ class DesignError(ValueError):
 class RobotRef:
     """Which robot the skin is designed for.
 
-    kind: "builtin" (name is "ur5" or "panda"), "mjcf" or "urdf" (path to the file).
+    kind: "builtin" (name is "ur5" or "panda"), "mjcf" or "urdf" (path to the file: URDF or xacro).
+    package_dirs: where `package://NAME/...` and `$(find NAME)` look for ROS packages (a package
+    folder, or a folder holding packages), relative to the taxel map or absolute.
     """
 
     kind: str = "builtin"
     name: str = "ur5"
     path: str | None = None
+    package_dirs: tuple = ()
 
 
 @dataclass(frozen=True)
