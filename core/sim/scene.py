@@ -7,6 +7,7 @@ obstacles. `skinsafe.exporters.mjcf.export_scene` writes it to files.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from scipy.spatial.transform import Rotation
 from skinsafe.core.robot import meshes as meshlib
 from skinsafe.core.robot.models import Robot
 from skinsafe.core.sim.contacts import prune_contacts
+from skinsafe.core.sim.skin_collision import fit_to_skin, taxel_clearance
 from skinsafe.core.skin.model import DesignError, SkinDesign
 
 GEOM_TYPES = {
@@ -27,7 +29,8 @@ GEOM_TYPES = {
     "mesh": (mujoco.mjtGeom.mjGEOM_MESH, 0),
 }
 MAP_FILE = "taxel_map.json"
-SITE_GROUP = 3  # hidden in the viewer by default: a dense skin would hide the robot
+SITE_GROUP = 3
+COLLISION_MODES = ("skin",) + meshlib.MODES  # hidden in the viewer by default: a dense skin would hide the robot
 
 
 @dataclass
@@ -54,21 +57,20 @@ class Obstacle:
 class SceneOptions:
     """Every modelling choice of the scene, with defaults that suit the vectorised readout."""
 
-    collision: str = "primitive"  # mesh robots: "primitive" | "hull" | "decimate" | "full"
+    collision: str = "skin"  # "skin" (fitted to the skin, see sim.skin_collision) | mesh robots: "primitive" | "hull" | "decimate" | "full"
     target_faces: int = 500  # for "decimate"
     visual: bool = True  # keep visual meshes (geoms that never collide)
-    taxel_sites: bool = True  # one site per taxel ("taxel_<id>")
+    taxel_sites: bool = False  # one site per taxel ("taxel_<id>"), for viewing and touch sensors; the readout needs none
+    clearance_tol: float = 1e-3  # m: warn when a taxel is farther than this from the contact surface
     touch_sensors: bool = False  # one MuJoCo touch sensor per taxel (accuracy reference; slow)
     prune_contacts: bool = True  # robot bodies nothing can touch get contype/conaffinity 0
     timestep: float | None = None
 
     def check(self) -> None:
-        if self.collision not in meshlib.MODES:
-            raise ValueError(f"SceneOptions.collision is '{self.collision}'; use one of {meshlib.MODES}")
+        if self.collision not in COLLISION_MODES:
+            raise ValueError(f"SceneOptions.collision is '{self.collision}'; use one of {COLLISION_MODES}")
         if self.collision == "decimate" and self.target_faces < 4:
             raise ValueError(f"SceneOptions.target_faces is {self.target_faces}; give at least 4")
-        if self.touch_sensors and not self.taxel_sites:
-            raise ValueError("SceneOptions.touch_sensors needs taxel_sites=True (a touch sensor reads a site)")
         if self.timestep is not None and not (0 < self.timestep <= 0.05):
             raise ValueError(f"SceneOptions.timestep is {self.timestep}; give seconds in (0, 0.05]")
 
@@ -85,8 +87,18 @@ def build_scene(design: SkinDesign, robot: Robot, obstacles=(), options: SceneOp
     if options.timestep is not None:
         spec.option.timestep = float(options.timestep)
     _process_meshes(spec, options)
+    if options.collision == "skin":
+        fit_to_skin(spec, design, options.clearance_tol)
+    if len(design.taxels):
+        gap = taxel_clearance(spec, design, robot.home)
+        worst = int(np.argmax(np.abs(gap)))
+        if abs(gap[worst]) > options.clearance_tol:
+            warnings.warn(f"scene: taxel {int(design.taxels.ids[worst])} on '{design.bodies[design.taxels.body[worst]]}' "
+                          f"is {gap[worst] * 1e3:+.1f} mm from the contact surface ({int((np.abs(gap) > options.clearance_tol).sum())} "
+                          f"taxels beyond {options.clearance_tol * 1e3:.1f} mm): contacts there are sensed late or not at "
+                          "all; use SceneOptions(collision='skin')", stacklevel=2)
     _add_obstacles(spec, list(obstacles))
-    if options.taxel_sites:
+    if options.taxel_sites or options.touch_sensors:  # a touch sensor reads a site
         _add_taxel_sites(spec, design, options.touch_sensors)
     try:
         model = spec.compile()
@@ -137,7 +149,7 @@ def _process_meshes(spec: mujoco.MjSpec, options: SceneOptions) -> None:
             g.type = mujoco.mjtGeom.mjGEOM_CAPSULE if long else mujoco.mjtGeom.mjGEOM_BOX
             g.size = [0.0, 0.0, 0.0]
             continue
-        if options.collision == "full":
+        if options.collision in ("full", "skin"):
             continue
         key = src.name
         if key not in made:
