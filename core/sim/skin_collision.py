@@ -6,8 +6,8 @@ Chosen by measurement, per skinned link (the link and the links welded to it):
 2. a geom that buries taxels deeper than `tol` (a coarse collision hull or an inflated
    self-collision capsule standing above the skin) is shrunk until it sits under the skin
    (primitives by their sizes, meshes by moving every face of their convex hull inward);
-3. where taxels are still farther than `tol` from the contact surface, each module becomes a
-   thin convex shell (its taxel cells and a copy `shell_depth` below them) colliding on the link.
+3. where taxels are still farther than `tol` from the contact surface, each module becomes thin
+   convex shells (blocks of its taxel cells and a copy `shell_depth` below them) on the link.
 
 Links whose own geoms already carry the skin (the built-in capsules) are left as they are.
 """
@@ -160,22 +160,40 @@ def _shrink(spec, model, g, delta: float, report: dict) -> None:
     report["shrunk"].append(sg.name)
 
 
-def _add_shell(spec, design: SkinDesign, module, depth: float) -> int:
-    """One module as a thin convex collision shell on its link: its taxel cells' corners and the
-    same points `depth` below them (body frame). Returns 1 if added."""
+def _add_shell(spec, design: SkinDesign, module, depth: float, block: int = 2) -> int:
+    """One module as thin convex collision shells on its link, one per `block` x `block` taxels
+    (small pieces follow a curved FPC; one hull per module would bridge its hollows): each the
+    taxel cells' corners and the same points `depth` below them (body frame). Returns the count."""
     t = design.taxels
-    on = t.module == module.id
-    if on.sum() < 1:
-        return 0
-    p, f = t.positions[on], t.frames[on]
+    idx = np.flatnonzero(t.module == module.id)
+    k = np.arange(len(idx))
+    cols = max(module.cols, 1)
+    piece = (k // cols) // block * (cols // block + 1) + (k % cols) // block
     h = module.pitch / 2
-    corners = [p + sx * h * f[:, :, 0] + sy * h * f[:, :, 1] for sx in (-1, 1) for sy in (-1, 1)]
-    top = np.concatenate([p] + corners)
-    normal = np.concatenate([f[:, :, 2]] * 5)
-    pts = np.concatenate([top, top - depth * normal])
-    mesh = spec.add_mesh(name=f"skin_shell_{module.id}")
-    mesh.uservert = pts.ravel().tolist()
-    spec.body(module.body).add_geom(name=f"skin_shell_{module.id}", type=mujoco.mjtGeom.mjGEOM_MESH,
-                                    meshname=mesh.name, group=SHELL_GROUP, density=0, contype=1, conaffinity=1,
-                                    rgba=[0.1, 0.7, 0.3, 0.25])
-    return 1
+    count = 0
+
+    def shell(sel):
+        p, f = t.positions[sel], t.frames[sel]
+        corners = [p + sx * h * f[:, :, 0] + sy * h * f[:, :, 1] for sx in (-1, 1) for sy in (-1, 1)]
+        top = np.concatenate([p] + corners)
+        return p, np.concatenate([top, top - depth * np.concatenate([f[:, :, 2]] * 5)])
+
+    pieces = []
+    for j in np.unique(piece):
+        sel = idx[piece == j]
+        p, pts = shell(sel)
+        eq = ConvexHull(pts).equations
+        # a block over a hollow buries its taxels under its hull: then one shell per taxel cell
+        if len(sel) > 1 and (-(p @ eq[:, :3].T + eq[:, 3]).max(axis=1)).max() > 2e-4:
+            pieces += [shell(sel[i:i + 1])[1] for i in range(len(sel))]
+        else:
+            pieces.append(pts)
+    for pts in pieces:
+        name = f"skin_shell_{module.id}_{count}"
+        mesh = spec.add_mesh(name=name)
+        mesh.uservert = pts.ravel().tolist()
+        spec.body(module.body).add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh.name,
+                                        group=SHELL_GROUP, density=0, contype=1, conaffinity=1,
+                                        rgba=[0.1, 0.7, 0.3, 0.25])
+        count += 1
+    return count
