@@ -3,8 +3,8 @@
 Chosen by measurement, per skinned link (the link and the links welded to it):
 1. every taxel's signed distance to the link's colliding geoms is measured with MuJoCo's own
    `mj_geomDistance` (a point probe; negative inside);
-2. a geom that buries taxels deeper than `tol` (a coarse collision hull or an inflated
-   self-collision capsule standing above the skin) is shrunk until it sits under the skin
+2. a coarse geom (one that is not a skin surface itself: a collision hull, an inflated
+   self-collision capsule) burying taxels deeper than `tol` is shrunk until it sits under the skin
    (primitives by their sizes, meshes by moving every face of their convex hull inward);
 3. where taxels are still farther than `tol` from the contact surface, each module becomes thin
    convex shells (blocks of its taxel cells and a copy `shell_depth` below them) on the link.
@@ -17,6 +17,7 @@ import mujoco
 import numpy as np
 from scipy.spatial import ConvexHull, HalfspaceIntersection
 
+from skinsafe.core.design.surface import skin_geoms
 from skinsafe.core.skin.model import SkinDesign
 
 PROBE = "skinsafe_probe"
@@ -78,10 +79,13 @@ def fit_to_skin(spec: mujoco.MjSpec, design: SkinDesign, tol: float = 1e-3, shel
         world[on] = t.positions[on] @ data.xmat[bid].reshape(3, 3).T + data.xpos[bid]
     weld_of = {bi: model.body_weldid[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, b)]
                for bi, b in enumerate(design.bodies)}
-    needs_shell = {bi for bi in weld_of if (np.abs(depth[t.body == bi]) > tol).any()}
-    # any robot geom burying a taxel (of its own link, or of a neighbour at the home pose) goes under the skin
+    needs_shell = {bi for bi in weld_of if (depth[t.body == bi] > tol).any()}  # taxels above the contact surface
+    # a coarse robot geom (not itself a skin surface: a collision hull, an inflated self-collision
+    # capsule) burying a taxel, of its own link or of a neighbour at the home pose, goes under the skin
+    visual = {g for g in range(model.ngeom) if model.geom_bodyid[g] and not _collides(model, g)}
+    surface = visual or {g for b in range(1, model.nbody) for g in skin_geoms(model, b)}
     for g in range(model.ngeom):
-        if not _collides(model, g) or model.geom_bodyid[g] == 0:
+        if not _collides(model, g) or model.geom_bodyid[g] == 0 or g in surface:
             continue
         Rg, xg = data.geom_xmat[g].reshape(3, 3), data.geom_xpos[g]
         d = _inside_depth(model, g, (world - xg) @ Rg)
