@@ -23,7 +23,7 @@ SCENE_FILE = "scene.xml"
 
 
 def export_scene(design: SkinDesign, robot: Robot, out_dir: str | Path, obstacles=(),
-                 options: SceneOptions = SceneOptions()) -> Path:
+                 options: SceneOptions = SceneOptions(taxel_sites=True)) -> Path:
     """Write `scene.xml`, `meshes/` and `taxel_map.json` into `out_dir`; returns the scene path.
 
     Everything is staged in a temporary folder and checked with a plain

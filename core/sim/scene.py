@@ -118,10 +118,12 @@ def _add_skin(spec, design: SkinDesign, robot: Robot, options: SceneOptions) -> 
     far = np.abs(gap) > options.clearance_tol
     if far.any():
         w = int(np.argmax(np.abs(gap)))
+        fix = ("the taxel is buried inside the link's own shape: move its module onto the outer surface"
+               if gap[w] < 0 else "use SceneOptions(collision='skin')")
         warnings.warn(f"scene: taxel {int(design.taxels.ids[w])} on '{design.bodies[design.taxels.body[w]]}' is "
                       f"{gap[w] * 1e3:+.1f} mm from the contact surface ({int(far.sum())} taxels beyond "
-                      f"{options.clearance_tol * 1e3:.1f} mm): contacts there are sensed late or not at all; "
-                      "use SceneOptions(collision='skin')", stacklevel=3)
+                      f"{options.clearance_tol * 1e3:.1f} mm): contacts there are sensed late or not at all; {fix}",
+                      stacklevel=3)
 
 
 # --- robot meshes -------------------------------------------------------------------------
