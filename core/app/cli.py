@@ -16,6 +16,7 @@ from skinsafe.core.skin.model import DesignError
 
 COMMANDS = {
     "demo": ("skinsafe.core.app.demo", "run the whole product on the bundled sample scene and write a report"),
+    "design": ("skinsafe.core.app.design", "design a skin on any robot (built-in, URDF, xacro, MJCF) from a layout spec"),
     "sample": ("skinsafe.core.design.sample", "generate the sample skin on a built-in robot and save its taxel map"),
     "check": ("skinsafe.core.app.check", "validate a taxel map against its robot and print a summary"),
     "export": ("skinsafe.exporters.cli_export", "export a skin design to a MuJoCo scene (MJCF) and taxel map"),

@@ -79,7 +79,7 @@ def fit_to_skin(spec: mujoco.MjSpec, design: SkinDesign, tol: float = 1e-3, shel
         world[on] = t.positions[on] @ data.xmat[bid].reshape(3, 3).T + data.xpos[bid]
     weld_of = {bi: model.body_weldid[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, b)]
                for bi, b in enumerate(design.bodies)}
-    needs_shell = {bi for bi in weld_of if (depth[t.body == bi] > tol).any()}  # taxels above the contact surface
+    needs_shell = set()  # bodies whose coarse geoms were shrunk: all their modules get shells
     # a coarse robot geom (not itself a skin surface: a collision hull, an inflated self-collision
     # capsule) burying a taxel, of its own link or of a neighbour at the home pose, goes under the skin
     visual = {g for g in range(model.ngeom) if model.geom_bodyid[g] and not _collides(model, g)}
@@ -95,7 +95,7 @@ def fit_to_skin(spec: mujoco.MjSpec, design: SkinDesign, tol: float = 1e-3, shel
             needs_shell |= {bi for bi, w in weld_of.items() if w == weld}
     for m in design.modules:
         bi = design.bodies.index(m.body)
-        if bi in needs_shell:
+        if bi in needs_shell or (np.abs(depth[t.module == m.id]) > tol).any():
             report["shells"] += _add_shell(spec, design, m, shell_depth)
     return report
 
