@@ -74,7 +74,7 @@ def design_robot(robot, ref: RobotRef, spec: dict):
     """Tile the spec's module over the spec's bodies; returns (design, refusal messages)."""
     from skinsafe.core.bench.robot_import import skinnable_bodies
     from skinsafe.core.design.coverage import coverage_report
-    from skinsafe.core.design.layout import tile_body
+    from skinsafe.core.design.layout import tile_body, without_buried
     from skinsafe.core.design.placement import build_design
     from skinsafe.core.design.surface import cached_surfaces
 
@@ -101,6 +101,8 @@ def design_robot(robot, ref: RobotRef, spec: dict):
                           f"{refused[0] if refused else 'none'}); use smaller modules or a larger bend radius")
     design = build_design(ref, placed, int(spec.get("board_capacity", 512)), float(spec.get("force_threshold", 2.0)),
                           bodies=[b for b in bodies if any(p.module.body == b for p in placed)])
+    design, dropped = without_buried(design, robot.model, robot.home)
+    refused += [f"module {m}: buried inside another link at every sampled pose" for m in dropped]
     design.coverage = coverage_report(design, robot.model)
     return design, refused
 

@@ -32,18 +32,15 @@ def add_arguments(p) -> None:
 
 
 def skinnable_bodies(robot) -> list[str]:
-    """Moving links with a skin surface (the whole arm): those with visual geometry where the
-    robot has any (helper links carrying only self-collision shapes are left out), else all."""
-    m = robot.model
-    moving = [b for b in range(1, m.nbody) if m.body_weldid[b] != 0 and (m.geom_bodyid == b).any()]
-    visual = [b for b in moving if any(m.geom_contype[g] == 0 and m.geom_conaffinity[g] == 0
-                                       for g in np.flatnonzero(m.geom_bodyid == b))]
-    return [m.body(b).name for b in (visual or moving)]
+    """Moving links with a real outer surface (the whole arm; see `surface_bodies`)."""
+    from skinsafe.core.design.surface import surface_bodies
+
+    return surface_bodies(robot.model, moving=True)
 
 
 def design_arm(robot, ref, pitch: float = 0.012, bodies=None):
     """A full-arm skin of 4x4 modules tiled over every moving link; returns (design, surfaces)."""
-    from skinsafe.core.design.layout import tile_body
+    from skinsafe.core.design.layout import tile_body, without_buried
     from skinsafe.core.design.placement import build_design
     from skinsafe.core.design.surface import cached_surfaces
     from skinsafe.core.skin.model import Module
@@ -56,7 +53,8 @@ def design_arm(robot, ref, pitch: float = 0.012, bodies=None):
     for b in bodies:
         mine, _ = tile_body(surfaces[b], robot.model, template, b, len(placed))
         placed += mine
-    return build_design(ref, placed, capacity=512, bodies=[b for b in bodies if any(p.module.body == b for p in placed)]), surfaces
+    design = build_design(ref, placed, capacity=512, bodies=[b for b in bodies if any(p.module.body == b for p in placed)])
+    return without_buried(design, robot.model, robot.home)[0], surfaces
 
 
 def pokes(model, data, design, surfaces, n: int, depth: float = 0.003, radius: float = 0.005, seed: int = 0):

@@ -13,6 +13,8 @@ from dataclasses import replace
 import mujoco
 import numpy as np
 
+from skinsafe.core.design.audit import SURFACE_TOL as OVERHANG_TOL
+from skinsafe.core.design.audit import outline_overhang
 from skinsafe.core.design.placement import (
     PlacedModule,
     PlacementError,
@@ -74,6 +76,28 @@ def tile_body(surface: Surface, model, template: Module, body: str, first_id: in
         except PlacementError as e:
             refused.append(str(e))
             continue
+        over = outline_overhang(surface, p.positions, p.frames, m.pitch / 2, m.min_bend_radius)
+        if over.max() > OVERHANG_TOL:
+            refused.append(f"module {m.id} '{m.name}': its outline overhangs '{body}' by {over.max() * 1e3:.1f} mm")
+            continue
         p.module = replace(m, placement=placement_record(p.origin, p.origin_frame[:, 0], "geodesic"))
         mine.append(p)
     return mine, refused
+
+
+def without_buried(design, model, home, poses: int = 8):
+    """The design minus the modules with a taxel buried inside another link at every sampled pose
+    (`audit.buried_taxels`): such taxels can never be touched. Returns (design, dropped module ids)."""
+    from skinsafe.core.design.audit import buried_taxels
+    from skinsafe.core.design.placement import build_design, placed_from_design
+
+    buried = buried_taxels(design, model, home, poses)
+    bad = {int(m) for m in np.unique(design.taxels.module[buried])}
+    if not bad:
+        return design, []
+    keep = [placed_from_design(design, m.id) for m in design.modules if m.id not in bad]
+    for k, p in enumerate(keep):
+        p.module = replace(p.module, id=k)
+    bodies = [b for b in design.bodies if any(p.module.body == b for p in keep)]
+    return build_design(design.robot, keep, max([b.capacity for b in design.boards], default=512),
+                        float(np.median(design.taxels.thresholds["force"])), bodies=bodies), sorted(bad)

@@ -360,6 +360,17 @@ def body_surfaces(model: mujoco.MjModel, bodies: list[str] | None = None, **kw) 
     return {b: body_surface(model, b, **kw) for b in bodies}
 
 
+def surface_bodies(model: mujoco.MjModel, moving: bool = False) -> list[str]:
+    """Bodies with a real outer surface: those with visual geometry where the robot has any
+    (helper links that carry only coarse or inflated collision shapes are left out), else every
+    body with geometry; `moving`: only bodies not welded to the world."""
+    bodies = [b for b in range(1, model.nbody) if (not moving or model.body_weldid[b] != 0)
+              and any(model.geom_type[g] != G.mjGEOM_PLANE for g in np.flatnonzero(model.geom_bodyid == b))]
+    visual = [b for b in bodies if any(model.geom_contype[g] == 0 and model.geom_conaffinity[g] == 0
+                                       for g in np.flatnonzero(model.geom_bodyid == b))]
+    return [model.body(b).name for b in (visual or bodies)]
+
+
 _CACHE: dict = {}
 
 
