@@ -76,7 +76,14 @@ def outline_overhang(surface, positions, frames, half, min_bend) -> np.ndarray:
     for sx in (-1, 1):
         for sy in (-1, 1):
             c = positions + (sx * half)[:, None] * frames[:, :, 0] + (sy * half)[:, None] * frames[:, :, 1]
-            worst = np.maximum(worst, surface.closest(c)[3] - sag)
+            # the nearest tree point bounds the distance from above, the tree's reach from below:
+            # exact closest points only where the bounds straddle the tolerance
+            upper = surface._tree.query(c)[0]
+            d = upper.copy()
+            unsure = (upper - surface._reach < sag + SURFACE_TOL) & (upper > sag)
+            if unsure.any():
+                d[unsure] = surface.closest(c[unsure])[3]
+            worst = np.maximum(worst, d - sag)
     return worst
 
 
