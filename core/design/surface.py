@@ -76,8 +76,9 @@ class Surface:
     @classmethod
     def from_mesh(cls, vertices, triangles, corner_normals=None, name: str = "surface",
                   crease_deg: float = 45.0) -> "Surface":
-        """A surface from arrays; without corner normals, area-weighted vertex normals are used,
-        except where one differs from its face's normal by more than `crease_deg` (a crease)."""
+        """A surface from arrays; without corner normals, each triangle corner gets the area-weighted
+        normal of the triangles around its vertex that meet this one at less than `crease_deg`
+        (smooth across a curved patch, sharp at a crease: a prism's flat face stays flat)."""
         v = np.asarray(vertices, dtype=float).reshape(-1, 3)
         t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
         if t.size and (t.min() < 0 or t.max() >= len(v)):
@@ -87,14 +88,7 @@ class Surface:
         keep = area2 > 1e-14
         t, fn, area2 = t[keep], fn[keep], area2[keep]
         if corner_normals is None:
-            unit = fn / area2[:, None]
-            vn = np.zeros_like(v)
-            for k in range(3):
-                np.add.at(vn, t[:, k], fn)
-            vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
-            cn = vn[t]
-            sharp = np.einsum("tkj,tj->tk", cn, unit) < np.cos(np.radians(crease_deg))
-            cn[sharp] = np.repeat(unit[:, None, :], 3, axis=1)[sharp]
+            cn = _smooth_corner_normals(t, fn, np.cos(np.radians(crease_deg)))
         else:
             cn = np.asarray(corner_normals, dtype=float).reshape(-1, 3, 3)[keep]
             cn = cn / np.linalg.norm(cn, axis=2, keepdims=True)
@@ -126,6 +120,27 @@ class Surface:
         n = np.einsum("mk,mkj->mj", bary, self.corner_normals[tri])
         n /= np.linalg.norm(n, axis=1, keepdims=True)
         return q, n, tri, np.sqrt(d2)
+
+
+def _smooth_corner_normals(t: np.ndarray, fn: np.ndarray, cos_crease: float) -> np.ndarray:
+    """(T, 3, 3) corner normals: per corner, the sum of the area-weighted normals `fn` of the
+    triangles sharing its vertex whose unit normal is within the crease angle of its own."""
+    unit = fn / np.linalg.norm(fn, axis=1, keepdims=True)
+    vert = t.ravel()
+    order = np.argsort(vert, kind="stable")
+    _, start, count = np.unique(vert[order], return_index=True, return_counts=True)
+    # every pair of corners at the same vertex (a, b): b's face contributes to a's normal
+    size = count.astype(np.int64) ** 2
+    group = np.repeat(np.arange(len(count)), size)
+    local = np.arange(size.sum()) - np.repeat(np.cumsum(size) - size, size)
+    a = order[start[group] + local // count[group]]
+    b = order[start[group] + local % count[group]]
+    fa, fb = a // 3, b // 3
+    keep = np.sum(unit[fa] * unit[fb], axis=1) >= cos_crease
+    out = np.zeros((len(vert), 3))
+    np.add.at(out, a[keep], fn[fb[keep]])
+    out /= np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
+    return out.reshape(-1, 3, 3)
 
 
 def _dot(u, v):

@@ -95,7 +95,7 @@ def fit_to_skin(spec: mujoco.MjSpec, design: SkinDesign, tol: float = 1e-3, shel
             needs_shell |= {bi for bi, w in weld_of.items() if w == weld}
     for m in design.modules:
         bi = design.bodies.index(m.body)
-        if bi in needs_shell or (np.abs(depth[t.module == m.id]) > tol).any():
+        if bi in needs_shell or (depth[t.module == m.id] > tol).any():  # taxels above the contact surface
             report["shells"] += _add_shell(spec, design, m, shell_depth)
     return report
 

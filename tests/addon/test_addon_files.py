@@ -77,7 +77,7 @@ def test_urdf_import_place_on_mesh_and_refusals(tmp_path):
     assert np.abs(np.hypot(p[:, 0], p[:, 1]) - 0.05).max() < 5e-4
 
     bad = _urdf(tmp_path, mesh="gone.obj")
-    with pytest.raises(RuntimeError, match="link 'hand' uses mesh 'gone.obj'"):
+    with pytest.raises(RuntimeError, match="link 'hand' collision #0: mesh file 'gone.obj' not found"):
         bpy.ops.skinsafe.import_robot(source="FILE", filepath=str(bad))
     bad = _urdf(tmp_path, joint="planar")
     with pytest.raises(RuntimeError, match="joint 'j1' has type 'planar'"):
