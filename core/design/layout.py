@@ -85,9 +85,11 @@ def tile_body(surface: Surface, model, template: Module, body: str, first_id: in
     return mine, refused
 
 
-def without_buried(design, model, home, poses: int = 8):
-    """The design minus the modules with a taxel buried inside another link at every sampled pose
-    (`audit.buried_taxels`): such taxels can never be touched. Returns (design, dropped module ids)."""
+def without_buried(design, model, home, poses: int = 1):
+    """The design minus the modules with a taxel buried inside another link at every one of
+    `poses` sampled poses (`audit.buried_taxels`; the default, 1, is the home pose: no skin where
+    the robot covers itself at home, a superset of what `check` refuses). Returns (design,
+    dropped module ids)."""
     from skinsafe.core.design.audit import buried_taxels
     from skinsafe.core.design.placement import build_design, placed_from_design
 
