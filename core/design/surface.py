@@ -401,11 +401,3 @@ def cached_surfaces(model: mujoco.MjModel, bodies: list[str], **kw) -> dict[str,
     missing = [b for b in bodies if b not in store[1]]
     store[1].update(body_surfaces(model, missing, **kw) if missing else {})
     return {b: store[1][b] for b in bodies}
-
-
-def check_urdf(path) -> None:
-    """Refuse a URDF that the skin designer cannot use faithfully (the same validation as
-    `load_robot`: joint types, every mesh found and readable, named by link and file)."""
-    from skinsafe.core.robot.urdf_import import urdf_spec
-
-    urdf_spec(path)

@@ -85,6 +85,35 @@ def test_urdf_import_place_on_mesh_and_refusals(tmp_path):
     assert b2c.design_of(scene).n_taxels == 48  # refused imports leave the scene as it was
 
 
+def test_ros_description_with_collada_visuals_through_the_operators():
+    """The bundled Franka xacro (package://, DAE visuals Blender 5 cannot import itself): the core
+    reads the meshes, Blender gets each link's budgeted visual surface, a module goes on a link."""
+    asset = ROOT / "blend_assets" / "franka_description"
+    bpy.ops.wm.read_homefile(use_empty=True)
+    assert bpy.ops.skinsafe.import_robot(source="FILE", filepath=str(asset / "robots/panda/panda.urdf.xacro"),
+                                         package_dirs=str(asset)) == {"FINISHED"}
+    scene = bpy.context.scene
+    bodies = b2c.body_objects(scene)
+    link4 = bodies["panda_link4"]
+    assert 10000 < len(link4.data.polygons) <= 20000  # the real DAE visual (14,620 faces), not a hull or a box
+    assert len(scene.skinsafe.joints) == 7 and scene.skinsafe.robot_package_dirs == str(asset)
+    s = scene.skinsafe.new_module
+    s.rows, s.cols, s.pitch, s.taxel_diameter, s.margin, s.min_bend_radius = 3, 3, 0.012, 0.007, 0.002, 0.02
+    surf = b2c.surface_of(link4)
+    from skinsafe.core.design.layout import tile_body
+    from skinsafe.core.skin.model import Module
+
+    template = Module(0, "t", "panda_link4", rows=3, cols=3, pitch=0.012, taxel_diameter=0.007, min_bend_radius=0.02)
+    first = tile_body(surf, b2c.robot_for(scene).model, template, "panda_link4", 0, limit=9)[0][0]
+    assert bpy.ops.skinsafe.place_module(body="panda_link4", anchor=first.origin, direction=first.origin_frame[:, 0],
+                                         use_cursor=False) == {"FINISHED"}
+    d = b2c.design_of(scene)
+    assert d.n_taxels == 9
+    assert surf.closest(d.taxels.positions)[3].max() < 1e-6  # on the visual surface
+    with pytest.raises(RuntimeError, match="package 'franka_description'|find franka_description"):
+        bpy.ops.skinsafe.import_robot(source="FILE", filepath=str(asset / "robots/panda/panda.urdf.xacro"))
+
+
 def test_extension_zip_builds_and_installs(tmp_path):
     subprocess.run([sys.executable, str(ROOT / "addon" / "package.py"), "--no-deps", "--out", str(tmp_path)],
                    check=True, capture_output=True)
