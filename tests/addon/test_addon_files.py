@@ -85,7 +85,7 @@ def test_urdf_import_place_on_mesh_and_refusals(tmp_path):
     assert b2c.design_of(scene).n_taxels == 48  # refused imports leave the scene as it was
 
 
-def test_ros_description_with_collada_visuals_through_the_operators():
+def test_ros_description_with_collada_visuals_through_the_operators(tmp_path):
     """The bundled Franka xacro (package://, DAE visuals Blender 5 cannot import itself): the core
     reads the meshes, Blender gets each link's budgeted visual surface, a module goes on a link."""
     asset = ROOT / "blend_assets" / "franka_description"
@@ -110,6 +110,22 @@ def test_ros_description_with_collada_visuals_through_the_operators():
     d = b2c.design_of(scene)
     assert d.n_taxels == 9
     assert surf.closest(d.taxels.positions)[3].max() < 1e-6  # on the visual surface
+    # exported through the operator: the contact surface is where the skin is, no self contact at home
+    import mujoco
+
+    from skinsafe.core.bench.robot_import import self_contacts
+    from skinsafe.core.sim.skin_collision import taxel_clearance
+
+    out = tmp_path / "scene"
+    assert bpy.ops.skinsafe.export_mjcf(directory=str(out)) == {"FINISHED"}
+    spec = mujoco.MjSpec.from_file(str(out / "scene.xml"))
+    home = b2c.robot_for(scene).home
+    assert np.abs(taxel_clearance(spec, d, home)).max() <= 1e-3
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    data.qpos[:] = home
+    mujoco.mj_forward(model, data)
+    assert self_contacts(model, data) == 0
     with pytest.raises(RuntimeError, match="package 'franka_description'|find franka_description"):
         bpy.ops.skinsafe.import_robot(source="FILE", filepath=str(asset / "robots/panda/panda.urdf.xacro"))
 
