@@ -42,13 +42,15 @@ def load_checked(path: str | Path, what: str, manifold: bool = True):
     mesh.remove_unreferenced_vertices()
     if len(mesh.faces) == 0:
         raise DesignError(f"{what}: mesh file '{path}' is broken (all faces degenerate); re-export it")
+    if not manifold:
+        return mesh
     edges = np.sort(mesh.edges, axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
-    if manifold and (counts > 2).any():
+    key = edges[:, 0] * (int(edges.max()) + 1) + edges[:, 1]  # one integer per edge: a 1-D unique
+    _, counts = np.unique(key, return_counts=True)
+    if (counts > 2).any():
         raise DesignError(f"{what}: mesh file '{path}' is non-manifold ({int((counts > 2).sum())} edges shared by "
                           "more than two faces); repair it (e.g. Blender 'Select Non Manifold', MeshLab) and re-export")
-    if manifold:
-        trimesh.repair.fix_winding(mesh)
+    trimesh.repair.fix_winding(mesh)
     return mesh
 
 

@@ -32,6 +32,11 @@ class RobotRef:
     path: str | None = None
     package_dirs: tuple = ()
 
+    def __post_init__(self):
+        if isinstance(self.package_dirs, str) or not all(isinstance(d, str) for d in self.package_dirs):
+            raise DesignError(f"robot: field 'package_dirs' is {self.package_dirs!r}; give a list of folder paths")
+        object.__setattr__(self, "package_dirs", tuple(self.package_dirs))  # a JSON list reads back equal
+
 
 @dataclass(frozen=True)
 class Module:
