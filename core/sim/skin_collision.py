@@ -41,7 +41,6 @@ def taxel_clearance(spec: mujoco.MjSpec, design: SkinDesign, q=None) -> np.ndarr
         data.qpos[:len(q)] = q
     mujoco.mj_kinematics(model, data)
     pg = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, PROBE)
-    slot = model.body_mocapid[model.geom_bodyid[pg]]
     t = design.taxels
     out = np.full(len(t), np.inf)
     fromto = np.zeros(6)
@@ -53,8 +52,7 @@ def taxel_clearance(spec: mujoco.MjSpec, design: SkinDesign, q=None) -> np.ndarr
         idx = np.flatnonzero(t.body == bi)
         world = t.positions[idx] @ data.xmat[bid].reshape(3, 3).T + data.xpos[bid]
         for i, p in zip(idx, world):
-            data.mocap_pos[slot] = p
-            mujoco.mj_kinematics(model, data)
+            data.geom_xpos[pg] = p  # mj_geomDistance reads the pose from here: no kinematics per taxel
             for g in geoms:
                 out[i] = min(out[i], mujoco.mj_geomDistance(model, data, g, pg, 0.05, fromto))
     return out
