@@ -27,6 +27,8 @@ def add_arguments(p) -> None:
     p.add_argument("robot", help="built-in name (ur5, panda) or a URDF / xacro / MJCF file")
     p.add_argument("--package-dir", action="append", default=[],
                    help="a ROS package folder (or a folder of packages) for package:// and $(find); repeatable")
+    p.add_argument("--xacro-arg", action="append", default=[], metavar="NAME:=VALUE",
+                   help="an argument for a xacro file (e.g. gazebo:=true); repeatable")
     p.add_argument("--layout", help="layout spec JSON (see `skinsafe design --help`)")
     p.add_argument("--bodies", help="comma separated links to skin (default: every moving link)")
     p.add_argument("--rows", type=int)
@@ -36,7 +38,7 @@ def add_arguments(p) -> None:
     p.add_argument("--out", default="out/skin.json", help="taxel map to write")
 
 
-def robot_ref(robot: str, package_dirs, out: Path) -> RobotRef:
+def robot_ref(robot: str, package_dirs, out: Path, xacro_args: dict | None = None) -> RobotRef:
     """A built-in name or a file, with paths stored relative to the taxel map's folder."""
     from skinsafe.core.robot.models import BUILTIN
 
@@ -47,7 +49,7 @@ def robot_ref(robot: str, package_dirs, out: Path) -> RobotRef:
         raise DesignError(f"robot '{robot}' is neither a built-in ({', '.join(BUILTIN)}) nor a file; check the path")
     kind = "mjcf" if path.suffix == ".xml" and "<mujoco" in path.read_text()[:4000] else "urdf"
     rel = lambda p: os.path.relpath(Path(p).resolve(), out.parent.resolve())  # noqa: E731
-    return RobotRef(kind, path.name.split(".")[0], rel(path), tuple(rel(d) for d in package_dirs))
+    return RobotRef(kind, path.name.split(".")[0], rel(path), tuple(rel(d) for d in package_dirs), dict(xacro_args or {}))
 
 
 def read_spec(path: str | None) -> dict:
@@ -122,7 +124,10 @@ def run(args) -> int:
         spec["bodies"] = [b for b in args.bodies.split(",") if b]
     if args.max_taxels is not None:
         spec["max_taxels"] = args.max_taxels
-    ref = robot_ref(args.robot, args.package_dir, out)
+    bad = [a for a in args.xacro_arg if ":=" not in a]
+    if bad:
+        raise DesignError(f"--xacro-arg '{bad[0]}' is not NAME:=VALUE (e.g. gazebo:=true)")
+    ref = robot_ref(args.robot, args.package_dir, out, dict(a.split(":=", 1) for a in args.xacro_arg))
     robot = load_robot(ref, base_dir=out.parent)
     design, refused = design_robot(robot, ref, spec)
     path = save(design, out)

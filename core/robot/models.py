@@ -222,7 +222,7 @@ def load_robot(ref: RobotRef, base_dir: str | Path | None = None,
     else:
         from skinsafe.core.robot.urdf_import import urdf_spec
 
-        spec, vel_by_name = urdf_spec(path, [rel(d) for d in ref.package_dirs])
+        spec, vel_by_name = urdf_spec(path, [rel(d) for d in ref.package_dirs], ref.xacro_args)
     return robot_from_spec(spec, ref.name or path.name.split(".")[0], vel_by_name, default_vel_limit,
                            default_acc_limit, path=str(path))
 
@@ -238,9 +238,16 @@ def robot_from_spec(spec: mujoco.MjSpec, name: str, vel_by_name: dict | None = N
     joints = [model.joint(j).name for j in range(model.njnt)
               if int(model.jnt_type[j]) in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))]
     if model.nu == 0 and joints:
-        # kp scaled by the mass each joint carries: stiff enough to hold the arm against gravity
+        # kp scaled by the mass each joint carries: stiff enough to hold the arm against gravity;
+        # joints without armature or damping get the built-ins' (0.1 kg m^2, 1 N m s), so the
+        # servos stay stable at a 2 ms step on light wrist links
         carried = [float(model.body_subtreemass[model.jnt_bodyid[model.joint(j).id]]) for j in joints]
         _add_position_actuators(spec, joints, [max(200.0, 400.0 * m) for m in carried])
+        for j in joints:
+            sj = spec.joint(j)
+            sj.armature = float(sj.armature) or 0.1
+            if not np.any(sj.damping):
+                sj.damping = np.full_like(np.asarray(sj.damping, float), 1.0)
     _exclude_tree_neighbours(spec, model)
     home = model.key_qpos[0].copy() if model.nkey else _inside_limits(model)
     if not model.nkey:

@@ -113,7 +113,7 @@ def _origin(el) -> tuple[list[float], list[float]]:
 
 
 def check_joints(root: ET.Element, src: str) -> None:
-    for j in root.iter("joint"):
+    for j in root.findall("joint"):  # the robot's joints (a <transmission> names joints too)
         if j.get("type") not in URDF_JOINTS:
             raise DesignError(f"robot file '{src}': joint '{j.get('name')}' has type '{j.get('type')}', which skinsafe "
                               f"does not support; use one of {', '.join(URDF_JOINTS)}")
@@ -135,7 +135,7 @@ def urdf_spec(path: str | Path, package_dirs=(), args: dict | None = None) -> tu
         raise DesignError(f"robot file '{path}': top element is <{root.tag}>, expected <robot>; is it a URDF?")
     check_joints(root, str(path))
     meshes = []  # (link, kind, index, file, scale, pos, quat)
-    for link in root.iter("link"):
+    for link in root.findall("link"):
         for kind in ("visual", "collision"):
             for k, el in enumerate(list(link.findall(kind))):
                 m = el.find("geometry/mesh")
@@ -146,7 +146,7 @@ def urdf_spec(path: str | Path, package_dirs=(), args: dict | None = None) -> tu
                 scale = [float(v) for v in m.get("scale", "1 1 1").split()]
                 meshes.append((link.get("name"), kind, k, file, scale, *_origin(el), where))
                 link.remove(el)
-    vel = {j.get("name"): float(j.find("limit").get("velocity")) for j in root.iter("joint")
+    vel = {j.get("name"): float(j.find("limit").get("velocity")) for j in root.findall("joint")
            if j.find("limit") is not None and j.find("limit").get("velocity")}
     mj = root.find("mujoco")
     mj = ET.SubElement(root, "mujoco") if mj is None else mj

@@ -24,13 +24,15 @@ class RobotRef:
 
     kind: "builtin" (name is "ur5" or "panda"), "mjcf" or "urdf" (path to the file: URDF or xacro).
     package_dirs: where `package://NAME/...` and `$(find NAME)` look for ROS packages (a package
-    folder, or a folder holding packages), relative to the taxel map or absolute.
+    folder, or a folder holding packages), relative to the taxel map or absolute. xacro_args: the
+    `name:=value` arguments a xacro file is expanded with.
     """
 
     kind: str = "builtin"
     name: str = "ur5"
     path: str | None = None
     package_dirs: tuple = ()
+    xacro_args: dict = field(default_factory=dict)  # xacro arguments (name -> value) for .xacro files
 
     def __post_init__(self):
         if isinstance(self.package_dirs, str) or not all(isinstance(d, str) for d in self.package_dirs):
