@@ -23,7 +23,8 @@ def robot_ref(scene) -> RobotRef | None:
     s = scene.skinsafe
     if not s.robot_kind:
         return None
-    return RobotRef(s.robot_kind, s.robot_name, s.robot_path or None)
+    dirs = tuple(d for d in s.robot_package_dirs.split(";") if d)
+    return RobotRef(s.robot_kind, s.robot_name, s.robot_path or None, dirs)
 
 
 def robot_for(scene):
@@ -31,7 +32,7 @@ def robot_for(scene):
     ref = robot_ref(scene)
     if ref is None:
         raise DesignError("scene: no robot imported; import one first (skinsafe panel > Robot)")
-    key = (ref.kind, ref.name, ref.path)
+    key = (ref.kind, ref.name, ref.path, ref.package_dirs)
     if key not in _robots:
         _robots[key] = load_robot(ref)
     return _robots[key]

@@ -54,6 +54,7 @@ def build_robot(scene, ref) -> bpy.types.Object:
             bpy.data.objects.remove(o, do_unlink=True)
         bpy.data.collections.remove(old)
     s.robot_kind, s.robot_name, s.robot_path = ref.kind, ref.name, ref.path or ""
+    s.robot_package_dirs = ";".join(ref.package_dirs)
     robot = robot_for(scene)
     m = robot.model
     coll = bpy.data.collections.new(COLLECTION)

@@ -10,7 +10,6 @@ from skinsafe.addon import blender_to_core as b2c
 from skinsafe.addon import core_to_blender as c2b
 from skinsafe.addon import designer
 from skinsafe.core.design.coverage import format_report
-from skinsafe.core.design.surface import check_urdf
 from skinsafe.core.skin import taxel_map
 from skinsafe.core.skin.model import DesignError, RobotRef
 
@@ -37,15 +36,18 @@ def _has_skin(context):
 
 
 class SKINSAFE_OT_import_robot(bpy.types.Operator, ImportHelper):
-    """Import the built-in UR5 or Panda, or a URDF/MJCF file (one object per body)"""
+    """Import the built-in UR5 or Panda, or a URDF, xacro or MJCF file (one object per body; meshes
+    STL/OBJ/DAE are read by the core, `package://` resolved in the package folders given)"""
 
     bl_idname = "skinsafe.import_robot"
     bl_label = "Import Robot"
     bl_options = {"REGISTER", "UNDO"}
 
     source: EnumProperty(name="Robot", items=[("ur5", "UR5", "built-in UR5"), ("panda", "Panda", "built-in 7-DoF arm"),
-                                              ("FILE", "URDF/MJCF file", "a robot file")], default="ur5")
-    filter_glob: StringProperty(default="*.urdf;*.xml;*.mjcf", options={"HIDDEN"})
+                                              ("FILE", "URDF/xacro/MJCF file", "a robot file")], default="ur5")
+    filter_glob: StringProperty(default="*.urdf;*.xacro;*.xml;*.mjcf", options={"HIDDEN"})
+    package_dirs: StringProperty(name="ROS package folders", default="",
+                                 description="folders holding the ROS packages the file names (package://, $(find)), ';'-separated")
 
     def invoke(self, context, event):
         if self.source == "FILE":
@@ -57,11 +59,10 @@ class SKINSAFE_OT_import_robot(bpy.types.Operator, ImportHelper):
         try:
             if self.source == "FILE":
                 path = Path(bpy.path.abspath(self.filepath))
-                kind = "urdf" if path.suffix.lower() == ".urdf" else "mjcf"
-                if kind == "urdf":
-                    check_urdf(path)
-                ref = RobotRef(kind, path.stem, str(path))
-                b2c.load_robot(ref)  # refuse before touching the scene
+                kind = "mjcf" if path.suffix.lower() in (".xml", ".mjcf") else "urdf"
+                dirs = tuple(str(Path(bpy.path.abspath(d))) for d in self.package_dirs.split(";") if d)
+                ref = RobotRef(kind, path.name.split(".")[0], str(path), dirs)
+                b2c.load_robot(ref)  # one validation (joints, every mesh by link and file) before touching the scene
             else:
                 ref = RobotRef("builtin", self.source)
             root = c2b.build_robot(scene, ref)

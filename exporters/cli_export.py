@@ -5,22 +5,21 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from skinsafe.core.robot.meshes import MODES
 from skinsafe.core.robot.models import load_robot
-from skinsafe.core.sim.scene import Obstacle, SceneOptions
+from skinsafe.core.sim.scene import COLLISION_MODES, Obstacle, SceneOptions
 from skinsafe.core.skin import taxel_map
 from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.model import DesignError
 from skinsafe.exporters.mjcf import export_scene
-from skinsafe.exporters.urdf import URDF_FILE, build_urdf
+from skinsafe.exporters.urdf import URDF_FILE, build_urdf, write_meshes
 
 
 def add_arguments(p) -> None:
     d = SceneOptions()
     p.add_argument("map", help="taxel map JSON (from the add-on or `skinsafe sample`)")
     p.add_argument("out_dir", help="folder to write scene.xml, meshes/ and taxel_map.json into")
-    p.add_argument("--collision", choices=MODES, default=d.collision,
-                   help="collision geometry of mesh robots (default %(default)s)")
+    p.add_argument("--collision", choices=COLLISION_MODES, default=d.collision,
+                   help="collision model: 'skin' fits it to the skin (default %(default)s); the others simplify mesh robots")
     p.add_argument("--target-faces", type=int, default=d.target_faces, help="faces for --collision decimate")
     p.add_argument("--no-visual", action="store_true", help="drop visual-only meshes")
     p.add_argument("--no-sites", action="store_true", help="no taxel sites")
@@ -42,9 +41,11 @@ def run(args) -> int:
                                 taxel_sites=not args.no_sites, touch_sensors=args.touch,
                                 prune_contacts=not args.no_prune, timestep=args.timestep)
         obstacles = [Obstacle("probe", "sphere", (args.probe,), pos=(0, 0, -1), mocap=True)] if args.probe else []
-        urdf = build_urdf(design, robot) if args.urdf else None  # check it before writing anything
+        meshes: dict = {}
+        urdf = build_urdf(design, robot, meshes=meshes) if args.urdf else None  # check it before writing anything
         scene = export_scene(design, robot, args.out_dir, obstacles, options)
         if urdf is not None:
+            write_meshes(args.out_dir, meshes)
             atomic_write(Path(args.out_dir) / URDF_FILE, urdf)
     except (DesignError, ValueError) as e:
         print(f"skinsafe export: {e}", file=sys.stderr)

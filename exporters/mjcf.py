@@ -23,7 +23,7 @@ SCENE_FILE = "scene.xml"
 
 
 def export_scene(design: SkinDesign, robot: Robot, out_dir: str | Path, obstacles=(),
-                 options: SceneOptions = SceneOptions()) -> Path:
+                 options: SceneOptions = SceneOptions(taxel_sites=True)) -> Path:
     """Write `scene.xml`, `meshes/` and `taxel_map.json` into `out_dir`; returns the scene path.
 
     Everything is staged in a temporary folder and checked with a plain
@@ -67,7 +67,8 @@ def _write_meshes(spec: mujoco.MjSpec, stage: Path) -> None:
             v = np.asarray(m.uservert, float).reshape(-1, 3)
             f = np.asarray(m.userface, int).reshape(-1, 3)
             dst = out / f"{m.name}.stl"
-            trimesh.Trimesh(v, f, process=False).export(str(dst))
+            mesh = trimesh.Trimesh(v, f, process=False) if len(f) else trimesh.Trimesh(v).convex_hull  # points: their hull, as MuJoCo reads them
+            mesh.export(str(dst))
             m.uservert, m.userface = [], []
         m.file = dst.name
     spec.meshdir = MESH_DIR

@@ -3,10 +3,11 @@
 Layout of the written file (`export_urdf`):
 
 * One `<link>` per MuJoCo body of the compiled `robot.model`, named as the body, with its
-  `<inertial>` (body_mass, principal body_inertia at body_ipos/body_iquat). Geometry is
-  primitive only: sphere, box and cylinder geoms become `<visual>` + `<collision>` of the same
-  shape, a capsule becomes the cylinder of its straight part; mesh, plane and other geoms are
-  left out. The world body becomes a link "world" only when the tree needs it (several root
+  `<inertial>` (body_mass, principal body_inertia at body_ipos/body_iquat). The robot's visual
+  geoms become `<visual>`, its colliding geoms `<collision>` (both only for a robot with no
+  visual geometry, like the built-ins): sphere, box and cylinder as such, a capsule as the
+  cylinder of its straight part, meshes as `meshes/<mesh>.stl` written beside the URDF (the
+  robot's own meshes, DAE visuals included); plane and other geoms are left out. The world body becomes a link "world" only when the tree needs it (several root
   bodies, a root away from the origin, or a root with a joint); its geoms (table, floor) are
   left out.
 * One `<joint>` per body to its parent body, origin = body_pos/body_quat as xyz/rpy: a limited
@@ -47,6 +48,7 @@ from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.model import SkinDesign
 
 URDF_FILE = "robot_skin.urdf"
+MESH_DIR = "meshes"
 DEFAULT_EFFORT = 100.0  # N m (or N) where the model gives no actuator force range
 TAXEL_THICKNESS = 0.001  # m, thickness of the taxel marker box in the tactile sensor
 _JOINT_TYPES = {int(mujoco.mjtJoint.mjJNT_HINGE): "revolute", int(mujoco.mjtJoint.mjJNT_SLIDE): "prismatic",
@@ -143,9 +145,24 @@ def _needs_world(model: mujoco.MjModel) -> bool:
     return bool(model.body_jntnum[b] or np.any(model.body_pos[b] != 0) or np.any(model.body_quat[b] != [1, 0, 0, 0]))
 
 
-def _robot_elements(root: ET.Element, robot: Robot) -> None:
+def _mesh_geometry(model: mujoco.MjModel, g: int, meshes: dict) -> ET.Element:
+    """A mesh geom as `meshes/<mesh>.stl` (the robot's own mesh as MuJoCo holds it, in the geom
+    frame); its vertices and faces are collected in `meshes` for the caller to write."""
+    m = int(model.geom_dataid[g])
+    name = model.mesh(m).name or f"mesh{m}"
+    if name not in meshes:
+        v0, nv, f0, nf = model.mesh_vertadr[m], model.mesh_vertnum[m], model.mesh_faceadr[m], model.mesh_facenum[m]
+        meshes[name] = (model.mesh_vert[v0:v0 + nv].astype(float), model.mesh_face[f0:f0 + nf].astype(np.int64))
+    geo = ET.Element("geometry")
+    ET.SubElement(geo, "mesh", filename=f"{MESH_DIR}/{name}.stl")
+    return geo
+
+
+def _robot_elements(root: ET.Element, robot: Robot, meshes: dict | None = None) -> None:
     model = robot.model
     world = _needs_world(model)
+    has_visual = any(model.geom_bodyid[g] and not (model.geom_contype[g] or model.geom_conaffinity[g])
+                     for g in range(model.ngeom))
     if world:
         ET.SubElement(root, "link", name="world")
     for b in range(1, model.nbody):
@@ -157,14 +174,22 @@ def _robot_elements(root: ET.Element, robot: Robot) -> None:
             ET.SubElement(inertial, "mass", value=_num(model.body_mass[b:b + 1]))
             ixx, iyy, izz = (repr(float(v)) for v in model.body_inertia[b])
             ET.SubElement(inertial, "inertia", ixx=ixx, ixy="0.0", ixz="0.0", iyy=iyy, iyz="0.0", izz=izz)
-        for g in np.flatnonzero(model.geom_bodyid == b):
-            if _geometry(model, int(g)) is None:
+        geoms = [int(g) for g in np.flatnonzero(model.geom_bodyid == b)]
+        collides = {g: bool(model.geom_contype[g] or model.geom_conaffinity[g]) for g in geoms}
+        for g in geoms:
+            mesh = int(model.geom_type[g]) == int(_G.mjGEOM_MESH) and meshes is not None
+            if not mesh and _geometry(model, g) is None:
                 continue
-            gname = model.geom(int(g)).name or f"{name}_geom{int(g)}"
-            for tag, el_name in (("visual", f"{gname}_visual"), ("collision", gname)):
+            gname = model.geom(g).name or f"{name}_geom{g}"
+            # the robot's visual geoms are its visuals, its colliding geoms its collisions; a
+            # robot with no visual geometry (the built-ins) shows its collision shapes
+            tags = [("collision", gname)] if collides[g] else [("visual", f"{gname}_visual")]
+            if collides[g] and not has_visual:
+                tags.insert(0, ("visual", f"{gname}_visual"))
+            for tag, el_name in tags:
                 el = ET.SubElement(link, tag, name=el_name)
                 _origin(el, model.geom_pos[g], _quat_rpy(model.geom_quat[g]))
-                el.append(_geometry(model, int(g)))
+                el.append(_mesh_geometry(model, g, meshes) if mesh else _geometry(model, g))
         parent = int(model.body_parentid[b])
         if parent == 0 and not world:
             continue  # the single root link
@@ -232,21 +257,37 @@ def _taxel_elements(root: ET.Element, design: SkinDesign, update_rate: float) ->
                 ET.SubElement(ET.SubElement(taxel, "geometry"), "box", size=_num([side, side, TAXEL_THICKNESS]))
 
 
-def build_urdf(design: SkinDesign, robot: Robot, update_rate: float = 100.0, name: str | None = None) -> str:
-    """The URDF text (see the module docstring); ValueError (naming the body/taxel and the fix) on bad input."""
+def build_urdf(design: SkinDesign, robot: Robot, update_rate: float = 100.0, name: str | None = None,
+               meshes: dict | None = None) -> str:
+    """The URDF text (see the module docstring); ValueError (naming the body/taxel and the fix) on
+    bad input. With a `meshes` dict, mesh geoms are kept (as `meshes/<name>.stl`, their vertices
+    and faces put in the dict for the caller to write); without, they are left out."""
     if not update_rate > 0:
         raise ValueError(f"urdf export: update_rate {update_rate} Hz must be positive")
     design.validate("urdf export", robot.body_names)  # DesignError (a ValueError) names the body/taxel at fault
     _check_robot(robot.model, design)
     root = ET.Element("robot", name=name or f"{robot.name}_skin")
     mj = ET.SubElement(root, "mujoco")
-    ET.SubElement(mj, "compiler", fusestatic="false", discardvisual="false")
-    _robot_elements(root, robot)
+    ET.SubElement(mj, "compiler", fusestatic="false", discardvisual="false", strippath="false")
+    _robot_elements(root, robot, meshes)
     _taxel_elements(root, design, update_rate)
     ET.indent(root, space="  ")
     return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 
 
+def write_meshes(folder: str | Path, meshes: dict) -> None:
+    """The collected meshes as binary STL files in `folder/meshes/` (each written atomically)."""
+    import trimesh
+
+    for mesh_name, (v, f) in meshes.items():
+        data = trimesh.Trimesh(v, f, process=False).export(file_type="stl")
+        atomic_write(Path(folder) / MESH_DIR / f"{mesh_name}.stl", data)
+
+
 def export_urdf(design: SkinDesign, robot: Robot, path: str | Path, update_rate: float = 100.0) -> Path:
-    """Write the design's URDF (robot tree, taxel links, tactile sensors) atomically to `path`."""
-    return atomic_write(path, build_urdf(design, robot, update_rate))
+    """Write the design's URDF (robot tree with its own meshes, taxel links, tactile sensors)
+    atomically to `path`, the meshes beside it in `meshes/`."""
+    meshes: dict = {}
+    text = build_urdf(design, robot, update_rate, meshes=meshes)
+    write_meshes(Path(path).parent, meshes)
+    return atomic_write(path, text)

@@ -15,6 +15,7 @@ import sys
 
 COMMANDS = {
     "demo": ("skinsafe.core.app.demo", "run the whole product on the bundled sample scene and write a report"),
+    "design": ("skinsafe.core.app.design", "design a skin on any robot (built-in, URDF, xacro, MJCF) from a layout spec"),
     "sample": ("skinsafe.core.design.sample", "generate the sample skin on a built-in robot and save its taxel map"),
     "check": ("skinsafe.core.app.check", "validate a taxel map against its robot and print a summary"),
     "export": ("skinsafe.exporters.cli_export", "export a skin design to a MuJoCo scene (MJCF) and taxel map"),
@@ -37,6 +38,7 @@ BENCHES = {
     "sensing": ("skinsafe.core.bench.sensing", "vectorised skin readout vs per-taxel touch sensors"),
     "retraction": ("skinsafe.core.bench.retraction", "one defensiveness tick vs a loop"),
     "modulation": ("skinsafe.core.bench.modulation", "modulation tick and full three-layer tick"),
+    "import": ("skinsafe.core.bench.robot_import", "a robot's own description in, a full-arm skin on its real surface"),
     "pfl": ("skinsafe.core.bench.pfl", "the ISO/TS 15066 speed cap tick vs a per-taxel loop"),
     "serial": ("skinsafe.hardware.bench_serial", "deploy and stream decoding over a pseudo-terminal"),
 }

@@ -66,11 +66,12 @@ def taxel_rows(sizes, steps: int) -> list[dict]:
         readers = {k: SkinReadout(mb, design, kernel=k) for k in ("linear", "nearest")}
         read_ms = {k: median_ms(lambda r=r: r.read(db), repeat=steps) for k, r in readers.items()}
         agree = _agreement(mt, dt, design, probes, steps)
+        native = _native(design, robot, probes, steps, bare, read_ms)
         for kernel in ("linear", "nearest"):
             rows.append(dict(sweep="taxels", n_taxels=n, readout="vectorised", kernel=kernel,
                              steps_per_s=1e3 / (bare + read_ms[kernel]), read_us=read_ms[kernel] * 1e3,
                              bare_step_us=bare * 1e3, bare_nosites_us=bare_nosites * 1e3,
-                             overhead_vs_bare=read_ms[kernel] / bare, **agree[kernel]))
+                             overhead_vs_bare=read_ms[kernel] / bare, **agree[kernel], **native[kernel]))
         rows.append(dict(sweep="taxels", n_taxels=n, readout="touch", kernel="cell", steps_per_s=1e3 / touch_step,
                          read_us=(touch_step - bare) * 1e3, bare_step_us=bare * 1e3,
                          bare_nosites_us=bare_nosites * 1e3, overhead_vs_bare=(touch_step - bare) / bare,
@@ -79,6 +80,36 @@ def taxel_rows(sizes, steps: int) -> list[dict]:
         for r in rows[-3:-1]:
             r["speedup_vs_touch"] = (touch_step - bare) / (r["read_us"] / 1e3)
     return rows
+
+
+def _native(design, robot, probes, steps: int, skin_step: float, read_ms: dict) -> dict:
+    """What the skin costs against the same scene with no skin, and against MuJoCo's native
+    `tactile` sensor on the same taxels: `overhead_vs_skinless` (skinned step + readout over the
+    skinless step, minus 1), `speedup_vs_tactile` (the tactile sensors' added cost over the
+    readout's added cost) and `tactile_lit_agreement` (share of the taxels either lights that both
+    light: the accuracy the two are compared at)."""
+    from skinsafe.core.sim.readout import TactileReadout
+
+    m0, d0 = probe_scene(None, robot, probes.obstacles, probes.q)
+    mt, dt = probe_scene(design, robot, probes.obstacles, probes.q, tactile_sensors=True)
+    skinless = median_ms(_stepper(m0, d0, probes), repeat=steps)
+    tactile_step = median_ms(_stepper(mt, dt, probes), repeat=steps)
+    tactile = TactileReadout(mt, dt, design)
+    out = {}
+    for kernel, ms in read_ms.items():
+        reader = SkinReadout(mt, design, kernel=kernel)
+        both, either = 0, 0
+        step = _stepper(mt, dt, probes)
+        for _ in range(min(steps, 200)):
+            step()
+            a, b = reader.read(dt) > 1e-9, tactile.read(dt) > 1e-9
+            both, either = both + int((a & b).sum()), either + int((a | b).sum())
+        added = max(skin_step + ms - skinless, 1e-9)
+        out[kernel] = dict(skinless_step_us=skinless * 1e3, tactile_step_us=tactile_step * 1e3,
+                           overhead_vs_skinless=(skin_step + ms) / skinless - 1,
+                           speedup_vs_tactile=(tactile_step - skinless) / added,
+                           tactile_lit_agreement=both / max(either, 1))
+    return out
 
 
 def _agreement(model, data, design, probes, steps: int) -> dict:

@@ -37,19 +37,21 @@ def geom_area(model: mujoco.MjModel, g: int) -> float:
 
 
 def body_area(model: mujoco.MjModel, body: str) -> float:
-    """Surface area of a body's geoms (where geoms overlap, counted twice)."""
-    bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
-    return float(sum(geom_area(model, g) for g in np.flatnonzero(model.geom_bodyid == bid)))
+    """Outer surface area of a body's skin surface (its visual geometry where it has any, else
+    its colliding shapes; overlaps counted once), m^2."""
+    from skinsafe.core.design.surface import cached_surfaces
+
+    return cached_surfaces(model, [body])[body].area
 
 
 def gaps(design: SkinDesign, model: mujoco.MjModel, body_index: int, pitch: float) -> dict:
     """Where the skin leaves the link bare: the share of the link's surface (its tessellation,
     vertices weighted by area) farther than one pitch from every taxel, and `largest_gap_mm`, the
     farthest any surface point is from a taxel (the radius of the biggest bare patch)."""
-    from skinsafe.core.design.surface import body_surface
+    from skinsafe.core.design.surface import cached_surfaces
 
     on = design.taxels.body == body_index
-    surf = body_surface(model, design.bodies[body_index])
+    surf = cached_surfaces(model, [design.bodies[body_index]])[design.bodies[body_index]]
     v, tri = surf.vertices, surf.triangles
     if not on.any():
         return {"bare_fraction": 1.0, "largest_gap_mm": float("inf")}

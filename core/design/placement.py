@@ -26,12 +26,15 @@ TEMPLATES = ("rect", "strip", "curve")
 METHODS = ("geodesic", "projection")
 
 
+FAR_ANCHOR = 0.02  # m: an anchor farther than this from its link's surface is refused, not snapped
+
+
 class PlacementError(DesignError):
     """The FPC cannot be placed as asked; `where` holds (row, col, body-frame position) or None."""
 
     def __init__(self, message: str, kind: str, where: tuple | None = None):
         super().__init__(message)
-        self.kind = kind  # "off_surface", "bend_radius", "overlap", "template"
+        self.kind = kind  # "off_surface", "bend_radius", "overlap", "template", "far_anchor"
         self.where = where
 
 
@@ -141,7 +144,12 @@ def place_module(surface: Surface, module: Module, anchor, direction, method: st
                              f"{', '.join(METHODS)}", "template")
     uv, row, col = template_grid(module, outline)
     anchor = np.asarray(anchor, dtype=float).reshape(1, 3)
-    p0, n0, _, _ = surface.closest(anchor)
+    p0, n0, _, gap = surface.closest(anchor)
+    if gap[0] > FAR_ANCHOR:
+        raise PlacementError(f"module {module.id} '{module.name}': anchor {_fmt(anchor[0])} is {gap[0] * 1e3:.0f} mm from "
+                             f"the surface of '{surface.name}' (more than {FAR_ANCHOR * 1e3:.0f} mm); put the anchor on "
+                             "the link (did you mean another body, or body-frame coordinates?)", "far_anchor",
+                             (0, 0, tuple(map(float, anchor[0]))))
     x0 = frames_from_normals(n0, np.asarray(direction, dtype=float).reshape(1, 3))[:, :, 0]
     if method == "projection":
         pos, nrm, x = _project(surface, module, uv, row, col, p0, n0, x0)

@@ -3,7 +3,8 @@ and normal queries (pure numpy + scipy).
 
 Primitives (sphere, capsule, cylinder, ellipsoid, box) are tessellated finely enough that the
 mesh stays within `tol` (default 0.05 mm) of the true shape, with exact normals at the vertices;
-mesh geoms come from the model. Triangles buried inside another primitive of the same body are
+mesh geoms come from the model (the visual meshes by default, decimated to a per-link triangle
+budget, never subdivided). Triangles buried inside another primitive of the same body are
 dropped, so the surface is the outside of the union. Every triangle corner carries its own normal
 (smooth across a curved patch, split at creases), interpolated barycentrically at query points.
 """
@@ -41,28 +42,43 @@ class Surface:
         inv = lambda e: 1.0 / np.maximum(np.sum(e * e, axis=1, keepdims=True), 1e-300)  # noqa: E731
         self._pack = np.ascontiguousarray(np.concatenate(
             [a, ab, ac, bc, n * inv(n), inv(ab), inv(ac), inv(bc)], axis=1))
-        centroids = tri.mean(axis=1)
-        self._tree = cKDTree(centroids)
-        self._k = int(min(8, len(self.triangles)))
-        self._reach = float(np.linalg.norm(tri - centroids[:, None, :], axis=2).max())  # centroid to farthest corner
+        # The k-d tree holds points on every triangle (a barycentric grid, `m` steps per edge) so that
+        # each triangle point lies within `_reach` of one of its tree points: a few long slivers of a
+        # CAD mesh then do not widen every query (as one centroid per triangle would).
+        edge = np.sqrt(np.maximum(np.maximum(_dot(ab, ab), _dot(ac, ac)), _dot(bc, bc)))
+        self._reach = float(max(2.0 * np.median(edge), 1e-9))
+        m = np.clip(np.ceil(edge / self._reach), 1, 64).astype(np.int64)
+        pts, owner = [tri.mean(axis=1)], [np.arange(len(tri))]
+        for k in np.unique(m[m > 1]):
+            sel = np.flatnonzero(m == k)
+            i, j = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
+            keep = (i + j) <= k
+            u, w = i[keep] / k, j[keep] / k
+            pts.append((a[sel, None] + u[None, :, None] * ab[sel, None] + w[None, :, None] * ac[sel, None]).reshape(-1, 3))
+            owner.append(np.repeat(sel, len(u)))
+        self._owner = np.concatenate(owner)
+        self._tree = cKDTree(np.concatenate(pts))
+        self._reach = float(max(self._reach, (edge / m).max()))
+        self._k = int(min(8, len(self._owner)))
 
     def _nearest(self, p, index, k):
         """Best of the k nearest-centroid triangles; also which `index` entries may miss a closer one."""
         dc, cand = self._tree.query(p, k=k)
-        dc, cand = dc.reshape(len(p), -1), cand.reshape(len(p), -1)
+        dc, cand = dc.reshape(len(p), -1), self._owner[cand.reshape(len(p), -1)]
         q, w, d2 = closest_on_packed(p[:, None, :], self._pack[cand])
         best = np.argmin(d2, axis=1)
         rows = np.arange(len(p))
         d2 = d2[rows, best]
-        # Any triangle left out has its centroid beyond dc[:, -1], so no point of it nearer than that - reach.
-        unsure = (np.sqrt(d2) + self._reach > dc[:, -1]) & (k < len(self.triangles))
+        # Any triangle left out has all its tree points beyond dc[:, -1], so no point of it nearer than that - reach.
+        unsure = (np.sqrt(d2) + self._reach > dc[:, -1]) & (k < len(self._owner))
         return q[rows, best], w[rows, best], d2, cand[rows, best], index[unsure]
 
     @classmethod
     def from_mesh(cls, vertices, triangles, corner_normals=None, name: str = "surface",
                   crease_deg: float = 45.0) -> "Surface":
-        """A surface from arrays; without corner normals, area-weighted vertex normals are used,
-        except where one differs from its face's normal by more than `crease_deg` (a crease)."""
+        """A surface from arrays; without corner normals, each triangle corner gets the area-weighted
+        normal of the triangles around its vertex that meet this one at less than `crease_deg`
+        (smooth across a curved patch, sharp at a crease: a prism's flat face stays flat)."""
         v = np.asarray(vertices, dtype=float).reshape(-1, 3)
         t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
         if t.size and (t.min() < 0 or t.max() >= len(v)):
@@ -72,14 +88,7 @@ class Surface:
         keep = area2 > 1e-14
         t, fn, area2 = t[keep], fn[keep], area2[keep]
         if corner_normals is None:
-            unit = fn / area2[:, None]
-            vn = np.zeros_like(v)
-            for k in range(3):
-                np.add.at(vn, t[:, k], fn)
-            vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
-            cn = vn[t]
-            sharp = np.einsum("tkj,tj->tk", cn, unit) < np.cos(np.radians(crease_deg))
-            cn[sharp] = np.repeat(unit[:, None, :], 3, axis=1)[sharp]
+            cn = _smooth_corner_normals(t, fn, np.cos(np.radians(crease_deg)))
         else:
             cn = np.asarray(corner_normals, dtype=float).reshape(-1, 3, 3)[keep]
             cn = cn / np.linalg.norm(cn, axis=2, keepdims=True)
@@ -100,10 +109,10 @@ class Surface:
         p = np.asarray(points, dtype=float).reshape(-1, 3)
         q, bary, d2, tri, unsure = self._nearest(p, np.arange(len(p)), self._k)
         if len(unsure):  # a triangle beyond the k nearest centroids may be closer: look wider
-            q2, b2, dd2, t2, still = self._nearest(p[unsure], unsure, min(6 * self._k, len(self.triangles)))
+            q2, b2, dd2, t2, still = self._nearest(p[unsure], unsure, min(6 * self._k, len(self._owner)))
             q[unsure], bary[unsure], d2[unsure], tri[unsure] = q2, b2, dd2, t2
             for i in still:  # exhaustive within d + reach (rare: huge triangles)
-                ball = np.asarray(self._tree.query_ball_point(p[i], np.sqrt(d2[i]) + self._reach))
+                ball = np.unique(self._owner[self._tree.query_ball_point(p[i], np.sqrt(d2[i]) + self._reach)])
                 qi, wi, di = closest_on_packed(p[i][None, :], self._pack[ball])
                 j = int(np.argmin(di))
                 if di[j] < d2[i]:
@@ -111,6 +120,27 @@ class Surface:
         n = np.einsum("mk,mkj->mj", bary, self.corner_normals[tri])
         n /= np.linalg.norm(n, axis=1, keepdims=True)
         return q, n, tri, np.sqrt(d2)
+
+
+def _smooth_corner_normals(t: np.ndarray, fn: np.ndarray, cos_crease: float) -> np.ndarray:
+    """(T, 3, 3) corner normals: per corner, the sum of the area-weighted normals `fn` of the
+    triangles sharing its vertex whose unit normal is within the crease angle of its own."""
+    unit = fn / np.linalg.norm(fn, axis=1, keepdims=True)
+    vert = t.ravel()
+    order = np.argsort(vert, kind="stable")
+    _, start, count = np.unique(vert[order], return_index=True, return_counts=True)
+    # every pair of corners at the same vertex (a, b): b's face contributes to a's normal
+    size = count.astype(np.int64) ** 2
+    group = np.repeat(np.arange(len(count)), size)
+    local = np.arange(size.sum()) - np.repeat(np.cumsum(size) - size, size)
+    a = order[start[group] + local // count[group]]
+    b = order[start[group] + local % count[group]]
+    fa, fb = a // 3, b // 3
+    keep = np.sum(unit[fa] * unit[fb], axis=1) >= cos_crease
+    out = np.zeros((len(vert), 3))
+    np.add.at(out, a[keep], fn[fb[keep]])
+    out /= np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
+    return out.reshape(-1, 3, 3)
 
 
 def _dot(u, v):
@@ -227,35 +257,6 @@ def _box(s, max_edge):
     return np.concatenate(verts), np.concatenate(tris), np.concatenate(norms)
 
 
-def _subdivide(v, t, max_edge):
-    """Split triangles until no edge is longer than max_edge (midpoint 1-to-4 subdivision)."""
-    for _ in range(8):
-        e = np.linalg.norm(v[t] - v[np.roll(t, -1, axis=1)], axis=2).max(axis=1)
-        if e.max() <= max_edge:
-            break
-        big, small = t[e > max_edge], t[e <= max_edge]
-        mids = {}
-        new_v = [v]
-        count = len(v)
-
-        def mid(i, j):
-            nonlocal count
-            key = (min(i, j), max(i, j))
-            if key not in mids:
-                mids[key] = count
-                new_v.append(((v[i] + v[j]) / 2)[None])
-                count += 1
-            return mids[key]
-
-        out = []
-        for a, b, c in big.tolist():
-            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
-            out += [(a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca)]
-        v = np.concatenate(new_v)
-        t = np.concatenate([small, np.asarray(out, dtype=np.int64)])
-    return v, t
-
-
 def _inside_primitive(p, gtype, size, tol=1e-6):
     """Points (geom frame) strictly inside a primitive geom (mesh geoms: never)."""
     r = size[0]
@@ -279,26 +280,64 @@ def _geom_pose(model, g):
     return R.reshape(3, 3), model.geom_pos[g].copy()
 
 
-def body_surface(model: mujoco.MjModel, body: str, tol: float = 5e-5, max_edge: float = 0.005) -> Surface:
-    """The outside surface of one body's geoms (collision and visual) in the body frame."""
+SOURCES = ("visual", "collision")
+TRIANGLE_BUDGET = 20000  # per link: CAD visuals above it are decimated, never subdivided
+
+
+def skin_geoms(model: mujoco.MjModel, bid: int, source: str = "visual") -> list[int]:
+    """The geoms of body `bid` that make its skin surface: its visual geoms (non-colliding) by
+    default, its colliding geoms for `source="collision"` or when it has no visual geoms."""
+    if source not in SOURCES:
+        raise DesignError(f"surface: source '{source}' is unknown; use one of {', '.join(SOURCES)}")
+    geoms = [int(g) for g in np.flatnonzero(model.geom_bodyid == bid) if model.geom_type[g] != G.mjGEOM_PLANE]
+    collides = {g: bool(model.geom_contype[g] or model.geom_conaffinity[g]) for g in geoms}
+    visual = [g for g in geoms if not collides[g]]
+    return visual if source == "visual" and visual else [g for g in geoms if collides[g]] or visual
+
+
+def _mesh_part(model, g, budget: int):
+    """A mesh geom's vertices (shared where they coincide) and triangles, decimated to `budget`."""
+    m = model.geom_dataid[g]
+    v0, nv = model.mesh_vertadr[m], model.mesh_vertnum[m]
+    f0, nf = model.mesh_faceadr[m], model.mesh_facenum[m]
+    v = model.mesh_vert[v0:v0 + nv].astype(float)
+    t = model.mesh_face[f0:f0 + nf].astype(np.int64)
+    v, inv = np.unique(np.round(v, 9), axis=0, return_inverse=True)
+    t = inv.ravel()[t]
+    t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])]
+    if len(t) > budget:
+        import trimesh
+
+        from skinsafe.core.robot.meshes import decimate
+
+        small = decimate(trimesh.Trimesh(v, t, process=False), budget)
+        v, t = np.asarray(small.vertices, float), np.asarray(small.faces, np.int64)
+    return v, t
+
+
+def body_surface(model: mujoco.MjModel, body: str, tol: float = 5e-5, max_edge: float = 0.005,
+                 source: str = "visual", budget: int = TRIANGLE_BUDGET) -> Surface:
+    """The outside surface of one body in the body frame, made of `skin_geoms` (visual by default,
+    counted once). Primitives are tessellated within `tol`; meshes are used as they are, decimated
+    (pymeshlab) to `budget` triangles per link when above it, with smooth vertex normals split
+    only at creases, so normals do not depend on the faceting."""
     bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
     if bid < 0:
         raise DesignError(f"surface: body '{body}' does not exist in the robot model; "
                           f"use one of {[model.body(i).name for i in range(model.nbody)]}")
-    geoms = [int(g) for g in np.flatnonzero(model.geom_bodyid == bid) if model.geom_type[g] != G.mjGEOM_PLANE]
+    geoms = skin_geoms(model, bid, source)
     if not geoms:
         raise DesignError(f"surface: body '{body}' has no geoms; give the link a mesh or primitive to place a skin on")
     poses = {g: _geom_pose(model, g) for g in geoms}
+    mesh_faces = {g: int(model.mesh_facenum[model.geom_dataid[g]]) for g in geoms
+                  if model.geom_type[g] == G.mjGEOM_MESH}
+    total = max(sum(mesh_faces.values()), 1)
     verts, tris, corners, owner, base = [], [], [], [], 0
     for g in geoms:
         gtype = int(model.geom_type[g])
         R, c = poses[g]
         if gtype == G.mjGEOM_MESH:
-            m = model.geom_dataid[g]
-            v0, nv = model.mesh_vertadr[m], model.mesh_vertnum[m]
-            f0, nf = model.mesh_faceadr[m], model.mesh_facenum[m]
-            v, t = _subdivide(model.mesh_vert[v0:v0 + nv].astype(float), model.mesh_face[f0:f0 + nf].astype(np.int64),
-                              max_edge)
+            v, t = _mesh_part(model, g, max(200, int(budget * mesh_faces[g] / total)))
             part = Surface.from_mesh(v @ R.T + c, t, name=body)
             v, t, cn = part.vertices, part.triangles, part.corner_normals
         else:
@@ -336,28 +375,29 @@ def body_surfaces(model: mujoco.MjModel, bodies: list[str] | None = None, **kw) 
     return {b: body_surface(model, b, **kw) for b in bodies}
 
 
-URDF_JOINTS = ("revolute", "continuous", "prismatic", "fixed")
+def surface_bodies(model: mujoco.MjModel, moving: bool = False) -> list[str]:
+    """Bodies with a real outer surface: those with visual geometry where the robot has any
+    (helper links that carry only coarse or inflated collision shapes are left out), else every
+    body with geometry; `moving`: only bodies not welded to the world."""
+    bodies = [b for b in range(1, model.nbody) if (not moving or model.body_weldid[b] != 0)
+              and any(model.geom_type[g] != G.mjGEOM_PLANE for g in np.flatnonzero(model.geom_bodyid == b))]
+    visual = [b for b in bodies if any(model.geom_contype[g] == 0 and model.geom_conaffinity[g] == 0
+                                       for g in np.flatnonzero(model.geom_bodyid == b))]
+    return [model.body(b).name for b in (visual or bodies)]
 
 
-def check_urdf(path) -> None:
-    """Refuse a URDF that the skin designer cannot use faithfully: a mesh file that is missing
-    (paths relative to the URDF) or a joint type other than revolute/continuous/prismatic/fixed."""
-    import xml.etree.ElementTree as ET
-    from pathlib import Path
+_CACHE: dict = {}
 
-    path = Path(path)
-    try:
-        root = ET.parse(path).getroot()
-    except (OSError, ET.ParseError) as e:
-        raise DesignError(f"robot file '{path}': cannot be read as URDF ({e}); check the path and the XML") from None
-    for j in root.iter("joint"):
-        if j.get("type") not in URDF_JOINTS:
-            raise DesignError(f"robot file '{path}': joint '{j.get('name')}' has type '{j.get('type')}', which skinsafe "
-                              f"does not support; use one of {', '.join(URDF_JOINTS)}")
-    for link in root.iter("link"):
-        for mesh in link.iter("mesh"):
-            name = mesh.get("filename", "")
-            local = name.split("://", 1)[-1] if name.startswith(("package://", "file://")) else name
-            if not (path.parent / local).is_file() and not Path(local).is_file():
-                raise DesignError(f"robot file '{path}': link '{link.get('name')}' uses mesh '{name}', which is not at "
-                                  f"'{path.parent / local}'; put the mesh there or fix the filename (relative to the URDF)")
+
+def cached_surfaces(model: mujoco.MjModel, bodies: list[str], **kw) -> dict[str, Surface]:
+    """`body_surfaces` built once per model (by identity) and options: the design, `check` and
+    the readout checks of one process share them instead of rebuilding every surface."""
+    key = (id(model), tuple(sorted(kw.items())))
+    store = _CACHE.get(key)
+    if store is None or store[0] is not model:
+        store = _CACHE[key] = (model, {})
+        if len(_CACHE) > 16:
+            _CACHE.pop(next(iter(_CACHE)))
+    missing = [b for b in bodies if b not in store[1]]
+    store[1].update(body_surfaces(model, missing, **kw) if missing else {})
+    return {b: store[1][b] for b in bodies}

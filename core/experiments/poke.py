@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.kinematics import TaxelKinematics
-from skinsafe.core.robot.models import Robot, build_ur5
+from skinsafe.core.robot.models import Robot, build_ur5, load_robot
 from skinsafe.core.safety.defensiveness import DefensivenessLayer
 from skinsafe.core.safety.retraction import RetractionParams, profile
 from skinsafe.core.skin import taxel_map
@@ -283,7 +283,7 @@ def plots(sweep: dict, multi: list[dict], params: RetractionParams, out: Path) -
 
 def add_arguments(p) -> None:
     p.add_argument("--out", default="poke_out", help="folder for the PNG plots and poke_results.json")
-    p.add_argument("--map", default=None, help="taxel map of a UR5 skin (default: the generated sample skin)")
+    p.add_argument("--map", default=None, help="taxel map of a skin on any robot (default: the UR5 sample skin)")
     p.add_argument("--depths", default="0.0004,0.0008,0.0012,0.0016,0.002,0.0025,0.003",
                    help="probe depths past the skin in m, one poke each (comma-separated)")
     p.add_argument("--alpha", type=float, default=0.01, help="sensitivity alpha, m/N")
@@ -303,14 +303,21 @@ def run(args) -> int:
     if not depths or min(depths) <= 0:
         raise SystemExit("skinsafe poke: --depths must be positive distances in m")
     out = Path(args.out)
-    robot = build_ur5()
-    design = taxel_map.load(args.map, robot.body_names) if args.map else make_sample_design("ur5", robot=robot)
-    sweep = force_sweep(design, robot, params, depths)
+    if args.map:  # any robot: the one the map names (issue 18)
+        robot = load_robot(taxel_map.load(args.map).robot, base_dir=Path(args.map).parent)
+        design = taxel_map.load(args.map, robot.body_names)
+    else:
+        robot = build_ur5()
+        design = make_sample_design("ur5", robot=robot)
+    counts = np.bincount(design.taxels.body, minlength=len(design.bodies))
+    bodies = [b for b in ("forearm_link", "upper_arm_link", "wrist_2_link") if b in design.bodies] or \
+        [design.bodies[i] for i in np.argsort(-counts)[:3]]
+    sweep = force_sweep(design, robot, params, depths, body=bodies[0])
     if len(sweep["force"]) < 2:
         raise SystemExit("skinsafe poke: fewer than two pokes triggered the skin; use deeper --depths")
-    multi = multicontact(design, robot, params, ["forearm_link", "upper_arm_link"], [30.0, 20.0], epsilons)
-    multi += multicontact(design, robot, params, ["forearm_link", "upper_arm_link", "wrist_2_link"],
-                          [30.0, 20.0, 10.0], epsilons)
+    multi = multicontact(design, robot, params, bodies[:2], [30.0, 20.0], epsilons) if len(bodies) > 1 else []
+    if len(bodies) > 2:
+        multi += multicontact(design, robot, params, bodies[:3], [30.0, 20.0, 10.0], epsilons)
     forms = compare_forms(design, robot, params, stride=args.forms_stride)
     paths = plots(sweep, multi, params, out)
     result = {"params": {k: v for k, v in params.__dict__.items() if k != "stimulus_alpha"},

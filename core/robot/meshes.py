@@ -14,11 +14,13 @@ from skinsafe.core.skin.model import DesignError
 MODES = ("primitive", "hull", "decimate", "full")
 
 
-def load_checked(path: str | Path, what: str):
-    """A repaired trimesh of `path`; DesignError naming `what` and the file if it is broken or non-manifold.
+def load_checked(path: str | Path, what: str, manifold: bool = True):
+    """A repaired trimesh of `path` (STL, OBJ, PLY, DAE through pycollada, ...); DesignError naming
+    `what` and the file if it is broken or (with `manifold`) non-manifold.
 
     Repair merges duplicate vertices, drops degenerate and duplicate faces and fixes winding;
-    an edge shared by more than two faces (non-manifold) cannot be repaired and is refused.
+    an edge shared by more than two faces (non-manifold) cannot be repaired and is refused where
+    the mesh must bound a solid (`manifold`); visual meshes (CAD exports often have such edges) pass.
     """
     import trimesh
 
@@ -34,14 +36,17 @@ def load_checked(path: str | Path, what: str):
         raise DesignError(f"{what}: mesh file '{path}' is broken (no faces); re-export it from your CAD/mesh tool")
     if not np.isfinite(mesh.vertices).all():
         raise DesignError(f"{what}: mesh file '{path}' is broken (NaN/Inf vertices); re-export it")
-    mesh.merge_vertices()
+    mesh.merge_vertices(merge_tex=True, merge_norm=True)  # smooth normals come from shared vertices
     mesh.update_faces(mesh.nondegenerate_faces())
     mesh.update_faces(mesh.unique_faces())
     mesh.remove_unreferenced_vertices()
     if len(mesh.faces) == 0:
         raise DesignError(f"{what}: mesh file '{path}' is broken (all faces degenerate); re-export it")
+    if not manifold:
+        return mesh
     edges = np.sort(mesh.edges, axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
+    key = edges[:, 0] * (int(edges.max()) + 1) + edges[:, 1]  # one integer per edge: a 1-D unique
+    _, counts = np.unique(key, return_counts=True)
     if (counts > 2).any():
         raise DesignError(f"{what}: mesh file '{path}' is non-manifold ({int((counts > 2).sum())} edges shared by "
                           "more than two faces); repair it (e.g. Blender 'Select Non Manifold', MeshLab) and re-export")

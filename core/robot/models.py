@@ -6,7 +6,6 @@ acceleration limits and a home configuration.
 """
 from __future__ import annotations
 
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -191,10 +190,13 @@ BUILTIN = {"ur5": build_ur5, "panda": build_panda}
 
 def load_robot(ref: RobotRef, base_dir: str | Path | None = None,
                default_vel_limit: float = np.pi, default_acc_limit: float = 15.0) -> Robot:
-    """The robot a design refers to: built in, or a URDF/MJCF file (relative to `base_dir`).
+    """The robot a design refers to: built in, or a URDF/xacro/MJCF file (relative to `base_dir`,
+    as are `ref.package_dirs`).
 
-    URDF links joined by fixed joints are kept as their own bodies (`fusestatic` off) so a skin
-    on them keeps its body; velocity limits come from the URDF's `<limit velocity=...>`.
+    Imported robots (see `urdf_import`) keep fixed-joint links as their own bodies and their
+    visual meshes; they get position servos when they have no actuators, contact exclusions
+    between links at most two joints apart, and a home pose from their first keyframe or else the
+    zero pose moved inside the joint limits.
     """
     if ref.kind == "builtin":
         if ref.name not in BUILTIN:
@@ -204,52 +206,95 @@ def load_robot(ref: RobotRef, base_dir: str | Path | None = None,
         raise DesignError(f"robot: field 'kind' is '{ref.kind}'; use 'builtin', 'urdf' or 'mjcf'")
     if not ref.path:
         raise DesignError(f"robot: kind '{ref.kind}' needs a 'path' to the file")
-    path = Path(ref.path)
-    if not path.is_absolute() and base_dir is not None:
-        path = Path(base_dir) / path
+
+    def rel(p):
+        return Path(p) if Path(p).is_absolute() or base_dir is None else Path(base_dir) / p
+
+    path = rel(ref.path)
     if not path.is_file():
         raise DesignError(f"robot: file '{path}' not found; check the path in the taxel map")
+    vel_by_name: dict[str, float] = {}
+    if ref.kind == "mjcf":
+        try:
+            spec = mujoco.MjSpec.from_file(str(path))
+        except ValueError as e:
+            raise DesignError(f"robot: MuJoCo could not load '{path}': {e}") from None
+    else:
+        from skinsafe.core.robot.urdf_import import urdf_spec
+
+        spec, vel_by_name = urdf_spec(path, [rel(d) for d in ref.package_dirs], ref.xacro_args)
+    return robot_from_spec(spec, ref.name or path.name.split(".")[0], vel_by_name, default_vel_limit,
+                           default_acc_limit, path=str(path))
+
+
+def robot_from_spec(spec: mujoco.MjSpec, name: str, vel_by_name: dict | None = None,
+                    default_vel_limit: float = np.pi, default_acc_limit: float = 15.0, path: str = "") -> Robot:
+    """A Robot of any spec: servos added where it has none, near links excluded, a home inside the limits."""
     try:
-        spec = mujoco.MjSpec.from_file(str(path)) if ref.kind == "mjcf" else _urdf_spec(path)
         model = spec.compile()
-    except (ValueError, RuntimeError) as e:
-        raise DesignError(f"robot: MuJoCo could not load '{path}': {e}") from None
+    except ValueError as e:
+        raise DesignError(f"robot: MuJoCo could not compile '{path or name}': {e}") from None
+    moving = [model.body(b).name for b in range(1, model.nbody) if model.body_weldid[b] != 0]
+    joints = [model.joint(j).name for j in range(model.njnt)
+              if int(model.jnt_type[j]) in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))]
+    if model.nu == 0 and joints:
+        # kp scaled by the mass each joint carries: stiff enough to hold the arm against gravity;
+        # joints without armature or damping get the built-ins' (0.1 kg m^2, 1 N m s), so the
+        # servos stay stable at a 2 ms step on light wrist links
+        carried = [float(model.body_subtreemass[model.jnt_bodyid[model.joint(j).id]]) for j in joints]
+        _add_position_actuators(spec, joints, [max(200.0, 400.0 * m) for m in carried])
+        for j in joints:
+            sj = spec.joint(j)
+            sj.armature = float(sj.armature) or 0.1
+            if not np.any(sj.damping):
+                sj.damping = np.full_like(np.asarray(sj.damping, float), 1.0)
+    _exclude_tree_neighbours(spec, model)
+    home = model.key_qpos[0].copy() if model.nkey else _inside_limits(model)
+    if not model.nkey:
+        spec.add_key(name="home", qpos=home.tolist())
+    try:
+        model = spec.compile()
+    except ValueError as e:
+        raise DesignError(f"robot: MuJoCo could not compile '{path or name}': {e}") from None
     vel = np.full(model.nv, default_vel_limit)
-    if ref.kind == "urdf":
-        for name, v in _urdf_velocity_limits(path).items():
-            jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
-            if jid >= 0 and v > 0:
-                vel[model.jnt_dofadr[jid]] = v
-    home = model.key_qpos[0].copy() if model.nkey else model.qpos0.copy()
-    return Robot(ref.name or path.stem, spec, model, vel_limits=vel, acc_limits=np.full(model.nv, default_acc_limit),
-                 home=home, arm_bodies=[model.body(i).name for i in range(1, model.nbody)])
+    for jname, v in (vel_by_name or {}).items():
+        jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, jname)
+        if jid >= 0 and v > 0:
+            vel[model.jnt_dofadr[jid]] = v
+    return Robot(name, spec, model, vel_limits=vel, acc_limits=np.full(model.nv, default_acc_limit),
+                 home=home, arm_bodies=moving)
 
 
-def _urdf_spec(path: Path) -> mujoco.MjSpec:
-    """Parse a URDF with MuJoCo, keeping fixed-joint links and visual geometry."""
-    text = path.read_text()
-    root = ET.fromstring(text)
-    mj = root.find("mujoco")
-    if mj is None:
-        mj = ET.SubElement(root, "mujoco")
-    comp = mj.find("compiler")
-    if comp is None:
-        comp = ET.SubElement(mj, "compiler")
-    comp.set("fusestatic", "false")
-    comp.set("discardvisual", "false")
-    comp.set("balanceinertia", "true")
-    comp.set("meshdir", str(path.parent))
-    return mujoco.MjSpec.from_string(ET.tostring(root, encoding="unicode"))
+def _inside_limits(model: mujoco.MjModel) -> np.ndarray:
+    """qpos0 with every limited hinge/slide joint moved inside its range (the middle if 0 is outside)."""
+    q = model.qpos0.copy()
+    for j in range(model.njnt):
+        if model.jnt_limited[j] and int(model.jnt_type[j]) in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)):
+            lo, hi = model.jnt_range[j]
+            a = model.jnt_qposadr[j]
+            if not lo <= q[a] <= hi:
+                q[a] = 0.5 * (lo + hi)
+    return q
 
 
-def _urdf_velocity_limits(path: Path) -> dict[str, float]:
-    root = ET.parse(path).getroot()
-    out = {}
-    for j in root.iter("joint"):
-        lim = j.find("limit")
-        if lim is not None and lim.get("velocity"):
-            out[j.get("name")] = float(lim.get("velocity"))
-    return out
+def _exclude_tree_neighbours(spec: mujoco.MjSpec, model: mujoco.MjModel, reach: int = 2) -> None:
+    """No contacts between moving links at most `reach` joints apart (their shapes meet at the
+    joints); bodies welded together (fixed joints) count as one link."""
+    weld = model.body_weldid
+    parent = {int(w): int(weld[model.body_parentid[w]]) for w in set(weld.tolist()) if w != 0}
+    members: dict[int, list[str]] = {}
+    for b in range(1, model.nbody):
+        members.setdefault(int(weld[b]), []).append(model.body(b).name)
+    done = {frozenset((e.bodyname1, e.bodyname2)) for e in spec.excludes}
+    for w in parent:
+        a, hops = w, 0
+        while a in parent and hops < reach:
+            a, hops = parent[a], hops + 1
+            for b1 in members[w]:
+                for b2 in members.get(a, []):
+                    if frozenset((b1, b2)) not in done:
+                        spec.add_exclude(bodyname1=b1, bodyname2=b2)
+                        done.add(frozenset((b1, b2)))
 
 
 def mesh_ur5(folder: Path, sections: int = 64) -> Robot:

@@ -274,3 +274,36 @@ class TouchReadout:
 
     def read(self, data: mujoco.MjData) -> np.ndarray:
         return np.where(self.enabled, data.sensordata[self.adr], 0.0)
+
+
+class TactileReadout:
+    """Reference readout: MuJoCo's native `tactile` sensors (`SceneOptions(tactile_sensors=True)`),
+    channel 0 (pressure from the penetration depth at each taxel) mapped back to taxels by position."""
+
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, design: SkinDesign):
+        t = design.taxels
+        self.n = len(t)
+        self.adr, self.taxel = [], []
+        mujoco.mj_kinematics(model, data)
+        for bi, body in enumerate(design.bodies):
+            sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, f"tactile_{body}")
+            if sid < 0:
+                continue
+            g, mesh = model.sensor_refid[sid], model.sensor_objid[sid]
+            nv = model.mesh_vertnum[mesh]
+            vert = model.mesh_vert[model.mesh_vertadr[mesh]:model.mesh_vertadr[mesh] + nv]
+            b = model.geom_bodyid[g]
+            # mesh vertices -> body frame: geom pose relative to its body
+            R = data.xmat[b].reshape(3, 3).T @ data.geom_xmat[g].reshape(3, 3)
+            x = data.xmat[b].reshape(3, 3).T @ (data.geom_xpos[g] - data.xpos[b])
+            on = np.flatnonzero(t.body == bi)
+            _, k = cKDTree(t.positions[on]).query(vert @ R.T + x)
+            self.adr.append(model.sensor_adr[sid] + np.arange(nv))
+            self.taxel.append(on[k])
+        self.adr = np.concatenate(self.adr) if self.adr else np.zeros(0, np.int64)
+        self.taxel = np.concatenate(self.taxel) if self.taxel else np.zeros(0, np.int64)
+
+    def read(self, data: mujoco.MjData) -> np.ndarray:
+        out = np.zeros(self.n)
+        out[self.taxel] = data.sensordata[self.adr]
+        return out

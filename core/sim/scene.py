@@ -7,6 +7,7 @@ obstacles. `skinsafe.exporters.mjcf.export_scene` writes it to files.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from scipy.spatial.transform import Rotation
 from skinsafe.core.robot import meshes as meshlib
 from skinsafe.core.robot.models import Robot
 from skinsafe.core.sim.contacts import prune_contacts
+from skinsafe.core.sim.skin_collision import fit_to_skin, taxel_clearance
 from skinsafe.core.skin.model import DesignError, SkinDesign
 
 GEOM_TYPES = {
@@ -27,7 +29,8 @@ GEOM_TYPES = {
     "mesh": (mujoco.mjtGeom.mjGEOM_MESH, 0),
 }
 MAP_FILE = "taxel_map.json"
-SITE_GROUP = 3  # hidden in the viewer by default: a dense skin would hide the robot
+SITE_GROUP = 3
+COLLISION_MODES = ("skin",) + meshlib.MODES  # hidden in the viewer by default: a dense skin would hide the robot
 
 
 @dataclass
@@ -54,40 +57,44 @@ class Obstacle:
 class SceneOptions:
     """Every modelling choice of the scene, with defaults that suit the vectorised readout."""
 
-    collision: str = "primitive"  # mesh robots: "primitive" | "hull" | "decimate" | "full"
+    collision: str = "skin"  # "skin" (fitted to the skin, see sim.skin_collision) | mesh robots: "primitive" | "hull" | "decimate" | "full"
     target_faces: int = 500  # for "decimate"
     visual: bool = True  # keep visual meshes (geoms that never collide)
-    taxel_sites: bool = True  # one site per taxel ("taxel_<id>")
+    taxel_sites: bool = False  # one site per taxel ("taxel_<id>"), for viewing and touch sensors; the readout needs none
+    clearance_tol: float = 1e-3  # m: warn when a taxel is farther than this from the contact surface
     touch_sensors: bool = False  # one MuJoCo touch sensor per taxel (accuracy reference; slow)
+    tactile_sensors: bool = False  # MuJoCo's native `tactile` sensor, one per skinned link (a reference)
     prune_contacts: bool = True  # robot bodies nothing can touch get contype/conaffinity 0
     timestep: float | None = None
 
     def check(self) -> None:
-        if self.collision not in meshlib.MODES:
-            raise ValueError(f"SceneOptions.collision is '{self.collision}'; use one of {meshlib.MODES}")
+        if self.collision not in COLLISION_MODES:
+            raise ValueError(f"SceneOptions.collision is '{self.collision}'; use one of {COLLISION_MODES}")
         if self.collision == "decimate" and self.target_faces < 4:
             raise ValueError(f"SceneOptions.target_faces is {self.target_faces}; give at least 4")
-        if self.touch_sensors and not self.taxel_sites:
-            raise ValueError("SceneOptions.touch_sensors needs taxel_sites=True (a touch sensor reads a site)")
         if self.timestep is not None and not (0 < self.timestep <= 0.05):
             raise ValueError(f"SceneOptions.timestep is {self.timestep}; give seconds in (0, 0.05]")
 
 
-def build_scene(design: SkinDesign, robot: Robot, obstacles=(), options: SceneOptions = SceneOptions()
+def build_scene(design: SkinDesign | None, robot: Robot, obstacles=(), options: SceneOptions = SceneOptions()
                 ) -> mujoco.MjSpec:
     """The scene as an `MjSpec` (an edited copy of `robot.spec`; `robot` is left as it was).
 
+    `design=None` builds the same scene with no skin (the reference for what the skin costs).
     Raises DesignError naming the body, mesh or obstacle at fault; ValueError for bad options.
     """
     options.check()
-    design.validate("design", robot.body_names)
     spec = robot.spec.copy()
     if options.timestep is not None:
         spec.option.timestep = float(options.timestep)
     _process_meshes(spec, options)
+    if design is not None:
+        _add_skin(spec, design, robot, options)
     _add_obstacles(spec, list(obstacles))
-    if options.taxel_sites:
+    if design is not None and (options.taxel_sites or options.touch_sensors):  # a touch sensor reads a site
         _add_taxel_sites(spec, design, options.touch_sensors)
+    if design is not None and options.tactile_sensors:
+        _add_tactile_sensors(spec, design)
     try:
         model = spec.compile()
     except ValueError as e:
@@ -97,6 +104,26 @@ def build_scene(design: SkinDesign, robot: Robot, obstacles=(), options: SceneOp
         prune_contacts(spec, model, list(obstacles))
     spec.add_text(name="skinsafe.taxel_map", data=MAP_FILE)
     return spec
+
+
+def _add_skin(spec, design: SkinDesign, robot: Robot, options: SceneOptions) -> None:
+    """Fit the collision model to the skin (collision="skin") and warn where a taxel is farther
+    than `options.clearance_tol` from the contact surface."""
+    design.validate("design", robot.body_names)
+    if options.collision == "skin":
+        fit_to_skin(spec, design, options.clearance_tol)
+    if not len(design.taxels):
+        return
+    gap = taxel_clearance(spec, design, robot.home)
+    far = np.abs(gap) > options.clearance_tol
+    if far.any():
+        w = int(np.argmax(np.abs(gap)))
+        fix = ("the taxel is buried inside the link's own shape: move its module onto the outer surface"
+               if gap[w] < 0 else "use SceneOptions(collision='skin')")
+        warnings.warn(f"scene: taxel {int(design.taxels.ids[w])} on '{design.bodies[design.taxels.body[w]]}' is "
+                      f"{gap[w] * 1e3:+.1f} mm from the contact surface ({int(far.sum())} taxels beyond "
+                      f"{options.clearance_tol * 1e3:.1f} mm): contacts there are sensed late or not at all; {fix}",
+                      stacklevel=3)
 
 
 # --- robot meshes -------------------------------------------------------------------------
@@ -137,7 +164,7 @@ def _process_meshes(spec: mujoco.MjSpec, options: SceneOptions) -> None:
             g.type = mujoco.mjtGeom.mjGEOM_CAPSULE if long else mujoco.mjtGeom.mjGEOM_BOX
             g.size = [0.0, 0.0, 0.0]
             continue
-        if options.collision == "full":
+        if options.collision in ("full", "skin"):
             continue
         key = src.name
         if key not in made:
@@ -194,6 +221,23 @@ def _add_taxel_sites(spec: mujoco.MjSpec, design: SkinDesign, touch: bool) -> No
         if touch:
             spec.add_sensor(name=f"touch_{int(t.ids[i])}", type=mujoco.mjtSensor.mjSENS_TOUCH,
                             objtype=mujoco.mjtObj.mjOBJ_SITE, objname=name)
+
+
+def _add_tactile_sensors(spec: mujoco.MjSpec, design: SkinDesign) -> None:
+    """MuJoCo's native `tactile` sensor per skinned link: a mesh whose vertices are the link's
+    taxels (`tactile_<body>`), on a non-colliding geom of that mesh (the sensor's frame)."""
+    t = design.taxels
+    for bi, body in enumerate(design.bodies):
+        on = t.body == bi
+        if on.sum() < 4:
+            continue
+        name = f"tactile_{body}"
+        mesh = spec.add_mesh(name=name)
+        mesh.uservert = t.positions[on].ravel().tolist()
+        spec.body(body).add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=name, contype=0,
+                                 conaffinity=0, group=SITE_GROUP + 1, density=0)
+        spec.add_sensor(name=name, type=mujoco.mjtSensor.mjSENS_TACTILE, objtype=mujoco.mjtObj.mjOBJ_MESH,
+                        objname=name, reftype=mujoco.mjtObj.mjOBJ_GEOM, refname=name)
 
 
 def _add_obstacles(spec: mujoco.MjSpec, obstacles: list[Obstacle]) -> None:

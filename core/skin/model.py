@@ -22,12 +22,22 @@ class DesignError(ValueError):
 class RobotRef:
     """Which robot the skin is designed for.
 
-    kind: "builtin" (name is "ur5" or "panda"), "mjcf" or "urdf" (path to the file).
+    kind: "builtin" (name is "ur5" or "panda"), "mjcf" or "urdf" (path to the file: URDF or xacro).
+    package_dirs: where `package://NAME/...` and `$(find NAME)` look for ROS packages (a package
+    folder, or a folder holding packages), relative to the taxel map or absolute. xacro_args: the
+    `name:=value` arguments a xacro file is expanded with.
     """
 
     kind: str = "builtin"
     name: str = "ur5"
     path: str | None = None
+    package_dirs: tuple = ()
+    xacro_args: dict = field(default_factory=dict)  # xacro arguments (name -> value) for .xacro files
+
+    def __post_init__(self):
+        if isinstance(self.package_dirs, str) or not all(isinstance(d, str) for d in self.package_dirs):
+            raise DesignError(f"robot: field 'package_dirs' is {self.package_dirs!r}; give a list of folder paths")
+        object.__setattr__(self, "package_dirs", tuple(self.package_dirs))  # a JSON list reads back equal
 
 
 @dataclass(frozen=True)

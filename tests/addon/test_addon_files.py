@@ -77,12 +77,57 @@ def test_urdf_import_place_on_mesh_and_refusals(tmp_path):
     assert np.abs(np.hypot(p[:, 0], p[:, 1]) - 0.05).max() < 5e-4
 
     bad = _urdf(tmp_path, mesh="gone.obj")
-    with pytest.raises(RuntimeError, match="link 'hand' uses mesh 'gone.obj'"):
+    with pytest.raises(RuntimeError, match="link 'hand' collision #0: mesh file 'gone.obj' not found"):
         bpy.ops.skinsafe.import_robot(source="FILE", filepath=str(bad))
     bad = _urdf(tmp_path, joint="planar")
     with pytest.raises(RuntimeError, match="joint 'j1' has type 'planar'"):
         bpy.ops.skinsafe.import_robot(source="FILE", filepath=str(bad))
     assert b2c.design_of(scene).n_taxels == 48  # refused imports leave the scene as it was
+
+
+def test_ros_description_with_collada_visuals_through_the_operators(tmp_path):
+    """The bundled Franka xacro (package://, DAE visuals Blender 5 cannot import itself): the core
+    reads the meshes, Blender gets each link's budgeted visual surface, a module goes on a link."""
+    asset = ROOT / "blend_assets" / "franka_description"
+    bpy.ops.wm.read_homefile(use_empty=True)
+    assert bpy.ops.skinsafe.import_robot(source="FILE", filepath=str(asset / "robots/panda/panda.urdf.xacro"),
+                                         package_dirs=str(asset)) == {"FINISHED"}
+    scene = bpy.context.scene
+    bodies = b2c.body_objects(scene)
+    link4 = bodies["panda_link4"]
+    assert 10000 < len(link4.data.polygons) <= 20000  # the real DAE visual (14,620 faces), not a hull or a box
+    assert len(scene.skinsafe.joints) == 7 and scene.skinsafe.robot_package_dirs == str(asset)
+    s = scene.skinsafe.new_module
+    s.rows, s.cols, s.pitch, s.taxel_diameter, s.margin, s.min_bend_radius = 3, 3, 0.012, 0.007, 0.002, 0.02
+    surf = b2c.surface_of(link4)
+    from skinsafe.core.design.layout import tile_body
+    from skinsafe.core.skin.model import Module
+
+    template = Module(0, "t", "panda_link4", rows=3, cols=3, pitch=0.012, taxel_diameter=0.007, min_bend_radius=0.02)
+    first = tile_body(surf, b2c.robot_for(scene).model, template, "panda_link4", 0, limit=9)[0][0]
+    assert bpy.ops.skinsafe.place_module(body="panda_link4", anchor=first.origin, direction=first.origin_frame[:, 0],
+                                         use_cursor=False) == {"FINISHED"}
+    d = b2c.design_of(scene)
+    assert d.n_taxels == 9
+    assert surf.closest(d.taxels.positions)[3].max() < 1e-6  # on the visual surface
+    # exported through the operator: the contact surface is where the skin is, no self contact at home
+    import mujoco
+
+    from skinsafe.core.bench.robot_import import self_contacts
+    from skinsafe.core.sim.skin_collision import taxel_clearance
+
+    out = tmp_path / "scene"
+    assert bpy.ops.skinsafe.export_mjcf(directory=str(out)) == {"FINISHED"}
+    spec = mujoco.MjSpec.from_file(str(out / "scene.xml"))
+    home = b2c.robot_for(scene).home
+    assert np.abs(taxel_clearance(spec, d, home)).max() <= 1e-3
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    data.qpos[:] = home
+    mujoco.mj_forward(model, data)
+    assert self_contacts(model, data) == 0
+    with pytest.raises(RuntimeError, match="package 'franka_description'|find franka_description"):
+        bpy.ops.skinsafe.import_robot(source="FILE", filepath=str(asset / "robots/panda/panda.urdf.xacro"))
 
 
 def test_extension_zip_builds_and_installs(tmp_path):

@@ -1,0 +1,121 @@
+"""Geometric audit of a skin design on its robot (what `skinsafe check` refuses), on the surfaces
+the design was built on (`cached_surfaces`): taxels off their link's surface, module outlines
+overhanging it, placement anchors far from it, and taxels buried inside another link at every
+sampled pose (they can never be touched)."""
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from skinsafe.core.design.placement import FAR_ANCHOR
+from skinsafe.core.design.surface import cached_surfaces, surface_bodies
+from skinsafe.core.skin.model import SkinDesign
+
+SURFACE_TOL = 0.002  # m
+
+
+def sample_poses(model: mujoco.MjModel, home: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """`n` joint configurations: home, then uniform inside the limits of limited hinge/slide joints."""
+    rng = np.random.default_rng(seed)
+    q = np.repeat(home[None], n, axis=0)
+    for j in range(model.njnt):
+        if model.jnt_limited[j] and int(model.jnt_type[j]) in (int(mujoco.mjtJoint.mjJNT_HINGE),
+                                                               int(mujoco.mjtJoint.mjJNT_SLIDE)):
+            lo, hi = model.jnt_range[j]
+            q[1:, model.jnt_qposadr[j]] = rng.uniform(lo, hi, n - 1)
+    return q
+
+
+def audit(design: SkinDesign, model: mujoco.MjModel, home: np.ndarray, poses: int = 16,
+          tol: float = SURFACE_TOL) -> list[str]:
+    """Every problem found, one readable line each (empty: the design passes)."""
+    t = design.taxels
+    surfaces = cached_surfaces(model, list(design.bodies))
+    pitch = {m.id: m.pitch for m in design.modules}
+    bend = {m.id: m.min_bend_radius for m in design.modules}
+    problems = []
+    for bi, body in enumerate(design.bodies):
+        on = np.flatnonzero(t.body == bi)
+        if not len(on):
+            continue
+        surf = surfaces[body]
+        d = surf.closest(t.positions[on])[3]
+        for i in on[d > tol][:5]:
+            problems.append(f"taxel {int(t.ids[i])} on '{body}' is {d[np.searchsorted(on, i)] * 1e3:.1f} mm off the "
+                            f"link's surface (more than {tol * 1e3:.1f} mm); re-place module {int(t.module[i])}")
+        h = np.array([pitch.get(int(m), 0.01) / 2 for m in t.module[on]])
+        r = np.array([bend.get(int(m), 0.01) for m in t.module[on]])
+        worst = outline_overhang(surf, t.positions[on], t.frames[on], h, r)
+        for m in np.unique(t.module[on][worst > tol]):
+            k = int(np.argmax(np.where(t.module[on] == m, worst, -1)))
+            problems.append(f"module {int(m)} on '{body}': its outline overhangs the link by {worst[k] * 1e3:.1f} mm at "
+                            f"taxel {int(t.ids[on[k]])} (the FPC would stand off the surface); move it inward or use a "
+                            "smaller module")
+    for m in design.modules:
+        anchor = m.placement.get("anchor") if isinstance(m.placement, dict) else None
+        if anchor is not None and m.body in surfaces:
+            gap = float(surfaces[m.body].closest(np.asarray(anchor, float).reshape(1, 3))[3][0])
+            if gap > FAR_ANCHOR:
+                problems.append(f"module {m.id} on '{m.body}': placement anchor is {gap * 1e3:.0f} mm from the link's "
+                                f"surface (more than {FAR_ANCHOR * 1e3:.0f} mm); re-place the module on the link")
+    buried = buried_taxels(design, model, home, poses)
+    if buried.any():
+        i = int(np.argmax(buried))
+        problems.append(f"{int(buried.sum())} taxels are buried inside another link at all {poses} sampled poses "
+                        f"(first: taxel {int(t.ids[i])} on '{design.bodies[t.body[i]]}', module {int(t.module[i])}); "
+                        "they can never be touched: move those modules away from the joint")
+    return problems
+
+
+def outline_overhang(surface, positions, frames, half, min_bend) -> np.ndarray:
+    """(N,) how far (m) each taxel cell's corners stand off the surface beyond the sag a cell of
+    half-side `half` may show when bent at `min_bend` (0: the cell lies on the surface)."""
+    half, min_bend = np.broadcast_to(half, len(positions)), np.broadcast_to(min_bend, len(positions))
+    sag = 2 * half ** 2 / np.maximum(min_bend, 1e-3)
+    worst = np.zeros(len(positions))
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            c = positions + (sx * half)[:, None] * frames[:, :, 0] + (sy * half)[:, None] * frames[:, :, 1]
+            # the nearest tree point bounds the distance from above, the tree's reach from below:
+            # exact closest points only where the bounds straddle the tolerance
+            upper = surface._tree.query(c)[0]
+            d = upper.copy()
+            unsure = (upper - surface._reach < sag + SURFACE_TOL) & (upper > sag)
+            if unsure.any():
+                d[unsure] = surface.closest(c[unsure])[3]
+            worst = np.maximum(worst, d - sag)
+    return worst
+
+
+def buried_taxels(design: SkinDesign, model: mujoco.MjModel, home: np.ndarray, poses: int = 16,
+                  depth: float = 1e-3) -> np.ndarray:
+    """(N,) True where a taxel lies more than `depth` inside another link's surface at every pose."""
+    t = design.taxels
+    surfaces = cached_surfaces(model, surface_bodies(model))
+    body_id = np.array([model.body(b).id for b in design.bodies])[t.body] if len(t) else np.zeros(0, int)
+    weld = model.body_weldid
+    data = mujoco.MjData(model)
+    always = np.ones(len(t), bool)
+    for q in sample_poses(model, home, poses):
+        data.qpos[:] = q
+        mujoco.mj_kinematics(model, data)
+        world = np.einsum("nij,nj->ni", data.xmat[body_id].reshape(-1, 3, 3), t.positions) + data.xpos[body_id]
+        now = np.zeros(len(t), bool)
+        for name, surf in surfaces.items():
+            b = model.body(name).id
+            cand = np.flatnonzero(always & ~now & (weld[body_id] != weld[b]))
+            if not len(cand):
+                continue
+            R, x = data.xmat[b].reshape(3, 3), data.xpos[b]
+            local = (world[cand] - x) @ R
+            lo, hi = surf.vertices.min(axis=0), surf.vertices.max(axis=0)
+            near = cand[((local > lo) & (local < hi)).all(axis=1)]
+            if not len(near):
+                continue
+            local = (world[near] - x) @ R
+            qp, n, _, d = surf.closest(local)
+            now[near] |= (np.sum((local - qp) * n, axis=1) < -depth) & (d < 0.05)
+        always &= now
+        if not always.any():
+            break
+    return always

@@ -1,0 +1,178 @@
+"""Robots from their ROS description as users have it: URDF or xacro, `package://` and relative
+mesh paths resolved against package roots the user names, STL, OBJ and DAE meshes.
+
+MuJoCo's URDF reader parses the kinematic tree and the primitive shapes (links joined by fixed
+joints stay their own bodies, visual geometry is kept). Meshes never go through MuJoCo's file
+decoders (they have none for Collada): every mesh is loaded here with trimesh (pycollada for
+.dae), validated once, and handed to the spec as vertices and faces. Visual meshes become
+non-colliding geoms in group `VISUAL_GROUP`, collision meshes colliding geoms in group
+`COLLISION_GROUP`. Every error names the link and the file.
+"""
+from __future__ import annotations
+
+import contextlib
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from skinsafe.core.robot.meshes import load_checked
+from skinsafe.core.skin.model import DesignError
+
+URDF_JOINTS = ("revolute", "continuous", "prismatic", "fixed")
+MESH_FORMATS = (".stl", ".obj", ".dae", ".ply", ".off", ".glb", ".gltf")
+VISUAL_GROUP = 1
+COLLISION_GROUP = 3
+
+
+def package_roots(dirs) -> dict[str, Path]:
+    """ROS package name -> folder, from folders that are packages or hold packages (3 levels deep).
+    A package is a folder with a package.xml (its <name>, else the folder name)."""
+    roots: dict[str, Path] = {}
+    for d in dirs or ():
+        d = Path(d).resolve()
+        if not d.is_dir():
+            raise DesignError(f"robot: package folder '{d}' does not exist; give a folder that is a ROS package "
+                              "(has package.xml) or holds packages")
+        found = [d / "package.xml"] if (d / "package.xml").is_file() else \
+            sorted(p for k in (1, 2, 3) for p in d.glob("/".join(["*"] * k) + "/package.xml"))
+        for pkg_xml in found:
+            try:
+                name = (ET.parse(pkg_xml).getroot().findtext("name") or "").strip()
+            except ET.ParseError:
+                name = ""
+            roots.setdefault(name or pkg_xml.parent.name, pkg_xml.parent)
+            roots.setdefault(pkg_xml.parent.name, pkg_xml.parent)
+    return roots
+
+
+def resolve_uri(uri: str, base: Path, roots: dict[str, Path], where: str) -> Path:
+    """The file a URDF mesh filename names: `package://pkg/rel`, `file://abs`, or relative to the URDF."""
+    if uri.startswith("package://"):
+        pkg, _, rel = uri[len("package://"):].partition("/")
+        if pkg not in roots:
+            raise DesignError(f"{where}: mesh '{uri}' is in ROS package '{pkg}', which is not among the package "
+                              f"folders given ({sorted(roots) or 'none'}); pass its folder with --package-dir")
+        path = roots[pkg] / rel
+    elif uri.startswith("file://"):
+        path = Path(uri[len("file://"):])
+    else:
+        path = Path(uri) if Path(uri).is_absolute() else base / uri
+    if not path.is_file():
+        raise DesignError(f"{where}: mesh file '{uri}' not found at '{path}'; fix the filename or the package folder")
+    if path.suffix.lower() not in MESH_FORMATS:
+        raise DesignError(f"{where}: mesh file '{path}' has format '{path.suffix}'; use one of {', '.join(MESH_FORMATS)}")
+    return path
+
+
+@contextlib.contextmanager
+def _xacro_find(roots: dict[str, Path]):
+    """xacro's `$(find pkg)` answered from the given package folders (no ROS install needed)."""
+    from xacro import substitution_args as sa
+
+    def find(pkg):
+        if pkg not in roots:
+            raise DesignError(f"xacro: $(find {pkg}) names a ROS package that is not among the package folders "
+                              f"given ({sorted(roots) or 'none'}); pass its folder with --package-dir")
+        return str(roots[pkg])
+
+    old = sa._eval_find
+    sa._eval_find = find
+    try:
+        yield
+    finally:
+        sa._eval_find = old
+
+
+def expand(path: Path, roots: dict[str, Path], args: dict | None = None) -> str:
+    """The URDF text of `path`: xacro files are expanded (with `args` as `name:=value`)."""
+    text = path.read_text()
+    if not (path.suffix == ".xacro" or "ros.org/wiki/xacro" in text[:2000]):
+        return text
+    import xacro
+
+    try:
+        with _xacro_find(roots):
+            doc = xacro.process_file(str(path), mappings={k: str(v) for k, v in (args or {}).items()})
+    except DesignError:
+        raise
+    except Exception as e:  # xacro raises its own exception kinds and XacroException
+        raise DesignError(f"robot file '{path}': xacro failed ({type(e).__name__}: {e}); check the file and "
+                          "its arguments") from None
+    return doc.toxml()
+
+
+def _origin(el) -> tuple[list[float], list[float]]:
+    o = el.find("origin") if el is not None else None
+    xyz = [float(v) for v in (o.get("xyz", "0 0 0") if o is not None else "0 0 0").split()]
+    rpy = [float(v) for v in (o.get("rpy", "0 0 0") if o is not None else "0 0 0").split()]
+    q = Rotation.from_euler("xyz", rpy).as_quat()  # URDF rpy: fixed axes x, y, z
+    return xyz, [q[3], q[0], q[1], q[2]]
+
+
+def check_joints(root: ET.Element, src: str) -> None:
+    for j in root.findall("joint"):  # the robot's joints (a <transmission> names joints too)
+        if j.get("type") not in URDF_JOINTS:
+            raise DesignError(f"robot file '{src}': joint '{j.get('name')}' has type '{j.get('type')}', which skinsafe "
+                              f"does not support; use one of {', '.join(URDF_JOINTS)}")
+
+
+def urdf_spec(path: str | Path, package_dirs=(), args: dict | None = None) -> tuple[mujoco.MjSpec, dict]:
+    """An MjSpec of a URDF/xacro with every mesh loaded and validated here; also the URDF's joint
+    velocity limits by name."""
+    path = Path(path).resolve()
+    if not path.is_file():
+        raise DesignError(f"robot: file '{path}' not found; check the path")
+    roots = package_roots(package_dirs)
+    roots.setdefault(path.parent.name, path.parent)
+    try:
+        root = ET.fromstring(expand(path, roots, args))
+    except ET.ParseError as e:
+        raise DesignError(f"robot file '{path}': not valid XML ({e}); check the file") from None
+    if root.tag != "robot":
+        raise DesignError(f"robot file '{path}': top element is <{root.tag}>, expected <robot>; is it a URDF?")
+    check_joints(root, str(path))
+    meshes = []  # (link, kind, index, file, scale, pos, quat)
+    for link in root.findall("link"):
+        for kind in ("visual", "collision"):
+            for k, el in enumerate(list(link.findall(kind))):
+                m = el.find("geometry/mesh")
+                if m is None:
+                    continue
+                where = f"robot file '{path.name}': link '{link.get('name')}' {kind} #{k}"
+                file = resolve_uri(m.get("filename", ""), path.parent, roots, where)
+                scale = [float(v) for v in m.get("scale", "1 1 1").split()]
+                meshes.append((link.get("name"), kind, k, file, scale, *_origin(el), where))
+                link.remove(el)
+    vel = {j.get("name"): float(j.find("limit").get("velocity")) for j in root.findall("joint")
+           if j.find("limit") is not None and j.find("limit").get("velocity")}
+    mj = root.find("mujoco")
+    mj = ET.SubElement(root, "mujoco") if mj is None else mj
+    comp = mj.find("compiler")
+    comp = ET.SubElement(mj, "compiler") if comp is None else comp
+    comp.attrib.update(fusestatic="false", discardvisual="false", balanceinertia="true", strippath="false")
+    try:
+        spec = mujoco.MjSpec.from_string(ET.tostring(root, encoding="unicode"))
+    except ValueError as e:
+        raise DesignError(f"robot file '{path}': MuJoCo could not read the URDF: {e}") from None
+    loaded: dict[tuple, object] = {}
+    for link, kind, k, file, scale, pos, quat, where in meshes:
+        key = (str(file), tuple(scale))
+        if key not in loaded:
+            mesh = load_checked(file, where, manifold=False)
+            if scale != [1, 1, 1]:
+                mesh.apply_scale(scale)
+            name = f"{Path(file).stem}_{len(loaded)}"
+            m = spec.add_mesh(name=name)
+            m.uservert = np.asarray(mesh.vertices, float).ravel().tolist()
+            m.userface = np.asarray(mesh.faces, int).ravel().tolist()
+            loaded[key] = name
+        body = spec.body(link)
+        visual = kind == "visual"
+        body.add_geom(name=f"{link}_{kind}_{k}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=loaded[key], pos=pos,
+                      quat=quat, group=VISUAL_GROUP if visual else COLLISION_GROUP,
+                      contype=0 if visual else 1, conaffinity=0 if visual else 1, density=0 if visual else 1000,
+                      rgba=[0.85, 0.85, 0.88, 1] if visual else [0.5, 0.5, 0.6, 0.3])
+    return spec, vel
