@@ -37,6 +37,7 @@ BENCHES = {
     "sensing": ("skinsafe.core.bench.sensing", "vectorised skin readout vs per-taxel touch sensors"),
     "retraction": ("skinsafe.core.bench.retraction", "one defensiveness tick vs a loop"),
     "modulation": ("skinsafe.core.bench.modulation", "modulation tick and full three-layer tick"),
+    "safety": ("skinsafe.core.bench.safety", "correctness audit: no-push, limits, fail-safe on random contact sets"),
     "serial": ("skinsafe.hardware.bench_serial", "deploy and stream decoding over a pseudo-terminal"),
 }
 

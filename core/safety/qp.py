@@ -119,7 +119,7 @@ def _level(Jk, Z, x, rk, A, b, lo, hi, damping, sv_threshold, rank_tol, reg):
     C[Z.shape[0]:] = AZ
     lower = np.concatenate((lo - x, b - A @ x))
     upper = np.concatenate((hi - x, np.full(len(b), np.inf)))
-    return H, f, C, lower, upper, rank, Vt, S
+    return H, f, C, lower, upper, rank, Vt, S, U
 
 
 def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: float, rank_tol: float = 1e-3,
@@ -135,12 +135,13 @@ def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: fl
     out = Prioritised(x)
     pushing = bool(np.any(b > 0))
     for k in range(K):
-        H, f, C, lower, upper, rank, Vt, S = _level(J[k], Z, x, r[k], A, b, lo, hi, damping, sv_threshold,
+        H, f, C, lower, upper, rank, Vt, S, U = _level(J[k], Z, x, r[k], A, b, lo, hi, damping, sv_threshold,
                                                     rank_tol, reg)
         if rank == 0:
             continue
-        if out.levels == 0 and S.min() < sv_threshold:
-            out.damped = True
+        if out.levels == 0:  # singular: the task asks for a direction its Jacobian barely has
+            proj = np.abs(U[:, :len(S)].T @ (r[k] - J[k] @ x))
+            out.damped = bool(np.any((S < sv_threshold) & (proj > 1e-3 * max(proj.sum(), 1e-300))))
         z, ok, lam = solve(H, f, C, lower, upper, start if out.levels == 0 else None)
         if not ok and out.levels == 0:  # fallback chain (module docstring); x = 0 here
             for relax_acc in (False, True):
