@@ -110,7 +110,7 @@ def retraction_case(s: Setup, q, idx, f, times: list) -> dict:
         v, a = lim.violations(qd, prev)
         out["vel"] |= v
         out["acc"] |= a
-        out["feasible"] &= not (info.acc_relaxed or info.recovery_dropped)
+        out["feasible"] &= not (info.infeasible or info.recovery_dropped)
         if L.active:
             out["free"] &= not (info.limited or info.blocked or info.damped)
             st = L._state[0]

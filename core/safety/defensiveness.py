@@ -47,8 +47,9 @@ class TickInfo:
     """What one tick did. `nonfinite`: the inputs that were not finite; `safe`: the safe command
     (brake) was sent; `limited`/`blocked`: a joint limit / another contact's no-push constraint
     held the dominant retraction back (`blocked` is the opposing-pinch case: the dominant taxel
-    retracts less rather than push another one into its contact); `acc_relaxed`: the no-push
-    constraints needed more than the acceleration limit allows; `recovery_dropped`: a drifted
+    retracts less rather than push another one into its contact); `infeasible`: no command within
+    the velocity and acceleration limits kept every contacted taxel out of its contact (the
+    least-violating one was sent); `recovery_dropped`: a drifted
     taxel could not be pushed back this tick; `damped`: the dominant task is near a singularity."""
 
     nonfinite: tuple = ()
@@ -57,7 +58,7 @@ class TickInfo:
     retracting: bool = False
     limited: bool = False
     blocked: bool = False
-    acc_relaxed: bool = False
+    infeasible: bool = False
     recovery_dropped: bool = False
     damped: bool = False
     dominant_residual: float = 0.0
@@ -205,13 +206,13 @@ class DefensivenessLayer:
         m = min(len(J), MAX_TASKS)
         sol = prioritised(task_jacobians(J[:m], p.form), task_velocities(back[:m], speed[:m], p.form), A, b, lo, hi,
                           self.limits.vel, p.damping, p.sv_threshold, p.rank_tol, start=prev)
-        for name in ("limited", "blocked", "acc_relaxed", "recovery_dropped", "damped", "dominant_residual"):
+        for name in ("limited", "blocked", "infeasible", "recovery_dropped", "damped", "dominant_residual"):
             setattr(info, name, getattr(sol, name))
         return self._finish(sol.qd, info, prev)
 
     def _finish(self, out: np.ndarray, info: TickInfo, prev: np.ndarray) -> np.ndarray:
         flags = [f"nonfinite:{n}" for n in info.nonfinite] + (["nonfinite"] if info.nonfinite else [])
-        flags += [n for n in ("safe", "acc_relaxed", "recovery_dropped", "blocked") if getattr(info, n)]
+        flags += [n for n in ("safe", "infeasible", "recovery_dropped", "blocked") if getattr(info, n)]
         self.flags.update(flags)
         info.flags = tuple(flags)
         self.info, self.last = info, out

@@ -8,9 +8,10 @@ command of the safety stack goes through `final_command`:
   path keeps its shape);
 * contacts active: the command is projected onto the box and the no-push half-spaces
   `a_k . qd >= b_k` (a small QP, `qp.solve`): the acceleration limit never makes a contacted
-  taxel move into its contact. Where the box and the half-spaces do not meet (a contact arrived
-  while the arm was moving into it), the no-push constraints win over the acceleration limit,
-  and the result says so (`acc_relaxed`).
+  taxel move into its contact where any command within the limits avoids it. Where the box and
+  the half-spaces do not meet (a contact arrived while the arm was moving into it faster than
+  one tick can undo, or a pinch), the limits stay hard, the least-violating command is taken
+  (`qp.relaxed_bounds`) and the result says so (`infeasible`).
 
 `brake(prev)` is the safe command for a tick whose inputs cannot be trusted: every joint slows
 toward zero at its acceleration limit (zero at once when it is within one tick of zero), never
@@ -101,13 +102,11 @@ def _scale_into(qdot, prev, vel, acc, dt):
 @dataclass
 class Projection:
     """The limited command and what happened: `changed` (v was outside the feasible set),
-    `acc_relaxed` (no command met both the no-push constraints and the acceleration limit),
-    `recovery_dropped` (the push-back terms b > 0 could not all be met; b = 0 was used)."""
+    `infeasible` (no command within the limits met every no-push row: the least-violating one)."""
 
     v: np.ndarray
     changed: bool = False
-    acc_relaxed: bool = False
-    recovery_dropped: bool = False
+    infeasible: bool = False
 
 
 def final_command(v: np.ndarray, prev: np.ndarray, limits: JointLimits, A: np.ndarray | None = None,
@@ -120,22 +119,10 @@ def final_command(v: np.ndarray, prev: np.ndarray, limits: JointLimits, A: np.nd
     lo, hi = limits.box(prev)
     if np.all(v >= lo - tol) and np.all(v <= hi + tol) and np.all(A @ v >= b - tol):
         return Projection(np.clip(v, lo, hi))
-    x, acc_relaxed, dropped = feasible_projection(v, A, b, lo, hi, limits)
-    return Projection(x, True, acc_relaxed, dropped)
-
-
-def feasible_projection(v, A, b, lo, hi, limits: JointLimits):
-    """argmin |x - v|^2 subject to lo <= x <= hi and A x >= b, with the fallback chain when that
-    set is empty: b -> max(b, 0) -> 0, then the velocity box alone (acceleration relaxed; 0 is
-    always feasible there). Returns (x, acc_relaxed, recovery_dropped)."""
+    bb = qp.relaxed_bounds(A, b, lo, hi)
     n = len(v)
-    H, f = np.eye(n), -np.asarray(v, dtype=float)
-    C = np.vstack([np.eye(n), A])
-    for relaxed, (blo, bhi) in enumerate(((lo, hi), (-limits.vel, limits.vel))):
-        for dropped, bb in enumerate((b, np.zeros_like(b))):
-            if dropped and not np.any(b > 0):
-                continue
-            x, ok, _ = qp.solve(H, f, C, np.r_[blo, bb], np.r_[bhi, np.full(len(bb), np.inf)])
-            if ok:
-                return np.clip(x, blo, bhi), bool(relaxed), bool(dropped)
-    return brake(np.zeros(n), limits), True, True  # unreachable: 0 meets the velocity box and A x >= 0
+    x, ok, _ = qp.solve(np.eye(n), -np.asarray(v, dtype=float), np.ascontiguousarray(np.vstack([np.eye(n), A])),
+                        np.r_[lo, bb], np.r_[hi, np.full(len(bb), np.inf)])
+    if not ok:  # cannot happen for bounds from relaxed_bounds; stay safe anyway
+        return Projection(brake(prev, limits), True, True)
+    return Projection(np.clip(x, lo, hi), True, bool(np.any(bb < 0)))

@@ -26,9 +26,11 @@ QP and the closed form agree to solver tolerance away from active constraints
 (`recursive_qdot` is that closed form, the reference).
 
 Infeasible level 1 (the box excludes every command that meets A qd >= b: a contact arrived
-while moving into it, or push-back terms b > 0 of opposing contacts): b is first lowered to 0,
-then the acceleration limit is relaxed (0 always meets the velocity box and A qd >= 0), and the
-result says which (`recovery_dropped`, `acc_relaxed`).
+while the arm was moving into it faster than one tick's deceleration can undo, or push-back
+terms b > 0 of opposing contacts): b is first lowered to 0; if that is still infeasible the
+limits stay hard and the no-push rows take the least-violating motion (`least_violation`:
+minimum sum of squared violations inside the box), and the result says so (`recovery_dropped`,
+`infeasible`). Never a silent push.
 """
 from __future__ import annotations
 
@@ -76,13 +78,14 @@ def _meets(C, x, lower, upper):
 class Prioritised:
     """One tick's solution. `limited`: a box row (velocity/acceleration limit) was active at the
     dominant level; `blocked`: a no-push row was (another contact stops the dominant one's
-    retraction: an opposing pinch); `dominant_residual`: |J_1 qd - r_1| / |r_1|."""
+    retraction: an opposing pinch); `infeasible`: no command within the limits met every no-push
+    row (the least-violating one was taken); `dominant_residual`: |J_1 qd - r_1| / |r_1|."""
 
     qd: np.ndarray
     levels: int = 0
     limited: bool = False
     blocked: bool = False
-    acc_relaxed: bool = False
+    infeasible: bool = False
     recovery_dropped: bool = False
     damped: bool = False
     dominant_residual: float = 0.0
@@ -144,13 +147,9 @@ def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: fl
             out.damped = bool(np.any((S < sv_threshold) & (proj > 1e-3 * max(proj.sum(), 1e-300))))
         z, ok, lam = solve(H, f, C, lower, upper, start if out.levels == 0 else None)
         if not ok and out.levels == 0:  # fallback chain (module docstring); x = 0 here
-            for relax_acc in (False, True):
-                lo, hi = (-limits_vel, limits_vel) if relax_acc else (lo, hi)
-                b = np.zeros_like(b)
-                z, ok, lam = solve(H, f, C, np.r_[lo, b], np.r_[hi, np.full(len(b), np.inf)])
-                if ok:
-                    out.recovery_dropped, out.acc_relaxed = pushing, relax_acc
-                    break
+            b = relaxed_bounds(A, b, lo, hi)
+            out.recovery_dropped, out.infeasible = pushing, bool(np.any(b < 0))
+            z, ok, lam = solve(H, f, C, np.r_[lower[:n], b], upper)
         if not ok:  # z = 0 is feasible here (x met every constraint at the level before): keep x
             continue
         x = x + Z @ z
@@ -165,6 +164,27 @@ def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: fl
             break
     out.qd = np.clip(x, lo, hi)
     return out
+
+
+def relaxed_bounds(A, b, lo, hi) -> np.ndarray:
+    """The largest lower bounds b' <= b such that `A qd >= b'` meets the box: b' = max(b, 0)
+    where that is feasible, else the least violation: `b' = min(b, 0) - s` with s >= 0 the
+    slack of `min |s|^2 s.t. A qd + s >= min(b, 0), lo <= qd <= hi` (a tiny margin keeps the
+    next solve feasible)."""
+    n, K = A.shape[1], len(A)
+    b0 = np.minimum(b, 0.0)
+    x, ok, _ = solve(np.eye(n), np.zeros(n), np.ascontiguousarray(np.vstack([np.eye(n), A])), np.r_[lo, b0],
+                     np.r_[hi, np.full(K, np.inf)])
+    if ok:
+        return b0
+    H = np.diag(np.r_[np.full(n, 1e-9), np.ones(K)])
+    C = np.zeros((n + 2 * K, n + K))
+    C[:n, :n] = np.eye(n)
+    C[n:n + K, :n], C[n:n + K, n:] = A, np.eye(K)
+    C[n + K:, n:] = np.eye(K)
+    xs, ok, _ = solve(H, np.zeros(n + K), C, np.r_[lo, b0, np.zeros(K)], np.r_[hi, np.full(2 * K, np.inf)])
+    s = xs[n:] if ok else np.maximum(b0 - A @ np.clip(0.0, lo, hi), 0.0)  # the box's point nearest 0
+    return b0 - s - 1e-9 * (1 + np.abs(A).sum(axis=1))
 
 
 def recursive_qdot(J, r, damping: float, sv_threshold: float, rank_tol: float = 1e-3) -> np.ndarray:

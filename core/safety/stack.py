@@ -202,12 +202,12 @@ class SafetyStack:
                 v = w
         A, b = (d.A, d.b) if retracting else (None, None)
         proj = final_command(v, prev, self.limits, A, b)
-        info.acc_relaxed = info.acc_relaxed or proj.acc_relaxed
+        info.infeasible = info.infeasible or proj.infeasible
         return self._send(proj.v, info)
 
     def _send(self, v: np.ndarray, info: TickInfo) -> np.ndarray:
         flags = [f"nonfinite:{n}" for n in info.nonfinite] + (["nonfinite"] if info.nonfinite else [])
-        flags += [n for n in ("safe", "acc_relaxed") if getattr(info, n)]
+        flags += [n for n in ("safe", "infeasible") if getattr(info, n)]
         self.flags.update(flags)
         info.flags = tuple(flags)
         self.info, self.last = info, v
