@@ -122,7 +122,7 @@ def final_command(v: np.ndarray, prev: np.ndarray, limits: JointLimits, A: np.nd
     bb = qp.relaxed_bounds(A, b, lo, hi)
     n = len(v)
     x, ok, _ = qp.solve(np.eye(n), -np.asarray(v, dtype=float), np.ascontiguousarray(np.vstack([np.eye(n), A])),
-                        np.r_[lo, bb], np.r_[hi, np.full(len(bb), np.inf)])
+                        np.r_[lo, bb], np.r_[hi, np.full(len(bb), qp.BIG)])
     if not ok:  # cannot happen for bounds from relaxed_bounds; stay safe anyway
         return Projection(brake(prev, limits), True, True)
     return Projection(np.clip(x, lo, hi), True, bool(np.any(bb < 0)))

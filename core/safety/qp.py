@@ -44,10 +44,9 @@ BIG = 1e30  # DAQP's "no bound"
 
 
 def solve(H, f, C, lower, upper, start=None):
-    """min 1/2 x'Hx + f'x s.t. lower <= C x <= upper (+-inf or +-1e30 for none), all float64
+    """min 1/2 x'Hx + f'x s.t. lower <= C x <= upper (+-1e30 for none), all float64
     C-contiguous. Returns (x, ok, lam), lam the rows' multipliers (0 where inactive); ok is
     checked against the rows (DAQP's primal tolerance is 1e-6), not only DAQP's exit flag."""
-    lower, upper = _bounds(lower, upper)
     sense = np.zeros(len(lower), dtype=np.int32)
     if start is None:
         x, _, flag, info = daqp.solve(H, f, C, upper, lower, sense)
@@ -55,11 +54,6 @@ def solve(H, f, C, lower, upper, start=None):
         x, _, flag, info = daqp.solve(H, f, C, upper, lower, sense, primal_start=start)
     x = np.asarray(x)
     return x, flag >= 1 and _meets(C, x, lower, upper), info["lam"]
-
-
-@numba.njit(cache=True, nogil=True)
-def _bounds(lower, upper):
-    return np.maximum(lower, -BIG), np.minimum(upper, BIG)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -120,9 +114,15 @@ def _level(Jk, Z, x, rk, A, b, lo, hi, damping, sv_threshold, rank_tol, reg):
     C = np.empty((Z.shape[0] + A.shape[0], d))
     C[:Z.shape[0]] = Z
     C[Z.shape[0]:] = AZ
-    lower = np.concatenate((lo - x, b - A @ x))
-    upper = np.concatenate((hi - x, np.full(len(b), np.inf)))
-    return H, f, C, lower, upper, rank, Vt, S, U
+    lower = np.maximum(np.concatenate((lo - x, b - A @ x)), -BIG)
+    upper = np.minimum(np.concatenate((hi - x, np.full(len(b), BIG))), BIG)
+    e = np.ascontiguousarray(U[:, :p]).T @ (rk - Jk @ x)
+    total = np.sum(np.abs(e))
+    damped = False
+    for i in range(p):
+        if S[i] < sv_threshold and abs(e[i]) > 1e-3 * max(total, 1e-300):
+            damped = True
+    return H, f, C, lower, upper, rank, np.ascontiguousarray(Vt[rank:].T), damped
 
 
 def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: float, rank_tol: float = 1e-3,
@@ -138,13 +138,12 @@ def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: fl
     out = Prioritised(x)
     pushing = bool(np.any(b > 0))
     for k in range(K):
-        H, f, C, lower, upper, rank, Vt, S, U = _level(J[k], Z, x, r[k], A, b, lo, hi, damping, sv_threshold,
-                                                    rank_tol, reg)
+        H, f, C, lower, upper, rank, null, damped = _level(J[k], Z, x, r[k], A, b, lo, hi, damping, sv_threshold,
+                                                           rank_tol, reg)
         if rank == 0:
             continue
         if out.levels == 0:  # singular: the task asks for a direction its Jacobian barely has
-            proj = np.abs(U[:, :len(S)].T @ (r[k] - J[k] @ x))
-            out.damped = bool(np.any((S < sv_threshold) & (proj > 1e-3 * max(proj.sum(), 1e-300))))
+            out.damped = damped
         z, ok, lam = solve(H, f, C, lower, upper, start if out.levels == 0 else None)
         if not ok and out.levels == 0:  # fallback chain (module docstring); x = 0 here
             b = relaxed_bounds(A, b, lo, hi)
@@ -159,7 +158,7 @@ def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: fl
             nr = np.linalg.norm(r[k])
             out.dominant_residual = float(np.linalg.norm(J[k] @ x - r[k]) / nr) if nr > 0 else 0.0
         out.levels += 1
-        Z = np.ascontiguousarray(Z @ Vt[rank:].T)  # keep every higher task's achieved velocity
+        Z = Z @ null  # keep every higher task's achieved velocity
         if Z.shape[1] == 0:
             break
     out.qd = np.clip(x, lo, hi)
@@ -174,7 +173,7 @@ def relaxed_bounds(A, b, lo, hi) -> np.ndarray:
     n, K = A.shape[1], len(A)
     b0 = np.minimum(b, 0.0)
     x, ok, _ = solve(np.eye(n), np.zeros(n), np.ascontiguousarray(np.vstack([np.eye(n), A])), np.r_[lo, b0],
-                     np.r_[hi, np.full(K, np.inf)])
+                     np.r_[hi, np.full(K, BIG)])
     if ok:
         return b0
     H = np.diag(np.r_[np.full(n, 1e-9), np.ones(K)])
@@ -182,7 +181,7 @@ def relaxed_bounds(A, b, lo, hi) -> np.ndarray:
     C[:n, :n] = np.eye(n)
     C[n:n + K, :n], C[n:n + K, n:] = A, np.eye(K)
     C[n + K:, n:] = np.eye(K)
-    xs, ok, _ = solve(H, np.zeros(n + K), C, np.r_[lo, b0, np.zeros(K)], np.r_[hi, np.full(2 * K, np.inf)])
+    xs, ok, _ = solve(H, np.zeros(n + K), C, np.r_[lo, b0, np.zeros(K)], np.r_[hi, np.full(2 * K, BIG)])
     s = xs[n:] if ok else np.maximum(b0 - A @ np.clip(0.0, lo, hi), 0.0)  # the box's point nearest 0
     return b0 - s - 1e-9 * (1 + np.abs(A).sum(axis=1))
 
