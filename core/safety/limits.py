@@ -119,10 +119,13 @@ def final_command(v: np.ndarray, prev: np.ndarray, limits: JointLimits, A: np.nd
     lo, hi = limits.box(prev)
     if np.all(v >= lo - tol) and np.all(v <= hi + tol) and np.all(A @ v >= b - tol):
         return Projection(np.clip(v, lo, hi))
-    bb = qp.relaxed_bounds(A, b, lo, hi)
     n = len(v)
-    x, ok, _ = qp.solve(np.eye(n), -np.asarray(v, dtype=float), np.ascontiguousarray(np.vstack([np.eye(n), A])),
-                        np.r_[lo, bb], np.r_[hi, np.full(len(bb), qp.BIG)])
+    H, f, C = np.eye(n), -np.asarray(v, dtype=float), np.ascontiguousarray(np.vstack([np.eye(n), A]))
+    x, ok, _ = qp.solve(H, f, C, np.r_[lo, b], np.r_[hi, np.full(len(b), qp.BIG)])
+    bb = b
+    if not ok:
+        bb = qp.relaxed_bounds(A, b, lo, hi)
+        x, ok, _ = qp.solve(H, f, C, np.r_[lo, bb], np.r_[hi, np.full(len(bb), qp.BIG)])
     if not ok:  # cannot happen for bounds from relaxed_bounds; stay safe anyway
         return Projection(brake(prev, limits), True, True)
     return Projection(np.clip(x, lo, hi), True, bool(np.any(bb < 0)))

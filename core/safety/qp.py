@@ -108,21 +108,28 @@ def _level(Jk, Z, x, rk, A, b, lo, hi, damping, sv_threshold, rank_tol, reg):
             rank += 1
     d = Z.shape[1]
     Vp = np.ascontiguousarray(Vt[:p])
-    H = (Vp.T * _filtered(S, damping, sv_threshold)) @ Vp + reg * np.eye(d)
-    f = -(Vp.T @ (S * (np.ascontiguousarray(U[:, :p]).T @ (rk - Jk @ x))))
+    g = _filtered(S, damping, sv_threshold)
+    H = (Vp.T * g) @ Vp + reg * np.eye(d)
+    e = np.ascontiguousarray(U[:, :p]).T @ (rk - Jk @ x)
+    f = -(Vp.T @ (S * e))
+    free = Vp.T @ (S * e / (g + reg))  # the unconstrained minimiser (filtered DLS step)
     AZ = A @ Z
     C = np.empty((Z.shape[0] + A.shape[0], d))
     C[:Z.shape[0]] = Z
     C[Z.shape[0]:] = AZ
     lower = np.maximum(np.concatenate((lo - x, b - A @ x)), -BIG)
     upper = np.minimum(np.concatenate((hi - x, np.full(len(b), BIG))), BIG)
-    e = np.ascontiguousarray(U[:, :p]).T @ (rk - Jk @ x)
     total = np.sum(np.abs(e))
     damped = False
     for i in range(p):
         if S[i] < sv_threshold and abs(e[i]) > 1e-3 * max(total, 1e-300):
             damped = True
-    return H, f, C, lower, upper, rank, np.ascontiguousarray(Vt[rank:].T), damped
+    cz = C @ free
+    free_ok = True
+    for i in range(len(cz)):
+        if cz[i] < lower[i] or cz[i] > upper[i]:
+            free_ok = False
+    return H, f, C, lower, upper, rank, np.ascontiguousarray(Vt[rank:].T), damped, free, free_ok
 
 
 def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: float, rank_tol: float = 1e-3,
@@ -138,13 +145,16 @@ def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: fl
     out = Prioritised(x)
     pushing = bool(np.any(b > 0))
     for k in range(K):
-        H, f, C, lower, upper, rank, null, damped = _level(J[k], Z, x, r[k], A, b, lo, hi, damping, sv_threshold,
-                                                           rank_tol, reg)
+        H, f, C, lower, upper, rank, null, damped, free, free_ok = _level(J[k], Z, x, r[k], A, b, lo, hi, damping,
+                                                                          sv_threshold, rank_tol, reg)
         if rank == 0:
             continue
         if out.levels == 0:  # singular: the task asks for a direction its Jacobian barely has
             out.damped = damped
-        z, ok, lam = solve(H, f, C, lower, upper, start if out.levels == 0 else None)
+        if free_ok:  # no constraint binds: the closed-form step is the QP's optimum
+            z, ok, lam = free, True, np.zeros(len(lower))
+        else:
+            z, ok, lam = solve(H, f, C, lower, upper, start if out.levels == 0 else None)
         if not ok and out.levels == 0:  # fallback chain (module docstring); x = 0 here
             b = relaxed_bounds(A, b, lo, hi)
             out.recovery_dropped, out.infeasible = pushing, bool(np.any(b < 0))
