@@ -26,6 +26,11 @@ layer's command is integrated tick by tick (dt 2 ms) over the whole retraction (
   taxel out of its contact - or where a later tick was non-finite;
 * `ms_median`, `ms_worst`: the defensiveness tick over all ticks of the cases (`ms_p999`: the
   99.9th percentile, as the maximum on a shared machine is the scheduler's).
+
+With `--eq2` only, rows `estimator` = "eq2" instead: the bias of eq. 2's importance-sampling
+estimate (`danger.marginal_danger`) against the exact integral, per sample count K, on a
+proposal that puts little mass where the danger is (`bias_pct` over all estimates,
+`bias_pct_reliable` over those marked reliable, `reliable_frac`, `ess_median`).
 """
 from __future__ import annotations
 
@@ -54,6 +59,7 @@ def add_arguments(p) -> None:
     p.add_argument("--nonfinite", type=int, default=None,
                    help="non-finite injection cases per robot and contact count (default: cases / 10)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--eq2", action="store_true", help="instead: the bias of eq. 2's estimate vs sample count")
 
 
 class Setup:
@@ -193,7 +199,37 @@ def nonfinite_case(s: Setup, stack, rng: np.random.Generator, q, idx, f) -> tupl
     return fail, vel, acc
 
 
+def eq2_rows(seed: int, reps: int = 300) -> list[dict]:
+    """Eq. 2 on actions in [-3, 3]: target U uniform, proposal N(0.5, 0.7^2), danger
+    sigmoid(4 (a - 1.5)) (mostly where the proposal rarely samples)."""
+    from scipy.special import expit
+    from scipy.stats import norm
+
+    from skinsafe.core.safety.danger import marginal_danger
+
+    grid = np.linspace(-3, 3, 200_001)
+    exact = float(np.trapz(expit(4 * (grid - 1.5)), grid) / 6)
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in (10, 100, 1000, 10000):
+        est = []
+        for _ in range(reps):
+            a = rng.normal(0.5, 0.7, k)
+            log_u = np.where(np.abs(a) <= 3, -np.log(6.0), -np.inf)
+            est.append(marginal_danger(expit(4 * (a - 1.5)), norm.logpdf(a, 0.5, 0.7), log_u))
+        v = np.array([e.value for e in est])
+        ok = np.array([e.reliable for e in est])
+        out.append({"estimator": "eq2", "samples": k, "exact": round(exact, 5),
+                    "bias_pct": round(float((v.mean() - exact) / exact * 100), 2),
+                    "bias_pct_reliable": round(float((v[ok].mean() - exact) / exact * 100), 2) if ok.any() else None,
+                    "reliable_frac": round(float(ok.mean()), 3),
+                    "ess_median": round(float(np.median([e.ess for e in est])), 1)})
+    return out
+
+
 def rows(args) -> list[dict]:
+    if args.eq2:
+        return eq2_rows(args.seed)
     params = RetractionParams()
     rng = np.random.default_rng(args.seed)
     out = []
