@@ -149,10 +149,10 @@ class DefensivenessLayer:
             if value.shape != (self.kin.n,):
                 raise ValueError(f"DefensivenessLayer.tick: readings['{name}'] has shape {value.shape}; "
                                  f"pass one (N,) array per stimulus with N = {self.kin.n}")
-            ok = np.isfinite(value)
-            if not ok.all():
+            if not np.isfinite(value).all():
                 bad.append(f"readings:{name}")
-            finite[name] = np.where(ok, value, -np.inf)  # a non-finite reading never triggers
+                value = np.where(np.isfinite(value), value, -np.inf)  # a non-finite reading never triggers
+            finite[name] = value
         plan = None if qdot_planned is None else np.asarray(qdot_planned, dtype=float)
         if plan is not None and not np.all(np.isfinite(plan)):
             bad.append("command")
