@@ -13,9 +13,10 @@ layer's command is integrated tick by tick (dt 2 ms) over the whole retraction (
 * `into_contact_mm_worst`: the largest displacement of any contacted taxel toward its own
   contact (along +z at its trigger, from its trigger position), feasible cases, mm;
 * `dominant_ratio_min`: achieved over eq. 10 speed of the highest-priority contact along its
-  retraction axis, over the ticks where eq. 10 asks for at least 5% of its peak speed, in
-  feasible cases where nothing bound the dominant task (no joint limit, no other contact's
-  no-push constraint, no singularity damping); `dominant_cases` says how many cases that is;
+  retraction axis, in feasible cases, over the ticks where eq. 10 asks for at least 5% of its
+  peak speed and nothing binds the dominant task at that tick (no joint limit, no other
+  contact's no-push constraint, no singularity damping: where a limit binds, saturation
+  preserves priorities instead); `dominant_cases` says how many cases had such ticks;
 * `vel_limit_violations`, `acc_limit_violations`: cases with any tick over a limit (all cases);
 * `nonfinite_cases`: further cases run through the full stack (strategy filter + defensiveness
   + modulation with a small TDM), each with one non-finite value (NaN, +Inf or -Inf) injected at
@@ -106,7 +107,7 @@ def retraction_case(s: Setup, q, idx, f, times: list) -> dict:
     _, p0, fr0 = s.kin.jacobians_of(idx, q)
     z0 = fr0[:, :, 2].copy()
     prev = np.zeros(len(q))
-    out = {"into": 0.0, "ratio": np.inf, "feasible": True, "free": True, "vel": False, "acc": False}
+    out = {"into": 0.0, "ratio": np.inf, "feasible": True, "vel": False, "acc": False}
     for k in range(int(np.ceil(p.T / DT)) + 3):
         t = k * DT
         t0 = time.perf_counter()
@@ -117,8 +118,7 @@ def retraction_case(s: Setup, q, idx, f, times: list) -> dict:
         out["vel"] |= v
         out["acc"] |= a
         out["feasible"] &= not (info.infeasible or info.recovery_dropped)
-        if L.active:
-            out["free"] &= not (info.limited or info.blocked or info.damped)
+        if L.active and not (info.limited or info.blocked or info.damped):
             st = L._state[0]
             D = min(st[2], 12 * p.max_distance)
             want = D * profile_rate((t - st[1]) / p.T) / p.T
@@ -245,7 +245,7 @@ def rows(args) -> list[dict]:
             bad = [nonfinite_case(s, stack, rng, *s.draw(rng, c))
                    for _ in tqdm(range(n_bad), desc=f"non-finite {name} {c}", leave=False)]
             feas = [r for r in res if r["feasible"]]
-            free = [r["ratio"] for r in feas if r["free"] and np.isfinite(r["ratio"])]
+            free = [r["ratio"] for r in feas if np.isfinite(r["ratio"])]
             ms = np.array(times) * 1e3
             out.append({
                 "robot": name, "contacts": c, "cases": len(res), "feasible": len(feas),
