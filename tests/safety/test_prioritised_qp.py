@@ -93,7 +93,7 @@ def test_no_push_rows_hold_and_pinches_are_flagged(seed, K, kind):
     assert np.all(A @ sol.qd >= -1e-6 * (1 + np.abs(A).max()))
     if kind == "opposite":  # a pinch: the dominant taxel cannot retract without pushing the other in
         assert sol.blocked and sol.dominant_residual > 0.99
-        assert np.allclose(sol.qd, 0, atol=1e-6)
+        assert np.allclose(sol.qd, 0, atol=1e-5)  # DAQP primal tolerance 1e-6 per row
 
 
 def test_infeasible_box_keeps_limits_least_violation_and_says_so():
