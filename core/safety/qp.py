@@ -46,12 +46,12 @@ BIG = 1e30  # DAQP's "no bound"
 def solve(H, f, C, lower, upper, start=None):
     """min 1/2 x'Hx + f'x s.t. lower <= C x <= upper (+-1e30 for none), all float64
     C-contiguous. Returns (x, ok, lam), lam the rows' multipliers (0 where inactive); ok is
-    checked against the rows (DAQP's primal tolerance is 1e-6), not only DAQP's exit flag."""
+    checked against the rows (primal tolerance 1e-9, rows met to 1e-7), not only DAQP's exit flag."""
     sense = np.zeros(len(lower), dtype=np.int32)
     if start is None:
-        x, _, flag, info = daqp.solve(H, f, C, upper, lower, sense)
+        x, _, flag, info = daqp.solve(H, f, C, upper, lower, sense, primal_tol=1e-9)
     else:
-        x, _, flag, info = daqp.solve(H, f, C, upper, lower, sense, primal_start=start)
+        x, _, flag, info = daqp.solve(H, f, C, upper, lower, sense, primal_tol=1e-9, primal_start=start)
     x = np.asarray(x)
     return x, flag >= 1 and _meets(C, x, lower, upper), info["lam"]
 
@@ -63,7 +63,7 @@ def _meets(C, x, lower, upper):
             return False
     cx = C @ x
     for i in range(len(cx)):
-        if cx[i] < lower[i] - 1e-5 * (1 + abs(lower[i])) or cx[i] > upper[i] + 1e-5 * (1 + abs(upper[i])):
+        if cx[i] < lower[i] - 1e-7 * (1 + abs(lower[i])) or cx[i] > upper[i] + 1e-7 * (1 + abs(upper[i])):
             return False
     return True
 
