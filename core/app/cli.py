@@ -40,6 +40,7 @@ BENCHES = {
     "modulation": ("skinsafe.core.bench.modulation", "modulation tick and full three-layer tick"),
     "import": ("skinsafe.core.bench.robot_import", "a robot's own description in, a full-arm skin on its real surface"),
     "pfl": ("skinsafe.core.bench.pfl", "the ISO/TS 15066 speed cap tick vs a per-taxel loop"),
+    "safety": ("skinsafe.core.bench.safety", "correctness audit: no-push, limits, fail-safe on random contact sets"),
     "serial": ("skinsafe.hardware.bench_serial", "deploy and stream decoding over a pseudo-terminal"),
 }
 

@@ -1,6 +1,14 @@
-"""`skinsafe bench retraction`: one defensiveness tick with K active taxels out of N, against a
-straightforward loop (one `mj_jac`, one SVD and one Gram-Schmidt step per active taxel)."""
+"""`skinsafe bench retraction`: one defensiveness tick with K active taxels out of N.
+
+`ms`: the default tick (prioritised QP with the no-push constraints and the limits, DAQP);
+`ms_closed_form`: the same layer with the closed-form merge (`merge="joint"`, the reference the
+QP replaced) and `qp_over_closed_form` their ratio in the same run; `loop_ms`: the closed form
+written as a straightforward loop (one `mj_jac`, one SVD and one Gram-Schmidt step per active
+taxel), `speedup_vs_loop` = loop_ms / ms and `max_abs_diff` between the compiled closed form
+and that loop (they must agree to rounding)."""
 from __future__ import annotations
+
+from dataclasses import replace
 
 import mujoco
 import numpy as np
@@ -64,14 +72,19 @@ def rows(args) -> list[dict]:
     out = []
     for k in (int(s) for s in args.active.split(",")):
         active = np.sort(rng.choice(args.taxels, k, replace=False))
-        fast = DefensivenessLayer(kin, th, robot.vel_limits, robot.acc_limits, params)
-        loop = LoopLayer(kin, th, robot.vel_limits, robot.acc_limits, params)
+        closed = replace(params, merge="joint")
+        qp = DefensivenessLayer(kin, th, robot.vel_limits, robot.acc_limits, params)
+        fast = DefensivenessLayer(kin, th, robot.vel_limits, robot.acc_limits, closed)
+        loop = LoopLayer(kin, th, robot.vel_limits, robot.acc_limits, closed)
         readings = primed(fast, q, active, args.taxels)
         primed(loop, q, active, args.taxels)
+        primed(qp, q, active, args.taxels)
         t = 0.1 * params.T
         diff = float(np.abs(fast.tick(t, q, readings) - loop.tick(t, q, readings)).max())
-        ms = median_ms(lambda: fast.tick(t, q, readings), repeat=args.repeat, warmup=5)
+        ms = median_ms(lambda: qp.tick(t, q, readings), repeat=args.repeat, warmup=5)
+        ms_closed = median_ms(lambda: fast.tick(t, q, readings), repeat=args.repeat, warmup=5)
         ms_loop = median_ms(lambda: loop.tick(t, q, readings), repeat=max(5, args.repeat // 10), warmup=2)
-        out.append({"active": k, "n_taxels": args.taxels, "ms": round(ms, 4), "loop_ms": round(ms_loop, 3),
+        out.append({"active": k, "n_taxels": args.taxels, "ms": round(ms, 4), "ms_closed_form": round(ms_closed, 4),
+                    "qp_over_closed_form": round(ms / ms_closed, 2), "loop_ms": round(ms_loop, 3),
                     "speedup_vs_loop": round(ms_loop / ms, 1), "max_abs_diff": diff})
     return out

@@ -8,14 +8,14 @@ jab a taxel along its normal to a set depth and withdraw; the skin is read with
 
 Outputs in `--out`: `poke_force_distance.png` (retraction distance vs peak force, linear fit),
 `poke_displacement.png` (-z displacement vs time against eq. 10), `poke_multicontact.png`
-(Fig. 7 numbers for each epsilon) and `poke_results.json` with every number, plus the 3-D vs
+(Fig. 7 numbers: the prioritised QP, and the closed-form merges for each epsilon) and `poke_results.json` with every number, plus the 3-D vs
 6-D comparison (`compare_forms`, pure kinematics on every tenth taxel of the skin).
 """
 from __future__ import annotations
 
 import io
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import mujoco
@@ -26,7 +26,7 @@ from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.robot.models import Robot, build_ur5, load_robot
 from skinsafe.core.safety.defensiveness import DefensivenessLayer
-from skinsafe.core.safety.retraction import RetractionParams, profile
+from skinsafe.core.safety.retraction import MERGES, RetractionParams, profile
 from skinsafe.core.skin import taxel_map
 from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.model import SkinDesign
@@ -159,35 +159,45 @@ def force_sweep(design, robot, params, depths, body="forearm_link") -> dict:
 
 
 def retract_kinematic(kin: TaxelKinematics, layer: DefensivenessLayer, q: np.ndarray, force: np.ndarray,
-                      duration: float) -> np.ndarray:
-    """Trigger with `force` at t=0 and integrate the layer's command perfectly (no physics)."""
+                      duration: float, watch=None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Trigger with `force` at t=0 and integrate the layer's command perfectly (no physics).
+    With `watch` (taxel indices): also the largest displacement of each toward its contact
+    (along its normal at t=0, m) over the run."""
     q = q.copy()
     zero = np.zeros_like(force)
+    if watch is not None:
+        _, p0, fr0 = kin.jacobians_of(watch, q)
+        worst = np.zeros(len(watch))
     for k in range(int(np.ceil(duration / DT))):
         q += layer.tick(k * DT, q, {"force": force if k == 0 else zero}, None, DT) * DT
-    return q
+        if watch is not None:
+            worst = np.maximum(worst, np.einsum("ki,ki->k", kin.jacobians_of(watch, q)[1] - p0, fr0[:, :, 2]))
+    return q if watch is None else (q, worst)
 
 
 def multicontact(design, robot, params, bodies, forces, epsilons) -> list[dict]:
     """Fig. 7: simultaneous contacts on different links (kinematics: the merge alone, no probe
     pushing back); per merge and epsilon, the fraction of its own eq. 10 distance each contact
-    achieved along its -z (first = dominant, the heaviest force)."""
+    achieved along its -z (first = dominant, the heaviest force) and how far any contacted taxel
+    moved into its contact on the way (`into_contact_mm`). The prioritised QP (the default) does
+    not use epsilon: it is run once."""
     taxels = [pick_taxel(design, robot, b) for b in bodies]
     kin = TaxelKinematics(robot.model, design)
     p0, fr = (a[taxels].copy() for a in kin.poses(robot.home))
     f = np.zeros(design.n_taxels)
     f[taxels] = forces
     rows = []
-    for merge_kind in ("joint", "paper"):
-        for eps in epsilons:
-            p = RetractionParams(**{**params.__dict__, "epsilon": eps, "merge": merge_kind})
+    for merge_kind in MERGES:
+        for eps in epsilons if merge_kind != "qp" else epsilons[-1:]:
+            p = replace(params, epsilon=eps, merge=merge_kind)
             layer = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, p)
-            q = retract_kinematic(kin, layer, robot.home, f, p.T + 2 * DT)
+            q, worst = retract_kinematic(kin, layer, robot.home, f, p.T + 2 * DT, watch=np.asarray(taxels))
             along = np.einsum("ki,ki->k", p0 - kin.poses(q)[0][taxels], fr[:, :, 2])
             frac = along / (np.minimum(p.alpha * np.asarray(forces), 12 * p.max_distance) / 12)
             rows.append({"merge": merge_kind, "epsilon": eps, "contacts": len(taxels), "forces": list(forces),
                          "bodies": list(bodies), "dominant_fraction": round(float(frac[0]), 3),
-                         "others_fraction": [round(float(x), 3) for x in frac[1:]]})
+                         "others_fraction": [round(float(x), 3) for x in frac[1:]],
+                         "into_contact_mm": round(float(worst.max()) * 1e3, 3)})
     return rows
 
 
@@ -197,7 +207,7 @@ def compare_forms(design, robot, params, stride: int = 25, force: float = 40.0) 
     kin = TaxelKinematics(robot.model, design)
     out = {}
     for form in ("3d", "6d"):
-        p = RetractionParams(**{**params.__dict__, "form": form})
+        p = replace(params, form=form)
         layer = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, p)
         ratio, drift = [], []
         for i in tqdm(range(0, design.n_taxels, stride), desc=f"forms ({form})", leave=False):
@@ -263,17 +273,19 @@ def plots(sweep: dict, multi: list[dict], params: RetractionParams, out: Path) -
     fig.tight_layout()
     paths.append(_save_png(fig, out / "poke_displacement.png"))
 
-    fig, axes = plt.subplots(1, 2, figsize=(9, 4), sharey=True)
-    for ax, kind in zip(axes, ("joint", "paper")):
+    fig, axes = plt.subplots(1, len(MERGES), figsize=(4.5 * len(MERGES), 4), sharey=True)
+    for ax, kind in zip(axes, MERGES):
         rows = [r for r in multi if r["merge"] == kind]
         for c, n in enumerate(sorted({r["contacts"] for r in rows})):
             sub = [r for r in rows if r["contacts"] == n]
             x = np.arange(len(sub)) + 0.4 * c
             ax.bar(x - 0.1, [r["dominant_fraction"] for r in sub], 0.18, label=f"{n} contacts: dominant")
             ax.bar(x + 0.1, [np.mean(r["others_fraction"]) for r in sub], 0.18, label=f"{n} contacts: others (mean)")
-            ax.set_xticks(np.arange(len(sub)) + 0.2, [f"eps={r['epsilon']}" for r in sub])
+            ax.set_xticks(np.arange(len(sub)) + 0.2,
+                          ["prioritised QP" if kind == "qp" else f"eps={r['epsilon']}" for r in sub])
         ax.axhline(1.0, color="k", lw=0.5)
-        ax.set_title(f"merge: {kind}")
+        worst = max(r["into_contact_mm"] for r in rows)
+        ax.set_title(f"merge: {kind} (worst into contact {worst:.1f} mm)", fontsize=9)
         ax.set_ylabel("achieved / own retraction distance")
         ax.legend(fontsize=7)
     fig.tight_layout()
@@ -289,7 +301,7 @@ def add_arguments(p) -> None:
     p.add_argument("--alpha", type=float, default=0.01, help="sensitivity alpha, m/N")
     p.add_argument("--T", type=float, default=0.5, help="retraction duration T, s")
     p.add_argument("--form", choices=("3d", "6d"), default="3d", help="retraction task form")
-    p.add_argument("--epsilons", default="0,0.5,1", help="multi-contact tuning factors")
+    p.add_argument("--epsilons", default="0,0.5,1", help="multi-contact tuning factors of the closed-form merges")
     p.add_argument("--forms-stride", type=int, default=25, help="3-D vs 6-D comparison on every k-th taxel")
 
 
@@ -329,7 +341,8 @@ def run(args) -> int:
           f"eq. 10 max error {max(sweep['profile_rel_err']) * 100:.1f}% of the distance")
     for r in multi:
         print(f"poke: {r['contacts']} contacts, merge {r['merge']}, eps {r['epsilon']}: forces {r['forces']} N, "
-              f"dominant {r['dominant_fraction']}, others {r['others_fraction']}")
+              f"dominant {r['dominant_fraction']}, others {r['others_fraction']}, "
+              f"worst into contact {r['into_contact_mm']} mm")
     for form, r in forms.items():
         print(f"poke: form {form}: achieved median {r['achieved_median']:.3f} (p10 {r['achieved_p10']:.3f}), "
               f"within 5% {r['within_5pct'] * 100:.0f}%, drift median {r['drift_median']:.3f} p90 {r['drift_p90']:.3f}")

@@ -1,9 +1,8 @@
 """Taxel world poses and Jacobians for all taxels at once.
 
 One MuJoCo body Jacobian per skinned body (`mj_jacBody`), then every taxel on that body gets
-`J_p = J_p,body - [r]_x J_r` (r its offset from the body origin, world frame). Since r is the
-body rotation applied to the taxel's fixed local position, the whole (6 x nv) block of every
-taxel on a body is one small matrix product `[1, p_local] @ B_body`: one GEMM per body.
+`J_p = J_p,body - [r]_x J_r` (r its offset from the body origin, world frame) and `J_r` as is:
+one compiled pass over all taxels that writes positions, frames and Jacobians once each.
 """
 from __future__ import annotations
 
@@ -12,11 +11,6 @@ import numba
 import numpy as np
 
 from skinsafe.core.skin.model import DesignError, SkinDesign
-
-# S(e_a) for a = x, y, z: the cross-product matrices of the unit vectors.
-_SKEW = np.array([[[0, 0, 0], [0, 0, -1], [0, 1, 0]],
-                  [[0, 0, 1], [0, 0, 0], [-1, 0, 0]],
-                  [[0, -1, 0], [1, 0, 0], [0, 0, 0]]], dtype=float)
 
 
 def body_ids(model: mujoco.MjModel, design: SkinDesign) -> np.ndarray:
@@ -52,9 +46,6 @@ class TaxelKinematics:
             contiguous = idx[-1] - idx[0] + 1 == len(idx)
             self.groups.append((int(bid), slice(idx[0], idx[-1] + 1) if contiguous else idx))
         nv = model.nv
-        self._jacp = np.zeros((3, nv))
-        self._jacr = np.zeros((3, nv))
-        self._B = np.zeros((4, 6, nv))
         self.positions = np.zeros((n, 3))
         self._frames_t = np.zeros((n, 3, 3))
         self.frames = self._frames_t.transpose(0, 2, 1)  # (N,3,3) view: columns x, y, z in world
@@ -91,24 +82,17 @@ class TaxelKinematics:
     def jacobians(self, q: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Jacobians (N,6,nv), world positions (N,3) and frames (N,3,3) at q.
 
+        One `mj_jacBody` per skinned body, then one compiled pass over the taxels (`_fill`):
+        positions, frames and Jacobians written once each (memory-bound, no per-body GEMM).
         The returned arrays are reused by the next call; copy them to keep them.
         """
-        pos, frames = self.poses(q)
-        d, m, B = self.data, self.model, self._B
-        nv = m.nv
-        J2 = self.jac.reshape(self.n, 6 * nv)
-        for bid, sel in self.groups:
-            mujoco.mj_jacBody(m, d, self._jacp, self._jacr, bid)
-            R = d.xmat[bid].reshape(3, 3)
-            B[0, :3], B[0, 3:] = self._jacp, self._jacr
-            # row 1+b: d J_p / d p_local[b] = -S(R e_b) J_r  (angular rows do not depend on position)
-            B[1:, :3] = -np.einsum("ab,aij,jk->bik", R, _SKEW, self._jacr)
-            B[1:, 3:] = 0.0
-            if isinstance(sel, slice):
-                np.matmul(self._lh[sel], B.reshape(4, 6 * nv), out=J2[sel])
-            else:
-                J2[sel] = self._lh[sel] @ B.reshape(4, 6 * nv)
-        return self.jac, pos, frames
+        self.update(q)
+        d, m = self.data, self.model
+        for k, bid in enumerate(self._bodies):
+            mujoco.mj_jacBody(m, d, self._jb[k, :3], self._jb[k, 3:], int(bid))
+        _fill(self._jb, self._slot, self.body_id, d.xmat, d.xpos, self.local_pos, self.local_frames,
+              self.jac, self.positions, self._frames_t)
+        return self.jac, self.positions, self.frames
 
     def jacobians_of(self, index: np.ndarray, q: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Jacobians (K,6,nv), world positions (K,3) and frames (K,3,3) of the taxels `index` only
@@ -159,6 +143,30 @@ def _gather(jb, slot, body_id, xmat, xpos, local_pos, local_frames, index):
             J[k, 1, j] += wz * r[0] - wx * r[2]
             J[k, 2, j] += wx * r[1] - wy * r[0]
     return J, pos, frames
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill(jb, slot, body_id, xmat, xpos, local_pos, local_frames, J, pos, frames_t):
+    """`jacobians`' per-taxel part for every taxel: as `_gather`, into preallocated arrays
+    (frames stored transposed, as `poses` keeps them)."""
+    n, nv = len(body_id), jb.shape[2]
+    r = np.empty(3)
+    for i in range(n):
+        b = body_id[i]
+        for a in range(3):
+            r[a] = xmat[b, 3 * a] * local_pos[i, 0] + xmat[b, 3 * a + 1] * local_pos[i, 1] \
+                + xmat[b, 3 * a + 2] * local_pos[i, 2]
+            pos[i, a] = r[a] + xpos[b, a]
+            for c in range(3):
+                frames_t[i, c, a] = xmat[b, 3 * a] * local_frames[i, 0, c] + xmat[b, 3 * a + 1] * local_frames[i, 1, c] \
+                    + xmat[b, 3 * a + 2] * local_frames[i, 2, c]
+        s = slot[i]
+        for j in range(nv):
+            wx, wy, wz = jb[s, 3, j], jb[s, 4, j], jb[s, 5, j]
+            J[i, 0, j] = jb[s, 0, j] + wy * r[2] - wz * r[1]
+            J[i, 1, j] = jb[s, 1, j] + wz * r[0] - wx * r[2]
+            J[i, 2, j] = jb[s, 2, j] + wx * r[1] - wy * r[0]
+            J[i, 3, j], J[i, 4, j], J[i, 5, j] = wx, wy, wz
 
 
 def retractability(J: np.ndarray, frames: np.ndarray) -> np.ndarray:

@@ -47,6 +47,12 @@ def total_danger_probs(p) -> np.ndarray:
     return -np.expm1(log_total_safety_probs(p))
 
 
+MIN_ESS = 50.0
+"""Eq. 2's estimate counts as reliable only with an effective sample size of at least this and
+at most 5% of the untruncated estimate removed by the weight truncation: otherwise the
+truncation at sqrt(K) and the few large weights bias it (`skinsafe bench safety --eq2`)."""
+
+
 @dataclass
 class MarginalEstimate:
     """Importance-sampling estimate of eq. 2 and the health of its weights."""
@@ -57,11 +63,12 @@ class MarginalEstimate:
     ess: float  # effective sample size (sum w)^2 / sum w^2, in [1, n]
     n: int
     clipped: int  # how many weights hit max_weight
+    truncated: float = 0.0  # fraction of the untruncated estimate that the clipping removed
 
     @property
     def reliable(self) -> bool:
-        """At least 10% of the samples effectively count."""
-        return self.ess >= 0.1 * self.n
+        """ESS >= MIN_ESS and the truncation removed at most 5% of the estimate (see MIN_ESS)."""
+        return self.ess >= MIN_ESS and self.truncated <= 0.05
 
 
 def marginal_danger(danger, log_p, log_u=None, max_weight: float | None = None) -> MarginalEstimate:
@@ -87,11 +94,13 @@ def marginal_danger(danger, log_p, log_u=None, max_weight: float | None = None) 
     if max_weight is None:
         max_weight = np.sqrt(k)  # E_p[U/p] = 1 for a normalised U: truncate at sqrt(K) times the mean
     w = np.exp(np.minimum(log_w, np.log(max_weight)))
+    raw = float(np.mean(danger * np.exp(np.minimum(log_w, 700.0))))
     clipped = int((log_w > np.log(max_weight)).sum())
     s1, s2 = w.sum(), (w * w).sum()
     ess = float(s1 * s1 / s2) if s2 > 0 else 0.0
     return MarginalEstimate(value=float(np.clip(np.mean(danger * w), 0.0, 1.0)), weight_mean=float(w.mean()),
-                            weight_var=float(w.var()), ess=ess, n=k, clipped=clipped)
+                            weight_var=float(w.var()), ess=ess, n=k, clipped=clipped,
+                            truncated=float(1 - np.mean(danger * w) / raw) if raw > 0 else 0.0)
 
 
 def marginal_danger_discrete(danger, target=None) -> np.ndarray:

@@ -4,50 +4,120 @@ the joint velocity to command, which outranks any planned motion.
 Each tick: taxels whose stimulus exceeds its threshold (`events.danger_events`) and that are not
 already retracting join the pool with their trigger time, position and normal; a retraction
 lasts T and then leaves the pool (a taxel still in danger then triggers again). While a taxel
-retracts, its severity is the peak `alpha_s * reading_s` seen so far (the sensed force still
-rises for a few ms after the threshold is crossed). Only the pool's Jacobians are computed.
-The maths is in `retraction.py`.
+retracts, its severity is the peak `alpha_s * reading_s` over the stimuli above their thresholds
+(the sensed force still rises for a few ms after the threshold is crossed). Only the pool's
+Jacobians are computed. The maths is in `retraction.py` (eq. 10-13) and `qp.py` (the
+prioritised QP with the no-push constraints); the limits in `limits.py`.
+
+Fail safe. A tick whose clock, q, planned command or dt is not finite gets the safe command
+(`limits.brake`: every joint slows to zero at its acceleration limit) and a counted flag
+(`flags`), never the plan; a non-finite reading is ignored for new events and blocks the plan
+(the ongoing retraction goes on, its own inputs being finite; otherwise the safe command).
+Nothing latches: the next finite tick starts from the safe command as its previous command. A
+clock that goes backwards resets the pool. Every tick's outcome is in `info` (`TickInfo`).
 """
 from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
 
 from skinsafe.core.robot.kinematics import TaxelKinematics
-from skinsafe.core.safety.events import danger_events
-from skinsafe.core.safety.retraction import RetractionParams, limit, merge_paper, profile, profile_rate, retract_qdot
+from skinsafe.core.safety.limits import JointLimits, brake, scale_into
+from skinsafe.core.safety.qp import prioritised
+from skinsafe.core.safety.retraction import (
+    RetractionParams,
+    merge_paper,
+    profile,
+    profile_rate,
+    retract_qdot,
+    task_jacobians,
+    task_velocities,
+)
+
+MAX_TASKS = 64
+"""At most this many of the highest-priority contacts are retraction tasks (a 6- or 7-DoF arm has
+no freedom left for more); every contacted taxel of the pool is still a no-push constraint."""
+
+
+@dataclass
+class TickInfo:
+    """What one tick did. `nonfinite`: the inputs that were not finite; `safe`: the safe command
+    (brake) was sent; `limited`/`blocked`: a joint limit / another contact's no-push constraint
+    held the dominant retraction back (`blocked` is the opposing-pinch case: the dominant taxel
+    retracts less rather than push another one into its contact); `infeasible`: no command within
+    the velocity and acceleration limits kept every contacted taxel out of its contact (the
+    least-violating one was sent); `recovery_dropped`: a drifted
+    taxel could not be pushed back this tick; `damped`: the dominant task is near a singularity."""
+
+    nonfinite: tuple = ()
+    safe: bool = False
+    clock_reset: bool = False
+    retracting: bool = False
+    limited: bool = False
+    blocked: bool = False
+    infeasible: bool = False
+    recovery_dropped: bool = False
+    damped: bool = False
+    dominant_residual: float = 0.0
+    flags: tuple = field(default=())
 
 
 class DefensivenessLayer:
     """Reflexive retraction from tactile danger events, for one robot and its skin."""
 
     def __init__(self, kin: TaxelKinematics, thresholds: dict[str, np.ndarray], vel_limits, acc_limits,
-                 params: RetractionParams | None = None):
+                 params: RetractionParams | None = None, dt: float = 0.002):
         self.kin = kin
         self.params = params or RetractionParams()
         nv = kin.model.nv
-        self.vel_limits = _positive(vel_limits, nv, "vel_limits")
-        self.acc_limits = _positive(acc_limits, nv, "acc_limits")
+        try:
+            self.limits = JointLimits(np.broadcast_to(np.asarray(vel_limits, dtype=float), (nv,)),
+                                      np.broadcast_to(np.asarray(acc_limits, dtype=float), (nv,)), dt)
+        except ValueError as e:
+            raise ValueError(f"DefensivenessLayer: {e} (the robot has {nv} joints)") from None
+        if self.params.T < 10 * dt:
+            raise ValueError(f"DefensivenessLayer: T = {self.params.T} s is under 10 control periods (dt = {dt} s): "
+                             "eq. 10 cannot be followed in so few ticks; use T >= 10 dt (the paper: 0.5 s)")
         if not thresholds:
             raise ValueError("DefensivenessLayer: 'thresholds' is empty; pass the taxel map's thresholds "
                              "(design.taxels.thresholds), at least 'force'")
         self.thresholds = {}
         for name, th in thresholds.items():
-            th = np.asarray(th, dtype=float)
+            th = np.array(th, dtype=float)
             if th.shape != (kin.n,):
                 raise ValueError(f"DefensivenessLayer: thresholds['{name}'] has shape {th.shape}, the skin has "
                                  f"{kin.n} taxels; pass one threshold per taxel")
+            if not np.all(np.isfinite(th)):
+                raise ValueError(f"DefensivenessLayer: thresholds['{name}'] has non-finite values; give finite "
+                                 "thresholds (a taxel that must never trigger: a very large finite value)")
+            th.flags.writeable = False
             self.thresholds[name] = th
+        self.flags: Counter = Counter()
         self.reset()
 
+    @property
+    def vel_limits(self) -> np.ndarray:
+        return self.limits.vel
+
+    @property
+    def acc_limits(self) -> np.ndarray:
+        return self.limits.acc
+
     def reset(self) -> None:
-        """Forget every retraction and the last command."""
+        """Forget every retraction, the clock and the last command."""
         self._in_pool = np.zeros(self.kin.n, bool)
         # one row per retracting taxel: index, tau, peak severity alpha*f (m), p(tau) (3), z(tau) (3)
         self._state = np.zeros((0, 9))
         self.priorities = np.zeros(0)  # eq. 12, aligned with `pool`
         self.retracted = np.zeros(0)  # distance retracted so far along -z(tau), aligned with `pool`
-        self.last = np.zeros(self.kin.model.nv)
+        nv = self.kin.model.nv
+        self.A, self.b = np.zeros((0, nv)), np.zeros(0)  # no-push rows A qd >= b of the pool, this tick
+        self.last = np.zeros(nv)
+        self._t = -np.inf
+        self.info = TickInfo()
 
     @property
     def active(self) -> bool:
@@ -60,16 +130,47 @@ class DefensivenessLayer:
         return self._state[:, 0].astype(np.intp)
 
     def tick(self, t: float, q: np.ndarray, readings: dict[str, np.ndarray], qdot_planned: np.ndarray | None = None,
-             dt: float = 0.002) -> np.ndarray:
-        """The joint velocity to command now: the merged retraction while any retraction is active
-        (it outranks the plan), else the plan (zero without one); always within the velocity and
-        acceleration limits (from the last command, `dt` seconds ago)."""
-        p = self.params
+             dt: float | None = None, prev: np.ndarray | None = None) -> np.ndarray:
+        """The joint velocity to command now: the prioritised retraction while any retraction is
+        active (it outranks the plan), else the plan (zero without one); always within the
+        velocity and acceleration limits from `prev` (default: this layer's last command), `dt`
+        seconds ago (default: the construction's dt). Fail-safe rules: module docstring."""
+        p, nv = self.params, self.kin.model.nv
+        prev = self.last if prev is None else np.asarray(prev, dtype=float)
+        prev = np.where(np.isfinite(prev), prev, 0.0)
+        dt = self.limits.dt if dt is None else float(dt)
+        q = np.asarray(q, dtype=float)
+        if q.shape != (self.kin.model.nq,):
+            raise ValueError(f"DefensivenessLayer.tick: q has shape {q.shape}; pass the robot's {self.kin.model.nq} "
+                             "joint positions")
+        bad, finite = [], {}
         for name, value in readings.items():
-            if np.shape(value) != (self.kin.n,):
-                raise ValueError(f"DefensivenessLayer.tick: readings['{name}'] has shape {np.shape(value)}; "
+            value = np.asarray(value, dtype=float)
+            if value.shape != (self.kin.n,):
+                raise ValueError(f"DefensivenessLayer.tick: readings['{name}'] has shape {value.shape}; "
                                  f"pass one (N,) array per stimulus with N = {self.kin.n}")
-        events = danger_events(readings, self.thresholds)
+            if not np.isfinite(value).all():
+                bad.append(f"readings:{name}")
+                value = np.where(np.isfinite(value), value, -np.inf)  # a non-finite reading never triggers
+            finite[name] = value
+        plan = None if qdot_planned is None else np.asarray(qdot_planned, dtype=float)
+        if plan is not None and not np.all(np.isfinite(plan)):
+            bad.append("command")
+        fatal = [n for n, ok in (("clock", np.isfinite(t)), ("q", np.all(np.isfinite(q))),
+                                 ("dt", np.isfinite(dt) and dt > 0)) if not ok]
+        clock_reset = not fatal and t < self._t
+        if clock_reset:
+            last = prev
+            self.reset()
+            prev = last
+            self.flags["clock_reset"] += 1
+        if fatal:
+            return self._finish(brake(prev, self.limits), TickInfo(nonfinite=tuple(fatal + bad), safe=True), prev)
+        self._t = t
+        events = np.zeros(self.kin.n, bool)
+        for name, value in finite.items():
+            if name in self.thresholds:
+                events |= value > self.thresholds[name]
         st = self._state
         over = t - st[:, 1] > p.T  # retractions that are over leave the pool
         if over.any():
@@ -78,9 +179,12 @@ class DefensivenessLayer:
         new = np.flatnonzero(events & ~self._in_pool)
         if len(st) + len(new) == 0:
             self._state, self.priorities, self.retracted = st, np.zeros(0), np.zeros(0)
-            plan = np.zeros_like(self.last) if qdot_planned is None else np.asarray(qdot_planned, float)
-            self.last = limit(plan, self.last, self.vel_limits, self.acc_limits, dt)
-            return self.last.copy()
+            self.A, self.b = np.zeros((0, nv)), np.zeros(0)
+            info = TickInfo(nonfinite=tuple(bad), safe=bool(bad), clock_reset=clock_reset)
+            if bad:
+                return self._finish(brake(prev, self.limits), info, prev)
+            return self._finish(scale_into(np.zeros(nv) if plan is None else plan, prev, self.limits, dt),
+                                info, prev)
         idx = np.concatenate([st[:, 0].astype(np.intp), new])
         J, pos, frames = self._jacobians(idx, q)
         if len(new):
@@ -89,11 +193,30 @@ class DefensivenessLayer:
             rows[:, 0], rows[:, 1], rows[:, 2] = new, t, 0.0
             rows[:, 3:6], rows[:, 6:9] = pos[len(st):], frames[len(st):, :, 2]
             st = np.concatenate([st, rows])
-        order, w, done, speed = _rank(st, pos, self._severity_now(readings, idx), t, p.T, p.max_distance)
+        order, w, done, speed = _rank(st, pos, self._severity_now(finite, idx), t, p.T, p.max_distance)
         self._state, self.priorities, self.retracted = st[order], w, done
-        qdot = self._merged(J[order], -self._state[:, 6:9], speed)
-        self.last = limit(qdot, self.last, self.vel_limits, self.acc_limits, dt)
-        return self.last.copy()
+        J, back = J[order], -self._state[:, 6:9]
+        self.A = np.einsum("kij,ki->kj", J[:, :3, :], back)  # a_k = J_p,k^T d_k: speed along -z_k(tau)
+        self.b = np.minimum(p.recovery_gain * np.maximum(-done, 0.0), 0.05)  # push back what drifted in
+        info = TickInfo(nonfinite=tuple(bad), clock_reset=clock_reset, retracting=True)
+        if p.merge != "qp":  # the closed-form references, limited as before (uniform scaling)
+            return self._finish(scale_into(self._merged(J, back, speed), prev, self.limits, dt), info, prev)
+        lo, hi = self.limits.box(prev, dt)
+        A, b = _distinct_rows(self.A, self.b) if len(self.A) > MAX_TASKS else (self.A, self.b)
+        m = min(len(J), MAX_TASKS)
+        sol = prioritised(task_jacobians(J[:m], p.form), task_velocities(back[:m], speed[:m], p.form), A, b, lo, hi,
+                          self.limits.vel, p.damping, p.sv_threshold, p.rank_tol, start=prev)
+        for name in ("limited", "blocked", "infeasible", "recovery_dropped", "damped", "dominant_residual"):
+            setattr(info, name, getattr(sol, name))
+        return self._finish(sol.qd, info, prev)
+
+    def _finish(self, out: np.ndarray, info: TickInfo, prev: np.ndarray) -> np.ndarray:
+        flags = [f"nonfinite:{n}" for n in info.nonfinite] + (["nonfinite"] if info.nonfinite else [])
+        flags += [n for n in ("safe", "infeasible", "recovery_dropped", "blocked") if getattr(info, n)]
+        self.flags.update(flags)
+        info.flags = tuple(flags)
+        self.info, self.last = info, out
+        return out.copy()
 
     def desired_distance(self) -> np.ndarray:
         """(K,) eq. 10's final distance `min(alpha f, 12 max_distance) / 12` of the pool's taxels."""
@@ -107,27 +230,37 @@ class DefensivenessLayer:
         return self.kin.jacobians_of(idx, q)
 
     def _merged(self, J: np.ndarray, back: np.ndarray, speed: np.ndarray) -> np.ndarray:
-        """Eq. 11 per taxel, then the prioritised merge (rows highest priority first)."""
+        """The closed-form references: eq. 11 per taxel, then the merge (rows highest priority first)."""
         p = self.params
         if p.merge == "paper":
             return merge_paper(J, back, speed, p)
         return retract_qdot(J, back, speed, p)
 
     def _severity_now(self, readings: dict[str, np.ndarray], idx: np.ndarray) -> np.ndarray:
+        """Per pool taxel, max over the stimuli above their thresholds of alpha_s * reading_s."""
         out = np.zeros(len(idx))
         for name, value in readings.items():
-            if name in self.thresholds:
-                a = self.params.alpha_of(name)
-                if a > 0:
-                    out = np.fmax(out, a * np.asarray(value, float)[idx])
-        return out  # fmax skips NaN readings; an infinite one is capped by max_distance
+            a = self.params.alpha_of(name)
+            if name in self.thresholds and a > 0:
+                v = value[idx]
+                out = np.maximum(out, np.where(v > self.thresholds[name][idx], a * v, 0.0))
+        return out
 
 
-def _positive(x, n: int, name: str) -> np.ndarray:
-    x = np.broadcast_to(np.asarray(x, dtype=float), (n,)).copy()
-    if not np.all((x > 0) & np.isfinite(x)):
-        raise ValueError(f"DefensivenessLayer: '{name}' must be {n} positive finite numbers (one per joint), got {x}")
-    return x
+def _distinct_rows(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The no-push rows of a large pool without near-duplicates (same direction to 1e-9 after
+    normalising; the largest b kept): the same feasible set, far fewer QP rows."""
+    scale = np.linalg.norm(A, axis=1)
+    use = scale > 0
+    A, b, scale = A[use], b[use], scale[use]
+    key = np.round(A / scale[:, None], 9)
+    _, inv = np.unique(key, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    first = np.full(inv.max() + 1 if len(inv) else 0, -1)
+    first[inv[::-1]] = np.arange(len(inv))[::-1]
+    bmax = np.zeros(len(first))
+    np.maximum.at(bmax, inv, b / scale)
+    return A[first], bmax * scale[first]
 
 
 @numba.njit(cache=True, nogil=True)

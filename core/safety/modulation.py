@@ -116,6 +116,7 @@ class ModulationLayer:
 
     def __init__(self, potential, eps_grad: float = EPS_GRAD, keep_away: bool = True, tangent_gain: float = 1.0):
         self.eps_grad, self.keep_away, self.tangent_gain = float(eps_grad), bool(keep_away), float(tangent_gain)
+        self.finite = True
         self.set_potential(potential)
 
     def set_potential(self, potential) -> None:
@@ -128,8 +129,11 @@ class ModulationLayer:
             self._eval = lambda s, a: potential_and_normal(potential, s, a)
 
     def __call__(self, s, v, a=None) -> tuple[np.ndarray, np.ndarray | float]:
+        """Also sets `finite`: False when the potential or its gradient was not finite (the
+        modulation then stops the motion; the safety stack counts it and sends its safe command)."""
         single = np.ndim(v) == 1
         a = v if a is None else a
         f, n = self._eval(s, a)
+        self.finite = bool(np.all(np.isfinite(f)) and np.all(np.isfinite(n)))
         out = modulate(v, f, n, self.eps_grad, self.keep_away, self.tangent_gain)
         return (out, float(f[0])) if single else (out, f)

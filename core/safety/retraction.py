@@ -38,23 +38,27 @@ formula is kept as `merge_paper` for comparison):
   contact (with opposite normals, e.g. a pinch, the lower-priority taxel may: a rigid link
   cannot retract from both sides).
 
-Limits. The merged velocity is scaled uniformly (direction kept) to the joint velocity limits,
-then the change from the previous command is scaled uniformly to the acceleration limits.
+The default merge is neither: `merge="qp"` solves the priorities as a sequence of small QPs with
+the `J_i q_dot_(i-1)` correction of recursive task-priority control and the hard no-push
+constraints `-z_i^T J_i q_dot >= 0` (`qp.py`); `"joint"` and `"paper"` are kept as the closed-form
+references it is compared with (Fig. 7, `skinsafe bench safety`). Limits: `limits.py`.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from types import MappingProxyType
 
 import numba
 import numpy as np
 
 FORMS = ("3d", "6d")
-MERGES = ("joint", "paper")  # the intent of eq. 13 in joint space, or eq. 13 as printed
+MERGES = ("qp", "joint", "paper")  # prioritised QP (default); closed forms: eq. 13 intent in joint space, as printed
 
 
-@dataclass
+@dataclass(frozen=True)
 class RetractionParams:
-    """Hyper-parameters of the retraction (paper: alpha sensitivity, T agility, eps merge)."""
+    """Hyper-parameters of the retraction (paper: alpha sensitivity, T agility, eps merge),
+    validated at construction and immutable (change one with `dataclasses.replace`)."""
 
     alpha: float = 0.05  # m per N: final distance alpha * f / 12
     T: float = 0.5  # s, duration of one retraction
@@ -65,19 +69,21 @@ class RetractionParams:
     max_distance: float = 0.25  # m, cap on the final distance alpha * f / 12
     stimulus_alpha: dict = field(default_factory=lambda: {"temperature": 0.002, "classifier": 0.12})
     rank_tol: float = 1e-3  # relative residual under which a direction adds no new constraint
-    merge: str = "joint"  # "joint" (default, see module docstring) or "paper" (eq. 13 literally)
+    merge: str = "qp"  # "qp" (default), or the closed forms "joint" and "paper" (module docstring)
+    recovery_gain: float = 20.0  # 1/s: a contacted taxel that drifted toward its contact must move back this fast
 
     def __post_init__(self):
         checks = [
-            ("alpha", self.alpha >= 0 and np.isfinite(self.alpha), "a finite number >= 0 (m/N)"),
+            ("alpha", self.alpha >= 0 and np.isfinite(self.alpha), "a finite number >= 0 (m/N); 0 disables force retraction"),
             ("T", self.T > 0 and np.isfinite(self.T), "a positive duration in seconds"),
-            ("epsilon", 0.0 <= self.epsilon <= 1.0, "in [0, 1]"),
+            ("epsilon", 0.0 <= self.epsilon <= 1.0, "in [0, 1] (0 plain sum, 1 full null-space projection)"),
             ("form", self.form in FORMS, f"one of {FORMS}"),
             ("damping", self.damping >= 0 and np.isfinite(self.damping), "a finite number >= 0"),
             ("sv_threshold", self.sv_threshold > 0 and np.isfinite(self.sv_threshold), "a positive number"),
             ("max_distance", self.max_distance > 0 and np.isfinite(self.max_distance), "a positive distance in m"),
             ("rank_tol", 0 < self.rank_tol < 1, "in (0, 1)"),
             ("merge", self.merge in MERGES, f"one of {MERGES}"),
+            ("recovery_gain", self.recovery_gain >= 0 and np.isfinite(self.recovery_gain), "a finite number >= 0 (1/s)"),
         ]
         for name, ok, want in checks:
             if not ok:
@@ -85,6 +91,7 @@ class RetractionParams:
         for name, a in self.stimulus_alpha.items():
             if not (a >= 0 and np.isfinite(a)):
                 raise ValueError(f"RetractionParams: stimulus_alpha['{name}'] is {a!r}; it must be a finite number >= 0")
+        object.__setattr__(self, "stimulus_alpha", MappingProxyType(dict(self.stimulus_alpha)))
 
     def alpha_of(self, stimulus: str) -> float:
         return self.alpha if stimulus == "force" else float(self.stimulus_alpha.get(stimulus, 0.0))
@@ -340,32 +347,3 @@ def merge_paper(J: np.ndarray, directions: np.ndarray, speed: np.ndarray, params
             P = P @ (np.eye(len(r)) - params.epsilon * np.outer(r, r) / nr)
         total += P @ mapped[j]
     return pinv[0] @ total
-
-
-def limit(qdot: np.ndarray, prev: np.ndarray, vel_limits: np.ndarray, acc_limits: np.ndarray, dt: float) -> np.ndarray:
-    """Scale qdot uniformly into the velocity limits, then the step from `prev` into the
-    acceleration limits (direction of the step kept). Non-finite input gives `prev` held."""
-    arrays = [np.asarray(a, dtype=np.float64) for a in (qdot, prev, vel_limits, acc_limits)]
-    if any(a.shape != arrays[1].shape or a.ndim != 1 for a in arrays):
-        raise ValueError(f"limit: qdot, prev, vel_limits and acc_limits must be one value per joint; got shapes "
-                         f"{[a.shape for a in arrays]}")
-    return _limit(*arrays, float(dt))
-
-
-@numba.njit(cache=True, nogil=True)
-def _limit(qdot, prev, vel_limits, acc_limits, dt):
-    n = qdot.shape[0]
-    peak = 0.0
-    for i in range(n):
-        v = abs(qdot[i]) / vel_limits[i]
-        if not np.isfinite(v):
-            return prev.copy()
-        peak = max(peak, v)
-    q = qdot / peak if peak > 1 else qdot.copy()
-    over = 0.0
-    for i in range(n):
-        over = max(over, abs(q[i] - prev[i]) / (acc_limits[i] * dt))
-    if over > 1:
-        for i in range(n):
-            q[i] = prev[i] + (q[i] - prev[i]) / over
-    return q

@@ -12,18 +12,29 @@ A command source is anything callable as `source(t, q) -> qdot_planned (nv,)`: a
 2. tactile defensiveness (III-C): a retraction, when active, outranks the plan;
 3. modulation (III-B): whatever comes out - plan or retraction - is modulated by the danger
    potential (`ModulationLayer`; a retraction leaving danger keeps its speed, one heading into
-   danger, e.g. toward a desk, is slowed), then (optional `pfl`) capped so no taxel approaches
-   faster than ISO/TS 15066 allows (`pfl.PFLCap`), then scaled into the joint velocity limits.
+   danger, e.g. toward a desk, is slowed);
+4. limits (`limits.final_command`) on the final command: velocity and acceleration limits from
+   the last command sent; while taxels are retracting, also their no-push constraints (the
+   modulated command is projected, so modulation can never push a contacted taxel into its
+   contact and the acceleration limit never makes one move into it).
+
+Fail safe: a tick with a non-finite clock, q, dt, planned command, reading, TDM output or
+potential sends the safe command (`limits.brake`) or, where its own inputs are finite, the
+ongoing retraction (unmodulated when the potential is the bad input), never the plan, and counts
+the input in `flags`; `info` says what happened. A clock that goes backwards resets the layers.
 
 Each layer is optional. The potential and the TDM see the state `s = q[joints]` and the action
 `a = qdot[joints]` (`joints` default: all).
 """
 from __future__ import annotations
 
+from collections import Counter
 from typing import Callable
 
 import numpy as np
 
+from skinsafe.core.safety.defensiveness import TickInfo
+from skinsafe.core.safety.limits import JointLimits, brake, final_command
 from skinsafe.core.safety.modulation import ModulationLayer
 
 CommandSource = Callable[[float, np.ndarray], np.ndarray]
@@ -83,56 +94,128 @@ class StrategyFilter:
             raise ValueError(f"StrategyFilter: give one positive prior weight per scale ({len(self.scales)})")
         self.log_prior = np.log(prior / prior.sum())
         self.order = np.argsort(-self.log_prior, kind="stable")
+        self.nonfinite = False  # the last call met a non-finite TDM output (and chose to stop)
 
     def __call__(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
         """The MAP candidate. The candidate with the highest prior is scored first; the others
         only when one of them could still beat it (log p(not D) <= 0 can only lower a score), all
-        in one batch: the same argmax, usually from one TDM evaluation. A NaN safety counts as
-        certain danger; ties go to the higher prior."""
+        in one batch: the same argmax, usually from one TDM evaluation; ties go to the higher
+        prior. A non-finite TDM output (NaN or infinite log-safety) for any scored candidate
+        returns a stop (zeros) and sets `nonfinite`."""
+        self.nonfinite = False
         first, rest = self.order[0], self.order[1:]
         best = self.scales[first] * a
         score = self._scores(s, best[None], self.log_prior[first:first + 1])[0]
+        if self.nonfinite:
+            return np.zeros_like(a)
         if len(rest) == 0 or score >= self.log_prior[rest].max():
             return best
         cand = self.scales[rest, None] * a
         scores = self._scores(s, cand, self.log_prior[rest])
+        if self.nonfinite:
+            return np.zeros_like(a)
         k = int(np.argmax(scores))
         return cand[k] if scores[k] > score else best
 
     def _scores(self, s, cand, log_prior):
-        log_safe = self.fast.log_safety(np.broadcast_to(s, (len(cand), len(s))), cand)
-        return log_prior + np.where(np.isnan(log_safe), -np.inf, log_safe)
+        log_safe = np.asarray(self.fast.log_safety(np.broadcast_to(s, (len(cand), len(s))), cand), dtype=float)
+        if not np.all(np.isfinite(log_safe)):
+            self.nonfinite = True
+        return log_prior + log_safe
 
 
 class SafetyStack:
-    """Strategy filter -> defensiveness -> modulation -> limits, for one robot and its skin."""
+    """Strategy filter -> defensiveness -> modulation -> limits, for one robot and its skin.
+
+    `acc_limits` and `dt` default to the defensiveness layer's (no acceleration limit without
+    one); `vel_limits` are the robot's."""
 
     def __init__(self, vel_limits, defensiveness=None, modulation: ModulationLayer | None = None,
-                 strategy: StrategyFilter | None = None, joints=None, pfl=None):
-        self.vel_limits = np.asarray(vel_limits, dtype=float)
-        self.pfl = pfl  # optional ISO/TS 15066 speed cap `pfl(q, qdot) -> qdot` (pfl.PFLCap), after modulation
+                 strategy: StrategyFilter | None = None, joints=None, acc_limits=None, dt: float | None = None,
+                 pfl=None):
+        vel = np.asarray(vel_limits, dtype=float)
+        d = defensiveness
+        acc = (d.limits.acc if d is not None else np.inf) if acc_limits is None else acc_limits
+        dt = (d.limits.dt if d is not None else 0.002) if dt is None else dt
+        self.limits = JointLimits(vel, np.broadcast_to(np.asarray(acc, dtype=float), vel.shape), dt)
+        if d is not None and d.kin.model.nv != len(vel):
+            raise ValueError(f"SafetyStack: 'vel_limits' has {len(vel)} values, the defensiveness layer's robot "
+                             f"{d.kin.model.nv} joints; give one limit per joint")
         self.defensiveness, self.modulation, self.strategy = defensiveness, modulation, strategy
-        self.joints = np.arange(len(self.vel_limits)) if joints is None else np.asarray(joints)
+        self.pfl = pfl  # optional ISO/TS 15066 speed cap `pfl(q, qdot) -> qdot` (pfl.PFLCap), after modulation
+        self.joints = np.arange(len(vel)) if joints is None else np.asarray(joints)
+        self.flags: Counter = Counter()
+        self.reset()
+
+    @property
+    def vel_limits(self) -> np.ndarray:
+        return self.limits.vel
+
+    def reset(self) -> None:
+        """Forget the last command, the clock and every layer's state."""
+        self.last = np.zeros(len(self.limits.vel))
         self.last_f = 0.0
+        self._t = -np.inf
+        self.info = TickInfo()
+        if self.defensiveness is not None:
+            self.defensiveness.reset()
 
     def tick(self, t: float, q: np.ndarray, readings: dict[str, np.ndarray] | None, command: np.ndarray,
              dt: float) -> np.ndarray:
-        """The joint velocity to send now."""
-        j = self.joints
+        """The joint velocity to send now (module docstring)."""
+        j, d, prev = self.joints, self.defensiveness, self.last
+        q = np.asarray(q, dtype=float)
         v = np.array(command, dtype=float)
-        if not np.all(np.isfinite(v)):
-            v = np.zeros_like(v)  # a broken command source never moves the robot
+        bad = [n for n, x in (("clock", t), ("q", q), ("dt", dt), ("command", v)) if not np.all(np.isfinite(x))]
+        bad += [f"readings:{n}" for n, x in (readings or {}).items() if not np.all(np.isfinite(x))]
+        if "clock" not in bad and t < self._t:  # the clock went backwards: start again
+            self.reset()
+            self.last = prev
+            self.flags["clock_reset"] += 1
+        if {"clock", "q", "dt"} & set(bad):
+            return self._send(brake(prev, self.limits), TickInfo(nonfinite=tuple(bad), safe=True))
+        self._t = t
+        plan_ok = not bad
         s = q[j]
-        if self.strategy is not None:
+        if self.strategy is not None and plan_ok:
             v[j] = self.strategy(s, v[j])
-        if self.defensiveness is not None:
-            v = self.defensiveness.tick(t, q, readings or {}, v, dt)
+            if self.strategy.nonfinite:
+                bad.append("tdm")
+                plan_ok = False
+        info = TickInfo(nonfinite=tuple(bad))
+        if d is not None:
+            v = d.tick(t, q, readings or {}, v if plan_ok else None, dt, prev=prev)
+            info = d.info
+            info.nonfinite = tuple(bad + [n for n in info.nonfinite if n not in bad])
+            if info.safe:
+                return self._send(v, info)
+        retracting = d is not None and d.active
+        if not plan_ok and not retracting:
+            return self._send(brake(prev, self.limits), TickInfo(nonfinite=tuple(bad), safe=True))
         if self.modulation is not None:
-            v[j], self.last_f = self.modulation(s, v[j])
+            w = v.copy()
+            w[j], f = self.modulation(s, v[j])
+            self.last_f = f
+            if not (self.modulation.finite and np.all(np.isfinite(w))):
+                info.nonfinite = info.nonfinite + ("potential",)
+                if not retracting:
+                    return self._send(brake(prev, self.limits), TickInfo(nonfinite=info.nonfinite, safe=True))
+            else:
+                v = w
         if self.pfl is not None:
             v = self.pfl(q, v)
-        peak = float(np.max(np.abs(v) / self.vel_limits))
-        return v / peak if peak > 1 else v
+        A, b = (d.A, d.b) if retracting else (None, None)
+        proj = final_command(v, prev, self.limits, A, b)
+        info.infeasible = info.infeasible or proj.infeasible
+        return self._send(proj.v, info)
+
+    def _send(self, v: np.ndarray, info: TickInfo) -> np.ndarray:
+        flags = [f"nonfinite:{n}" for n in info.nonfinite] + (["nonfinite"] if info.nonfinite else [])
+        flags += [n for n in ("safe", "infeasible") if getattr(info, n)]
+        self.flags.update(flags)
+        info.flags = tuple(flags)
+        self.info, self.last = info, v
+        return v.copy()
 
     def run(self, source: CommandSource, t: float, q: np.ndarray, readings, dt: float) -> np.ndarray:
         """One tick for a command source (planner or teleoperation stream)."""

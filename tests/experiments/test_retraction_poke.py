@@ -21,8 +21,9 @@ def test_heavier_poke_retracts_further_linearly():
     assert abs(sweep["slope"] - 0.01 / 12) < 0.02 * 0.01 / 12
     assert max(sweep["profile_rel_err"]) < 0.15
     rows = multicontact(design, robot, params, ["forearm_link", "upper_arm_link"], [30.0, 20.0], [1.0])
-    assert [r["merge"] for r in rows] == ["joint", "paper"]
+    assert [r["merge"] for r in rows] == ["qp", "joint", "paper"]
     assert all(r["dominant_fraction"] > 0.5 and min(r["others_fraction"]) > 0.3 for r in rows)
+    assert rows[0]["into_contact_mm"] <= 0.5  # the prioritised QP never carries a taxel into its contact
     forms = compare_forms(design, robot, params, stride=200)
     assert forms["3d"]["achieved_median"] > 0.95 > 0.5 > forms["6d"]["achieved_median"]
 
@@ -34,5 +35,5 @@ def test_poke_cli_writes_plots_and_numbers(tmp_path, capsys):
     for name in ("poke_force_distance.png", "poke_displacement.png", "poke_multicontact.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     res = json.loads((out / "poke_results.json").read_text())
-    assert res["force_sweep"]["r2"] > 0.99 and len(res["multicontact"]) == 4
+    assert res["force_sweep"]["r2"] > 0.99 and len(res["multicontact"]) == 6
     assert "slope" in capsys.readouterr().out

@@ -150,3 +150,18 @@ def test_policy_filter_wraps_any_policy_and_composes():
     assert 0 <= pf.act(s[0], np.random.default_rng(0)) < 4
     with pytest.raises(TypeError, match="action_probs"):
         PolicyFilter(object(), model, 4)
+
+
+def test_eq2_estimate_from_few_samples_is_marked_unreliable():
+    """A proposal with little mass where the danger is: with 10 samples the estimate is far off
+    and must say so (ESS under MIN_ESS); with 200,000 it is close and reliable."""
+    from scipy.special import expit
+    from scipy.stats import norm
+
+    rng = np.random.default_rng(3)
+    for k, ok in ((10, False), (200_000, True)):
+        a = rng.normal(0.5, 0.7, k)
+        est = danger.marginal_danger(expit(4 * (a - 1.5)), norm.logpdf(a, 0.5, 0.7),
+                                     np.where(np.abs(a) <= 3, -np.log(6.0), -np.inf))
+        assert est.reliable is ok and (est.ess < danger.MIN_ESS) is not ok
+    assert est.value == pytest.approx(0.2501, abs=0.01)

@@ -1,4 +1,4 @@
-"""Retraction maths (eq. 10-13): profile, filtered DLS inverse, prioritised merge, limits."""
+"""Retraction maths (eq. 10-13): profile, filtered DLS inverse, the closed-form merges."""
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -8,7 +8,6 @@ from skinsafe.core.safety.retraction import (
     RetractionParams,
     dls_pinv,
     dls_solve,
-    limit,
     merge,
     merge_loop,
     merge_paper,
@@ -132,21 +131,6 @@ def test_merge_paper_literal_eq13():
     r0, r1 = Jt[0] @ P[0] @ (d[0] * sp[0]), Jt[0] @ P[1] @ (d[1] * sp[1])
     want = P[0] @ (r0 + (np.eye(3) - np.outer(r0, r0) / (r0 @ r0)) @ r1)
     assert np.allclose(merge_paper(J, d, sp, p), want, atol=1e-9)
-
-
-@FAST
-@given(seed=st.integers(0, 2 ** 32 - 1), mag=st.sampled_from([0.0, 1e-3, 1.0, 1e3, 1e12]), dt=st.sampled_from([1e-4, 2e-3, 8e-3]))
-def test_limit_keeps_direction_and_bounds(seed, mag, dt):
-    rng = np.random.default_rng(seed)
-    vel, acc = np.full(6, np.pi), np.full(6, 15.0)
-    want = rng.normal(size=6) * mag
-    out = limit(want, np.zeros(6), vel, acc, dt)
-    assert np.all(np.abs(out) <= vel * (1 + 1e-12)) and np.all(np.abs(out) <= acc * dt * (1 + 1e-12))
-    if mag > 0:  # from rest the direction is kept exactly
-        assert np.allclose(np.cross(out[:3], want[:3]), 0, atol=1e-9 * mag) and out @ want >= 0
-    prev = rng.normal(size=6)
-    held = limit(np.full(6, np.nan), prev, vel, acc, dt)
-    assert np.array_equal(held, prev)
 
 
 def test_params_errors_name_the_field():

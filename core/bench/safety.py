@@ -1,0 +1,260 @@
+"""`skinsafe bench safety`: a correctness audit of the tactile defensiveness layer and the
+safety stack, not a speed test (times are reported, but as a by-product).
+
+Per built-in robot and contact count (1, 2, 3, 8), `--cases` random contact sets (taxels drawn
+from the sample skin, half of the sets from one link so that opposite and identical normals
+meet; forces 3-60 N, one set in ten 1e3-1e6 N; poses uniform in the joint ranges, one in five
+with a joint at 0, the UR5's elbow and wrist singularities) are triggered at t = 0 and the
+layer's command is integrated tick by tick (dt 2 ms) over the whole retraction (default alpha
+0.05 m/N, T 0.5 s, epsilon 1). Row keys:
+
+* `cases`, `feasible`: contact sets, and those whose every tick met all hard constraints (no-push,
+  velocity and acceleration limits) without relaxing any;
+* `into_contact_mm_worst`: the largest displacement of any contacted taxel toward its own
+  contact (along +z at its trigger, from its trigger position), feasible cases, mm;
+* `dominant_ratio_min`: achieved over eq. 10 speed of the highest-priority contact along its
+  retraction axis, in feasible cases, over the ticks where eq. 10 asks for at least 5% of its
+  peak speed and nothing binds the dominant task at that tick (no joint limit, no other
+  contact's no-push constraint, no singularity damping: where a limit binds, saturation
+  preserves priorities instead); `dominant_cases` says how many cases had such ticks;
+* `vel_limit_violations`, `acc_limit_violations`: cases with any tick over a limit (all cases);
+* `nonfinite_cases`: further cases run through the full stack (strategy filter + defensiveness
+  + modulation with a small TDM), each with one non-finite value (NaN, +Inf or -Inf) injected at
+  a random tick into one of the readings (at a touched or a random taxel), q, the clock, the
+  planned command, the TDM output or the potential;
+* `fail_open`: of those, cases where the injected tick sent anything but the safe command (the
+  brake from the last command) or, while retracting, a command that keeps every contacted
+  taxel out of its contact - or where a later tick was non-finite;
+* `ms_median`, `ms_worst`: the defensiveness tick over all ticks of the cases (`ms_p999`: the
+  99.9th percentile, as the maximum on a shared machine is the scheduler's).
+
+With `--eq2` only, rows `estimator` = "eq2" instead: the bias of eq. 2's importance-sampling
+estimate (`danger.marginal_danger`) against the exact integral, per sample count K, on a
+proposal that puts little mass where the danger is (`bias_pct` over all estimates,
+`bias_pct_reliable` over those marked reliable, `reliable_frac`, `ess_median`).
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from tqdm import tqdm
+
+from skinsafe.core.design.sample import make_sample_design
+from skinsafe.core.robot.kinematics import TaxelKinematics
+from skinsafe.core.robot.models import BUILTIN
+from skinsafe.core.safety.defensiveness import DefensivenessLayer
+from skinsafe.core.safety.limits import brake
+from skinsafe.core.safety.retraction import RetractionParams, profile_rate
+
+DT = 0.002
+CONTACTS = (1, 2, 3, 8)
+INJECT = ("readings_touched", "readings_random", "q", "clock", "command", "tdm", "potential")
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--robots", default="ur5,panda", help="built-in robots (comma-separated)")
+    p.add_argument("--contacts", default="1,2,3,8", help="contact counts (comma-separated)")
+    p.add_argument("--cases", type=int, default=2500,
+                   help="random contact sets per robot and contact count (2,500 x 4 = 10,000 per robot)")
+    p.add_argument("--nonfinite", type=int, default=None,
+                   help="non-finite injection cases per robot and contact count (default: cases / 10)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--eq2", action="store_true", help="instead: the bias of eq. 2's estimate vs sample count")
+
+
+class Setup:
+    """A robot, its sample skin and the layer's parameters."""
+
+    def __init__(self, name: str, params: RetractionParams):
+        self.robot = BUILTIN[name]()
+        self.design = make_sample_design(name, robot=self.robot)
+        self.kin = TaxelKinematics(self.robot.model, self.design)
+        self.params = params
+        m = self.robot.model
+        rng = m.jnt_range[:m.nv].copy()
+        free = ~m.jnt_limited[:m.nv].astype(bool)
+        rng[free] = (-np.pi, np.pi)
+        self.range = rng
+        self.bodies = [np.flatnonzero(self.design.taxels.body == b) for b in range(len(self.design.bodies))]
+
+    def layer(self) -> DefensivenessLayer:
+        r = self.robot
+        return DefensivenessLayer(self.kin, self.design.taxels.thresholds, r.vel_limits, r.acc_limits, self.params, DT)
+
+    def draw(self, rng: np.random.Generator, contacts: int):
+        """(q, taxels, forces) of one random contact set."""
+        q = rng.uniform(self.range[:, 0], self.range[:, 1])
+        if rng.random() < 0.2:
+            j = rng.integers(len(q))
+            q[j] = np.clip(0.0, *self.range[j])
+        n = self.design.n_taxels
+        pool = self.bodies[rng.integers(len(self.bodies))] if rng.random() < 0.5 else np.arange(n)
+        idx = rng.choice(pool, min(contacts, len(pool)), replace=False)
+        f = rng.uniform(3.0, 60.0, len(idx))
+        if rng.random() < 0.1:
+            f = 10 ** rng.uniform(3, 6, len(idx))
+        return q, idx, f
+
+
+def retraction_case(s: Setup, q, idx, f, times: list) -> dict:
+    """Integrate one contact set; the audit's numbers for it."""
+    L, p = s.layer(), s.params
+    lim = L.limits
+    force = np.zeros(s.design.n_taxels)
+    force[idx] = f
+    zero = np.zeros_like(force)
+    _, p0, fr0 = s.kin.jacobians_of(idx, q)
+    z0 = fr0[:, :, 2].copy()
+    prev = np.zeros(len(q))
+    out = {"into": 0.0, "ratio": np.inf, "feasible": True, "vel": False, "acc": False}
+    for k in range(int(np.ceil(p.T / DT)) + 3):
+        t = k * DT
+        t0 = time.perf_counter()
+        qd = L.tick(t, q, {"force": force if k == 0 else zero}, None, DT)
+        times.append(time.perf_counter() - t0)
+        info = L.info
+        v, a = lim.violations(qd, prev)
+        out["vel"] |= v
+        out["acc"] |= a
+        out["feasible"] &= not (info.infeasible or info.recovery_dropped)
+        if L.active and not (info.limited or info.blocked or info.damped):
+            st = L._state[0]
+            D = min(st[2], 12 * p.max_distance)
+            want = D * profile_rate((t - st[1]) / p.T) / p.T
+            if want > 0.05 * D * 4 / 27 / p.T:
+                J0 = s.kin.jacobians_of(L.pool[:1], q)[0][0]
+                out["ratio"] = min(out["ratio"], float(-st[6:9] @ (J0[:3] @ qd)) / want)
+        prev = qd
+        q = q + qd * DT
+        pos = s.kin.jacobians_of(idx, q)[1]
+        out["into"] = max(out["into"], float(np.max(np.einsum("ki,ki->k", pos - p0, z0))))
+    return out
+
+
+def stack_for(s: Setup, seed: int):
+    """The full stack (strategy filter + defensiveness + modulation) with a small random TDM."""
+    import torch
+
+    from skinsafe.core.safety.modulation import ModulationLayer
+    from skinsafe.core.safety.potential import DangerPotential
+    from skinsafe.core.safety.stack import SafetyStack, StrategyFilter
+    from skinsafe.core.safety.tdm import TactileDangerModel
+
+    torch.manual_seed(seed)
+    nv = s.robot.model.nv
+    tdm = TactileDangerModel(nv, nv, 64, (32, 32)).eval()
+    return SafetyStack(s.robot.vel_limits, s.layer(), ModulationLayer(DangerPotential(tdm)), StrategyFilter(tdm))
+
+
+def nonfinite_case(s: Setup, stack, rng: np.random.Generator, q, idx, f) -> tuple[bool, bool, bool]:
+    """One injection case: (fail_open, vel violated, acc violated)."""
+    stack.reset()
+    d, lim = stack.defensiveness, stack.limits
+    force = np.zeros(s.design.n_taxels)
+    force[idx] = f
+    zero = np.zeros_like(force)
+    nv = len(q)
+    plan = rng.uniform(-0.5, 0.5, nv) * lim.vel
+    ticks = 40
+    at, where = int(rng.integers(0, ticks)), INJECT[rng.integers(len(INJECT))]
+    value = [np.nan, np.inf, -np.inf][rng.integers(3)]
+    fail = vel = acc = False
+    prev = np.zeros(nv)
+    for k in range(ticks):
+        t, qk, cmd = k * DT, q.copy(), plan.copy()
+        r = {"force": (force if k == 0 else zero).copy()}
+        saved = {}
+        if k == at:
+            if where.startswith("readings"):
+                r["force"][idx[0] if where == "readings_touched" else rng.integers(len(force))] = value
+            elif where == "q":
+                qk[rng.integers(nv)] = value
+            elif where == "clock":
+                t = value
+            elif where == "command":
+                cmd[rng.integers(nv)] = value
+            elif where == "tdm":
+                saved["tdm"] = stack.strategy.fast.log_safety
+                stack.strategy.fast.log_safety = lambda s_, a_: np.full(len(a_), value)
+            else:
+                saved["pot"] = stack.modulation._eval
+                stack.modulation._eval = lambda s_, a_: (np.full(1, value), np.full((1, nv), value))
+        out = stack.tick(t, qk, r, cmd, DT)
+        if "tdm" in saved:
+            stack.strategy.fast.log_safety = saved["tdm"]
+        if "pot" in saved:
+            stack.modulation._eval = saved["pot"]
+        if not np.all(np.isfinite(out)):
+            fail = True
+            break
+        v, a = lim.violations(out, prev)
+        vel, acc = vel or v, acc or a
+        if k == at:
+            safe = np.array_equal(out, brake(prev, lim))
+            retreat = d.active and np.all(d.A @ out >= -1e-6) and not np.array_equal(out, plan)
+            fail |= not (safe or retreat)
+        prev = out
+        q = q + out * DT
+    return fail, vel, acc
+
+
+def eq2_rows(seed: int, reps: int = 300) -> list[dict]:
+    """Eq. 2 on actions in [-3, 3]: target U uniform, proposal N(0.5, 0.7^2), danger
+    sigmoid(4 (a - 1.5)) (mostly where the proposal rarely samples)."""
+    from scipy.special import expit
+    from scipy.stats import norm
+
+    from skinsafe.core.safety.danger import marginal_danger
+
+    grid = np.linspace(-3, 3, 200_001)
+    exact = float(np.trapz(expit(4 * (grid - 1.5)), grid) / 6)
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in (10, 100, 1000, 10000):
+        est = []
+        for _ in range(reps):
+            a = rng.normal(0.5, 0.7, k)
+            log_u = np.where(np.abs(a) <= 3, -np.log(6.0), -np.inf)
+            est.append(marginal_danger(expit(4 * (a - 1.5)), norm.logpdf(a, 0.5, 0.7), log_u))
+        v = np.array([e.value for e in est])
+        ok = np.array([e.reliable for e in est])
+        out.append({"estimator": "eq2", "samples": k, "exact": round(exact, 5),
+                    "bias_pct": round(float((v.mean() - exact) / exact * 100), 2),
+                    "bias_pct_reliable": round(float((v[ok].mean() - exact) / exact * 100), 2) if ok.any() else None,
+                    "reliable_frac": round(float(ok.mean()), 3),
+                    "ess_median": round(float(np.median([e.ess for e in est])), 1)})
+    return out
+
+
+def rows(args) -> list[dict]:
+    if args.eq2:
+        return eq2_rows(args.seed)
+    params = RetractionParams()
+    rng = np.random.default_rng(args.seed)
+    out = []
+    contacts = [int(c) for c in args.contacts.split(",")]
+    n_bad = max(1, args.cases // 10) if args.nonfinite is None else args.nonfinite
+    for name in args.robots.split(","):
+        s = Setup(name, params)
+        stack = stack_for(s, args.seed)
+        for c in contacts:
+            times: list = []
+            res = [retraction_case(s, *s.draw(rng, c), times)
+                   for _ in tqdm(range(args.cases), desc=f"safety {name} {c} contacts", leave=False)]
+            bad = [nonfinite_case(s, stack, rng, *s.draw(rng, c))
+                   for _ in tqdm(range(n_bad), desc=f"non-finite {name} {c}", leave=False)]
+            feas = [r for r in res if r["feasible"]]
+            free = [r["ratio"] for r in feas if np.isfinite(r["ratio"])]
+            ms = np.array(times) * 1e3
+            out.append({
+                "robot": name, "contacts": c, "cases": len(res), "feasible": len(feas),
+                "into_contact_mm_worst": round(max((r["into"] for r in feas), default=0.0) * 1e3, 4),
+                "dominant_ratio_min": round(min(free), 4) if free else None, "dominant_cases": len(free),
+                "vel_limit_violations": sum(r["vel"] for r in res) + sum(b[1] for b in bad),
+                "acc_limit_violations": sum(r["acc"] for r in res) + sum(b[2] for b in bad),
+                "nonfinite_cases": len(bad), "fail_open": sum(b[0] for b in bad),
+                "ms_median": round(float(np.median(ms)), 4), "ms_worst": round(float(ms.max()), 3),
+                "ms_p999": round(float(np.percentile(ms, 99.9)), 3),
+            })
+    return out

@@ -1,0 +1,131 @@
+"""Joint velocity and acceleration limits on the final command, and the safe command.
+
+`JointLimits` is validated once and immutable. Within one control period `dt` a command may
+change by at most `acc * dt` per joint and never exceed `vel`: the box `box(prev)`. The final
+command of the safety stack goes through `final_command`:
+
+* no contact active: the command is scaled uniformly into the box (direction kept, so a planned
+  path keeps its shape);
+* contacts active: the command is projected onto the box and the no-push half-spaces
+  `a_k . qd >= b_k` (a small QP, `qp.solve`): the acceleration limit never makes a contacted
+  taxel move into its contact where any command within the limits avoids it. Where the box and
+  the half-spaces do not meet (a contact arrived while the arm was moving into it faster than
+  one tick can undo, or a pinch), the limits stay hard, the least-violating command is taken
+  (`qp.relaxed_bounds`) and the result says so (`infeasible`).
+
+`brake(prev)` is the safe command for a tick whose inputs cannot be trusted: every joint slows
+toward zero at its acceleration limit (zero at once when it is within one tick of zero), never
+the planned command.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from skinsafe.core.safety import qp
+
+
+@dataclass(frozen=True)
+class JointLimits:
+    """Per-joint velocity (rad/s or m/s) and acceleration limits, and the control period dt (s).
+    `acc` may be +inf (no acceleration limit); everything else must be positive and finite."""
+
+    vel: np.ndarray
+    acc: np.ndarray
+    dt: float = 0.002
+
+    def __post_init__(self):
+        vel = np.array(self.vel, dtype=float, ndmin=1)
+        acc = np.array(np.broadcast_to(np.asarray(self.acc, dtype=float), vel.shape) if np.ndim(self.acc) == 0
+                       else self.acc, dtype=float, ndmin=1)
+        if vel.ndim != 1 or acc.shape != vel.shape:
+            raise ValueError(f"JointLimits: 'vel' has shape {vel.shape} and 'acc' {acc.shape}; give one value per "
+                             "joint for both (a scalar acc applies to every joint)")
+        if not np.all((vel > 0) & np.isfinite(vel)):
+            raise ValueError(f"JointLimits: 'vel' must be positive finite numbers, one per joint; got {vel}")
+        if not np.all((acc > 0) & ~np.isnan(acc)):
+            raise ValueError(f"JointLimits: 'acc' must be positive (inf for none), one per joint; got {acc}")
+        if not (np.isfinite(self.dt) and self.dt > 0):
+            raise ValueError(f"JointLimits: 'dt' is {self.dt!r}; it must be the positive control period in s")
+        vel.flags.writeable = acc.flags.writeable = False
+        object.__setattr__(self, "vel", vel)
+        object.__setattr__(self, "acc", acc)
+        object.__setattr__(self, "dt", float(self.dt))
+
+    @property
+    def nv(self) -> int:
+        return len(self.vel)
+
+    def box(self, prev: np.ndarray, dt: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi): the commands reachable from `prev` within one tick and the velocity limits."""
+        step = self.acc * (self.dt if dt is None else dt)
+        return np.maximum(-self.vel, prev - step), np.minimum(self.vel, prev + step)
+
+    def violations(self, v: np.ndarray, prev: np.ndarray, tol: float = 1e-9) -> tuple[bool, bool]:
+        """(velocity limit exceeded, acceleration limit exceeded) by `v` after `prev`."""
+        vel = bool(np.any(np.abs(v) > self.vel * (1 + tol)))
+        acc = bool(np.any(np.abs(v - prev) > self.acc * self.dt * (1 + tol) + tol))
+        return vel, acc
+
+
+def brake(prev: np.ndarray, limits: JointLimits) -> np.ndarray:
+    """The safe command: each joint's speed reduced toward 0 by at most its acc * dt."""
+    step = limits.acc * limits.dt
+    return np.where(np.isfinite(prev), prev - np.clip(prev, -step, step), 0.0)
+
+
+def scale_into(v: np.ndarray, prev: np.ndarray, limits: JointLimits, dt: float | None = None) -> np.ndarray:
+    """Scale v uniformly into the velocity limits, then the step from `prev` uniformly into the
+    acceleration limits (direction of the step kept). For commands with no contact active."""
+    return _scale_into(np.asarray(v, dtype=float), np.asarray(prev, dtype=float), limits.vel, limits.acc,
+                       float(limits.dt if dt is None else dt))
+
+
+@numba.njit(cache=True, nogil=True)
+def _scale_into(qdot, prev, vel, acc, dt):
+    n = qdot.shape[0]
+    peak = 0.0
+    for i in range(n):
+        peak = max(peak, abs(qdot[i]) / vel[i])
+    q = qdot / peak if peak > 1 else qdot.copy()
+    over = 0.0
+    for i in range(n):
+        over = max(over, abs(q[i] - prev[i]) / (acc[i] * dt))
+    if over > 1:
+        for i in range(n):
+            q[i] = prev[i] + (q[i] - prev[i]) / over
+    return q
+
+
+@dataclass
+class Projection:
+    """The limited command and what happened: `changed` (v was outside the feasible set),
+    `infeasible` (no command within the limits met every no-push row: the least-violating one)."""
+
+    v: np.ndarray
+    changed: bool = False
+    infeasible: bool = False
+
+
+def final_command(v: np.ndarray, prev: np.ndarray, limits: JointLimits, A: np.ndarray | None = None,
+                  b: np.ndarray | None = None, tol: float = 1e-9) -> Projection:
+    """The command to send: `v` limited (module docstring). `A` (K, nv) and `b` (K,) are the
+    no-push constraints `A qd >= b` of the contacted taxels (None or K = 0: none)."""
+    if A is None or len(A) == 0:
+        out = scale_into(v, prev, limits)
+        return Projection(out, changed=not np.array_equal(out, v))
+    lo, hi = limits.box(prev)
+    if np.all(v >= lo - tol) and np.all(v <= hi + tol) and np.all(A @ v >= b - tol):
+        return Projection(np.clip(v, lo, hi))
+    n = len(v)
+    H, f, C = np.eye(n), -np.asarray(v, dtype=float), np.ascontiguousarray(np.vstack([np.eye(n), A]))
+    x, ok, _ = qp.solve(H, f, C, np.r_[lo, b], np.r_[hi, np.full(len(b), qp.BIG)])
+    bb = b
+    if not ok:
+        bb = qp.relaxed_bounds(A, b, lo, hi)
+        x, ok, _ = qp.solve(H, f, C, np.r_[lo, bb], np.r_[hi, np.full(len(bb), qp.BIG)])
+    if not ok:  # cannot happen for bounds from relaxed_bounds; stay safe anyway
+        return Projection(brake(prev, limits), True, True)
+    return Projection(np.clip(x, lo, hi), True, bool(np.any(bb < 0)))

@@ -1,0 +1,111 @@
+"""The prioritised QP (qp.py) against the closed-form recursion, the J_i qd_(i-1) correction,
+priority-preserving saturation and the no-push constraints, on random small problems."""
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from skinsafe.core.safety.qp import prioritised, recursive_qdot
+from skinsafe.core.safety.retraction import merge, single_qdots
+
+FAST = settings(max_examples=60, deadline=None)
+BIG = np.full(7, 1e3)
+
+
+def solve(J, r, A=None, b=None, lo=None, hi=None, n=None):
+    n = J.shape[2]
+    A = np.zeros((0, n)) if A is None else A
+    b = np.zeros(len(A)) if b is None else b
+    lo = -BIG[:n] if lo is None else lo
+    hi = BIG[:n] if hi is None else hi
+    return prioritised(J, r, A, b, lo, hi, np.maximum(np.abs(lo), np.abs(hi)), 0.05, 0.05)
+
+
+@FAST
+@given(seed=st.integers(0, 2 ** 32 - 1), K=st.integers(1, 8), n=st.sampled_from([6, 7]))
+def test_equals_the_recursion_when_nothing_binds(seed, K, n):
+    rng = np.random.default_rng(seed)
+    J, r = rng.normal(size=(K, 3, n)), rng.normal(size=(K, 3)) * 0.1
+    sol = solve(J, r)
+    assert np.allclose(sol.qd, recursive_qdot(J, r, 0.05, 0.05), atol=1e-5)
+    assert not (sol.limited or sol.blocked or sol.infeasible)
+
+
+@FAST
+@given(seed=st.integers(0, 2 ** 32 - 1))
+def test_lower_task_exact_where_dofs_allow_unlike_the_old_merge(seed):
+    """Two 3-D tasks on 6 joints: the recursion with the J_2 qd_1 correction meets both exactly;
+    the closed-form joint-space merge (no correction) misses the second."""
+    rng = np.random.default_rng(seed)
+    J, d, sp = rng.normal(size=(2, 6, 6)), rng.normal(size=(2, 3)), rng.uniform(0.05, 0.2, 2)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = d * sp[:, None]
+    N1 = np.eye(6) - np.linalg.pinv(J[0, :3]) @ J[0, :3]
+    assume(min(np.linalg.svd(J[0, :3])[1].min(), np.linalg.svd(J[1, :3] @ N1)[1][:3].min()) > 0.1)  # undamped
+    qd = solve(J[:, :3], r).qd
+    for k in range(2):
+        assert np.allclose(J[k, :3] @ qd, r[k], atol=1e-6)
+    old = merge(single_qdots(J, d, sp, _params()), np.einsum("kij,ki->kj", J[:, :3], d), 1.0)
+    assert np.linalg.norm(J[1, :3] @ old - r[1]) > 1e-3 * np.linalg.norm(r[1])
+
+
+def _params():
+    from skinsafe.core.safety.retraction import RetractionParams
+
+    return RetractionParams(merge="joint")
+
+
+@FAST
+@given(seed=st.integers(0, 2 ** 32 - 1), scale=st.sampled_from([3.0, 30.0, 1e4]))
+def test_saturation_spares_the_dominant_task(seed, scale):
+    """A lower task asking for far more than the limits allow is saturated first: the dominant
+    task stays exact as long as it fits in the box on its own (Flacco et al. 2012)."""
+    rng = np.random.default_rng(seed)
+    J = rng.normal(size=(2, 3, 6))
+    r = np.vstack([rng.normal(size=3) * 0.05, rng.normal(size=3) * scale])
+    lim = np.full(6, 1.0)
+    alone = solve(J[:1], r[:1], lo=-lim, hi=lim)
+    both = solve(J, r, lo=-lim, hi=lim)
+    assert np.all(np.abs(both.qd) <= lim + 1e-12)
+    if not alone.limited:
+        assert np.allclose(J[0] @ both.qd, r[0], atol=1e-6)
+        assert both.dominant_residual < 1e-6
+
+
+@FAST
+@given(seed=st.integers(0, 2 ** 32 - 1), K=st.integers(2, 64), kind=st.sampled_from(["random", "same", "opposite"]))
+def test_no_push_rows_hold_and_pinches_are_flagged(seed, K, kind):
+    rng = np.random.default_rng(seed)
+    J = rng.normal(size=(K, 3, 6))
+    if kind != "random":  # every contact on one point of one link: identical or opposite normals
+        J[:] = J[0]
+    d = rng.normal(size=(K, 3))
+    if kind == "same":
+        d[:] = d[0]
+    if kind == "opposite":
+        d[1::2] = -d[0]
+        d[0::2] = d[0]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = d * rng.uniform(0.01, 0.3, (K, 1))
+    A = np.einsum("kij,ki->kj", J, d)
+    sol = solve(J, r, A, lo=-np.full(6, 3.0), hi=np.full(6, 3.0))
+    assert np.all(np.isfinite(sol.qd))
+    assert np.all(A @ sol.qd >= -1e-6 * (1 + np.abs(A).max()))
+    if kind == "opposite":  # a pinch: the dominant taxel cannot retract without pushing the other in
+        assert sol.blocked and sol.dominant_residual > 0.99
+        assert np.allclose(sol.qd, 0, atol=1e-5)  # DAQP primal tolerance 1e-6 per row
+
+
+def test_infeasible_box_keeps_limits_least_violation_and_says_so():
+    """Moving into a contact faster than one tick's deceleration allows: the limits hold, the
+    command brakes as hard as they allow (the least violation), flagged infeasible."""
+    J = np.zeros((1, 3, 6))
+    J[0, 0, 0] = 1.0
+    r = np.array([[0.1, 0.0, 0.0]])
+    A = np.array([[1.0, 0, 0, 0, 0, 0]])  # joint 0 positive = away from the contact
+    prev = np.array([-1.0, 0, 0, 0, 0, 0])  # moving into it at 1 rad/s
+    lo, hi = prev - 0.03, prev + 0.03
+    sol = prioritised(J, r, A, np.zeros(1), lo, hi, np.full(6, 3.0), 0.05, 0.05)
+    assert sol.infeasible and sol.qd[0] == pytest.approx(-0.97)
+    pushing = prioritised(J, r, A, np.array([0.02]), -np.full(6, 3.0), np.full(6, 3.0), np.full(6, 3.0), 0.05, 0.05)
+    assert not pushing.infeasible and pushing.qd[0] >= 0.02 - 1e-9

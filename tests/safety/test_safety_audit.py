@@ -1,0 +1,25 @@
+"""`skinsafe bench safety`: the audit's row keys (a contract) and its verdicts on a small run."""
+import json
+
+from skinsafe.core.app.cli import main
+
+KEYS = {"robot", "contacts", "cases", "feasible", "into_contact_mm_worst", "dominant_ratio_min", "vel_limit_violations",
+        "acc_limit_violations", "nonfinite_cases", "fail_open", "ms_median", "ms_worst"}
+
+
+def test_audit_rows_small_run(capsys):
+    assert main(["bench", "safety", "--json", "--cases", "2", "--nonfinite", "4", "--contacts", "1,3"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [(r["robot"], r["contacts"]) for r in rows] == [("ur5", 1), ("ur5", 3), ("panda", 1), ("panda", 3)]
+    for r in rows:
+        assert KEYS <= set(r) and r["cases"] == 2 and r["nonfinite_cases"] == 4
+        assert r["vel_limit_violations"] == r["acc_limit_violations"] == r["fail_open"] == 0
+        assert r["into_contact_mm_worst"] <= 0.5
+        assert r["dominant_ratio_min"] is None or r["dominant_ratio_min"] > 0.95
+
+
+def test_eq2_rows_show_the_bias(capsys):
+    assert main(["bench", "safety", "--json", "--eq2"]) == 0
+    rows = {r["samples"]: r for r in json.loads(capsys.readouterr().out)}
+    assert rows[10]["bias_pct"] < -20 and rows[10]["reliable_frac"] == 0  # far off and marked so
+    assert abs(rows[10000]["bias_pct"]) < 5

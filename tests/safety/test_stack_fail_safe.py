@@ -1,0 +1,122 @@
+"""The safety stack and the defensiveness layer fail safe: bad numbers, clocks, thresholds."""
+import numpy as np
+import pytest
+import torch
+
+from skinsafe.core.design.sample import make_sample_design
+from skinsafe.core.robot.kinematics import TaxelKinematics
+from skinsafe.core.robot.models import build_ur5
+from skinsafe.core.safety.defensiveness import DefensivenessLayer
+from skinsafe.core.safety.limits import brake
+from skinsafe.core.safety.modulation import ModulationLayer
+from skinsafe.core.safety.potential import DangerPotential
+from skinsafe.core.safety.stack import SafetyStack, StrategyFilter
+from skinsafe.core.safety.tdm import TactileDangerModel
+
+ROBOT = build_ur5()
+DESIGN = make_sample_design("ur5", robot=ROBOT)
+KIN = TaxelKinematics(ROBOT.model, DESIGN)
+N, DT = DESIGN.n_taxels, 0.002
+PLAN = np.array([0.8, -0.6, 0.5, 0.3, -0.2, 0.4])
+
+
+def layer(**kw):
+    return DefensivenessLayer(KIN, DESIGN.taxels.thresholds, ROBOT.vel_limits, ROBOT.acc_limits, **kw)
+
+
+def tdm():
+    torch.manual_seed(0)
+    return TactileDangerModel(6, 6, 32, (16, 16)).eval()
+
+
+def ramp(stack, ticks=60, q=None):
+    """Run the plan until it is at speed; returns the last command."""
+    for k in range(ticks):
+        out = stack.tick(k * DT, ROBOT.home if q is None else q, {"force": np.zeros(N)}, PLAN, DT)
+    return out
+
+
+@pytest.mark.parametrize("where", ["tdm", "potential"])
+@pytest.mark.parametrize("value", [np.nan, np.inf])
+def test_bad_tdm_or_potential_sends_the_brake_never_the_plan(where, value):
+    model = tdm()
+    strategy = StrategyFilter(model)
+    mod = ModulationLayer(DangerPotential(model))
+    stack = SafetyStack(ROBOT.vel_limits, layer(), mod if where == "potential" else None, strategy)
+    prev = ramp(stack)
+    assert np.abs(prev).max() > 0.1
+    if where == "tdm":
+        strategy.fast.log_safety = lambda s, a: np.full(len(a), value)
+    else:
+        mod._eval = lambda s, a: (np.full(1, value), np.zeros((1, 6)))
+    out = stack.tick(0.2, ROBOT.home, {"force": np.zeros(N)}, PLAN, DT)
+    assert np.array_equal(out, brake(prev, stack.limits)) and stack.info.safe
+    assert stack.flags["nonfinite"] == 1 and stack.flags[f"nonfinite:{where}"] == 1
+
+
+def test_strategy_only_stack_with_nan_tdm_stops():
+    strategy = StrategyFilter(tdm())
+    strategy.fast.log_safety = lambda s, a: np.full(len(a), np.nan)
+    stack = SafetyStack(ROBOT.vel_limits, strategy=strategy)  # no acceleration limit: the brake is a stop
+    assert np.array_equal(stack.tick(0.0, ROBOT.home, None, PLAN, DT), np.zeros(6))
+
+
+def test_modulated_command_is_acceleration_limited():
+    """Modulation after the layers can change the command abruptly: the final limits catch it."""
+    model = tdm()
+    stack = SafetyStack(ROBOT.vel_limits, layer(), ModulationLayer(DangerPotential(model)))
+    prev = np.zeros(6)
+    rng = np.random.default_rng(0)
+    for k in range(200):
+        out = stack.tick(k * DT, ROBOT.home, {"force": np.zeros(N)}, rng.uniform(-3, 3, 6), DT)
+        vel, acc = stack.limits.violations(out, prev)
+        assert not vel and not acc
+        prev = out
+
+
+@pytest.mark.parametrize("t_bad", [np.nan, np.inf, -np.inf])
+def test_bad_clock_never_latches(t_bad):
+    L = layer()
+    f = np.zeros(N)
+    i = int(np.flatnonzero(DESIGN.taxels.body == 1)[40])
+    f[i] = 20.0
+    out = L.tick(t_bad, ROBOT.home, {"force": f}, PLAN)  # a touch on a bad tick: safe, nothing stored
+    assert L.info.safe and np.array_equal(out, np.zeros(6)) and not L.active
+    L.tick(0.0, ROBOT.home, {"force": f}, PLAN)  # the next finite tick sees it
+    assert list(L.pool) == [i]
+    outs = [L.tick(k * DT, ROBOT.home, {"force": 0 * f}) for k in range(1, 300)]
+    assert not L.active and np.array_equal(outs[-1], np.zeros(6))  # retracted, then stopped: no freeze
+
+
+def test_clock_going_backwards_resets_and_bad_q_does_not_hold_the_last_velocity():
+    L = layer()
+    for k in range(50):
+        out = L.tick(k * DT, ROBOT.home, {"force": np.zeros(N)}, PLAN)
+    f = np.zeros(N)
+    f[int(np.flatnonzero(DESIGN.taxels.body == 2)[10])] = 20.0
+    L.tick(0.1, ROBOT.home, {"force": f}, PLAN)
+    assert L.active
+    L.tick(0.05, ROBOT.home, {"force": 0 * f}, PLAN)  # backwards
+    assert not L.active and L.flags["clock_reset"] == 1
+    q = ROBOT.home.copy()
+    q[2] = np.nan
+    prev = L.last.copy()
+    out = L.tick(0.052, q, {"force": 0 * f}, PLAN)
+    assert np.array_equal(out, brake(prev, L.limits))
+    out = L.tick(0.054, ROBOT.home, {"force": 0 * f}, PLAN)  # q finite again: the plan, from the braked command
+    assert L.info.nonfinite == () and np.abs(out - brake(prev, L.limits)).max() <= 15.0 * DT + 1e-12
+
+
+def test_severity_counts_only_stimuli_over_their_thresholds():
+    """90 C under a 100 C threshold must not enlarge a force retraction."""
+    th = dict(DESIGN.taxels.thresholds, temperature=np.full(N, 100.0))
+    i = int(np.flatnonzero(DESIGN.taxels.body == 1)[40])
+    f, temp = np.zeros(N), np.full(N, 25.0)
+    f[i], temp[i] = 2.5, 90.0  # 0.002 m/C * 90 C would outrank 0.05 m/N * 2.5 N
+    L = DefensivenessLayer(KIN, th, ROBOT.vel_limits, ROBOT.acc_limits)
+    L.tick(0.0, ROBOT.home, {"force": f, "temperature": temp})
+    assert L.desired_distance()[0] == pytest.approx(0.05 * 2.5 / 12)
+    temp[i] = 130.0  # over its threshold: it counts, with its own gain
+    L.reset()
+    L.tick(0.0, ROBOT.home, {"force": f, "temperature": temp})
+    assert L.desired_distance()[0] == pytest.approx(0.002 * 130.0 / 12)
