@@ -204,6 +204,8 @@ BENCH_ARGS = {
     "sensing": ["--sizes", "1024,4096", "--sweeps", "taxels", "--steps", "100", "--plot", ""],
     "retraction": ["--active", "1,8,64", "--repeat", "50"],
     "modulation": [],
+    "safety": ["--cases", "20", "--nonfinite", "20"],
+    "pfl": ["--taxels", "4096", "--repeat", "50"],
     "serial": ["--boards", "1", "4", "--repeat", "1"],
 }
 BENCH_MEANING = {
@@ -211,6 +213,9 @@ BENCH_MEANING = {
     "design": "place_s: placing modules with frames and Jacobian mapping; regen_ms: re-generating one 256-taxel module.",
     "sensing": "overhead_vs_bare: readout time / bare physics step; speedup_vs_touch: vs per-taxel touch sensors.",
     "retraction": "ms per defensiveness tick with `active` triggered taxels; speedup vs a per-taxel loop.",
+    "safety": "audit on random contact sets (20 per count here; `make bench` runs thousands): into_contact_mm_worst, "
+              "limit violations and fail_open must be 0 / <= 0.5 mm.",
+    "pfl": "ms per ISO/TS 15066 speed-cap tick (all taxels' normal speeds capped); speedup vs a per-taxel loop.",
     "modulation": "ms per modulation tick (potential + gradient + M v) and per full three-layer tick.",
     "serial": "deploy_s: push + commit + read back at 1 Mbaud; decode_x_wire: stream decoding vs the wire rate.",
 }
