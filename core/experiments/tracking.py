@@ -1,23 +1,22 @@
 """`skinsafe experiment tracking`: the modulation layer on a UR5 tracking among balls (paper Fig. 11).
 
-The UR5 with the sample skin (whole arm: upper arm, forearm, wrists) follows a joint-space
-sweep `q_d(t)` (pan -1 -> 1 -> -1 rad) with the velocity controller
-`qd = qd_d + K clip(q_d - q)`; compliant solid balls (soft MuJoCo contact, so the unmodulated
-arm pushes through them as in the paper's collision-detection simulation) sit under the arm's
-sweep. Contacts come from the skin readout (`SkinReadout`) of the exported MuJoCo scene: a
-control tick is a contact when any taxel's force exceeded its threshold during the tick. Three
-methods, each over `episodes` episodes and several seeds (balls jittered per seed, trajectory
-offset per episode):
+The task is `skinsafe.core.learn.tracking_env` (`skinsafe/Tracking-v0`): the UR5 with the sample skin
+follows a pan sweep with the velocity controller `qd = qd_d + K clip(q_d - q)`; compliant balls sit on
+the path (the exact path overlaps them for `path_contact_ticks` of the ticks, so only leaving the path
+avoids contact). Three methods, each over `episodes` episodes and several seeds, one Ray task per
+method x seed (cached in `--out`/tasks, reused by a restarted run):
 
 - `vanilla`: the velocity controller as is;
-- `tdm`: modulated by f_phi (eq. 4-7) of a TDM over all taxels, s = the four moving joints'
-  angles, a = their nominal commanded velocity (wrist 2 and 3 are held and not modulated);
-- `tdm2`: modulated by the distilled 2-step potential w_phi (eq. 8, uniform policy).
+- `tdm`: modulated by f_phi (eq. 4-7) of a TDM over all taxels, s = the four moving joints' angles,
+  a = their executed velocity (wrist 2 and 3 are held and not modulated);
+- `tdm2`: modulated by the distilled 2-step potential w_phi (eq. 8, uniform rollout policy).
 
-After every episode the method's TDM is re-trained (warm start, fixed step budget, states
-augmented with small noise) on all its experience so far; before any experience there is
-nothing to modulate with (episode 0 runs unmodulated). Writes `tracking.json` (per
-method/seed/episode: contacts, contact onsets, tracking error), `contacts.png` (Fig. 11e:
+After every episode the method's TDM is re-trained (warm start, a budget of gradient steps with early
+stopping on a validation split; AUC and calibration recorded per episode) on all its experience so far;
+before any experience there is nothing to modulate with (episode 1 runs unmodulated). Labels are the
+skin's events turned into distance-like soft targets by default (`Learner`), or the paper's binary
+events (`--labels binary`). Writes `tracking.json` (per method/seed/episode: contacts, contact onsets,
+tracking error, fit record; the summary and a `claim` computed from it), `contacts.png` (Fig. 11e:
 contacts per episode, mean and min-max band over seeds) and `trajectories.png` (Fig. 11b-d:
 end-effector paths with contact points, last episode of the first seed).
 """
@@ -29,6 +28,7 @@ import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -65,6 +65,8 @@ class TrackingConfig(TrackingTask):
     lr: float = 3e-3
     labels: str = "distance"  # "binary": the paper's 0/1 taxel events; "distance": ramps from recorded contacts
     ramp: float = 0.08  # m, width of the distance labels' ramp
+    label_stride: int = 3  # distance labels look at every k-th taxel
+    max_train: int = 8000  # most states in a re-training set (a random subset of visited + noisy ones)
     augment: int = 3  # copies of each visited state with noise in the training set
     state_noise: float = 0.05  # rad, their noise (also the n-step distillation's neighbourhood)
     horizon: int = 2
@@ -154,21 +156,28 @@ class Learner:
         self.net = None
         self.S, self.A, self.D, self.points = [], [], [], []
 
-    def labels(self, S: np.ndarray, D: np.ndarray | None) -> np.ndarray:
+    def labels(self, S: np.ndarray, D: np.ndarray) -> np.ndarray:
+        """(len(S), N) training labels for states S (binary: D itself; distance: class doc)."""
         n = self.scene.design.n_taxels
         if self.cfg.labels == "binary":
             return D.astype(np.float32)
         y = np.zeros((len(S), n), np.float32)
         if not self.points:
             return y
-        tree = cKDTree(np.unique(np.round(np.concatenate(self.points), 3), axis=0))
+        tree = cKDTree(np.unique(np.round(np.concatenate(self.points), 2), axis=0))  # 1 cm voxels
+        kin, m = self.scene.kin, self.scene.kin.model
+        idx = np.arange(0, n, self.cfg.label_stride)  # every k-th taxel: the pitch is finer than the ramp
+        body, local = kin.body_id[idx], kin.local_pos[idx]
         q = self.scene.robot.home.copy()
         for k, s in enumerate(S):
             q[:STATE] = s
-            pos, _ = self.scene.kin.poses(q)
-            d, _ = tree.query(pos)
+            kin.data.qpos[:] = q
+            mujoco.mj_kinematics(m, kin.data)
+            pos = kin.data.xpos[body] + np.einsum("nij,nj->ni", kin.data.xmat[body].reshape(-1, 3, 3), local)
+            d, _ = tree.query(pos, distance_upper_bound=self.cfg.ramp)
             i = int(np.argmin(d))
-            y[k, i] = max(0.0, 1.0 - d[i] / self.cfg.ramp)
+            if np.isfinite(d[i]):
+                y[k, idx[i]] = 1.0 - d[i] / self.cfg.ramp
         return y
 
     def update(self, ep: Episode) -> tuple[ModulationLayer, dict]:
@@ -183,6 +192,8 @@ class Learner:
         k = cfg.augment
         S = np.concatenate([S] + [S + rng.normal(0, cfg.state_noise, S.shape) for _ in range(k)])
         A, D = np.tile(A, (k + 1, 1)), np.tile(D, (k + 1, 1))
+        keep = rng.permutation(len(S))[: cfg.max_train]
+        S, A, D = S[keep], A[keep], D[keep]
         t = self.trainer
         t.n = t.i = 0  # the labels of old states change as contacts are found: rebuild the data set
         t.add(S, A, self.labels(S, D))

@@ -58,8 +58,8 @@ class FitConfig:
     batch_size: int = 128
     lr: float = 3e-3
     val_fraction: float = 0.2
-    eval_every: int = 25  # steps between validation checks
-    patience: int = 2  # checks without improvement before stopping
+    eval_every: int = 10  # steps between validation checks
+    patience: int = 3  # checks without improvement before stopping
     min_val: int = 20  # validation samples needed before early stopping is trusted
     capacity: int = 50_000  # most samples kept (oldest dropped first)
 

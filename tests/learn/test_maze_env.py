@@ -107,7 +107,7 @@ def test_tdm_agent_learns_to_avoid_a_wall_it_bumped():
             nxt, r, term, trunc, info = env.step(a)
             agent.shield.add(feats(s)[0], a, info["taxel_danger"])
             s = nxt
-    for _ in range(15):  # one refit per episode, as during training
+    for _ in range(5):
         agent.shield.fit()
     p_raw = agent.action_probs(feats(env.place(1, 1, 1)))[0]
     p_filtered = agent.behaviour_probs(feats(env.place(1, 1, 1)))
@@ -148,4 +148,4 @@ def experiment_maze_args(out):
     import argparse
     p = argparse.ArgumentParser()
     experiment_maze.add_arguments(p)
-    return p.parse_args(["--quick", "--out", str(out), "--jobs", "1"])
+    return p.parse_args(["--quick", "--out", str(out), "--workers", "1", "--no-progress"])
