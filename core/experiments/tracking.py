@@ -65,6 +65,7 @@ class TrackingConfig(TrackingTask):
     lr: float = 3e-3
     labels: str = "distance"  # "binary": the paper's 0/1 taxel events; "distance": ramps from recorded contacts
     ramp: float = 0.08  # m, width of the distance labels' ramp
+    total_weight: float = 1.0  # the TDM's extra loss on eq. 1's total danger (`FitConfig.total_weight`)
     label_stride: int = 3  # distance labels look at every k-th taxel
     max_train: int = 8000  # most states in a re-training set (a random subset of visited + noisy ones)
     augment: int = 3  # copies of each visited state with noise in the training set
@@ -152,7 +153,7 @@ class Learner:
         with torch.no_grad():  # prior: 1% total danger spread over the taxels, not 1% per taxel
             self.tdm.head.bias.fill_(float(np.log(0.01 / n_taxels)))
         self.trainer = TDMTrainer(self.tdm, FitConfig(steps=cfg.steps, batch_size=cfg.batch_size, lr=cfg.lr,
-                                                      capacity=400_000), seed=seed)
+                                                      capacity=cfg.max_train, total_weight=cfg.total_weight), seed=seed)
         self.net = None
         self.S, self.A, self.D, self.points = [], [], [], []
 
