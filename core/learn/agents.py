@@ -199,14 +199,17 @@ class DiscreteSAC(Agent):
         """Extra actor loss term (SQRL's safety penalty); none for plain SAC."""
         return torch.zeros(())
 
+    @torch.no_grad()
+    def soft_value(self, s: torch.Tensor) -> torch.Tensor:
+        """V(s) = E_{a ~ executed policy}[min Q_target(s, a) - alpha log pi(a|s)]: with the TDM the
+        expectation is over the filtered policy, so actions the filter removes weigh nothing."""
+        logp = self.policy_log_probs(s)
+        q = torch.min(self.q1_t(s), self.q2_t(s))
+        return (logp.exp() * (q - self.log_alpha.exp() * logp.clamp_min(-30))).sum(-1)
+
     def update(self, s, a, r, c, s2, done) -> None:
         alpha = self.log_alpha.exp().detach()
-        with torch.no_grad():
-            logp2 = self.policy_log_probs(s2)
-            p2 = logp2.exp()
-            q2 = torch.min(self.q1_t(s2), self.q2_t(s2))
-            v2 = (p2 * (q2 - alpha * logp2.clamp_min(-30))).sum(-1)  # filtered-out actions weigh 0
-            y = r + self.gamma * (1 - done) * v2
+        y = r + self.gamma * (1 - done) * self.soft_value(s2)
         idx = a[:, None]
         loss_q = F.mse_loss(self.q1(s).gather(1, idx).squeeze(1), y) + F.mse_loss(self.q2(s).gather(1, idx).squeeze(1), y)
         self.opt_q.zero_grad()
