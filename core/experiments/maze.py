@@ -78,9 +78,10 @@ def run_one(method: str, seed: int, episodes: int, max_steps: int) -> dict:
         goals.append(bool(term))
         steps.append(n)
     stats = agent.stats()
-    fits = stats.get("tdm", {}).pop("last", None) and agent.shield.trainer.history
+    stats.get("tdm", {}).pop("last", None)  # the fit records go in whole (thinned) below
+    fits = agent.shield.trainer.history if agent.shield is not None else []
     return {"method": method, "seed": seed, "returns": returns, "costs": costs, "goals": goals, "steps": steps,
-            "stats": stats, "tdm_fits": _thin(fits or []), "seconds": time.perf_counter() - t0}
+            "stats": stats, "tdm_fits": _thin(fits), "seconds": time.perf_counter() - t0}
 
 
 def _thin(fits: list[dict], keep: int = 60) -> list[dict]:
