@@ -57,7 +57,7 @@ def run_one(method: str, seed: int, episodes: int, max_steps: int) -> dict:
     from skinsafe.core.learn.maze_env import MazeEnv, MazeFeatures
 
     torch.set_num_threads(1)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     env = MazeEnv(max_steps=max_steps)
     agent = make_agent(method, 4, env.action_space.n, env.n_taxels, MazeFeatures(env.walls), seed=seed)
     returns, costs, goals, steps = [], [], [], []
@@ -81,7 +81,8 @@ def run_one(method: str, seed: int, episodes: int, max_steps: int) -> dict:
     stats.get("tdm", {}).pop("last", None)  # the fit records go in whole (thinned) below
     fits = agent.shield.trainer.history if agent.shield is not None else []
     return {"method": method, "seed": seed, "returns": returns, "costs": costs, "goals": goals, "steps": steps,
-            "stats": stats, "tdm_fits": _thin(fits), "seconds": time.perf_counter() - t0}
+            "stats": stats, "tdm_fits": _thin(fits), "seconds": time.perf_counter() - t0,
+            "cpu_seconds": time.process_time() - c0}
 
 
 def _thin(fits: list[dict], keep: int = 60) -> list[dict]:
@@ -228,6 +229,7 @@ def run(args) -> int:
     summary["config"] = cfg
     summary["wall_seconds"] = time.perf_counter() - t0
     summary["task_seconds"] = float(sum(r["seconds"] for r in runs))
+    summary["task_cpu_seconds"] = float(sum(r.get("cpu_seconds", np.nan) for r in runs))
     plot_curves(runs, methods, out / "maze_curves.png")
     atomic_write(out / "maze_contacts.md", markdown_table(summary))
     atomic_write(out / "maze_results.json", json.dumps({"summary": summary, "runs": runs}, indent=1))

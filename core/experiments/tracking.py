@@ -221,6 +221,7 @@ def run_method(method: str, seed: int, config: dict) -> dict:
     env = TrackingEnv(task, scene=scene)
     learner = None if method == "vanilla" else Learner(cfg, scene, method == "tdm2", seed)
     layer, rows, ep = None, [], None
+    c0 = time.process_time()
     for e in range(cfg.episodes):
         t0 = time.perf_counter()
         ep = run_episode(env, layer, seed=1000 * seed + e)
@@ -230,7 +231,7 @@ def run_method(method: str, seed: int, config: dict) -> dict:
             row["fit"] = {k: v for k, v in fit.items() if k in ("steps", "val_loss", "auc", "ece", "brier", "rmse")}
         row["seconds"] = time.perf_counter() - t0
         rows.append(row)
-    return {"method": method, "seed": seed, "rows": rows, "balls": scene.balls.tolist(),
+    return {"method": method, "seed": seed, "rows": rows, "balls": scene.balls.tolist(), "cpu_seconds": time.process_time() - c0,
             "n_taxels": scene.design.n_taxels, "path_contact_ticks": scene.path_contact_ticks(),
             "last": {"ee": ep.ee.round(4).tolist(), "ee_desired": ep.ee_desired.round(4).tolist(),
                      "contact_points": ep.contact_points.round(4).tolist(), "contacts": ep.contacts}}
@@ -253,6 +254,7 @@ def run_experiment(cfg: TrackingConfig, progress: bool = True, cache: str | Path
         results["balls"][str(r["seed"])] = r["balls"]
         results["path_contact_ticks"][str(r["seed"])] = r["path_contact_ticks"]
         results["n_taxels"] = r["n_taxels"]
+        results.setdefault("cpu_seconds", {}).setdefault(r["method"], {})[str(r["seed"])] = r["cpu_seconds"]
     return results
 
 
