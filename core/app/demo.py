@@ -110,7 +110,7 @@ def stage_poke(ctx) -> Section:
                 (forms, "6-D (paper, zero rotation) vs 3-D (position only) task: achieved/commanded -z distance.")])
 
 
-DEMO_MAZE_METHODS = "SAC,SAC-TDM,AC,AC-TDM,RRL"
+DEMO_MAZE_METHODS = "SAC,SAC-TDM,AC,AC-TDM"
 
 
 def stage_maze(ctx) -> Section:
