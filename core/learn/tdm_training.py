@@ -129,6 +129,8 @@ class TDMTrainer:
         t0 = time.perf_counter()
         check = len(val) >= cfg.min_val
         best, best_state, bad, done, loss = (self._val_loss(val) if check else np.inf), None, 0, 0, np.nan
+        if check:  # a fit that never beats the weights it started from keeps them
+            best_state = {k: t.clone() for k, t in self.model.state_dict().items()}
         self.model.train()
         while done < steps:
             pick = torch.as_tensor(train[torch.randint(len(train), (min(cfg.batch_size, len(train)),), generator=self.gen).numpy()])
