@@ -42,20 +42,22 @@ def mlp(n_in: int, n_out: int, hidden=(64, 64)) -> nn.Sequential:
 
 class TDMShield:
     """The strategy layer inside an agent: logs (features, action, per-taxel danger), refits its TDM
-    every `refit_every` steps (budgeted, early-stopped, validated) and gives log p(not D | s, a)."""
+    every `refit_every` steps and after every contact event (budgeted, early-stopped, validated on 10%
+    of the samples) and gives log p(not D | s, a)."""
 
     def __init__(self, feat_dim: int, n_actions: int, n_taxels: int, seed: int, refit_every: int = 10,
                  fit: FitConfig | None = None, hidden=(64, 64)):
         self.model = TactileDangerModel(feat_dim, n_actions, n_taxels, hidden)
-        self.trainer = TDMTrainer(self.model, fit or FitConfig(), seed=seed + 7919)
+        self.trainer = TDMTrainer(self.model, fit or FitConfig(val_fraction=0.1), seed=seed + 7919)
         self.n_actions, self.refit_every = n_actions, int(refit_every)
         self.eye = np.eye(n_actions, dtype=np.float32)
         self.since = 0
 
     def add(self, feat: np.ndarray, action: int, danger: np.ndarray) -> None:
-        self.trainer.add(feat, self.eye[action], np.asarray(danger, np.float32))
+        danger = np.asarray(danger, np.float32)
+        self.trainer.add(feat, self.eye[action], danger)
         self.since += 1
-        if self.since >= self.refit_every:
+        if self.since >= self.refit_every or danger.any():  # a new contact is news: learn it now
             self.fit()
 
     def fit(self) -> dict:
