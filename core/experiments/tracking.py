@@ -16,7 +16,8 @@ stopping on a validation split; AUC and calibration recorded per episode) on all
 before any experience there is nothing to modulate with (episode 1 runs unmodulated). Labels are the
 skin's events turned into distance-like soft targets by default (`Learner`), or the paper's binary
 events (`--labels binary`). Writes `tracking.json` (per method/seed/episode: contacts, contact onsets,
-tracking error, fit record; the summary and a `claim` computed from it), `contacts.png` (Fig. 11e:
+tracking error, fit record; the summary and a `claim` computed from it), `tracking.md` (the table),
+`contacts.png` (Fig. 11e:
 contacts per episode, mean and min-max band over seeds) and `trajectories.png` (Fig. 11b-d:
 end-effector paths with contact points, last episode of the first seed).
 """
@@ -289,6 +290,15 @@ def claim_check(rows: list[dict]) -> dict:
     return {"holds": bool(holds), "tdm2_over_vanilla": ratio, "statement": s}
 
 
+def markdown_table(table: list[dict], claim: dict) -> str:
+    lines = ["| method | contact ticks, episode 1 | episodes 6-10 (mean ± std over seeds) | last episode | all episodes | "
+             "tracking error (mm) |", "| --- | --- | --- | --- | --- | --- |"]
+    for r in table:
+        lines.append(f"| {r['method']} | {r['contacts_first']:.1f} | {r['contacts_ep6_10']:.1f} ± {r['contacts_ep6_10_std']:.1f} | "
+                     f"{r['contacts_last']:.1f} | {r['contacts_mean']:.1f} | {r['tracking_error_mm']:.0f} |")
+    return "\n".join(lines) + "\n\n" + claim["statement"] + "\n"
+
+
 def plot(results: dict, out_dir: Path) -> list[Path]:
     import matplotlib
 
@@ -381,9 +391,10 @@ def run(args) -> int:
     table = summary(results)
     doc = dict(results, summary=table, claim=claim_check(table), seconds=time.perf_counter() - t0)
     atomic_write(out / "tracking.json", json.dumps(doc, indent=1))
+    atomic_write(out / "tracking.md", markdown_table(table, doc["claim"]))
     paths = plot(results, out)
     for row in table:
         print("  ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()))
     print(doc["claim"]["statement"])
-    print(f"wrote {out / 'tracking.json'}, " + ", ".join(str(p) for p in paths) + f" in {doc['seconds']:.0f} s")
+    print(f"wrote {out / 'tracking.json'}, {out / 'tracking.md'}, " + ", ".join(str(p) for p in paths) + f" in {doc['seconds']:.0f} s")
     return 0

@@ -68,6 +68,7 @@ def test_tracking_cli_writes_outputs(tmp_path, quick_results, monkeypatch):
     assert doc["claim"]["holds"] in (True, False) and "vanilla" in doc["claim"]["statement"]
     for rows in doc["runs"]["vanilla"].values():  # per-episode contacts and tracking error
         assert all({"contacts", "tracking_error"} <= set(r) for r in rows)
+    assert doc["claim"]["statement"] in (tmp_path / "tracking.md").read_text()
     for name in ("contacts.png", "trajectories.png"):
         assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
     with pytest.raises(SystemExit, match="episodes"):
