@@ -45,10 +45,10 @@ class TDMShield:
     every `refit_every` steps and after every contact event (budgeted, early-stopped, validated on 10%
     of the samples) and gives log p(not D | s, a)."""
 
-    def __init__(self, feat_dim: int, n_actions: int, n_taxels: int, seed: int, refit_every: int = 10,
+    def __init__(self, feat_dim: int, n_actions: int, n_taxels: int, seed: int, refit_every: int = 20,
                  fit: FitConfig | None = None, hidden=(64, 64)):
         self.model = TactileDangerModel(feat_dim, n_actions, n_taxels, hidden)
-        self.trainer = TDMTrainer(self.model, fit or FitConfig(val_fraction=0.1), seed=seed + 7919)
+        self.trainer = TDMTrainer(self.model, fit or FitConfig(steps=100, min_steps=100, batch_size=64, val_fraction=0.1), seed=seed + 7919)
         self.n_actions, self.refit_every = n_actions, int(refit_every)
         self.eye = np.eye(n_actions, dtype=np.float32)
         self.since = 0
@@ -79,7 +79,7 @@ class Agent:
 
     def __init__(self, obs_dim: int, n_actions: int, n_taxels: int, features=None, seed: int = 0,
                  cost_penalty: float = 0.0, use_tdm: bool = False, gamma: float = 0.97, lr: float = 3e-3,
-                 hidden=(64, 64), refit_every: int = 10, fit: FitConfig | None = None):
+                 hidden=(64, 64), refit_every: int = 20, fit: FitConfig | None = None):
         torch.manual_seed(seed)
         self.rng = np.random.default_rng(seed)
         self.features = features if features is not None else (lambda o: np.atleast_2d(np.asarray(o, np.float32)))

@@ -55,6 +55,7 @@ class FitConfig:
     """The budget and schedule of one refit."""
 
     steps: int = 200  # most gradient steps per fit
+    min_steps: int = 0  # gradient steps before early stopping may end a fit
     batch_size: int = 128
     lr: float = 3e-3
     val_fraction: float = 0.2
@@ -140,7 +141,7 @@ class TDMTrainer:
             loss.backward()
             self.opt.step()
             done += 1
-            if check and done % cfg.eval_every == 0:
+            if check and done % cfg.eval_every == 0 and done >= cfg.min_steps:
                 v = self._val_loss(val)
                 if v < best * (1 - 1e-3):  # relative: per-taxel losses of rare events are tiny
                     best, bad = v, 0
