@@ -9,8 +9,8 @@ and, for the policy filter, `action_probs(features) -> (B, A)`.
 
 Choices that make them learn (issue 16):
 
-- The TDM is refitted every `refit_every` environment steps with a budget of gradient steps and
-  early stopping on a validation split (`TDMTrainer`), not a few epochs at episode ends.
+- The TDM is refitted every `refit_every` environment steps and after every contact event, with a
+  budget of gradient steps and a validation split (`TDMTrainer`), not a few epochs at episode ends.
 - Discrete SAC's temperature aims at a discrete target entropy (a fraction of log |A|), and log
   alpha is bounded so the whole discounted entropy bonus, `alpha log|A| / (1 - gamma)`, stays below
   `entropy_share` of the task reward: exploring can never pay more than reaching the goal.
