@@ -139,6 +139,8 @@ def claim_check(rows: dict, learned_at: float = 0.8) -> dict:
              f"({other[best_other]:.1f}).")
     else:
         lower = sorted((m for m in other if other[m] <= tdm[worst_tdm]), key=other.get)
+        rate = {m: rows[m].get("goal_rate_last_mean") for m in lower}
+        lower = [f"{m} (goal rate {rate[m]:.2f} over the last {LAST} episodes)" if rate[m] is not None else m for m in lower]
         s = (f"The paper's claim does not hold here: {', '.join(lower)} had no more total contacts than {worst_tdm} "
              f"({tdm[worst_tdm]:.1f}); best -TDM {best_tdm} {tdm[best_tdm]:.1f} vs best other {best_other} "
              f"{other[best_other]:.1f} (ratio other/TDM {ratio:.2f}).")
