@@ -244,7 +244,8 @@ def run_experiment(cfg: TrackingConfig, progress: bool = True, cache: str | Path
     import tempfile
 
     config = json.loads(json.dumps(asdict(cfg)))
-    tasks = [{"method": m, "seed": s, "config": config} for s in cfg.seeds for m in cfg.methods]
+    task_config = {k: v for k, v in config.items() if k not in ("seeds", "methods")}  # a task is one method x seed
+    tasks = [{"method": m, "seed": s, "config": task_config} for s in cfg.seeds for m in cfg.methods]
     with tempfile.TemporaryDirectory() as tmp:
         out = run_tasks(run_method, tasks, cache or tmp, address=address, workers=workers, progress=progress,
                         desc="tracking runs", fresh=fresh)
