@@ -1,38 +1,42 @@
 """`skinsafe experiment tracking`: the modulation layer on a UR5 tracking among balls (paper Fig. 11).
 
-The UR5 with the sample skin (whole arm: upper arm, forearm, wrists) follows a joint-space
-sweep `q_d(t)` (pan -1 -> 1 -> -1 rad) with the velocity controller
-`qd = qd_d + K clip(q_d - q)`; compliant solid balls (soft MuJoCo contact, so the unmodulated
-arm pushes through them as in the paper's collision-detection simulation) sit under the arm's
-sweep. Contacts come from the skin readout (`SkinReadout`) of the exported MuJoCo scene: a
-control tick is a contact when any taxel's force exceeded its threshold during the tick. Three
-methods, each over `episodes` episodes and several seeds (balls jittered per seed, trajectory
-offset per episode):
+The task is `skinsafe.core.learn.tracking_env` (`skinsafe/Tracking-v0`): the UR5 with the sample skin
+follows a pan sweep with the velocity controller `qd = qd_d + K clip(q_d - q)`; compliant balls sit on
+the path (the exact path overlaps them for `path_contact_ticks` of the ticks, so only leaving the path
+avoids contact). Three methods, each over `episodes` episodes and several seeds, one Ray task per
+method x seed (cached in `--out`/tasks, reused by a restarted run):
 
 - `vanilla`: the velocity controller as is;
-- `tdm`: modulated by f_phi (eq. 4-7) of a TDM over all taxels, s = the four moving joints'
-  angles, a = their nominal commanded velocity (wrist 2 and 3 are held and not modulated);
-- `tdm2`: modulated by the distilled 2-step potential w_phi (eq. 8, uniform policy).
+- `tdm`: modulated by f_phi (eq. 4-7) of a TDM over all taxels, s = the four moving joints' angles,
+  a = their executed velocity (wrist 2 and 3 are held and not modulated);
+- `tdm2`: modulated by the distilled 2-step potential w_phi (eq. 8, uniform rollout policy).
 
-After every episode the method's TDM is re-trained (warm start, fixed step budget, states
-augmented with small noise) on all its experience so far; before any experience there is
-nothing to modulate with (episode 0 runs unmodulated). Writes `tracking.json` (per
-method/seed/episode: contacts, contact onsets, tracking error), `contacts.png` (Fig. 11e:
+After every episode the method's TDM is re-trained (warm start, a budget of gradient steps with early
+stopping on a validation split; AUC and calibration recorded per episode) on all its experience so far;
+before any experience there is nothing to modulate with (episode 1 runs unmodulated). Labels are the
+skin's events turned into distance-like soft targets by default (`Learner`), or the paper's binary
+events (`--labels binary`). Writes `tracking.json` (per method/seed/episode: contacts, contact onsets,
+tracking error, fit record; the summary and a `claim` computed from it), `tracking.md` (the table),
+`contacts.png` (Fig. 11e:
 contacts per episode, mean and min-max band over seeds) and `trajectories.png` (Fig. 11b-d:
 end-effector paths with contact points, last episode of the first seed).
 """
 from __future__ import annotations
 
 import json
+import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import mujoco
 import numpy as np
 import torch
-from tqdm.auto import tqdm
+from scipy.spatial import cKDTree
 
+from skinsafe.core.experiments.runner import run_tasks
+from skinsafe.core.learn.tdm_training import FitConfig, TDMTrainer
+from skinsafe.core.learn.tracking_env import MOVING, TrackingEnv, TrackingScene, TrackingTask
 from skinsafe.core.safety.modulation import ModulationLayer
 from skinsafe.core.safety.potential import (
     DangerPotential,
@@ -42,38 +46,31 @@ from skinsafe.core.safety.potential import (
     distill_nstep,
     single_thread_blas,
 )
-from skinsafe.core.safety.tdm import TactileDangerModel, train_tdm
+from skinsafe.core.safety.tdm import TactileDangerModel
 from skinsafe.core.skin.files import atomic_write
 
 METHODS = ("vanilla", "tdm", "tdm2")
-STATE = 4  # s = (pan, lift, elbow, wrist 1) angles, a = their commanded velocities
+STATE = MOVING  # s = (pan, lift, elbow, wrist 1) angles, a = their executed velocities
 
 
 @dataclass
-class TrackingConfig:
-    """Every knob of the experiment; `quick()` is the reduced run of the test suite."""
+class TrackingConfig(TrackingTask):
+    """Every knob of the experiment (the task's and the learning's); `quick()` is the test suite's run."""
 
     episodes: int = 10
     seeds: tuple = (0, 1, 2)
     methods: tuple = METHODS
-    duration: float = 6.0  # s per episode (one sweep out and back)
-    control_dt: float = 0.02  # s per control tick
-    gain: float = 3.0  # 1/s, joint-space position feedback
-    max_error: float = 0.15  # rad, the feedback error is saturated here (no wind-up into an obstacle)
-    lead: float = 0.2  # rad, most the servo target may run ahead of the joint (anti wind-up)
-    pitch: float = 0.01  # sample skin pitch (m)
-    n_balls: int = 3
-    ball_radius: float = 0.06
-    penetration: float = 0.02  # m the balls reach into the nominal sweep of the arm
-    ball_solimp: tuple = (0.0, 0.1, 0.05, 0.5, 2.0)  # compliant balls (MuJoCo solimp): the arm pushes through
-    jitter: float = 0.01  # m, ball position noise per seed
-    traj_noise: float = 0.01  # rad, trajectory offset noise per episode
     hidden: int = 64
-    steps: int = 400  # gradient steps per re-training (warm start), spread over all experience
-    batch_size: int = 64
-    augment: int = 3  # noisy copies of each state in the TDM's training set
-    state_noise: float = 0.03  # rad, their noise (also the n-step distillation's neighbourhood)
+    steps: int = 400  # most gradient steps per re-training (warm start, early stopping on a validation split)
+    batch_size: int = 128
     lr: float = 3e-3
+    labels: str = "distance"  # "binary": the paper's 0/1 taxel events; "distance": ramps from recorded contacts
+    ramp: float = 0.08  # m, width of the distance labels' ramp
+    total_weight: float = 1.0  # the TDM's extra loss on eq. 1's total danger (`FitConfig.total_weight`)
+    label_stride: int = 3  # distance labels look at every k-th taxel
+    max_train: int = 8000  # most states in a re-training set (a random subset of visited + noisy ones)
+    augment: int = 3  # copies of each visited state with noise in the training set
+    state_noise: float = 0.05  # rad, their noise (also the n-step distillation's neighbourhood)
     horizon: int = 2
     gamma: float = 0.9
     samples: int = 8
@@ -96,200 +93,211 @@ class Episode:
     onsets: int  # ticks where contact starts after a free tick
     tracking_error: float  # m, mean end-effector distance to the desired path
     states: np.ndarray = field(repr=False)  # (T, STATE) q of the moving joints
-    actions: np.ndarray = field(repr=False)  # (T, STATE) their nominal commanded velocity (the TDM's action)
+    actions: np.ndarray = field(repr=False)  # (T, STATE) their executed (modulated) velocity: the TDM's action
     dangers: np.ndarray = field(repr=False)  # (T, N) bool events during the tick
     ee: np.ndarray = field(repr=False)  # (T, 3)
     ee_desired: np.ndarray = field(repr=False)  # (T, 3)
-    contact_points: np.ndarray = field(repr=False)  # (K, 3) world positions of lit taxels
+    contact_points: np.ndarray = field(repr=False)  # (K, 3) world positions of lit taxels (mean per tick)
+    lit_points: np.ndarray = field(repr=False)  # (L, 3) world positions of every lit taxel
 
 
-class TrackingScene:
-    """The UR5 + sample skin + balls as a MuJoCo model, the desired trajectory and the readout."""
-
-    def __init__(self, cfg: TrackingConfig, seed: int):
-        from skinsafe.core.design.sample import make_sample_design
-        from skinsafe.core.robot.kinematics import TaxelKinematics
-        from skinsafe.core.robot.models import build_ur5
-        from skinsafe.core.sim.readout import SkinReadout
-        from skinsafe.core.sim.scene import Obstacle, build_scene
-
-        self.cfg = cfg
-        self.robot = build_ur5()
-        self.design = make_sample_design("ur5", pitch=cfg.pitch, robot=self.robot)
-        self.kin = TaxelKinematics(self.robot.model, self.design)
-        centers = self._ball_centers(np.random.default_rng(1000 + seed))
-        self.balls = centers
-        obstacles = [Obstacle(f"ball{k}", "sphere", (cfg.ball_radius,), pos=tuple(c), rgba=(0.9, 0.5, 0.1, 1))
-                     for k, c in enumerate(centers)]
-        spec = build_scene(self.design, self.robot, obstacles)
-        for k in range(len(centers)):  # compliant balls: the arm can push through, the skin feels it
-            spec.geom(f"ball{k}").solimp = list(cfg.ball_solimp)
-        self.model = spec.compile()
-        self.data = mujoco.MjData(self.model)
-        self.readout = SkinReadout(self.model, self.design)
-        self.thresholds = self.design.taxels.thresholds["force"]
-        self.substeps = max(1, int(round(cfg.control_dt / self.model.opt.timestep)))
-        self.flange = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, "flange")
-        self.kin_flange = mujoco.mj_name2id(self.robot.model, mujoco.mjtObj.mjOBJ_SITE, "flange")
-        self.qadr = np.array([self.model.jnt_qposadr[mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_JOINT, j)]
-                              for j in ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint",
-                                        "wrist_1_joint", "wrist_2_joint", "wrist_3_joint")])
-
-    def desired(self, t: float, offset: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """q_d(t) and its rate: a pan sweep from -1 rad to 1 and back."""
-        w = 2 * np.pi / self.cfg.duration
-        amp = np.array([-1.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-        freq = np.array([w, 2 * w, 2 * w, 2 * w, 0, 0])
-        shift = np.array([np.pi / 2, 0, 0, 0, 0, 0])  # pan = -cos(w t)
-        q = self.robot.home + amp * np.sin(freq * t + shift) + (0 if offset is None else offset)
-        return q, amp * freq * np.cos(freq * t + shift)
-
-    def _ball_centers(self, rng: np.random.Generator) -> np.ndarray:
-        """Balls under the arm's sweep: below a forearm/wrist taxel at evenly spread times."""
-        cfg, t = self.cfg, self.design.taxels
-        names = self.design.bodies
-        on = np.isin(t.body, [names.index(b) for b in ("forearm_link", "wrist_1_link") if b in names])
-        out = []
-        for k in range(cfg.n_balls):
-            tk = cfg.duration * (0.1 + 0.3 * (k + 0.5) / cfg.n_balls)  # spread over the outward sweep
-            pos, _ = self.kin.poses(self.desired(tk)[0])
-            p = pos[on]
-            lo = p[np.argsort(p[:, 2])[: max(1, len(p) // 20)]].mean(0)  # the underside
-            c = lo - np.array([0, 0, cfg.ball_radius - cfg.penetration])
-            out.append(c + rng.normal(0, cfg.jitter, 3))
-        return np.array(out)
-
-    def reset(self, q0: np.ndarray) -> None:
-        mujoco.mj_resetData(self.model, self.data)
-        self.data.qpos[self.qadr] = q0
-        self.data.ctrl[:] = q0
-        mujoco.mj_forward(self.model, self.data)
-
-
-def run_episode(scene: TrackingScene, layer: ModulationLayer | None, rng: np.random.Generator) -> Episode:
+def run_episode(env: TrackingEnv, layer: ModulationLayer | None, seed: int) -> Episode:
     """One tracking episode; `layer` None is the vanilla controller."""
-    cfg, m, d = scene.cfg, scene.model, scene.data
-    offset = rng.normal(0, cfg.traj_noise, 6) * np.array([1, 1, 1, 1, 0, 0])
-    q0, _ = scene.desired(0.0, offset)
-    scene.reset(q0)
-    ticks = int(round(cfg.duration / cfg.control_dt))
-    vmax = scene.robot.vel_limits
-    S, A, X, XD, P = [], [], [], [], []
-    dangers = np.zeros((ticks, scene.design.n_taxels), bool)
-    q_cmd = q0.copy()
-    for k in range(ticks):
-        t = k * cfg.control_dt
-        q = d.qpos[scene.qadr].copy()
-        qd_, vd_ = scene.desired(t + cfg.control_dt, offset)
-        v_nom = vd_ + cfg.gain * np.clip(qd_ - q, -cfg.max_error, cfg.max_error)
+    obs, _ = env.reset(seed=seed)
+    sc = env.scene
+    S, A, X, XD, P, L, D = [], [], [], [], [], [], []
+    while True:
+        q = obs[:6].astype(float)
+        v_nom = env.nominal(obs)
         v = v_nom.copy()
         if layer is not None:  # the modulated state: the joints the task moves (wrist 2 and 3 are held)
             v[:STATE] = layer(q[:STATE], v_nom[:STATE])[0]
-        v = v * min(1.0, float(np.min(vmax / np.maximum(np.abs(v), 1e-12))))
-        # integrate the command; the servo target never runs more than `lead` ahead (anti wind-up)
-        q_cmd = np.clip(q_cmd + v * cfg.control_dt, q - cfg.lead, q + cfg.lead)
-        d.ctrl[:] = q_cmd
-        peak = np.zeros(scene.design.n_taxels)
-        for _ in range(scene.substeps):
-            mujoco.mj_step(m, d)
-            peak = np.maximum(peak, scene.readout.read(d))
-        dangers[k] = peak > scene.thresholds
+        obs, _, _, trunc, info = env.step(v)
         S.append(q[:STATE])
-        A.append(v_nom[:STATE])
-        X.append(d.site_xpos[scene.flange].copy())
-        scene.kin.update(scene.desired(t + cfg.control_dt, offset)[0])
-        XD.append(scene.kin.data.site_xpos[scene.kin_flange].copy())
-        if dangers[k].any():
-            pos, _ = scene.kin.poses(d.qpos[scene.qadr])
-            P.append(pos[dangers[k]].mean(0))
+        A.append(v[:STATE])
+        X.append(info["ee"])
+        XD.append(info["ee_desired"])
+        D.append(info["taxel_danger"])
+        if info["cost"]:
+            pos, _ = sc.kin.poses(sc.data.qpos[sc.qadr])
+            lit = pos[info["taxel_danger"]]
+            P.append(lit.mean(0))
+            L.append(lit)
+        if trunc:
+            break
+    dangers = np.array(D)
     lit = dangers.any(1)
     onsets = int(lit[0]) + int(np.count_nonzero(lit[1:] & ~lit[:-1]))
     X, XD = np.array(X), np.array(XD)
     return Episode(contacts=int(lit.sum()), onsets=onsets, tracking_error=float(np.linalg.norm(X - XD, axis=1).mean()),
                    states=np.array(S), actions=np.array(A), dangers=dangers, ee=X, ee_desired=XD,
-                   contact_points=np.array(P).reshape(-1, 3))
+                   contact_points=np.array(P).reshape(-1, 3),
+                   lit_points=np.concatenate(L) if L else np.zeros((0, 3)))
 
 
 class Learner:
-    """A method's TDM (and distilled n-step potential), re-trained on all experience after each episode."""
+    """A method's TDM (and distilled n-step potential), re-trained on all experience after each episode.
 
-    def __init__(self, cfg: TrackingConfig, n_taxels: int, nstep: bool, seed: int):
-        self.cfg, self.nstep, self.seed = cfg, nstep, seed
+    Training set: every visited (state, executed velocity) and `augment` noisy copies of it. Labels:
+    `binary`, the paper's taxel events (the noisy copies keep their state's label); `distance`, soft
+    labels from the same events and the skin's own geometry: the world positions of every taxel that
+    fired so far are the known obstacle points, and a state's label is `1 - d / ramp` (clipped at 0)
+    for its closest taxel at distance d from them (0 for the others), so the total danger is a ramp of
+    the distance to known contacts, for visited and noisy states alike.
+    """
+
+    def __init__(self, cfg: TrackingConfig, scene: TrackingScene, nstep: bool, seed: int):
+        self.cfg, self.scene, self.nstep, self.seed = cfg, scene, nstep, seed
         torch.manual_seed(seed)
+        n_taxels = scene.design.n_taxels
         self.tdm = TactileDangerModel(STATE, STATE, n_taxels, (cfg.hidden, cfg.hidden))
         with torch.no_grad():  # prior: 1% total danger spread over the taxels, not 1% per taxel
             self.tdm.head.bias.fill_(float(np.log(0.01 / n_taxels)))
+        self.trainer = TDMTrainer(self.tdm, FitConfig(steps=cfg.steps, batch_size=cfg.batch_size, lr=cfg.lr,
+                                                      capacity=cfg.max_train, total_weight=cfg.total_weight), seed=seed)
         self.net = None
-        self.S, self.A, self.D = [], [], []
+        self.S, self.A, self.D, self.points = [], [], [], []
 
-    def update(self, ep: Episode) -> ModulationLayer:
+    def labels(self, S: np.ndarray, D: np.ndarray) -> np.ndarray:
+        """(len(S), N) training labels for states S (binary: D itself; distance: class doc)."""
+        n = self.scene.design.n_taxels
+        if self.cfg.labels == "binary":
+            return D.astype(np.float32)
+        y = np.zeros((len(S), n), np.float32)
+        if not self.points:
+            return y
+        tree = cKDTree(np.unique(np.round(np.concatenate(self.points), 2), axis=0))  # 1 cm voxels
+        kin, m = self.scene.kin, self.scene.kin.model
+        idx = np.arange(0, n, self.cfg.label_stride)  # every k-th taxel: the pitch is finer than the ramp
+        body, local = kin.body_id[idx], kin.local_pos[idx]
+        q = self.scene.robot.home.copy()
+        for k, s in enumerate(S):
+            q[:STATE] = s
+            kin.data.qpos[:] = q
+            mujoco.mj_kinematics(m, kin.data)
+            pos = kin.data.xpos[body] + np.einsum("nij,nj->ni", kin.data.xmat[body].reshape(-1, 3, 3), local)
+            d, _ = tree.query(pos, distance_upper_bound=self.cfg.ramp)
+            i = int(np.argmin(d))
+            if np.isfinite(d[i]):
+                y[k, idx[i]] = 1.0 - d[i] / self.cfg.ramp
+        return y
+
+    def update(self, ep: Episode) -> tuple[ModulationLayer, dict]:
         cfg = self.cfg
         self.S.append(ep.states)
         self.A.append(ep.actions)
         self.D.append(ep.dangers)
-        S, A, D = np.concatenate(self.S), np.concatenate(self.A), np.concatenate(self.D).astype(np.float32)
-        # augmentation: copies of the states with small noise and the same labels, so the TDM is
-        # flat where the data does not vary (its gradient is the modulation's normal)
+        if len(ep.lit_points):
+            self.points.append(ep.lit_points)
+        S, A, D = np.concatenate(self.S), np.concatenate(self.A), np.concatenate(self.D)
         rng = np.random.default_rng(self.seed + len(self.S))
         k = cfg.augment
         S = np.concatenate([S] + [S + rng.normal(0, cfg.state_noise, S.shape) for _ in range(k)])
         A, D = np.tile(A, (k + 1, 1)), np.tile(D, (k + 1, 1))
-        epochs = max(1, int(np.ceil(cfg.steps * cfg.batch_size / len(S))))
-        train_tdm(self.tdm, S, A, D, epochs=epochs, lr=cfg.lr, batch_size=cfg.batch_size, seed=self.seed + len(self.S),
-                  progress=False)
+        keep = rng.permutation(len(S))[: cfg.max_train]
+        S, A, D = S[keep], A[keep], D[keep]
+        t = self.trainer
+        t.n = t.i = 0  # the labels of old states change as contacts are found: rebuild the data set
+        t.add(S, A, self.labels(S, D))
+        rec = t.fit()
         pot = DangerPotential(self.tdm.eval())
         if not self.nstep:
-            return ModulationLayer(pot, tangent_gain=cfg.tangent_gain)
+            return ModulationLayer(pot, tangent_gain=cfg.tangent_gain), rec
         r = cfg.action_range
         pick = np.random.default_rng(self.seed).permutation(len(S))[: cfg.distill_points]
-        self.net, _ = distill_nstep(pot, S[pick], A[pick], EulerDynamics(cfg.rollout_dt), UniformPolicy(-r * np.ones(STATE), r * np.ones(STATE)),
-                                    NStepConfig(cfg.horizon, cfg.gamma, cfg.samples), state_noise=cfg.state_noise,
-                                    epochs=cfg.distill_epochs, seed=self.seed, net=self.net)
-        return ModulationLayer(self.net.eval(), tangent_gain=cfg.tangent_gain)
+        self.net, info = distill_nstep(pot, S[pick], A[pick], EulerDynamics(cfg.rollout_dt),
+                                       UniformPolicy(-r * np.ones(STATE), r * np.ones(STATE)),
+                                       NStepConfig(cfg.horizon, cfg.gamma, cfg.samples), state_noise=cfg.state_noise,
+                                       epochs=cfg.distill_epochs, seed=self.seed, net=self.net)
+        return ModulationLayer(self.net.eval(), tangent_gain=cfg.tangent_gain), {**rec, **info}
 
 
-def run_experiment(cfg: TrackingConfig, progress: bool = True) -> dict:
-    """All methods x seeds x episodes; returns the results dict (also holds per-episode logs)."""
+def run_method(method: str, seed: int, config: dict) -> dict:
+    """All episodes of one method and seed (one Ray task); JSON-ready rows and the last episode's paths."""
     torch.set_num_threads(1)
     single_thread_blas()
-    results = {"config": asdict(cfg), "runs": {}, "logs": {}}
-    total = len(cfg.seeds) * len(cfg.methods) * cfg.episodes
-    bar = tqdm(total=total, desc="tracking", disable=not progress)
-    for seed in cfg.seeds:
-        scene = TrackingScene(cfg, seed)
-        results.setdefault("balls", {})[str(seed)] = scene.balls.tolist()
-        results["n_taxels"] = scene.design.n_taxels
-        for method in cfg.methods:
-            rng = np.random.default_rng(seed)
-            learner = None if method == "vanilla" else Learner(cfg, scene.design.n_taxels, method == "tdm2", seed)
-            layer, rows, logs = None, [], []
-            for e in range(cfg.episodes):
-                t0 = time.perf_counter()
-                ep = run_episode(scene, layer, rng)
-                if learner is not None:
-                    layer = learner.update(ep)
-                rows.append({"episode": e, "contacts": ep.contacts, "onsets": ep.onsets,
-                             "tracking_error": ep.tracking_error, "seconds": time.perf_counter() - t0})
-                logs.append(ep)
-                bar.set_postfix(seed=seed, method=method, contacts=ep.contacts)
-                bar.update(1)
-            results["runs"].setdefault(method, {})[str(seed)] = rows
-            results["logs"].setdefault(method, {})[str(seed)] = logs
-    bar.close()
+    cfg = TrackingConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in config.items()})
+    task = TrackingTask(**{f.name: getattr(cfg, f.name) for f in fields(TrackingTask)})
+    scene = TrackingScene(task, seed)
+    env = TrackingEnv(task, scene=scene)
+    learner = None if method == "vanilla" else Learner(cfg, scene, method == "tdm2", seed)
+    layer, rows, ep = None, [], None
+    c0 = time.process_time()
+    for e in range(cfg.episodes):
+        t0 = time.perf_counter()
+        ep = run_episode(env, layer, seed=1000 * seed + e)
+        row = {"episode": e, "contacts": ep.contacts, "onsets": ep.onsets, "tracking_error": ep.tracking_error}
+        if learner is not None:
+            layer, fit = learner.update(ep)
+            row["fit"] = {k: v for k, v in fit.items() if k in ("steps", "val_loss", "auc", "ece", "brier", "rmse")}
+        row["seconds"] = time.perf_counter() - t0
+        rows.append(row)
+    return {"method": method, "seed": seed, "rows": rows, "balls": scene.balls.tolist(), "cpu_seconds": time.process_time() - c0,
+            "n_taxels": scene.design.n_taxels, "path_contact_ticks": scene.path_contact_ticks(),
+            "last": {"ee": ep.ee.round(4).tolist(), "ee_desired": ep.ee_desired.round(4).tolist(),
+                     "contact_points": ep.contact_points.round(4).tolist(), "contacts": ep.contacts}}
+
+
+def run_experiment(cfg: TrackingConfig, progress: bool = True, cache: str | Path | None = None, address: str | None = None,
+                   workers: int | None = None, fresh: bool = False) -> dict:
+    """All methods x seeds (one Ray task each, cached in `cache`); the merged results."""
+    import tempfile
+
+    config = json.loads(json.dumps(asdict(cfg)))
+    task_config = {k: v for k, v in config.items() if k not in ("seeds", "methods")}  # a task is one method x seed
+    tasks = [{"method": m, "seed": s, "config": task_config} for s in cfg.seeds for m in cfg.methods]
+    with tempfile.TemporaryDirectory() as tmp:
+        out = run_tasks(run_method, tasks, cache or tmp, address=address, workers=workers, progress=progress,
+                        desc="tracking runs", fresh=fresh)
+    results = {"config": config, "runs": {}, "last": {}, "balls": {}, "path_contact_ticks": {}}
+    for r in out:
+        results["runs"].setdefault(r["method"], {})[str(r["seed"])] = r["rows"]
+        results["last"].setdefault(r["method"], {})[str(r["seed"])] = r["last"]
+        results["balls"][str(r["seed"])] = r["balls"]
+        results["path_contact_ticks"][str(r["seed"])] = r["path_contact_ticks"]
+        results["n_taxels"] = r["n_taxels"]
+        results.setdefault("cpu_seconds", {}).setdefault(r["method"], {})[str(r["seed"])] = r["cpu_seconds"]
     return results
 
 
 def summary(results: dict) -> list[dict]:
-    """Per method: contacts of the first and last episode and over all (mean over seeds), tracking error."""
+    """Per method: contacts of the first and last episode, over all and over episodes 6-10 (means over
+    seeds), tracking error."""
     out = []
     for method, by_seed in results["runs"].items():
         c = np.array([[r["contacts"] for r in rows] for rows in by_seed.values()], float)  # (seeds, episodes)
         err = np.array([[r["tracking_error"] for r in rows] for rows in by_seed.values()])
         first_zero = [next((r["episode"] for r in rows if r["contacts"] == 0), None) for rows in by_seed.values()]
+        late = c[:, 5:10] if c.shape[1] > 5 else c[:, c.shape[1] // 2:]
         out.append({"method": method, "contacts_first": float(c[:, 0].mean()), "contacts_last": float(c[:, -1].mean()),
-                    "contacts_mean": float(c.mean()), "contacts_last_half": float(c[:, c.shape[1] // 2:].mean()),
+                    "contacts_mean": float(c.mean()), "contacts_ep6_10": float(late.mean()),
+                    "contacts_ep6_10_std": float(late.mean(1).std(ddof=1)) if len(late) > 1 else 0.0,
                     "tracking_error_mm": float(err.mean() * 1e3), "first_zero_episode": first_zero})
     return out
+
+
+def claim_check(rows: list[dict]) -> dict:
+    """Fig. 11e's claim as the issue states it: the 2-step TDM's mean contacts over episodes 6-10 are at
+    most 10% of vanilla's and below the TDM's."""
+    by = {r["method"]: r["contacts_ep6_10"] for r in rows}
+    if not {"vanilla", "tdm", "tdm2"} <= set(by):
+        return {"holds": None, "statement": "needs vanilla, tdm and tdm2"}
+    ratio = by["tdm2"] / by["vanilla"] if by["vanilla"] > 0 else float("inf")
+    holds = ratio <= 0.1 and by["tdm2"] < by["tdm"]
+    s = (f"Episodes 6-10 (mean contact ticks per episode): vanilla {by['vanilla']:.1f}, TDM {by['tdm']:.1f}, "
+         f"2-step TDM {by['tdm2']:.1f} ({100 * ratio:.1f}% of vanilla). "
+         + ("The paper's claim holds: the 2-step TDM is below 10% of vanilla and below the TDM." if holds else
+            "The paper's claim does not hold here (needs the 2-step TDM <= 10% of vanilla and below the TDM)."))
+    return {"holds": bool(holds), "tdm2_over_vanilla": ratio, "statement": s}
+
+
+def markdown_table(table: list[dict], claim: dict) -> str:
+    lines = ["| method | contact ticks, episode 1 | episodes 6-10 (mean ± std over seeds) | last episode | all episodes | "
+             "tracking error (mm) |", "| --- | --- | --- | --- | --- | --- |"]
+    for r in table:
+        lines.append(f"| {r['method']} | {r['contacts_first']:.1f} | {r['contacts_ep6_10']:.1f} ± {r['contacts_ep6_10_std']:.1f} | "
+                     f"{r['contacts_last']:.1f} | {r['contacts_mean']:.1f} | {r['tracking_error_mm']:.0f} |")
+    return "\n".join(lines) + "\n\n" + claim["statement"] + "\n"
 
 
 def plot(results: dict, out_dir: Path) -> list[Path]:
@@ -314,18 +322,18 @@ def plot(results: dict, out_dir: Path) -> list[Path]:
     paths = [out_dir / "contacts.png"]
     _save(fig, paths[0])
     seed = next(iter(results["balls"]))
-    methods = list(results["logs"])
+    methods = list(results["last"])
     fig = plt.figure(figsize=(5 * len(methods), 4.5))
     for i, method in enumerate(methods):
-        ep: Episode = results["logs"][method][seed][-1]
+        ep = results["last"][method][seed]
         ax = fig.add_subplot(1, len(methods), i + 1, projection="3d")
-        ax.plot(*ep.ee_desired.T, "k--", lw=1, label="desired")
-        ax.plot(*ep.ee.T, color="tab:blue", lw=1.5, label="end effector")
-        if len(ep.contact_points):
-            ax.scatter(*ep.contact_points.T, color="tab:green", s=8, label="contact points")
+        ax.plot(*np.array(ep["ee_desired"]).T, "k--", lw=1, label="desired")
+        ax.plot(*np.array(ep["ee"]).T, color="tab:blue", lw=1.5, label="end effector")
+        if len(ep["contact_points"]):
+            ax.scatter(*np.array(ep["contact_points"]).T, color="tab:green", s=8, label="contact points")
         for c in results["balls"][seed]:
             ax.scatter(*c, color="tab:orange", s=120, alpha=0.6)
-        ax.set_title(f"{labels.get(method, method)}: {ep.contacts} contact ticks")
+        ax.set_title(f"{labels.get(method, method)}: {ep['contacts']} contact ticks")
         ax.legend(fontsize=7)
     fig.tight_layout()
     paths.append(out_dir / "trajectories.png")
@@ -344,15 +352,22 @@ def _save(fig, path: Path) -> None:
 
 def add_arguments(p) -> None:
     p.add_argument("--out", default="results/tracking", help="folder for tracking.json and the plots")
-    p.add_argument("--quick", action="store_true", help="reduced run (1 seed, 3 episodes, coarse skin)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--full", action="store_true", help="the paper's budget (default): 3 seeds x 10 episodes")
+    g.add_argument("--quick", action="store_true", help="reduced run (1 seed, 3 episodes, coarse skin)")
     p.add_argument("--episodes", type=int, help="episodes per method and seed (default 10)")
     p.add_argument("--seeds", type=int, nargs="+", help="seeds (default 0 1 2)")
     p.add_argument("--methods", nargs="+", choices=METHODS, help="methods to run (default all)")
+    p.add_argument("--labels", choices=("distance", "binary"), help="TDM labels (default distance)")
+    p.add_argument("--tangent-gain", type=float, help="tangential eigenvalue 1 + g f (default 1, the paper)")
+    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="local Ray CPUs (default %(default)s)")
+    p.add_argument("--address", default=None, help="join this Ray cluster instead of starting a local Ray")
+    p.add_argument("--fresh", action="store_true", help="re-run every task instead of reusing finished ones")
     p.add_argument("--no-progress", action="store_true")
 
 
 def config_from_args(args) -> TrackingConfig:
-    cfg = TrackingConfig.quick() if args.quick else TrackingConfig()
+    cfg = TrackingConfig.quick() if getattr(args, "quick", False) else TrackingConfig()
     if args.episodes is not None:
         if args.episodes < 1:
             raise SystemExit(f"--episodes is {args.episodes}; give at least 1")
@@ -361,6 +376,10 @@ def config_from_args(args) -> TrackingConfig:
         cfg.seeds = tuple(args.seeds)
     if args.methods:
         cfg.methods = tuple(args.methods)
+    if getattr(args, "labels", None):
+        cfg.labels = args.labels
+    if getattr(args, "tangent_gain", None) is not None:
+        cfg.tangent_gain = args.tangent_gain
     return cfg
 
 
@@ -368,14 +387,15 @@ def run(args) -> int:
     cfg = config_from_args(args)
     out = Path(args.out)
     t0 = time.perf_counter()
-    results = run_experiment(cfg, progress=not args.no_progress)
+    results = run_experiment(cfg, progress=not args.no_progress, cache=out / "tasks", address=getattr(args, "address", None),
+                             workers=getattr(args, "workers", None), fresh=getattr(args, "fresh", False))
     table = summary(results)
-    doc = {k: v for k, v in results.items() if k != "logs"}
-    doc["summary"] = table
-    doc["seconds"] = time.perf_counter() - t0
+    doc = dict(results, summary=table, claim=claim_check(table), seconds=time.perf_counter() - t0)
     atomic_write(out / "tracking.json", json.dumps(doc, indent=1))
+    atomic_write(out / "tracking.md", markdown_table(table, doc["claim"]))
     paths = plot(results, out)
     for row in table:
         print("  ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()))
-    print(f"wrote {out / 'tracking.json'}, " + ", ".join(str(p) for p in paths) + f" in {doc['seconds']:.0f} s")
+    print(doc["claim"]["statement"])
+    print(f"wrote {out / 'tracking.json'}, {out / 'tracking.md'}, " + ", ".join(str(p) for p in paths) + f" in {doc['seconds']:.0f} s")
     return 0

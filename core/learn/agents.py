@@ -6,6 +6,18 @@ Agents share one small interface used by the maze experiment (and any Gymnasium 
 action space and `info["cost"]`, `info["taxel_danger"]`): `act(obs) -> action`,
 `observe(obs, action, reward, cost, danger, next_obs, terminated, truncated)`, `end_episode()`,
 and, for the policy filter, `action_probs(features) -> (B, A)`.
+
+Choices that make them learn (issue 16):
+
+- The TDM is refitted every `refit_every` environment steps and after every contact event, with a
+  budget of gradient steps and a validation split (`TDMTrainer`), not a few epochs at episode ends.
+- Discrete SAC's temperature aims at a discrete target entropy (a fraction of log |A|), and log
+  alpha is bounded so the whole discounted entropy bonus, `alpha log|A| / (1 - gamma)`, stays below
+  `entropy_share` of the task reward: exploring can never pay more than reaching the goal.
+- SAC-TDM's critic targets, actor loss and temperature use the filtered (executed) policy
+  p(a | not D, s), so the critic never bootstraps through actions the filter does not allow.
+- Actor-critic updates every `n_steps` environment steps (and at episode ends) with GAE(lambda)
+  advantages bootstrapped from its critic; with the TDM its log-probabilities are the filtered ones.
 """
 from __future__ import annotations
 
@@ -14,8 +26,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from skinsafe.core.learn.tdm_training import FitConfig, TDMTrainer
 from skinsafe.core.safety.danger import PolicyFilter, action_log_safety, filter_log_probs
-from skinsafe.core.safety.tdm import TactileDangerModel, one_hot, train_tdm
+from skinsafe.core.safety.tdm import TactileDangerModel
 
 
 def mlp(n_in: int, n_out: int, hidden=(64, 64)) -> nn.Sequential:
@@ -28,33 +41,37 @@ def mlp(n_in: int, n_out: int, hidden=(64, 64)) -> nn.Sequential:
 
 
 class TDMShield:
-    """The strategy layer inside an agent: logs (features, action, per-taxel danger), refits a TDM after
-    every episode and gives log p(not D | s, a) for every action."""
+    """The strategy layer inside an agent: logs (features, action, per-taxel danger), refits its TDM
+    every `refit_every` steps and after every contact event (budgeted, early-stopped, validated on 10%
+    of the samples) and gives log p(not D | s, a)."""
 
-    def __init__(self, feat_dim: int, n_actions: int, n_taxels: int, seed: int, capacity: int = 20000,
-                 epochs: int = 3, hidden=(64, 64)):
+    def __init__(self, feat_dim: int, n_actions: int, n_taxels: int, seed: int, refit_every: int = 20,
+                 fit: FitConfig | None = None, hidden=(64, 64)):
         self.model = TactileDangerModel(feat_dim, n_actions, n_taxels, hidden)
-        self.n_actions, self.capacity, self.epochs, self.seed = n_actions, capacity, epochs, seed
-        self.s, self.a, self.d = [], [], []
-        self.fits = 0
+        self.trainer = TDMTrainer(self.model, fit or FitConfig(steps=100, min_steps=100, batch_size=64, val_fraction=0.1), seed=seed + 7919)
+        self.n_actions, self.refit_every = n_actions, int(refit_every)
+        self.eye = np.eye(n_actions, dtype=np.float32)
+        self.since = 0
 
     def add(self, feat: np.ndarray, action: int, danger: np.ndarray) -> None:
-        self.s.append(feat)
-        self.a.append(action)
-        self.d.append(np.asarray(danger, np.float32))
+        danger = np.asarray(danger, np.float32)
+        self.trainer.add(feat, self.eye[action], danger)
+        self.since += 1
+        if self.since >= self.refit_every or danger.any():  # a new contact is news: learn it now
+            self.fit()
 
-    def fit(self) -> None:
-        if not self.s:
-            return
-        s, a, d = (x[-self.capacity:] for x in (self.s, self.a, self.d))
-        self.s, self.a, self.d = list(s), list(a), list(d)
-        train_tdm(self.model, np.stack(s), one_hot(a, self.n_actions), np.stack(d), epochs=self.epochs, lr=3e-3,
-                  batch_size=128, seed=self.seed + self.fits, progress=False)
-        self.fits += 1
+    def fit(self) -> dict:
+        self.since = 0
+        return self.trainer.fit()
 
     @torch.no_grad()
     def log_safety(self, feat: torch.Tensor) -> torch.Tensor:
         return action_log_safety(self.model, feat, self.n_actions)
+
+    def stats(self) -> dict:
+        h = self.trainer.history
+        return {"fits": len(h), "fit_seconds": self.trainer.seconds, "grad_steps": int(sum(r["steps"] for r in h)),
+                "last": h[-1] if h else None}
 
 
 class Agent:
@@ -62,14 +79,14 @@ class Agent:
 
     def __init__(self, obs_dim: int, n_actions: int, n_taxels: int, features=None, seed: int = 0,
                  cost_penalty: float = 0.0, use_tdm: bool = False, gamma: float = 0.97, lr: float = 3e-3,
-                 hidden=(64, 64)):
+                 hidden=(64, 64), refit_every: int = 20, fit: FitConfig | None = None):
         torch.manual_seed(seed)
         self.rng = np.random.default_rng(seed)
         self.features = features if features is not None else (lambda o: np.atleast_2d(np.asarray(o, np.float32)))
         self.feat_dim = int(self.features(np.zeros(obs_dim, np.float32)).shape[-1])
         self.n_actions, self.gamma, self.lr, self.hidden = n_actions, gamma, lr, hidden
         self.cost_penalty = float(cost_penalty)
-        self.shield = TDMShield(self.feat_dim, n_actions, n_taxels, seed) if use_tdm else None
+        self.shield = TDMShield(self.feat_dim, n_actions, n_taxels, seed, refit_every, fit) if use_tdm else None
         self.filter = PolicyFilter(self, self.shield.model, n_actions) if use_tdm else None
 
     # p(a|s) of the raw policy, on features: the interface PolicyFilter wraps.
@@ -79,6 +96,22 @@ class Agent:
 
     def behaviour_probs(self, feat: np.ndarray) -> np.ndarray:
         return (self.filter or self).action_probs(feat)[0]
+
+    def policy_log_probs(self, s: torch.Tensor) -> torch.Tensor:
+        """log of the executed policy over a batch of features: filtered by the TDM (eq. 3) when there is one."""
+        logp = F.log_softmax(self._logits(s), -1)
+        if self.shield is not None:
+            logp = filter_log_probs(logp, self.shield.log_safety(s))
+        return logp
+
+    def raw_entropy(self, s: torch.Tensor) -> torch.Tensor:
+        """Mean entropy of the unfiltered policy: with the TDM, the actions the filter removes get no
+        gradient from the filtered loss, so without this term their logits drift (a raw policy of 0.99 on
+        a filtered action defeats any filter whose safety estimate is not exactly 0)."""
+        if self.shield is None:
+            return torch.zeros(())
+        logp = F.log_softmax(self._logits(s), -1)
+        return -(logp.exp() * logp).sum(-1).mean()
 
     def act(self, obs) -> int:
         p = self.behaviour_probs(self.features(obs))
@@ -91,8 +124,11 @@ class Agent:
                     self.features(next_obs)[0], terminated, truncated)
 
     def end_episode(self) -> None:
-        if self.shield is not None:
-            self.shield.fit()
+        pass
+
+    def stats(self) -> dict:
+        """Learning diagnostics for the result file (TDM fits, temperature)."""
+        return {"tdm": self.shield.stats()} if self.shield is not None else {}
 
     def _logits(self, feat: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
@@ -104,7 +140,7 @@ class Agent:
 class Replay:
     """A ring buffer of (s, a, r, c, s', done) for off-policy agents."""
 
-    def __init__(self, feat_dim: int, capacity: int = 20000):
+    def __init__(self, feat_dim: int, capacity: int = 50000):
         self.s = np.zeros((capacity, feat_dim), np.float32)
         self.s2 = np.zeros_like(self.s)
         self.a = np.zeros(capacity, np.int64)
@@ -125,11 +161,12 @@ class Replay:
 
 
 class DiscreteSAC(Agent):
-    """Soft actor-critic for discrete actions (Christodoulou 2019): twin Q, expected soft values,
-    automatic temperature toward a target entropy."""
+    """Soft actor-critic for discrete actions (Christodoulou 2019): twin Q, expected soft values over
+    the executed policy, a bounded automatic temperature toward a discrete target entropy (module doc)."""
 
-    def __init__(self, *args, batch_size: int = 64, tau: float = 0.05, target_entropy_frac: float = 0.8,
-                 update_every: int = 2, **kw):
+    def __init__(self, *args, batch_size: int = 64, tau: float = 0.02, target_entropy_frac: float = 0.98,
+                 entropy_share: float = 0.1, task_reward: float = 100.0, update_every: int = 1, actor_lr: float = 1e-3,
+                 **kw):
         super().__init__(*args, **kw)
         f, A = self.feat_dim, self.n_actions
         self.actor = mlp(f, A, self.hidden)
@@ -137,103 +174,123 @@ class DiscreteSAC(Agent):
         self.q1_t, self.q2_t = mlp(f, A, self.hidden), mlp(f, A, self.hidden)
         self.q1_t.load_state_dict(self.q1.state_dict())
         self.q2_t.load_state_dict(self.q2.state_dict())
-        self.log_alpha = torch.zeros(1, requires_grad=True)
         self.target_entropy = target_entropy_frac * np.log(A)
-        self.opt_actor = torch.optim.Adam(self.actor.parameters(), lr=self.lr, foreach=True)
+        # the whole discounted entropy bonus alpha log|A| / (1 - gamma) <= entropy_share * task reward
+        self.alpha_max = entropy_share * task_reward * (1 - self.gamma) / np.log(A)
+        self.log_alpha_bounds = (float(np.log(self.alpha_max / 10)), float(np.log(self.alpha_max)))
+        self.log_alpha = torch.full((1,), self.log_alpha_bounds[1], requires_grad=True)  # explore fully at first
+        self.opt_actor = torch.optim.Adam(self.actor.parameters(), lr=actor_lr, foreach=True)
         self.opt_q = torch.optim.Adam([*self.q1.parameters(), *self.q2.parameters()], lr=self.lr, foreach=True)
         self.opt_alpha = torch.optim.Adam([self.log_alpha], lr=self.lr)
         self.buffer = Replay(f)
         self.batch_size, self.tau, self.update_every = batch_size, tau, update_every
         self.targets = [*self.q1_t.parameters(), *self.q2_t.parameters()]
         self.sources = [*self.q1.parameters(), *self.q2.parameters()]
+        self.steps = 0
 
     def _logits(self, feat):
         return self.actor(feat)
 
     def _learn(self, s, a, r, c, s2, terminated, truncated):
         self.buffer.add(s, a, r, c, s2, float(terminated))
-        if self.buffer.n >= self.batch_size and self.buffer.n % self.update_every == 0:
+        self.steps += 1
+        if self.buffer.n >= self.batch_size and self.steps % self.update_every == 0:
             self.update(*self.buffer.sample(self.rng, self.batch_size))
 
     def actor_extra_loss(self, s, probs) -> torch.Tensor:
         """Extra actor loss term (SQRL's safety penalty); none for plain SAC."""
         return torch.zeros(())
 
+    @torch.no_grad()
+    def soft_value(self, s: torch.Tensor) -> torch.Tensor:
+        """V(s) = E_{a ~ executed policy}[min Q_target(s, a) - alpha log pi(a|s)]: with the TDM the
+        expectation is over the filtered policy, so actions the filter removes weigh nothing."""
+        logp = self.policy_log_probs(s)
+        q = torch.min(self.q1_t(s), self.q2_t(s))
+        return (logp.exp() * (q - self.log_alpha.exp() * logp.clamp_min(-30))).sum(-1)
+
     def update(self, s, a, r, c, s2, done) -> None:
         alpha = self.log_alpha.exp().detach()
-        with torch.no_grad():
-            logp2 = F.log_softmax(self.actor(s2), -1)
-            q2 = torch.min(self.q1_t(s2), self.q2_t(s2))
-            v2 = (logp2.exp() * (q2 - alpha * logp2)).sum(-1)
-            y = r + self.gamma * (1 - done) * v2
+        y = r + self.gamma * (1 - done) * self.soft_value(s2)
         idx = a[:, None]
         loss_q = F.mse_loss(self.q1(s).gather(1, idx).squeeze(1), y) + F.mse_loss(self.q2(s).gather(1, idx).squeeze(1), y)
         self.opt_q.zero_grad()
         loss_q.backward()
         self.opt_q.step()
-        logp = F.log_softmax(self.actor(s), -1)
+        logp = self.policy_log_probs(s)
         p = logp.exp()
         with torch.no_grad():
             q = torch.min(self.q1(s), self.q2(s))
-        loss_pi = (p * (alpha * logp - q)).sum(-1).mean() + self.actor_extra_loss(s, p)
+        loss_pi = ((p * (alpha * logp.clamp_min(-30) - q)).sum(-1).mean() + self.actor_extra_loss(s, p)
+                   - alpha * self.raw_entropy(s))
         self.opt_actor.zero_grad()
         loss_pi.backward()
         self.opt_actor.step()
-        entropy = -(p.detach() * logp.detach()).sum(-1).mean()
+        entropy = -(p * logp.clamp_min(-30)).sum(-1).mean().detach()
         loss_alpha = self.log_alpha * (entropy - self.target_entropy)
         self.opt_alpha.zero_grad()
         loss_alpha.backward()
         self.opt_alpha.step()
         with torch.no_grad():
+            self.log_alpha.clamp_(*self.log_alpha_bounds)
             torch._foreach_lerp_(self.targets, self.sources, self.tau)
+
+    def stats(self) -> dict:
+        return {**super().stats(), "alpha": float(self.log_alpha.detach().exp()), "alpha_max": float(self.alpha_max)}
 
 
 class ActorCritic(Agent):
-    """Episodic advantage actor-critic: Monte-Carlo returns (bootstrapped on truncation) minus V(s),
-    one actor and one critic step per episode, entropy bonus. With the TDM filter the log-probabilities
-    are those of the filtered (executed) policy, so the gradient stays on-policy."""
+    """Advantage actor-critic with batched updates: every `n_steps` transitions (and at episode ends)
+    one actor and one critic step on GAE(lambda) advantages bootstrapped from V, plus an entropy bonus.
+    With the TDM filter the log-probabilities are those of the filtered (executed) policy, so the
+    gradient stays on-policy."""
 
-    def __init__(self, *args, entropy_coef: float = 0.01, **kw):
+    def __init__(self, *args, entropy_coef: float = 0.02, n_steps: int = 16, lam: float = 0.9,
+                 value_scale: float = 100.0, **kw):
         super().__init__(*args, **kw)
         self.actor = mlp(self.feat_dim, self.n_actions, self.hidden)
         self.critic = mlp(self.feat_dim, 1, self.hidden)
         self.opt = torch.optim.Adam([*self.actor.parameters(), *self.critic.parameters()], lr=self.lr)
-        self.entropy_coef = entropy_coef
-        self.episode = []
-        self.bootstrap = None
+        self.entropy_coef, self.n_steps, self.lam, self.value_scale = entropy_coef, n_steps, lam, value_scale
+        self.batch = []
 
     def _logits(self, feat):
         return self.actor(feat)
 
-    def behaviour_log_probs(self, s: torch.Tensor) -> torch.Tensor:
-        logp = F.log_softmax(self.actor(s), -1)
-        if self.shield is not None:
-            logp = filter_log_probs(logp, self.shield.log_safety(s))
-        return logp
+    def _v(self, s: torch.Tensor) -> torch.Tensor:
+        return self.critic(s).squeeze(-1) * self.value_scale  # the net works in units of the task reward
 
     def _learn(self, s, a, r, c, s2, terminated, truncated):
-        self.episode.append((s, a, r))
-        self.bootstrap = None if terminated else s2
+        self.batch.append((s, a, r, s2, terminated, terminated or truncated))
+        if len(self.batch) >= self.n_steps or terminated or truncated:
+            self.update()
 
-    def end_episode(self) -> None:
-        if self.episode:
-            s = torch.as_tensor(np.stack([e[0] for e in self.episode]))
-            a = torch.as_tensor([e[1] for e in self.episode])
-            rewards = [e[2] for e in self.episode]
-            with torch.no_grad():
-                g = 0.0 if self.bootstrap is None else float(self.critic(torch.as_tensor(self.bootstrap[None]))[0, 0])
-            returns = np.zeros(len(rewards), np.float32)
-            for t in range(len(rewards) - 1, -1, -1):
-                g = rewards[t] + self.gamma * g
-                returns[t] = g
-            v = self.critic(s).squeeze(1)
-            adv = torch.as_tensor(returns) - v.detach()
-            logp = self.behaviour_log_probs(s)
-            entropy = -(logp.exp() * logp.clamp_min(-1e9)).sum(-1).mean()
-            loss = (-(adv * logp.gather(1, a[:, None]).squeeze(1)).mean() - self.entropy_coef * entropy
-                    + 0.5 * F.mse_loss(v, torch.as_tensor(returns)))
-            self.opt.zero_grad()
-            loss.backward()
-            self.opt.step()
-        self.episode, self.bootstrap = [], None
-        super().end_episode()
+    def update(self) -> None:
+        if not self.batch:
+            return
+        s = torch.as_tensor(np.stack([b[0] for b in self.batch]))
+        a = torch.as_tensor([b[1] for b in self.batch])
+        r = np.array([b[2] for b in self.batch], np.float32)
+        s2 = torch.as_tensor(np.stack([b[3] for b in self.batch]))
+        term = np.array([b[4] for b in self.batch], np.float32)
+        end = np.array([b[5] for b in self.batch], bool)
+        end[-1] = True  # the batch's last transition closes its GAE sum (bootstrapped unless terminal)
+        with torch.no_grad():
+            v, v2 = self._v(s).numpy(), self._v(s2).numpy()
+        delta = r + self.gamma * (1 - term) * v2 - v
+        adv = np.zeros_like(delta)
+        acc = 0.0
+        for t in range(len(delta) - 1, -1, -1):
+            acc = delta[t] + (0.0 if end[t] else self.gamma * self.lam * acc)
+            adv[t] = acc
+        adv_t = torch.as_tensor(adv)
+        ret = torch.as_tensor(adv + v)
+        logp = self.policy_log_probs(s)
+        entropy = -(logp.exp() * logp.clamp_min(-30)).sum(-1).mean()
+        entropy = entropy + self.raw_entropy(s)
+        loss = (-(adv_t / self.value_scale * logp.gather(1, a[:, None]).squeeze(1)).mean() - self.entropy_coef * entropy
+                + 0.5 * F.mse_loss(self._v(s) / self.value_scale, ret / self.value_scale))
+        self.opt.zero_grad()
+        loss.backward()
+        self.opt.step()
+        self.batch = []

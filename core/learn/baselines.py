@@ -82,7 +82,8 @@ class RecoveryRL(_RiskSAC):
         # Task transition with the proposed action, risk transition with the executed one.
         self.buffer.add(s, self._proposed, reward, cost, s2, float(terminated))
         self.risk_replay.add(s, action, 0.0, cost, s2, float(terminated))
-        if self.buffer.n >= self.batch_size and self.buffer.n % self.update_every == 0:
+        self.steps += 1
+        if self.buffer.n >= self.batch_size and self.steps % self.update_every == 0:
             DiscreteSAC.update(self, *self.buffer.sample(self.rng, self.batch_size))
             s_b, a_b, _, c_b, s2_b, d_b = self.risk_replay.sample(self.rng, self.batch_size)
             with torch.no_grad():

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from skinsafe.core.experiments.tracking import TrackingConfig, run_experiment, summary
+from skinsafe.core.experiments.tracking import TrackingConfig, claim_check, run_episode, run_experiment, summary
+from skinsafe.core.learn.tracking_env import TrackingEnv
 from skinsafe.core.safety.modulation import ModulationLayer
 from skinsafe.core.safety.stack import SafetyStack, StrategyFilter, TeleopStream, TrajectorySource
 from skinsafe.core.safety.tdm import TactileDangerModel
@@ -15,7 +16,7 @@ from skinsafe.core.safety.tdm import TactileDangerModel
 @pytest.fixture(scope="module")
 def quick_results():
     cfg = TrackingConfig.quick()
-    return cfg, run_experiment(cfg, progress=False)
+    return cfg, run_experiment(cfg, progress=False, workers=1)
 
 
 def test_quick_tracking_run_modulated_contacts_fewer_than_vanilla(quick_results):
@@ -35,25 +36,39 @@ def test_quick_tracking_run_modulated_contacts_fewer_than_vanilla(quick_results)
 
 def test_episode_logs_are_consistent(quick_results):
     cfg, res = quick_results
-    ep = res["logs"]["vanilla"]["0"][0]
-    ticks = int(round(cfg.duration / cfg.control_dt))
-    assert ep.states.shape == (ticks, 4) and ep.dangers.shape[0] == ticks
+    env = TrackingEnv(cfg, seed=0)
+    ep = run_episode(env, None, seed=0)
+    assert ep.contacts == res["runs"]["vanilla"]["0"][0]["contacts"]  # same seed, same episode
+    assert ep.states.shape == (cfg.ticks, 4) and ep.dangers.shape[0] == cfg.ticks
     assert ep.contacts == int(ep.dangers.any(1).sum())
-    assert len(ep.contact_points) == ep.contacts
+    assert len(ep.contact_points) == ep.contacts and len(ep.lit_points) == ep.dangers.sum()
     # contact points lie on the arm near a ball: within ball radius + arm radius + footprint
     d = np.linalg.norm(ep.contact_points[:, None] - np.array(res["balls"]["0"])[None], axis=2).min(1)
     assert (d < cfg.ball_radius + 0.08).all()
+    # the exact path itself runs through the balls: that is where tracking must touch
+    assert res["path_contact_ticks"]["0"] > 0.3 * cfg.ticks
+
+
+def test_claim_check_from_numbers():
+    rows = [{"method": m, "contacts_ep6_10": v} for m, v in (("vanilla", 150.0), ("tdm", 40.0), ("tdm2", 9.0))]
+    assert claim_check(rows)["holds"] and claim_check(rows)["tdm2_over_vanilla"] == pytest.approx(0.06)
+    rows[2]["contacts_ep6_10"] = 16.0
+    assert not claim_check(rows)["holds"]
 
 
 def test_tracking_cli_writes_outputs(tmp_path, quick_results, monkeypatch):
     from skinsafe.core.experiments import tracking as et
 
     cfg, res = quick_results
-    monkeypatch.setattr(et, "run_experiment", lambda c, progress=True: res)
+    monkeypatch.setattr(et, "run_experiment", lambda c, **kw: res)
     args = argparse.Namespace(out=str(tmp_path), quick=True, episodes=None, seeds=None, methods=None, no_progress=True)
     assert et.run(args) == 0
     doc = json.loads((tmp_path / "tracking.json").read_text())
     assert {r["method"] for r in doc["summary"]} == {"vanilla", "tdm", "tdm2"}
+    assert doc["claim"]["holds"] in (True, False) and "vanilla" in doc["claim"]["statement"]
+    for rows in doc["runs"]["vanilla"].values():  # per-episode contacts and tracking error
+        assert all({"contacts", "tracking_error"} <= set(r) for r in rows)
+    assert doc["claim"]["statement"] in (tmp_path / "tracking.md").read_text()
     for name in ("contacts.png", "trajectories.png"):
         assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
     with pytest.raises(SystemExit, match="episodes"):

@@ -3,6 +3,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from skinsafe.core.experiments import maze as experiment_maze
 from skinsafe.core.learn.baselines import AGENTS, make_agent
@@ -107,7 +108,7 @@ def test_tdm_agent_learns_to_avoid_a_wall_it_bumped():
             nxt, r, term, trunc, info = env.step(a)
             agent.shield.add(feats(s)[0], a, info["taxel_danger"])
             s = nxt
-    for _ in range(15):  # one refit per episode, as during training
+    for _ in range(5):
         agent.shield.fit()
     p_raw = agent.action_probs(feats(env.place(1, 1, 1)))[0]
     p_filtered = agent.behaviour_probs(feats(env.place(1, 1, 1)))
@@ -115,30 +116,41 @@ def test_tdm_agent_learns_to_avoid_a_wall_it_bumped():
     assert p_filtered.sum() == pytest.approx(1.0)
 
 
+QUICK_METHODS = ["SAC", "SAC-TDM", "AC-TDM", "CPO"]
+
+
 def test_quick_experiment_writes_plots_table_and_claim(tmp_path):
     args = experiment_maze_args(tmp_path)
     assert experiment_maze.run(args) == 0
     data = json.loads((tmp_path / "maze_results.json").read_text())
     s = data["summary"]
-    assert set(s["methods"]) == set(experiment_maze.METHODS)
+    assert list(s["methods"]) == QUICK_METHODS
     assert s["config"] == experiment_maze.QUICK
     for r in data["runs"]:
-        assert len(r["returns"]) == len(r["costs"]) == experiment_maze.QUICK["episodes"]
-        assert all(0 <= c <= experiment_maze.QUICK["max_steps"] for c in r["costs"])
+        assert len(r["returns"]) == len(r["costs"]) == len(r["goals"]) == experiment_maze.QUICK["episodes"]
+        assert all(0 <= c <= n <= experiment_maze.QUICK["max_steps"] for c, n in zip(r["costs"], r["steps"]))
     for m, v in s["methods"].items():
         totals = [sum(r["costs"]) for r in data["runs"] if r["method"] == m]
         assert v["total_contacts_mean"] == pytest.approx(np.mean(totals))
+        assert v["goal_rate_mean"] == pytest.approx(np.mean([np.mean(r["goals"]) for r in data["runs"] if r["method"] == m]))
+    tdm = next(r for r in data["runs"] if r["method"] == "SAC-TDM")
+    assert tdm["stats"]["tdm"]["fits"] >= 2 and tdm["tdm_fits"][-1]["steps"] >= 1  # refits during episodes
     assert s["claim"]["holds"] in (True, False) and s["claim"]["statement"]
     assert (tmp_path / "maze_curves.png").read_bytes()[:4] == b"\x89PNG"
     md = (tmp_path / "maze_contacts.md").read_text()
     assert "| SAC-TDM |" in md and s["claim"]["statement"] in md
+    assert sorted(p.name for p in (tmp_path / "tasks").glob("*.json")) == sorted(f"{m}_s0.json" for m in QUICK_METHODS)
 
 
 def test_claim_check_reports_both_ways():
-    rows = {m: {"total_contacts_mean": v} for m, v in (("SAC", 100.0), ("SAC-TDM", 20.0), ("RRL", 50.0))}
+    rows = {m: {"total_contacts_mean": v, "goal_rate_last_mean": g}
+            for m, v, g in (("SAC", 100.0, 0.9), ("SAC-TDM", 20.0, 0.95), ("RRL", 50.0, 0.1))}
     c = experiment_maze.claim_check(rows)
     assert c["holds"] and c["ratio_best_other_to_best_tdm"] == pytest.approx(2.5)
-    assert "80% fewer contacts than SAC" in c["statement"]
+    assert "80% fewer contacts than SAC" in c["statement"] and c["all_learned"]
+    rows["SAC"]["goal_rate_last_mean"] = 0.5
+    c = experiment_maze.claim_check(rows)
+    assert c["learned"] == {"SAC": False, "SAC-TDM": True} and not c["all_learned"] and "SAC reach" in c["statement"]
     rows["RRL"]["total_contacts_mean"] = 10.0
     c = experiment_maze.claim_check(rows)
     assert not c["holds"] and "RRL" in c["statement"]
@@ -148,4 +160,62 @@ def experiment_maze_args(out):
     import argparse
     p = argparse.ArgumentParser()
     experiment_maze.add_arguments(p)
-    return p.parse_args(["--quick", "--out", str(out), "--jobs", "1"])
+    return p.parse_args(["--quick", "--out", str(out), "--workers", "1", "--no-progress", "--methods", ",".join(QUICK_METHODS)])
+
+
+def _maze_agent(name, seed=0):
+    env = MazeEnv(max_steps=30)
+    return env, make_agent(name, 4, 4, env.n_taxels, MazeFeatures(env.walls), seed=seed)
+
+
+def test_sac_temperature_is_bounded_so_exploring_never_outweighs_the_goal():
+    env, agent = _maze_agent("SAC")
+    bonus = agent.alpha_max * np.log(4) / (1 - agent.gamma)
+    assert bonus == pytest.approx(0.1 * 100.0)  # the whole discounted entropy bonus: 10% of the goal reward
+    feats = MazeFeatures(env.walls)
+    s = feats(env.reset()[0])[0]
+    for _ in range(64):
+        agent.buffer.add(s, 0, 0.0, 0.0, s, 0.0)
+    with torch.no_grad():
+        agent.log_alpha.fill_(5.0)  # far outside: the next update brings it back within bounds
+    agent.update(*agent.buffer.sample(agent.rng, 64))
+    assert agent.alpha_max / 10 - 1e-9 <= float(agent.log_alpha.detach().exp()) <= agent.alpha_max + 1e-9
+
+
+def test_sac_tdm_values_and_policy_ignore_actions_the_filter_removes():
+    env, agent = _maze_agent("SAC-TDM")
+    with torch.no_grad():  # a danger model certain that action 0 is dangerous everywhere
+        first = agent.shield.model.trunk[0]
+        first.weight.zero_()
+        first.bias.zero_()
+        first.weight[0, agent.feat_dim + 0] = 1.0  # hidden unit 0 = one-hot of action 0
+        agent.shield.model.trunk[2].weight.zero_()
+        agent.shield.model.trunk[2].bias.zero_()
+        agent.shield.model.trunk[2].weight[0, 0] = 1.0
+        agent.shield.model.head.weight.zero_()
+        agent.shield.model.head.weight[:, 0] = 40.0
+        for q in (agent.q1_t, agent.q2_t):  # the target critics love action 0
+            q[-1].weight.zero_()
+            q[-1].bias.copy_(torch.tensor([1000.0, 1.0, 2.0, 3.0]))
+    s = torch.as_tensor(MazeFeatures(env.walls)(env.reset()[0]))
+    assert agent.policy_log_probs(s).exp()[0, 0] < 1e-6
+    assert float(agent.soft_value(s)[0]) < 5.0  # only actions 1-3 count
+    plain = make_agent("SAC", 4, 4, env.n_taxels, MazeFeatures(env.walls), seed=0)
+    with torch.no_grad():
+        for q in (plain.q1_t, plain.q2_t):
+            q[-1].weight.zero_()
+            q[-1].bias.copy_(torch.tensor([1000.0, 1.0, 2.0, 3.0]))
+    assert float(plain.soft_value(s)[0]) > 100.0
+
+
+def test_actor_critic_learns_during_the_episode():
+    env, agent = _maze_agent("AC")
+    before = [w.detach().clone() for w in agent.actor.parameters()]
+    obs, _ = env.reset()
+    for _ in range(agent.n_steps):
+        a = agent.act(obs)
+        nxt, r, term, trunc, info = env.step(a)
+        agent.observe(obs, a, r, info["cost"], info["taxel_danger"], nxt, term, trunc)
+        obs = nxt
+    assert not term and not trunc  # no episode end yet ...
+    assert any(not torch.equal(b, w) for b, w in zip(before, agent.actor.parameters()))  # ... and it learned

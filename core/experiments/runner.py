@@ -1,0 +1,73 @@
+"""Experiments as Ray tasks: one task per (method, seed), results cached per task.
+
+`run_tasks(fn, tasks, cache)` runs `fn(**task)` for every task dict as a Ray task (one CPU each).
+Each finished task is written at once to `cache/<method>_s<seed>.json` (atomically) together with
+the task it ran, so a restarted run reuses every task whose file holds the same task (the same
+method, seed and configuration) and only runs the rest. Ray is local by default (`workers`
+CPUs, a private instance that stops at the end); `address` joins a cluster instead (every node
+needs skinsafe installed). Progress is shown as tasks finish.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Callable
+
+from tqdm.auto import tqdm
+
+from skinsafe.core.skin.files import atomic_write
+
+
+def task_file(cache: Path, task: dict) -> Path:
+    return Path(cache) / f"{task['method']}_s{task['seed']}.json"
+
+
+def cached(cache: Path, task: dict) -> dict | None:
+    """The stored result of exactly this task, or None (missing, unreadable or another configuration)."""
+    path = task_file(cache, task)
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return doc.get("result") if doc.get("task") == json.loads(json.dumps(task)) else None
+
+
+def run_tasks(fn: Callable[..., dict], tasks: list[dict], cache: str | Path, address: str | None = None,
+              workers: int | None = None, progress: bool = True, desc: str = "tasks", fresh: bool = False) -> list[dict]:
+    """Results of `fn(**task)` for every task, in the order given (module doc). `fn` must be a
+    module-level function (Ray pickles it by reference); `fresh` ignores cached results."""
+    cache = Path(cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    results: list[dict | None] = [None if fresh else cached(cache, t) for t in tasks]
+    todo = [i for i, r in enumerate(results) if r is None]
+    bar = tqdm(total=len(tasks), initial=len(tasks) - len(todo), desc=desc, disable=not progress, file=sys.stderr)
+    if todo:
+        import ray
+
+        started = not ray.is_initialized()
+        if started:
+            if address:
+                ray.init(address=address, log_to_driver=False)
+            else:
+                n = int(workers or min(2, os.cpu_count() or 1))
+                ray.init(address="local", num_cpus=n, include_dashboard=False, log_to_driver=False,
+                         object_store_memory=128 * 2 ** 20)
+        try:
+            remote = ray.remote(num_cpus=1)(fn)
+            refs = {remote.remote(**tasks[i]): i for i in todo}
+            pending = list(refs)
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                for ref in done:
+                    i = refs[ref]
+                    results[i] = ray.get(ref)
+                    atomic_write(task_file(cache, tasks[i]), json.dumps({"task": tasks[i], "result": results[i]}))
+                    bar.set_postfix_str(f"{tasks[i]['method']} seed {tasks[i]['seed']}")
+                    bar.update()
+        finally:
+            if started:
+                ray.shutdown()
+    bar.close()
+    return results

@@ -1,0 +1,32 @@
+"""Experiments as Ray tasks: one task per method x seed, finished tasks reused by a restarted run."""
+import json
+
+import pytest
+
+from skinsafe.core.experiments import runner
+from skinsafe.core.experiments.maze import run_one
+
+
+def test_tasks_run_on_ray_are_cached_and_reused(tmp_path, monkeypatch):
+    tasks = [{"method": m, "seed": s, "episodes": 1, "max_steps": 6} for m in ("AC", "CPO") for s in (0, 1)]
+    first = runner.run_tasks(run_one, tasks, tmp_path, workers=1, progress=False)
+    assert [(r["method"], r["seed"]) for r in first] == [(t["method"], t["seed"]) for t in tasks]
+    assert all(len(r["costs"]) == 1 and r["steps"][0] <= 6 for r in first)
+    files = sorted(p.name for p in tmp_path.glob("*.json"))
+    assert files == ["AC_s0.json", "AC_s1.json", "CPO_s0.json", "CPO_s1.json"]
+
+    import ray
+
+    def no_ray(*a, **k):
+        raise AssertionError("a restarted run with every task finished must not start Ray")
+
+    monkeypatch.setattr(ray, "init", no_ray)
+    again = runner.run_tasks(run_one, tasks, tmp_path, workers=1, progress=False)
+    assert again == json.loads(json.dumps(first))
+    # another configuration of one task is not taken from the cache
+    changed = dict(tasks[0], max_steps=7)
+    assert runner.cached(tmp_path, changed) is None and runner.cached(tmp_path, tasks[0]) == again[0]
+    (tmp_path / "AC_s0.json").write_text("{not json")  # a half-written file counts as missing
+    assert runner.cached(tmp_path, tasks[0]) is None
+    with pytest.raises(AssertionError, match="must not start Ray"):
+        runner.run_tasks(run_one, tasks, tmp_path, workers=1, progress=False)
