@@ -216,9 +216,8 @@ def _learn_person(sc, home, away, T: float, args):
     the skin readout), as the modulation potential `presence x f_phi`."""
     import mujoco
 
-    from skinsafe.core.experiments.scenes import STATE
+    from skinsafe.core.experiments.scenes import STATE, static_contact_tdm
     from skinsafe.core.safety.potential import DangerPotential
-    from skinsafe.core.safety.tdm import TactileDangerModel, train_tdm
 
     rng = np.random.default_rng(args.seed)
     n = args.samples
@@ -232,13 +231,7 @@ def _learn_person(sc, home, away, T: float, args):
         d.qpos[sc.qadr] = Q[i]
         mujoco.mj_forward(m, d)
         D[i] = sc.readout.read(d) > 0
-    torch.manual_seed(args.seed)
-    tdm = TactileDangerModel(len(STATE), len(STATE), sc.design.n_taxels, (64, 64))
-    with torch.no_grad():
-        tdm.head.bias.fill_(float(np.log(0.01 / sc.design.n_taxels)))
-    train_tdm(tdm, Q[:, STATE], A, D, epochs=max(1, args.steps * 64 // n), lr=3e-3, batch_size=64, seed=args.seed,
-              progress=False)
-    return _Presence(DangerPotential(tdm.eval()), args.presence)
+    return _Presence(DangerPotential(static_contact_tdm(Q[:, STATE], A, D, args)), args.presence)
 
 
 def plot(res: dict):

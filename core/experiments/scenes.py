@@ -177,6 +177,18 @@ def _contact_force(sc: Scene, geom: int) -> float:
     return total
 
 
+def static_contact_tdm(S: np.ndarray, A: np.ndarray, D: np.ndarray, args) -> TactileDangerModel:
+    """A TDM fitted to static contact samples (states S, actions A, per-taxel danger labels D),
+    its head biased to a 1% prior danger per taxel; `args.steps` batches of 64, `args.seed`."""
+    torch.manual_seed(args.seed)
+    tdm = TactileDangerModel(S.shape[1], A.shape[1], D.shape[1], (64, 64))
+    with torch.no_grad():
+        tdm.head.bias.fill_(float(np.log(0.01 / D.shape[1])))
+    train_tdm(tdm, S, A, D, epochs=max(1, args.steps * 64 // len(S)), lr=3e-3, batch_size=64, seed=args.seed,
+              progress=False)
+    return tdm.eval()
+
+
 def _learn_desk(sc: Scene, desk_geom: int, args):
     """A TDM from static contacts around DESK_Q (labels from the skin readout), and its 2-step potential."""
     rng = np.random.default_rng(args.seed)
@@ -194,12 +206,7 @@ def _learn_desk(sc: Scene, desk_geom: int, args):
         mujoco.mj_forward(m, d)
         # static contact: any penetration of the desk counts, at the taxels nearest to it
         D[i] = sc.readout.read(d) > 0
-    torch.manual_seed(args.seed)
-    tdm = TactileDangerModel(len(STATE), len(STATE), sc.design.n_taxels, (64, 64))
-    with torch.no_grad():
-        tdm.head.bias.fill_(float(np.log(0.01 / sc.design.n_taxels)))
-    train_tdm(tdm, S, A, D, epochs=max(1, args.steps * 64 // n), lr=3e-3, batch_size=64, seed=args.seed, progress=False)
-    f_pot = DangerPotential(tdm.eval())
+    f_pot = DangerPotential(static_contact_tdm(S, A, D, args))
     net, _ = distill_nstep(f_pot, S, A, EulerDynamics(0.15), UniformPolicy(-np.ones(len(STATE)), np.ones(len(STATE))),
                            NStepConfig(2, 0.9, 8), state_noise=0.03, epochs=40, seed=args.seed)
     return f_pot, net.eval()
