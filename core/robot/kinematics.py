@@ -116,57 +116,47 @@ class TaxelKinematics:
         return out
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _taxel(i, jb, slot, body_id, xmat, xpos, local_pos, local_frames, J, pos, frame):
+    """Taxel i into the views given: its Jacobian `J` (6, nv), the body Jacobian `jb` moved to the
+    taxel point (`J_p += J_r x r` column by column, r the world offset from the body origin), its
+    world position `pos` (3,) and world frame `frame` (3, 3, columns x, y, z)."""
+    b, s = body_id[i], slot[i]
+    r0 = xmat[b, 0] * local_pos[i, 0] + xmat[b, 1] * local_pos[i, 1] + xmat[b, 2] * local_pos[i, 2]
+    r1 = xmat[b, 3] * local_pos[i, 0] + xmat[b, 4] * local_pos[i, 1] + xmat[b, 5] * local_pos[i, 2]
+    r2 = xmat[b, 6] * local_pos[i, 0] + xmat[b, 7] * local_pos[i, 1] + xmat[b, 8] * local_pos[i, 2]
+    pos[0], pos[1], pos[2] = r0 + xpos[b, 0], r1 + xpos[b, 1], r2 + xpos[b, 2]
+    for a in range(3):
+        for c in range(3):
+            frame[a, c] = xmat[b, 3 * a] * local_frames[i, 0, c] + xmat[b, 3 * a + 1] * local_frames[i, 1, c] \
+                + xmat[b, 3 * a + 2] * local_frames[i, 2, c]
+    for j in range(jb.shape[2]):
+        wx, wy, wz = jb[s, 3, j], jb[s, 4, j], jb[s, 5, j]
+        J[0, j] = jb[s, 0, j] + wy * r2 - wz * r1
+        J[1, j] = jb[s, 1, j] + wz * r0 - wx * r2
+        J[2, j] = jb[s, 2, j] + wx * r1 - wy * r0
+        J[3, j], J[4, j], J[5, j] = wx, wy, wz
+
+
 @numba.njit(cache=True, nogil=True)
 def _gather(jb, slot, body_id, xmat, xpos, local_pos, local_frames, index):
-    """jacobians_of's per-taxel part: the body Jacobian `jb` moved to the taxel point
-    (`J_p += J_r x r` column by column, r the world offset from the body origin), the world
-    position and the world frame of each taxel in `index`."""
-    K, nv, n = len(index), jb.shape[2], len(body_id)
-    J, pos, frames = np.empty((K, 6, nv)), np.empty((K, 3)), np.zeros((K, 3, 3))
-    r = np.empty(3)
+    """jacobians_of's per-taxel part (`_taxel`) for each taxel in `index`, into new arrays."""
+    K, n = len(index), len(body_id)
+    J, pos, frames = np.empty((K, 6, jb.shape[2])), np.empty((K, 3)), np.empty((K, 3, 3))
     for k in range(K):
         i = index[k]
         if i < 0 or i >= n:
             raise IndexError("jacobians_of: a taxel index is out of range (0 <= index < number of taxels)")
-        b = body_id[i]
-        for a in range(3):
-            r[a] = xmat[b, 3 * a] * local_pos[i, 0] + xmat[b, 3 * a + 1] * local_pos[i, 1] \
-                + xmat[b, 3 * a + 2] * local_pos[i, 2]
-            pos[k, a] = r[a] + xpos[b, a]
-            for c in range(3):
-                for e in range(3):
-                    frames[k, a, c] += xmat[b, 3 * a + e] * local_frames[i, e, c]
-        J[k] = jb[slot[i]]
-        for j in range(nv):
-            wx, wy, wz = J[k, 3, j], J[k, 4, j], J[k, 5, j]
-            J[k, 0, j] += wy * r[2] - wz * r[1]
-            J[k, 1, j] += wz * r[0] - wx * r[2]
-            J[k, 2, j] += wx * r[1] - wy * r[0]
+        _taxel(i, jb, slot, body_id, xmat, xpos, local_pos, local_frames, J[k], pos[k], frames[k])
     return J, pos, frames
 
 
 @numba.njit(cache=True, nogil=True)
 def _fill(jb, slot, body_id, xmat, xpos, local_pos, local_frames, J, pos, frames_t):
-    """`jacobians`' per-taxel part for every taxel: as `_gather`, into preallocated arrays
-    (frames stored transposed, as `poses` keeps them)."""
-    n, nv = len(body_id), jb.shape[2]
-    r = np.empty(3)
-    for i in range(n):
-        b = body_id[i]
-        for a in range(3):
-            r[a] = xmat[b, 3 * a] * local_pos[i, 0] + xmat[b, 3 * a + 1] * local_pos[i, 1] \
-                + xmat[b, 3 * a + 2] * local_pos[i, 2]
-            pos[i, a] = r[a] + xpos[b, a]
-            for c in range(3):
-                frames_t[i, c, a] = xmat[b, 3 * a] * local_frames[i, 0, c] + xmat[b, 3 * a + 1] * local_frames[i, 1, c] \
-                    + xmat[b, 3 * a + 2] * local_frames[i, 2, c]
-        s = slot[i]
-        for j in range(nv):
-            wx, wy, wz = jb[s, 3, j], jb[s, 4, j], jb[s, 5, j]
-            J[i, 0, j] = jb[s, 0, j] + wy * r[2] - wz * r[1]
-            J[i, 1, j] = jb[s, 1, j] + wz * r[0] - wx * r[2]
-            J[i, 2, j] = jb[s, 2, j] + wx * r[1] - wy * r[0]
-            J[i, 3, j], J[i, 4, j], J[i, 5, j] = wx, wy, wz
+    """`jacobians`' per-taxel part (`_taxel`) for every taxel, into preallocated arrays (frames
+    stored transposed, as `poses` keeps them)."""
+    for i in range(len(body_id)):
+        _taxel(i, jb, slot, body_id, xmat, xpos, local_pos, local_frames, J[i], pos[i], frames_t[i].T)
 
 
 def retractability(J: np.ndarray, frames: np.ndarray) -> np.ndarray:
