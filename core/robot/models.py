@@ -87,13 +87,19 @@ def _exclude_near_links(spec: mujoco.MjSpec, bodies: list[str], reach: int = 2) 
             spec.add_exclude(bodyname1=a, bodyname2=b)
 
 
+def _new_spec(name: str) -> mujoco.MjSpec:
+    """An empty built-in robot scene: 2 ms timestep, joint ranges in radians, a table and a floor."""
+    spec = mujoco.MjSpec()
+    spec.modelname = name
+    spec.option.timestep = 0.002
+    spec.compiler.degree = False
+    _add_table(spec)
+    return spec
+
+
 def build_ur5() -> Robot:
     """UR5 from its DH parameters; links are capsules/cylinders sized to the real arm (SI units)."""
-    spec = mujoco.MjSpec()
-    spec.modelname = "ur5"
-    spec.option.timestep = 0.002
-    spec.compiler.degree = False  # angles (joint ranges) in radians
-    _add_table(spec)
+    spec = _new_spec("ur5")
     base = spec.worldbody.add_body(name="base_link")
     base.add_geom(name="base", type=CYLINDER, size=[0.075, 0.043, 0], pos=[0, 0, 0.043], mass=4.0,
                   rgba=[0.3, 0.3, 0.35, 1])
@@ -143,11 +149,7 @@ def build_ur5() -> Robot:
 
 def build_panda() -> Robot:
     """Franka Panda (7 DoF) from its modified DH parameters, links as capsules."""
-    spec = mujoco.MjSpec()
-    spec.modelname = "panda"
-    spec.option.timestep = 0.002
-    spec.compiler.degree = False  # angles (joint ranges) in radians
-    _add_table(spec)
+    spec = _new_spec("panda")
     base = spec.worldbody.add_body(name="link0")
     base.add_geom(name="link0_0", type=CYLINDER, fromto=[-0.04, 0, 0.0, -0.04, 0, 0.14], size=[0.09, 0, 0],
                   mass=3.06, rgba=[0.9, 0.9, 0.9, 1])
