@@ -1,14 +1,22 @@
-"""`skinsafe bench sensing`: the vectorised skin readout against per-taxel MuJoCo touch sensors,
-collision-mesh simplification and the timestep, on the UR5 sample skin.
+"""`skinsafe bench sensing`: the vectorised skin readout against per-taxel MuJoCo touch sensors and
+MuJoCo's native `tactile` sensor, collision-mesh simplification and the timestep, on the UR5 sample skin.
 
 Scene: the UR5 held at home by its position servos, three mocap probes pressing 5 mm into the
 tops of the upper arm, forearm and wrist and sliding along them (1 Hz, +-2 cm), a fixed box
 beside the robot. Rows (one per setting):
 
-- `sweep="taxels"`: `n_taxels`, `readout` ("vectorised" | "touch"), `steps_per_s` (physics plus
-  readout), `overhead_vs_bare` (readout time / bare physics step of the same scene without touch
-  sensors), `force_err` (sum |f - f_touch| / sum f_touch per step, median), `lit_recall` (share of
-  the taxels touch lights that the readout lights), `missed` (contacts sensed by no taxel).
+- `sweep="taxels"`: `n_taxels`, `readout` ("vectorised" | "touch" | "tactile"), `steps_per_s`
+  (physics plus readout), `overhead_vs_bare` (readout time / physics step of the skinned scene),
+  `overhead_vs_skinless` (skinned step + readout over the same scene with no skin, minus 1),
+  `force_err`, `lit_recall` (against the touch sensors of the same simulation), `missed`.
+  Accuracy against one ground truth (`Probes.truth`: the taxel cells each probe's contact patch
+  covers, and their share of its force), every readout in its own scene over the same motion:
+  `truth_lit_precision`, `truth_lit_recall`, `truth_lit_f1`, `truth_force_err` (the tactile
+  sensor, not in newtons, after one least-squares gain). The tactile sensor's mesh has
+  `tactile_points` vertices per taxel cell (1 = the taxels; more = hexagonal rings filling the
+  cell); `speedup_vs_tactile` compares the added cost of the cheapest configuration that is at
+  least as accurate (lit F1) as the readout, or of the most accurate one when none is
+  (`tactile_points`, `tactile_lit_f1` say which).
 - `sweep="collision"`: mesh UR5 (links as fine meshes), each `SceneOptions.collision` mode:
   collision faces, steps/s, force error against the full mesh.
 - `sweep="timestep"`: a 0.5 kg box resting on the upper arm: force error against m g,
@@ -30,12 +38,14 @@ from skinsafe.core.bench.timing import median_ms
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.models import build_ur5, mesh_ur5
 from skinsafe.core.sim.probes import BASE_PITCH, Probes, design_for, probe_scene
-from skinsafe.core.sim.readout import SkinReadout, TouchReadout
+from skinsafe.core.sim.readout import SkinReadout, TactileReadout, TouchReadout
 
 
 def add_arguments(p) -> None:
     p.add_argument("--sizes", default="256,1024,4096,16384", help="target taxel counts (comma separated)")
     p.add_argument("--steps", type=int, default=300, help="steps per agreement run and timing")
+    p.add_argument("--tactile-points", default=",".join(map(str, TACTILE_POINTS)),
+                   help="vertices per taxel cell of the native tactile sensor's mesh (1, 7, 19, 37; comma separated)")
     p.add_argument("--timesteps", default="0.0005,0.001,0.002,0.004,0.008", help="timesteps (s) to sweep")
     p.add_argument("--sweeps", default="taxels,collision,timestep", help="which sweeps to run")
     p.add_argument("--plot", default="out/bench_sensing.png", help="PNG to write ('' for none)")
@@ -48,68 +58,101 @@ def _stepper(model, data, probes):
     return step
 
 
-def taxel_rows(sizes, steps: int) -> list[dict]:
+TACTILE_POINTS = (1, 7, 19)  # vertices per taxel cell of the native tactile sensor's mesh
+
+
+def taxel_rows(sizes, steps: int, tactile_points=TACTILE_POINTS) -> list[dict]:
     rows = []
     robot = build_ur5()
     for n_target in tqdm(sizes, desc="taxels sweep"):
         design = design_for(n_target)
         n = design.n_taxels
         probes = Probes(design, robot)
-        m0, d0 = probe_scene(design, robot, probes.obstacles, probes.q, taxel_sites=False)
+        m0, d0 = probe_scene(None, robot, probes.obstacles, probes.q)
         mb, db = probe_scene(design, robot, probes.obstacles, probes.q)
         mt, dt = probe_scene(design, robot, probes.obstacles, probes.q, touch_sensors=True)
+        ms, ds = probe_scene(design, robot, probes.obstacles, probes.q, taxel_sites=True)
         for _ in range(50):  # settle the contacts
             _stepper(mb, db, probes)()
-        bare_nosites = median_ms(_stepper(m0, d0, probes), repeat=steps)
+        skinless = median_ms(_stepper(m0, d0, probes), repeat=steps)
         bare = median_ms(_stepper(mb, db, probes), repeat=steps)
+        sites = median_ms(_stepper(ms, ds, probes), repeat=steps)
         touch_step = median_ms(_stepper(mt, dt, probes), repeat=steps)
         readers = {k: SkinReadout(mb, design, kernel=k) for k in ("linear", "nearest")}
         read_ms = {k: median_ms(lambda r=r: r.read(db), repeat=steps) for k, r in readers.items()}
         agree = _agreement(mt, dt, design, probes, steps)
-        native = _native(design, robot, probes, steps, bare, read_ms)
+        truth = {k: _accuracy(design, robot, probes, steps, lambda m, d, k=k: SkinReadout(m, design, kernel=k).read)
+                 for k in readers}
+        truth["touch"] = _accuracy(design, robot, probes, steps, lambda m, d: TouchReadout(m, design).read,
+                                   touch_sensors=True)
+        common = dict(sweep="taxels", n_taxels=n, bare_step_us=bare * 1e3, skinless_step_us=skinless * 1e3,
+                      sites_step_us=sites * 1e3)
+        tactile = []
+        for pts in tactile_points:
+            mk, dk = probe_scene(design, robot, probes.obstacles, probes.q, tactile_sensors=True, tactile_points=pts)
+            step_ms = median_ms(_stepper(mk, dk, probes), repeat=steps)
+            acc = _accuracy(design, robot, probes, steps, lambda m, d, p=pts: TactileReadout(m, d, design, p).read,
+                            calibrate=True, tactile_sensors=True, tactile_points=pts)
+            tactile.append(dict(common, readout="tactile", kernel=f"{pts} pt/taxel", tactile_points=pts,
+                                steps_per_s=1e3 / step_ms, read_us=(step_ms - skinless) * 1e3, tactile_step_us=step_ms * 1e3,
+                                overhead_vs_skinless=step_ms / skinless - 1, **acc))
         for kernel in ("linear", "nearest"):
-            rows.append(dict(sweep="taxels", n_taxels=n, readout="vectorised", kernel=kernel,
-                             steps_per_s=1e3 / (bare + read_ms[kernel]), read_us=read_ms[kernel] * 1e3,
-                             bare_step_us=bare * 1e3, bare_nosites_us=bare_nosites * 1e3,
-                             overhead_vs_bare=read_ms[kernel] / bare, **agree[kernel], **native[kernel]))
-        rows.append(dict(sweep="taxels", n_taxels=n, readout="touch", kernel="cell", steps_per_s=1e3 / touch_step,
-                         read_us=(touch_step - bare) * 1e3, bare_step_us=bare * 1e3,
-                         bare_nosites_us=bare_nosites * 1e3, overhead_vs_bare=(touch_step - bare) / bare,
-                         force_err=0.0, lit_recall=1.0, missed=agree["touch_missed"],
-                         speedup_vs_touch=1.0))
-        for r in rows[-3:-1]:
-            r["speedup_vs_touch"] = (touch_step - bare) / (r["read_us"] / 1e3)
+            added = max(bare + read_ms[kernel] - skinless, 1e-9)
+            ref = _equal_accuracy(tactile, truth[kernel]["truth_lit_f1"])
+            rows.append(dict(common, readout="vectorised", kernel=kernel, steps_per_s=1e3 / (bare + read_ms[kernel]),
+                             read_us=read_ms[kernel] * 1e3, overhead_vs_bare=read_ms[kernel] / bare,
+                             speedup_vs_touch=(touch_step - bare) / read_ms[kernel],
+                             overhead_vs_skinless=(bare + read_ms[kernel]) / skinless - 1,
+                             speedup_vs_tactile=(ref["tactile_step_us"] / 1e3 - skinless) / added,
+                             tactile_points=ref["tactile_points"], tactile_lit_f1=ref["truth_lit_f1"],
+                             tactile_step_us=ref["tactile_step_us"], **agree[kernel], **truth[kernel]))
+        rows.append(dict(common, readout="touch", kernel="cell", steps_per_s=1e3 / touch_step,
+                         read_us=(touch_step - bare) * 1e3, overhead_vs_bare=(touch_step - bare) / bare,
+                         overhead_vs_skinless=touch_step / skinless - 1, force_err=0.0, lit_recall=1.0,
+                         missed=agree["touch_missed"], speedup_vs_touch=1.0, **truth["touch"]))
+        rows += tactile
     return rows
 
 
-def _native(design, robot, probes, steps: int, skin_step: float, read_ms: dict) -> dict:
-    """What the skin costs against the same scene with no skin, and against MuJoCo's native
-    `tactile` sensor on the same taxels: `overhead_vs_skinless` (skinned step + readout over the
-    skinless step, minus 1), `speedup_vs_tactile` (the tactile sensors' added cost over the
-    readout's added cost) and `tactile_lit_agreement` (share of the taxels either lights that both
-    light: the accuracy the two are compared at)."""
-    from skinsafe.core.sim.readout import TactileReadout
+def _equal_accuracy(tactile: list[dict], f1: float) -> dict:
+    """The cheapest tactile configuration that lights the pressed taxels at least as well (lit F1)
+    as a readout with F1 `f1`; the most accurate one when none does."""
+    good = [r for r in tactile if r["truth_lit_f1"] >= f1]
+    if good:
+        return min(good, key=lambda r: r["tactile_step_us"])
+    return max(tactile, key=lambda r: r["truth_lit_f1"])
 
-    m0, d0 = probe_scene(None, robot, probes.obstacles, probes.q)
-    mt, dt = probe_scene(design, robot, probes.obstacles, probes.q, tactile_sensors=True)
-    skinless = median_ms(_stepper(m0, d0, probes), repeat=steps)
-    tactile_step = median_ms(_stepper(mt, dt, probes), repeat=steps)
-    tactile = TactileReadout(mt, dt, design)
-    out = {}
-    for kernel, ms in read_ms.items():
-        reader = SkinReadout(mt, design, kernel=kernel)
-        both, either = 0, 0
-        step = _stepper(mt, dt, probes)
-        for _ in range(min(steps, 200)):
-            step()
-            a, b = reader.read(dt) > 1e-9, tactile.read(dt) > 1e-9
-            both, either = both + int((a & b).sum()), either + int((a | b).sum())
-        added = max(skin_step + ms - skinless, 1e-9)
-        out[kernel] = dict(skinless_step_us=skinless * 1e3, tactile_step_us=tactile_step * 1e3,
-                           overhead_vs_skinless=(skin_step + ms) / skinless - 1,
-                           speedup_vs_tactile=(tactile_step - skinless) / added,
-                           tactile_lit_agreement=both / max(either, 1))
-    return out
+
+def _accuracy(design, robot, probes, steps: int, make_reader, calibrate: bool = False, **opts) -> dict:
+    """One readout against the ground truth (`Probes.truth`: the taxel cells each probe's contact
+    patch covers and their share of its force), in its own scene over the same probe motion.
+
+    `truth_lit_precision`/`truth_lit_recall`/`truth_lit_f1` over all lit taxels of all steps;
+    `truth_force_err` = sum |f - f_true| / sum f_true. `calibrate`: the readout is not in newtons
+    (the tactile sensor's penetration pressure), so one least-squares gain over the run makes it newtons
+    first (the best any calibration can do)."""
+    model, data = probe_scene(design, robot, probes.obstacles, probes.q, **opts)
+    read = make_reader(model, data)
+    truth = probes.truth(model, design)
+    step = _stepper(model, data, probes)
+    tp = lit = pressed = 0
+    got, want = [], []
+    for k in range(steps + 50):
+        step()
+        if k < 50:  # the same settling as the timing runs
+            continue
+        f, ft = read(data), truth.read(model, data)
+        a, b = f > 1e-9, ft > 0
+        tp, lit, pressed = tp + int((a & b).sum()), lit + int(a.sum()), pressed + int(b.sum())
+        got.append(f[a | b])
+        want.append(ft[a | b])
+    got, want = np.concatenate(got), np.concatenate(want)
+    gain = float(got @ want / max(got @ got, 1e-300)) if calibrate else 1.0
+    precision, recall = tp / max(lit, 1), tp / max(pressed, 1)
+    return dict(truth_lit_precision=precision, truth_lit_recall=recall,
+                truth_lit_f1=2 * precision * recall / max(precision + recall, 1e-12),
+                truth_force_err=float(np.abs(gain * got - want).sum() / max(want.sum(), 1e-12)),
+                truth_pressed_per_step=pressed / steps)
 
 
 def _agreement(model, data, design, probes, steps: int) -> dict:
@@ -223,8 +266,9 @@ def plot(rows: list[dict], path: str) -> None:
 
     fig, ax = plt.subplots(1, 3, figsize=(15, 4.2))
     tx = [r for r in rows if r["sweep"] == "taxels"]
-    for (readout, kernel), style in {("vectorised", "linear"): "o-", ("vectorised", "nearest"): "s--",
-                                     ("touch", "cell"): "^-"}.items():
+    styles = {("vectorised", "linear"): "o-", ("vectorised", "nearest"): "s--", ("touch", "cell"): "^-"}
+    styles.update({("tactile", r["kernel"]): "x:" for r in tx if r["readout"] == "tactile"})
+    for (readout, kernel), style in styles.items():
         pts = [(r["n_taxels"], r["steps_per_s"]) for r in tx if r["readout"] == readout and r["kernel"] == kernel]
         if pts:
             ax[0].plot(*zip(*pts), style, label=f"{readout} ({kernel})")
@@ -264,7 +308,7 @@ def rows(args) -> list[dict]:
     sweeps = set(str(args.sweeps).split(","))
     out = []
     if "taxels" in sweeps:
-        out += taxel_rows(sizes, args.steps)
+        out += taxel_rows(sizes, args.steps, [int(x) for x in str(getattr(args, "tactile_points", "1")).split(",") if x])
     if "collision" in sweeps:
         out += collision_rows(args.steps)
     if "timestep" in sweeps:

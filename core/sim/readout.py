@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from skinsafe.core.robot.kinematics import body_ids
+from skinsafe.core.sim.scene import cell_points
 from skinsafe.core.skin.model import DesignError, SkinDesign
 
 BODY_GAP = 1.0e3  # m between bodies when spacing is estimated over all bodies at once
@@ -278,11 +279,13 @@ class TouchReadout:
 
 class TactileReadout:
     """Reference readout: MuJoCo's native `tactile` sensors (`SceneOptions(tactile_sensors=True)`),
-    channel 0 (pressure from the penetration depth at each taxel) mapped back to taxels by position."""
+    channel 0 (a pressure from each vertex's penetration depth, not newtons) summed per taxel over
+    the vertices in its cell (`per_taxel` as `SceneOptions.tactile_points`)."""
 
-    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, design: SkinDesign):
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, design: SkinDesign, per_taxel: int = 1):
         t = design.taxels
         self.n = len(t)
+        pts, owner = cell_points(design, per_taxel)
         self.adr, self.taxel = [], []
         mujoco.mj_kinematics(model, data)
         for bi, body in enumerate(design.bodies):
@@ -296,14 +299,12 @@ class TactileReadout:
             # mesh vertices -> body frame: geom pose relative to its body
             R = data.xmat[b].reshape(3, 3).T @ data.geom_xmat[g].reshape(3, 3)
             x = data.xmat[b].reshape(3, 3).T @ (data.geom_xpos[g] - data.xpos[b])
-            on = np.flatnonzero(t.body == bi)
-            _, k = cKDTree(t.positions[on]).query(vert @ R.T + x)
+            on = np.flatnonzero(t.body[owner] == bi)
+            _, k = cKDTree(pts[on]).query(vert @ R.T + x)
             self.adr.append(model.sensor_adr[sid] + np.arange(nv))
-            self.taxel.append(on[k])
+            self.taxel.append(owner[on[k]])
         self.adr = np.concatenate(self.adr) if self.adr else np.zeros(0, np.int64)
         self.taxel = np.concatenate(self.taxel) if self.taxel else np.zeros(0, np.int64)
 
     def read(self, data: mujoco.MjData) -> np.ndarray:
-        out = np.zeros(self.n)
-        out[self.taxel] = data.sensordata[self.adr]
-        return out
+        return np.bincount(self.taxel, weights=data.sensordata[self.adr], minlength=self.n)

@@ -30,6 +30,7 @@ GEOM_TYPES = {
 }
 MAP_FILE = "taxel_map.json"
 SITE_GROUP = 3
+TACTILE_POINTS = (1, 7, 19, 37)  # tactile mesh vertices per taxel: hexagonal rings 0, 1, 2, 3
 COLLISION_MODES = ("skin",) + meshlib.MODES  # hidden in the viewer by default: a dense skin would hide the robot
 
 
@@ -64,6 +65,7 @@ class SceneOptions:
     clearance_tol: float = 1e-3  # m: warn when a taxel is farther than this from the contact surface
     touch_sensors: bool = False  # one MuJoCo touch sensor per taxel (accuracy reference; slow)
     tactile_sensors: bool = False  # MuJoCo's native `tactile` sensor, one per skinned link (a reference)
+    tactile_points: int = 1  # its mesh vertices per taxel: 1, 7, 19, ... (hexagonal rings filling the cell)
     prune_contacts: bool = True  # robot bodies nothing can touch get contype/conaffinity 0
     timestep: float | None = None
 
@@ -72,6 +74,8 @@ class SceneOptions:
             raise ValueError(f"SceneOptions.collision is '{self.collision}'; use one of {COLLISION_MODES}")
         if self.collision == "decimate" and self.target_faces < 4:
             raise ValueError(f"SceneOptions.target_faces is {self.target_faces}; give at least 4")
+        if self.tactile_points not in TACTILE_POINTS:
+            raise ValueError(f"SceneOptions.tactile_points is {self.tactile_points}; use one of {TACTILE_POINTS}")
         if self.timestep is not None and not (0 < self.timestep <= 0.05):
             raise ValueError(f"SceneOptions.timestep is {self.timestep}; give seconds in (0, 0.05]")
 
@@ -94,7 +98,7 @@ def build_scene(design: SkinDesign | None, robot: Robot, obstacles=(), options: 
     if design is not None and (options.taxel_sites or options.touch_sensors):  # a touch sensor reads a site
         _add_taxel_sites(spec, design, options.touch_sensors)
     if design is not None and options.tactile_sensors:
-        _add_tactile_sensors(spec, design)
+        _add_tactile_sensors(spec, design, options.tactile_points)
     try:
         model = spec.compile()
     except ValueError as e:
@@ -223,17 +227,37 @@ def _add_taxel_sites(spec: mujoco.MjSpec, design: SkinDesign, touch: bool) -> No
                             objtype=mujoco.mjtObj.mjOBJ_SITE, objname=name)
 
 
-def _add_tactile_sensors(spec: mujoco.MjSpec, design: SkinDesign) -> None:
-    """MuJoCo's native `tactile` sensor per skinned link: a mesh whose vertices are the link's
-    taxels (`tactile_<body>`), on a non-colliding geom of that mesh (the sensor's frame)."""
+def cell_points(design: SkinDesign, per_taxel: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Points filling each taxel's cell: `per_taxel` points on hexagonal rings in the taxel's plane
+    (spacing pitch / (2 rings + 1), so they stay inside the cell). Returns ((N*k, 3) positions in
+    the body frame, (N*k,) taxel index)."""
     t = design.taxels
+    rings = TACTILE_POINTS.index(per_taxel)
+    offsets = [(0.0, 0.0)]
+    for k in range(1, rings + 1):  # ring k of a hexagonal lattice: 6k points
+        corners = [np.array([np.cos(a), np.sin(a)]) * k for a in np.arange(6) * np.pi / 3]
+        for c in range(6):
+            for j in range(k):
+                offsets.append(tuple(corners[c] + (corners[(c + 1) % 6] - corners[c]) * j / k))
+    off = np.array(offsets) / (2 * rings + 1)  # in units of the pitch
+    step = taxel_cell(design)[:, None, None] * off[None]  # (N, k, 2)
+    pts = t.positions[:, None, :] + step[..., :1] * t.frames[:, None, :, 0] + step[..., 1:] * t.frames[:, None, :, 1]
+    return pts.reshape(-1, 3), np.repeat(np.arange(len(t)), len(off))
+
+
+def _add_tactile_sensors(spec: mujoco.MjSpec, design: SkinDesign, per_taxel: int = 1) -> None:
+    """MuJoCo's native `tactile` sensor per skinned link: a mesh whose vertices are `per_taxel`
+    points in each of the link's taxel cells (`tactile_<body>`), on a non-colliding geom of that
+    mesh (the sensor's frame). The sensor reads each vertex's depth inside the geoms touching the link."""
+    t = design.taxels
+    pts, owner = cell_points(design, per_taxel)
     for bi, body in enumerate(design.bodies):
-        on = t.body == bi
+        on = t.body[owner] == bi
         if on.sum() < 4:
             continue
         name = f"tactile_{body}"
         mesh = spec.add_mesh(name=name)
-        mesh.uservert = t.positions[on].ravel().tolist()
+        mesh.uservert = pts[on].ravel().tolist()
         spec.body(body).add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=name, contype=0,
                                  conaffinity=0, group=SITE_GROUP + 1, density=0)
         spec.add_sensor(name=name, type=mujoco.mjtSensor.mjSENS_TACTILE, objtype=mujoco.mjtObj.mjOBJ_MESH,

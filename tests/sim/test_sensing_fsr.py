@@ -59,14 +59,20 @@ def test_bench_rows_small(tmp_path):
     from skinsafe.core.bench import sensing as bench_sensing
 
     args = argparse.Namespace(sizes="256", steps=20, sweeps="taxels,timestep", timesteps="0.002",
-                              plot=str(tmp_path / "p.png"))
+                              tactile_points="1,7", plot=str(tmp_path / "p.png"))
     rows = bench_sensing.rows(args)
     taxel = [r for r in rows if r["sweep"] == "taxels"]
-    assert {r["readout"] for r in taxel} == {"vectorised", "touch"}
+    assert [r["readout"] for r in taxel] == ["vectorised"] * 2 + ["touch"] + ["tactile"] * 2
+    truth = {"truth_lit_precision", "truth_lit_recall", "truth_lit_f1", "truth_force_err"}
     for r in taxel:
-        assert {"n_taxels", "readout", "steps_per_s", "overhead_vs_bare", "force_err"} <= set(r)
+        assert {"n_taxels", "readout", "steps_per_s", "overhead_vs_skinless"} | truth <= set(r)
+        assert 0 <= r["truth_lit_precision"] <= 1 and 0 <= r["truth_lit_recall"] <= 1
     nearest = [r for r in taxel if r["kernel"] == "nearest"][0]
     assert nearest["force_err"] < 1e-6 and nearest["lit_recall"] == 1.0
+    assert nearest["truth_lit_precision"] == 1.0 and nearest["truth_lit_recall"] > 0.5  # one cell per contact
+    assert {"speedup_vs_tactile", "tactile_points", "overhead_vs_bare"} <= set(nearest)
+    one, seven = [r for r in taxel if r["readout"] == "tactile"]
+    assert seven["truth_lit_recall"] > one["truth_lit_recall"]  # vertices filling the cells find more patches
     ts = [r for r in rows if r["sweep"] == "timestep"][0]
     assert ts["on_arm"] and ts["force_err"] < 0.05
     assert (tmp_path / "p.png").read_bytes()[:4] == b"\x89PNG"
