@@ -34,7 +34,7 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
-from skinsafe.core.bench.timing import median_ms
+from skinsafe.core.bench.timing import interleaved_ms, median_ms
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.models import build_ur5, mesh_ur5
 from skinsafe.core.sim.probes import BASE_PITCH, Probes, design_for, probe_scene
@@ -71,15 +71,15 @@ def taxel_rows(sizes, steps: int, tactile_points=TACTILE_POINTS) -> list[dict]:
         m0, d0 = probe_scene(None, robot, probes.obstacles, probes.q)
         mb, db = probe_scene(design, robot, probes.obstacles, probes.q)
         mt, dt = probe_scene(design, robot, probes.obstacles, probes.q, touch_sensors=True)
-        ms, ds = probe_scene(design, robot, probes.obstacles, probes.q, taxel_sites=True)
+        msites, dsites = probe_scene(design, robot, probes.obstacles, probes.q, taxel_sites=True)
         for _ in range(50):  # settle the contacts
             _stepper(mb, db, probes)()
-        skinless = median_ms(_stepper(m0, d0, probes), repeat=steps)
-        bare = median_ms(_stepper(mb, db, probes), repeat=steps)
-        sites = median_ms(_stepper(ms, ds, probes), repeat=steps)
-        touch_step = median_ms(_stepper(mt, dt, probes), repeat=steps)
         readers = {k: SkinReadout(mb, design, kernel=k) for k in ("linear", "nearest")}
-        read_ms = {k: median_ms(lambda r=r: r.read(db), repeat=steps) for k, r in readers.items()}
+        t_ms = interleaved_ms({"skinless": _stepper(m0, d0, probes), "bare": _stepper(mb, db, probes),
+                              "sites": _stepper(msites, dsites, probes), "touch": _stepper(mt, dt, probes),
+                              **{k: (lambda r=r: r.read(db)) for k, r in readers.items()}}, repeat=max(steps // 5, 10))
+        skinless, bare, sites, touch_step = t_ms["skinless"], t_ms["bare"], t_ms["sites"], t_ms["touch"]
+        read_ms = {k: t_ms[k] for k in readers}
         agree = _agreement(mt, dt, design, probes, steps)
         truth = {k: _accuracy(design, robot, probes, steps, lambda m, d, k=k: SkinReadout(m, design, kernel=k).read)
                  for k in readers}
@@ -90,7 +90,9 @@ def taxel_rows(sizes, steps: int, tactile_points=TACTILE_POINTS) -> list[dict]:
         tactile = []
         for pts in tactile_points:
             mk, dk = probe_scene(design, robot, probes.obstacles, probes.q, tactile_sensors=True, tactile_points=pts)
-            step_ms = median_ms(_stepper(mk, dk, probes), repeat=steps)
+            both = interleaved_ms({"skinless": _stepper(m0, d0, probes), "tactile": _stepper(mk, dk, probes)},
+                                  repeat=max(steps // 5, 10))
+            step_ms = both["tactile"] * skinless / both["skinless"]  # on the same skinless scale as the readout
             acc = _accuracy(design, robot, probes, steps, lambda m, d, p=pts: TactileReadout(m, d, design, p).read,
                             calibrate=True, tactile_sensors=True, tactile_points=pts)
             tactile.append(dict(common, readout="tactile", kernel=f"{pts} pt/taxel", tactile_points=pts,
