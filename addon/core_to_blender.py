@@ -17,13 +17,15 @@ _VIRIDIS = np.array([[0.267, 0.005, 0.329], [0.229, 0.322, 0.546], [0.128, 0.567
 
 
 def heat_colors(values: np.ndarray, vmax: float | None = None) -> np.ndarray:
-    """RGBA (n,4) viridis colours of values scaled to [0, vmax]."""
+    """RGBA (n,4) viridis colours of values scaled to [0, vmax], in linear RGB (what Blender's float
+    colour attributes hold; the sRGB view transform shows them as the viridis map)."""
     v = np.asarray(values, dtype=float)
     top = vmax if vmax else (float(v.max()) if v.size and v.max() > 0 else 1.0)
     s = np.clip(v / top, 0, 1) * (len(_VIRIDIS) - 1)
     i = np.minimum(s.astype(int), len(_VIRIDIS) - 2)
     f = (s - i)[:, None]
     rgb = _VIRIDIS[i] * (1 - f) + _VIRIDIS[i + 1] * f
+    rgb = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)  # sRGB -> linear
     return np.concatenate([rgb, np.ones((len(v), 1))], axis=1)
 
 

@@ -17,57 +17,110 @@ from skinsafe.addon import blender_to_core as b2c
 from skinsafe.addon import register, unregister
 
 
-def _bounds(objs) -> tuple[np.ndarray, np.ndarray]:
+def _world_points(objs) -> np.ndarray:
+    """(k, 3) world coordinates of every vertex of the objects (the evaluated meshes)."""
+    deps = bpy.context.evaluated_depsgraph_get()
     pts = []
     for o in objs:
+        me = o.evaluated_get(deps).data
+        co = np.empty(len(me.vertices) * 3)
+        me.vertices.foreach_get("co", co)
         M = np.array(o.matrix_world)
-        corners = np.array([list(c) + [1.0] for c in o.bound_box])
-        pts.append((corners @ M.T)[:, :3])
-    pts = np.vstack(pts)
-    return pts.min(axis=0), pts.max(axis=0)
+        pts.append(co.reshape(-1, 3) @ M[:3, :3].T + M[:3, 3])
+    return np.vstack(pts) if pts else np.zeros((1, 3))
 
 
-def render(scene, path: Path, color: str = "heat", size: int = 1000, view=(0.6, -1.0, 1.2)) -> Path:
-    """A Workbench picture of the robot and its skin, framed on the robot (orthographic).
+class _CellTiles:
+    """For a picture only: each taxel hexagon grown to fill its cell (corners at half the module
+    pitch, so neighbours tile without overlap) and lifted `lift` m off the link, so the skin reads
+    as coloured tiles that never z-fight with the surface. `restore()` puts the meshes back."""
+
+    def __init__(self, modules, pitch: dict, lift: float = 0.0015):
+        self.saved = []
+        for o in modules:
+            me = o.data
+            co = np.empty(len(me.vertices) * 3)
+            me.vertices.foreach_get("co", co)
+            self.saved.append((o, co.copy()))
+            hexes = co.reshape(-1, 6, 3)
+            c = hexes.mean(axis=1, keepdims=True)
+            n = np.cross(hexes[:, 0] - c[:, 0], hexes[:, 2] - c[:, 0])
+            n /= np.linalg.norm(n, axis=1, keepdims=True)
+            r = np.linalg.norm(hexes[:, :1] - c, axis=2, keepdims=True)
+            grown = c + (hexes - c) * (0.5 * pitch[o.skinsafe_module.module_id] / r) + lift * n[:, None]
+            me.vertices.foreach_set("co", grown.ravel())
+            me.update()
+
+    def restore(self) -> None:
+        for o, co in self.saved:
+            o.data.vertices.foreach_set("co", co)
+            o.data.update()
+
+
+def _frame(scene, objs, view, size: int):
+    """An orthographic camera looking along -`view` at the objects, fitted to all their vertices
+    with a 4 % margin; the image's aspect follows theirs (its long side `size` pixels)."""
+    cam_data = bpy.data.cameras.get("skinsafe_cam") or bpy.data.cameras.new("skinsafe_cam")
+    cam_data.type = "ORTHO"
+    cam = bpy.data.objects.get("skinsafe_cam") or bpy.data.objects.new("skinsafe_cam", cam_data)
+    if cam.name not in scene.collection.objects:
+        scene.collection.objects.link(cam)
+    d = np.asarray(view, float) / np.linalg.norm(view)
+    yaw, pitch = math.atan2(d[0], -d[1]), math.acos(d[2])  # camera -Z toward the objects, +Y up
+    cam.rotation_euler = (pitch, 0.0, yaw)
+    R = np.array(cam.rotation_euler.to_matrix())
+    pts = _world_points(objs)
+    x, y, depth = pts @ R[:, 0], pts @ R[:, 1], pts @ d
+    w, h = np.ptp(x) * 1.08, np.ptp(y) * 1.08
+    centre = R[:, 0] * (x.max() + x.min()) / 2 + R[:, 1] * (y.max() + y.min()) / 2
+    cam.location = centre + d * (depth.max() + 1.0)
+    cam_data.clip_start, cam_data.clip_end = 0.01, float(np.ptp(depth) + 2.0)
+    cam_data.ortho_scale = max(w, h)
+    r = scene.render
+    long = max(w, h)
+    r.resolution_x = int(round(size * w / long))
+    r.resolution_y = int(round(size * h / long))
+    scene.camera = cam
+
+
+def render(scene, path: Path, color: str = "heat", size: int = 1000, view=(0.6, -1.0, 0.7)) -> Path:
+    """A Workbench picture of the whole robot and its skin (orthographic, fitted to every vertex).
 
     color "heat": the modules' heat-map colour attribute; "board": a colour per interface board.
+    The taxels are drawn as tiles filling their cells, lifted off the link (see `_CellTiles`).
     """
-    robot_objs = [o for o in scene.objects if o.type == "MESH" and not o.skinsafe_module.is_module]
+    robot_objs = [o for o in scene.objects if o.type == "MESH" and not o.skinsafe_module.is_module
+                  and o.visible_get() and not o.hide_render]
     modules = [o for o in scene.objects if o.skinsafe_module.is_module]
+    design = b2c.design_of(scene)
     if color == "board":
-        design = b2c.design_of(scene)
         palette = np.array([[0.12, 0.47, 0.71], [1.0, 0.5, 0.05], [0.17, 0.63, 0.17], [0.84, 0.15, 0.16],
                             [0.58, 0.4, 0.74], [0.55, 0.34, 0.29], [0.89, 0.47, 0.76], [0.5, 0.5, 0.5]])
         board_of = {m.id: m.board for m in design.modules}
         for o in modules:
             o.color = (*palette[board_of[o.skinsafe_module.module_id] % len(palette)], 1.0)
-    lo, hi = _bounds(modules or robot_objs)  # frame the skin
-    centre, extent = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
-    cam_data = bpy.data.cameras.get("skinsafe_cam") or bpy.data.cameras.new("skinsafe_cam")
-    cam_data.type = "ORTHO"
-    cam_data.ortho_scale = 0.75 * extent
-    cam = bpy.data.objects.get("skinsafe_cam") or bpy.data.objects.new("skinsafe_cam", cam_data)
-    if cam.name not in scene.collection.objects:
-        scene.collection.objects.link(cam)
-    d = np.asarray(view, float) / np.linalg.norm(view)
-    cam.location = centre + 3 * extent * d
-    # look at the centre: camera -Z toward it, +Y up
-    yaw, pitch = math.atan2(d[0], -d[1]), math.acos(d[2])
-    cam.rotation_euler = (pitch, 0.0, yaw)
-    scene.camera = cam
+    _frame(scene, robot_objs + modules, view, size)
     r = scene.render
     r.engine = "BLENDER_WORKBENCH"
-    r.resolution_x, r.resolution_y, r.resolution_percentage = size, size, 100
+    r.resolution_percentage = 100
     r.film_transparent = False
     r.image_settings.file_format = "PNG"
+    scene.view_settings.view_transform = "Standard"  # the colours as given, not tone-mapped pale
     sh = scene.display.shading
     sh.light = "STUDIO"
     sh.color_type = "VERTEX" if color == "heat" else "OBJECT"
     sh.show_cavity = True
+    sh.show_object_outline = True
     for o in robot_objs:
-        o.color = (0.75, 0.75, 0.78, 1.0)
-    r.filepath = str(path)
-    bpy.ops.render.render(write_still=True)
+        o.color = (0.72, 0.73, 0.76, 1.0)
+    live, scene.skinsafe.auto_regenerate = scene.skinsafe.auto_regenerate, False  # the tiles are no move
+    tiles = _CellTiles(modules, {m.id: m.pitch for m in design.modules})
+    try:
+        r.filepath = str(path)
+        bpy.ops.render.render(write_still=True)
+    finally:
+        tiles.restore()
+        scene.skinsafe.auto_regenerate = live
     return path
 
 

@@ -241,7 +241,9 @@ BENCH_ARGS = {
 BENCH_MEANING = {
     "jacobians": "ms per call for all taxels' (6 x nv) Jacobians; speedup vs one mj_jac per taxel.",
     "design": "place_s: placing modules with frames and Jacobian mapping; regen_ms: re-generating one 256-taxel module.",
-    "sensing": "overhead_vs_bare: readout time / bare physics step; speedup_vs_touch: vs per-taxel touch sensors.",
+    "sensing": "overhead_vs_skinless: what the skin adds to the robot's step; truth_*: lit taxels and forces against "
+               "the probes' contact patches over the taxel cells; speedup_vs_tactile: vs MuJoCo's tactile sensor at "
+               "equal lit accuracy (tactile_points vertices per cell); speedup_vs_touch: vs per-taxel touch sensors.",
     "retraction": "ms per defensiveness tick with `active` triggered taxels; speedup vs a per-taxel loop.",
     "safety": "audit on random contact sets (20 per count here; `make bench` runs thousands): into_contact_mm_worst, "
               "limit violations and fail_open must be 0 / <= 0.5 mm.",
