@@ -4,6 +4,7 @@ import numpy as np
 
 from skinsafe.addon import blender_to_core as b2c
 from skinsafe.addon import core_to_blender as c2b
+from skinsafe.core.design.audit import SURFACE_TOL, audit
 from skinsafe.core.design.coverage import coverage_report
 from skinsafe.core.design.placement import (
     PlacementError,
@@ -83,7 +84,7 @@ def regenerate_moved(scene) -> list[str]:
     placement. Returns the refusal messages (the modules keep their last valid taxels)."""
     errors = []
     for obj in b2c.module_objects(scene):
-        if b2c.moved(obj) or obj.scale[0] != 1 or obj.scale[1] != 1:
+        if b2c.moved(obj) or abs(obj.scale[0] - 1) > 1e-6 or abs(obj.scale[1] - 1) > 1e-6:  # float32 round-off: no rescale
             try:
                 regenerate(scene, obj)
             except DesignError as e:
@@ -134,6 +135,20 @@ def coverage(scene) -> dict:
     return design.coverage
 
 
+def check(scene, poses: int = 16, tol: float = SURFACE_TOL) -> list[str]:
+    """What `skinsafe check` does, on the scene's design: validation against the robot, the
+    geometric audit (taxels off their link's surface, overhanging outlines, far anchors, taxels
+    buried inside another link at `poses` sampled poses, home first) and the coverage report
+    (stored with the design). Returns the problems, one line each (empty: the skin passes)."""
+    design = _need_design(scene)
+    robot = b2c.robot_for(scene)
+    design.validate("skin", robot.body_names)
+    problems = audit(design, robot.model, robot.home, poses, tol)
+    design.coverage = coverage_report(design, robot.model)
+    c2b.store_design(scene, design)
+    return problems
+
+
 def _need_design(scene):
     design = b2c.design_of(scene)
     if design is None or not design.n_taxels:
@@ -142,4 +157,4 @@ def _need_design(scene):
 
 
 __all__ = ["PlacementError", "place", "regenerate", "regenerate_moved", "remove", "assign_boards", "map_jacobians",
-           "coverage"]
+           "coverage", "check"]

@@ -1,4 +1,5 @@
 """Operators: each a thin call into designer / core with poll(), undo and a report."""
+import warnings
 from pathlib import Path
 
 import bpy
@@ -237,6 +238,32 @@ class SKINSAFE_OT_coverage(bpy.types.Operator):
         return _ok(self, context.scene, f"{t['taxels']} taxels, {t['modules']} modules, {t['boards']} boards")
 
 
+class SKINSAFE_OT_check(bpy.types.Operator):
+    """Check the skin as `skinsafe check` does: taxels on their link's surface, outlines not
+    overhanging, anchors on the link, none buried inside another link at sampled poses; coverage"""
+
+    bl_idname = "skinsafe.check"
+    bl_label = "Check Skin"
+
+    poses: bpy.props.IntProperty(name="Poses", default=16, min=1, max=1000,
+                                 description="sampled poses for the buried-taxel check (home first)")
+
+    poll = classmethod(lambda cls, context: _has_skin(context))
+
+    def execute(self, context):
+        scene = context.scene
+        try:
+            problems = designer.check(scene, self.poses)
+        except DesignError as e:
+            return _fail(self, scene, e)
+        scene.skinsafe.coverage_text = format_report(b2c.design_of(scene).coverage)
+        if problems:
+            for line in problems[1:]:
+                self.report({"WARNING"}, line)
+            return _fail(self, scene, DesignError(f"{len(problems)} problems, the first: {problems[0]}"))
+        return _ok(self, scene, f"skin valid: {b2c.design_of(scene).n_taxels} taxels checked at {self.poses} poses")
+
+
 class SKINSAFE_OT_export_taxel_map(bpy.types.Operator, ExportHelper):
     """Save the skin design as a taxel map (JSON)"""
 
@@ -272,12 +299,17 @@ class SKINSAFE_OT_export_mjcf(bpy.types.Operator):
     def execute(self, context):
         from skinsafe.exporters.mjcf import export_scene
 
+
         scene = context.scene
         try:
-            path = export_scene(b2c.design_of(scene), b2c.robot_for(scene), bpy.path.abspath(self.directory))
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                path = export_scene(b2c.design_of(scene), b2c.robot_for(scene), bpy.path.abspath(self.directory))
         except (DesignError, OSError) as e:
             return _fail(self, scene, e)
-        return _ok(self, scene, f"wrote {path}")
+        for w in caught:  # e.g. taxels farther than 1 mm from the contact surface: said in the UI, not only stderr
+            self.report({"WARNING"}, str(w.message))
+        return _ok(self, scene, f"wrote {path}" + (f" ({len(caught)} warnings)" if caught else ""))
 
 
 class SKINSAFE_OT_toggle_frames(bpy.types.Operator):
@@ -296,7 +328,7 @@ class SKINSAFE_OT_toggle_frames(bpy.types.Operator):
 
 CLASSES = (SKINSAFE_OT_import_robot, SKINSAFE_OT_set_pose, SKINSAFE_OT_place_module, SKINSAFE_OT_regenerate,
            SKINSAFE_OT_remove_module, SKINSAFE_OT_assign_boards, SKINSAFE_OT_map_jacobians, SKINSAFE_OT_coverage,
-           SKINSAFE_OT_export_taxel_map, SKINSAFE_OT_export_mjcf, SKINSAFE_OT_toggle_frames)
+           SKINSAFE_OT_check, SKINSAFE_OT_export_taxel_map, SKINSAFE_OT_export_mjcf, SKINSAFE_OT_toggle_frames)
 
 
 register, unregister = bpy.utils.register_classes_factory(CLASSES)

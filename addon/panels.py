@@ -71,6 +71,7 @@ class SKINSAFE_PT_analysis(_Panel, bpy.types.Panel):
         col.prop(s, "board_capacity")
         col.operator("skinsafe.assign_boards")
         col.operator("skinsafe.coverage")
+        col.operator("skinsafe.check")
         for line in s.coverage_text.splitlines():
             col.label(text=line)
         col.operator("skinsafe.export_taxel_map")

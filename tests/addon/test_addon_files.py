@@ -110,6 +110,17 @@ def test_ros_description_with_collada_visuals_through_the_operators(tmp_path):
     d = b2c.design_of(scene)
     assert d.n_taxels == 9
     assert surf.closest(d.taxels.positions)[3].max() < 1e-6  # on the visual surface
+    # checked through the operator as `skinsafe check` does (validation, audit, coverage)
+    assert bpy.ops.skinsafe.check(poses=4) == {"FINISHED"}
+    assert "valid" in scene.skinsafe.message and "panda_link4" in scene.skinsafe.coverage_text
+    from skinsafe.addon import core_to_blender as c2b
+
+    lifted = d.with_taxels(d.taxels.subset(np.arange(d.n_taxels)))
+    lifted.taxels.positions[4] += 0.005 * lifted.taxels.normals[4]  # one taxel 5 mm off the link
+    c2b.store_design(scene, lifted)
+    with pytest.raises(RuntimeError, match=r"taxel \d+ on 'panda_link4' is 5.0 mm off the link's surface"):
+        bpy.ops.skinsafe.check(poses=4)
+    c2b.store_design(scene, d)
     # exported through the operator: the contact surface is where the skin is, no self contact at home
     import mujoco
 

@@ -116,6 +116,13 @@ def test_place_frames_surface_regenerate_and_refusals(scene):
     obj.scale = (2.0, 1.0, 1.0)  # resize: twice the columns
     assert bpy.ops.skinsafe.regenerate() == {"FINISHED"}
     assert b2c.design_of(scene).n_taxels == 128 and obj.skinsafe_module.settings.cols == 16
+    # float32 round-off in a placed module's scale is no resize: the heat map stays, nothing re-generates
+    scene.skinsafe.auto_regenerate = True
+    obj.scale = (1.0, 0.99999994, 0.99999994)
+    obj.skinsafe_module.placed_matrix = b2c.matrix_key(obj)
+    mesh = obj.data.name
+    bpy.context.view_layer.update()
+    assert obj.data.name == mesh and b2c.design_of(scene).n_taxels == 128
 
     with pytest.raises(RuntimeError, match="overlaps module 0"):
         _place("forearm_link", (-0.25, 0, E + 0.05))
