@@ -16,6 +16,12 @@ _VIRIDIS = np.array([[0.267, 0.005, 0.329], [0.229, 0.322, 0.546], [0.128, 0.567
                      [0.369, 0.789, 0.383], [0.993, 0.906, 0.144]])
 
 
+def srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
+    """sRGB colour components (0-1) as the linear values Blender's colours hold."""
+    rgb = np.asarray(rgb, dtype=float)
+    return np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
+
+
 def heat_colors(values: np.ndarray, vmax: float | None = None) -> np.ndarray:
     """RGBA (n,4) viridis colours of values scaled to [0, vmax], in linear RGB (what Blender's float
     colour attributes hold; the sRGB view transform shows them as the viridis map)."""
@@ -25,7 +31,7 @@ def heat_colors(values: np.ndarray, vmax: float | None = None) -> np.ndarray:
     i = np.minimum(s.astype(int), len(_VIRIDIS) - 2)
     f = (s - i)[:, None]
     rgb = _VIRIDIS[i] * (1 - f) + _VIRIDIS[i + 1] * f
-    rgb = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)  # sRGB -> linear
+    rgb = srgb_to_linear(rgb)
     return np.concatenate([rgb, np.ones((len(v), 1))], axis=1)
 
 

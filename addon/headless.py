@@ -15,6 +15,10 @@ import numpy as np
 
 from skinsafe.addon import blender_to_core as b2c
 from skinsafe.addon import register, unregister
+from skinsafe.addon.core_to_blender import srgb_to_linear
+
+PALETTE = np.array([[0.12, 0.47, 0.71], [1.0, 0.5, 0.05], [0.17, 0.63, 0.17], [0.84, 0.15, 0.16],
+                    [0.58, 0.4, 0.74], [0.55, 0.34, 0.29], [0.89, 0.47, 0.76], [0.5, 0.5, 0.5]])  # sRGB, per board
 
 
 def _world_points(objs) -> np.ndarray:
@@ -83,6 +87,45 @@ def _frame(scene, objs, view, size: int):
     scene.camera = cam
 
 
+def _heat_range(modules) -> float:
+    """The largest value of the modules' heat attribute (the top of the colour scale), 0 if none."""
+    top = 0.0
+    for o in modules:
+        attr = o.data.attributes.get("retractability")
+        if attr is not None and len(attr.data):
+            v = np.empty(len(attr.data))
+            attr.data.foreach_get("value", v)
+            top = max(top, float(v.max()))
+    return top
+
+
+def add_key(path: Path, vmax: float = 0.0, label: str = "", swatches=()) -> None:
+    """Put a key beside the picture at `path` (rewritten in place): a viridis colour bar from 0 to
+    `vmax` named `label`, or a legend of (sRGB colour, text) `swatches`."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    img = plt.imread(str(path))
+    h, w = img.shape[:2]
+    fig = plt.figure(figsize=(w / 100 * 1.15, h / 100), dpi=100)
+    ax = fig.add_axes((0, 0, 1 / 1.15, 1))
+    ax.imshow(img)
+    ax.axis("off")
+    if vmax > 0:
+        cax = fig.add_axes((0.9, 0.15, 0.02, 0.7))
+        cb = fig.colorbar(matplotlib.cm.ScalarMappable(matplotlib.colors.Normalize(0, vmax), "viridis"), cax=cax)
+        cb.set_label(label)
+    if swatches:
+        fig.legend(handles=[Patch(color=c, label=t) for c, t in swatches], loc="center right", frameon=False)
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    tmp.replace(path)
+
+
 def render(scene, path: Path, color: str = "heat", size: int = 1000, view=(0.6, -1.0, 0.7)) -> Path:
     """A Workbench picture of the whole robot and its skin (orthographic, fitted to every vertex).
 
@@ -94,11 +137,9 @@ def render(scene, path: Path, color: str = "heat", size: int = 1000, view=(0.6, 
     modules = [o for o in scene.objects if o.skinsafe_module.is_module]
     design = b2c.design_of(scene)
     if color == "board":
-        palette = np.array([[0.12, 0.47, 0.71], [1.0, 0.5, 0.05], [0.17, 0.63, 0.17], [0.84, 0.15, 0.16],
-                            [0.58, 0.4, 0.74], [0.55, 0.34, 0.29], [0.89, 0.47, 0.76], [0.5, 0.5, 0.5]])
         board_of = {m.id: m.board for m in design.modules}
         for o in modules:
-            o.color = (*palette[board_of[o.skinsafe_module.module_id] % len(palette)], 1.0)
+            o.color = (*srgb_to_linear(PALETTE[board_of[o.skinsafe_module.module_id] % len(PALETTE)]), 1.0)
     _frame(scene, robot_objs + modules, view, size)
     r = scene.render
     r.engine = "BLENDER_WORKBENCH"
@@ -121,6 +162,12 @@ def render(scene, path: Path, color: str = "heat", size: int = 1000, view=(0.6, 
     finally:
         tiles.restore()
         scene.skinsafe.auto_regenerate = live
+    if color == "heat" and _heat_range(modules) > 0:
+        add_key(path, _heat_range(modules), "retractability |J_p^T z|, m/s per rad/s")
+    if color == "board":
+        t = design.taxels
+        add_key(path, swatches=[(PALETTE[b.id % len(PALETTE)], f"{b.name}: {int((t.board == b.id).sum())} taxels")
+                                for b in design.boards])
     return path
 
 
