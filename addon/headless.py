@@ -110,16 +110,18 @@ def add_key(path: Path, vmax: float = 0.0, label: str = "", swatches=()) -> None
 
     img = plt.imread(str(path))
     h, w = img.shape[:2]
-    fig = plt.figure(figsize=(w / 100 * 1.15, h / 100), dpi=100)
-    ax = fig.add_axes((0, 0, 1 / 1.15, 1))
+    fig = plt.figure(figsize=(w / 100 * 1.22, h / 100), dpi=100)
+    ax = fig.add_axes((0, 0, 1 / 1.22, 1))
     ax.imshow(img)
     ax.axis("off")
     if vmax > 0:
-        cax = fig.add_axes((0.9, 0.15, 0.02, 0.7))
+        cax = fig.add_axes((0.86, 0.15, 0.025, 0.7))
         cb = fig.colorbar(matplotlib.cm.ScalarMappable(matplotlib.colors.Normalize(0, vmax), "viridis"), cax=cax)
-        cb.set_label(label)
+        cb.set_label(label, fontsize=15)
+        cb.ax.tick_params(labelsize=13)
     if swatches:
-        fig.legend(handles=[Patch(color=c, label=t) for c, t in swatches], loc="center right", frameon=False)
+        fig.legend(handles=[Patch(color=c, label=t) for c, t in swatches], loc="center right", frameon=False,
+                   fontsize=14)
     tmp = path.with_suffix(".tmp.png")
     fig.savefig(tmp, dpi=100)
     plt.close(fig)

@@ -24,11 +24,15 @@ def _table(rows: list[dict]) -> str:
     head = "".join(f"<th>{html.escape(str(k))}</th>" for k in keys)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(_fmt(r.get(k, '')))}</td>" for k in keys) + "</tr>"
                    for r in rows)
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+    return f"<div class='scroll'><table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table></div>"
 
 
 def _fmt(v) -> str:
-    return f"{v:.4g}" if isinstance(v, float) else str(v)
+    """Floats to 4 significant digits; from 10,000 up as whole numbers with thousands separators
+    (3.288e+04 is hard to read in a table)."""
+    if isinstance(v, float):
+        return f"{v:,.0f}" if abs(v) >= 1e4 and v == v and abs(v) != float("inf") else f"{v:.4g}"
+    return str(v)
 
 
 def _image(path: str, caption: str) -> str:
@@ -40,11 +44,14 @@ def _image(path: str, caption: str) -> str:
             f"<figcaption>{html.escape(caption)}</figcaption></figure>")
 
 
-CSS = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}
+# pictures at their own size up to the page width (a 3-panel plot shrunk to half the page is
+# unreadable); wide tables scroll inside the page instead of running off it
+CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
 h1{border-bottom:2px solid #345}h2{margin-top:2em;color:#345}table{border-collapse:collapse;margin:.5em 0}
-td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}th{background:#eef}
-figure{display:inline-block;margin:.5em;max-width:520px}img{max-width:100%}figcaption{font-size:.9em;color:#555}
-.meaning{font-size:.92em;color:#444;margin:0 0 1.2em}"""
+.scroll{overflow-x:auto;max-width:100%}td,th{border:1px solid #ccc;padding:3px 8px;text-align:right;font-size:.9em;white-space:nowrap}
+th{background:#eef;position:sticky;top:0}
+figure{display:inline-block;vertical-align:top;margin:.5em;max-width:100%}img{max-width:100%;height:auto}
+figcaption{font-size:.9em;color:#555}.meaning{font-size:.92em;color:#444;margin:0 0 1.2em}"""
 
 
 def write_report(path: str | Path, title: str, intro: str, sections: list[Section]) -> Path:

@@ -266,38 +266,50 @@ def plot(rows: list[dict], path: str) -> None:
 
     from skinsafe.core.skin.files import atomic_write
 
-    fig, ax = plt.subplots(1, 3, figsize=(15, 4.2))
+    present = [k for k in ("taxels", "collision", "timestep") if any(r["sweep"] == k for r in rows)]
+    present[1:1] = ["accuracy"] if present[:1] == ["taxels"] else []
+    if not present:
+        return
+    fig, axes = plt.subplots(1, len(present), figsize=(5.5 * len(present), 4.4), squeeze=False)
+    ax = dict(zip(present, axes[0]))  # one panel per sweep that ran
     tx = [r for r in rows if r["sweep"] == "taxels"]
     styles = {("vectorised", "linear"): "o-", ("vectorised", "nearest"): "s--", ("touch", "cell"): "^-"}
     styles.update({("tactile", r["kernel"]): "x:" for r in tx if r["readout"] == "tactile"})
     for (readout, kernel), style in styles.items():
         pts = [(r["n_taxels"], r["steps_per_s"]) for r in tx if r["readout"] == readout and r["kernel"] == kernel]
         if pts:
-            ax[0].plot(*zip(*pts), style, label=f"{readout} ({kernel})")
-    bare = sorted({(r["n_taxels"], 1e6 / r["bare_step_us"]) for r in tx})
+            ax["taxels"].plot(*zip(*pts), style, label=f"{readout} ({kernel})")
+    bare = sorted({(r["n_taxels"], 1e6 / r["skinless_step_us"]) for r in tx})
     if bare:
-        ax[0].plot(*zip(*bare), "k:", label="bare physics")
-    ax[0].set(xscale="log", yscale="log", xlabel="taxels", ylabel="steps / s", title="UR5 + probes: readout cost")
-    ax[0].legend(fontsize=8)
+        ax["taxels"].plot(*zip(*bare), "k:", label="robot without skin")
+        ax["taxels"].set(xscale="log", yscale="log", xlabel="taxels", ylabel="steps / s (physics + readout)",
+                         title="UR5 + probes: what sensing costs")
+        ax["taxels"].legend(fontsize=8)
+        for (readout, kernel), style in styles.items():
+            pts = [(r["n_taxels"], r["truth_lit_f1"]) for r in tx if r["readout"] == readout and r["kernel"] == kernel]
+            if pts:
+                ax["accuracy"].plot(*zip(*pts), style, label=f"{readout} ({kernel})")
+        ax["accuracy"].set(xscale="log", ylim=(0, 1.02), xlabel="taxels", ylabel="lit F1 against the ground truth",
+                           title="which taxels light: pressed cells vs lit (1 = exact)")
     co = [r for r in rows if r["sweep"] == "collision"]
     if co:
-        a2 = ax[1].twinx()
+        a2 = ax["collision"].twinx()
         labels = [f"{r['collision']}{r['target_faces']}" for r in co]
-        ax[1].bar(range(len(co)), [r["steps_per_s"] for r in co], color="C0")
+        ax["collision"].bar(range(len(co)), [r["steps_per_s"] for r in co], color="C0")
         a2.plot(range(len(co)), [100 * r["force_err"] for r in co], "C3o-")
-        ax[1].set_xticks(range(len(co)), labels, rotation=30, fontsize=8)
-        ax[1].set(ylabel="steps / s (bars)", title="collision geometry")
+        ax["collision"].set_xticks(range(len(co)), labels, rotation=30, fontsize=8)
+        ax["collision"].set(ylabel="steps / s (bars)", title="collision geometry")
         a2.set_ylabel("taxel force error vs full mesh, % (red)")
     ts = [r for r in rows if r["sweep"] == "timestep"]
     if ts:
-        a3 = ax[2].twinx()
+        a3 = ax["timestep"].twinx()
         x = [r["timestep"] * 1e3 for r in ts]
-        ax[2].plot(x, [100 * r["force_err"] for r in ts], "C3o-", label="force error %")
-        ax[2].plot(x, [r["penetration_mm"] for r in ts], "C2s-", label="penetration mm")
+        ax["timestep"].plot(x, [100 * r["force_err"] for r in ts], "C3o-", label="force error %")
+        ax["timestep"].plot(x, [r["penetration_mm"] for r in ts], "C2s-", label="penetration mm")
         a3.plot(x, [r["realtime_factor"] for r in ts], "C0^--", label="real-time factor")
-        ax[2].set(xscale="log", xlabel="timestep, ms", title="0.5 kg box resting on the upper arm")
+        ax["timestep"].set(xscale="log", xlabel="timestep, ms", title="0.5 kg box resting on the upper arm")
         a3.set_ylabel("real-time factor (blue)")
-        ax[2].legend(fontsize=8, loc="upper left")
+        ax["timestep"].legend(fontsize=8, loc="upper left")
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
