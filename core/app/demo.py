@@ -253,11 +253,20 @@ BENCH_MEANING = {
 }
 
 
+BENCH_KEYS = {  # the columns a reader needs first (the JSON rows carry the rest)
+    "sensing": ("n_taxels", "readout", "kernel", "steps_per_s", "read_us", "skinless_step_us", "overhead_vs_skinless",
+                "speedup_vs_tactile", "tactile_points", "truth_lit_precision", "truth_lit_recall", "truth_lit_f1",
+                "truth_force_err", "speedup_vs_touch"),
+}
+
+
 def stage_bench(ctx) -> Section:
     tables = []
     for name, argv in tqdm(BENCH_ARGS.items(), desc="benchmarks", leave=False):
         module = cli.BENCHES[name][0]
         rows = _command(module, argv, name, bench=True)
+        if name in BENCH_KEYS:
+            rows = [{k: r[k] for k in BENCH_KEYS[name] if k in r} for r in rows]
         tables.append((rows, f"skinsafe bench {name} {' '.join(argv)} — {BENCH_MEANING[name]}"))
     return Section("Benchmarks (reduced sizes; `make bench` for the full ones)",
                    "Medians of repeated runs in one process; ratios against a simple reference in the same run.",
