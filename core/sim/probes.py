@@ -10,7 +10,7 @@ from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.robot.models import Robot
 from skinsafe.core.sim.scene import Obstacle, SceneOptions, build_scene
 
-BASE_PITCH, BASE_COUNT = 0.01, 2792  # the UR5 sample skin at 1 cm pitch has 2,792 taxels
+BASE_PITCH, BASE_COUNT = 0.01, 2188  # the UR5 sample skin at 1 cm pitch has 2,188 taxels
 PROBE_BODIES = ["upper_arm_link", "forearm_link", "wrist_1_link"]
 PROBE_R, DEPTH, SLIDE, SLIDE_HZ = 0.015, 0.005, 0.02, 1.0
 
