@@ -169,12 +169,12 @@ def poke_bodies(design: SkinDesign, robot: Robot) -> list[str]:
     return sorted(bodies, key=lambda b: -best[b])
 
 
-def force_sweep(design, robot, params, depths, body="forearm_link") -> dict:
+def force_sweep(design, robot, params, depths, body="forearm_link", stiffness: float = PROBE_STIFFNESS) -> dict:
     """Fig. 8/12: one poke per depth on one taxel; distance achieved vs peak force."""
     i = pick_taxel(design, robot, body)
     out = {"taxel": i, "body": body, "force": [], "distance": [], "desired": [], "curves": []}
     for depth in tqdm(depths, desc="pokes", leave=False):
-        run = simulate(design, robot, [Poke(i, depth)], params, 0.05 + params.T + 0.25)
+        run = simulate(design, robot, [Poke(i, depth)], params, 0.05 + params.T + 0.25, stiffness)
         rec = max(run["record"].items(), key=lambda kv: kv[1]["f"]) if run["record"] else None
         if rec is None:
             continue
@@ -312,6 +312,8 @@ def plots(sweep: dict, multi: list[dict], params: RetractionParams, out: Path) -
     fig.tight_layout()
     paths.append(_save_png(fig, out / "poke_displacement.png"))
 
+    if not multi:  # a skin on one link: no multi-contact figure
+        return paths
     fig, axes = plt.subplots(1, len(MERGES), figsize=(4.5 * len(MERGES), 4), sharey=True)
     for ax, kind in zip(axes, MERGES):
         rows = [r for r in multi if r["merge"] == kind]
@@ -342,6 +344,8 @@ def add_arguments(p) -> None:
     p.add_argument("--form", choices=("3d", "6d"), default="3d", help="retraction task form")
     p.add_argument("--epsilons", default="0,0.5,1", help="multi-contact tuning factors of the closed-form merges")
     p.add_argument("--forms-stride", type=int, default=25, help="3-D vs 6-D comparison on every k-th taxel")
+    p.add_argument("--probe-stiffness", type=float, default=PROBE_STIFFNESS,
+                   help="N/m of the probe's spring (force about stiffness x depth; default 20 N/mm)")
 
 
 def run(args) -> int:
@@ -351,8 +355,10 @@ def run(args) -> int:
         params = RetractionParams(alpha=args.alpha, T=args.T, form=args.form)
     except ValueError as e:
         raise SystemExit(f"skinsafe poke: {e}")
-    if not depths or min(depths) <= 0:
+    if not depths or min(depths) <= 0 or not all(np.isfinite(depths)):
         raise SystemExit("skinsafe poke: --depths must be positive distances in m")
+    if not (np.isfinite(args.probe_stiffness) and args.probe_stiffness > 0) or args.forms_stride < 1:
+        raise SystemExit("skinsafe poke: --probe-stiffness must be a positive N/m and --forms-stride at least 1")
     out = Path(args.out)
     if args.map:  # any robot: the one the map names (issue 18)
         robot = load_robot(taxel_map.load(args.map).robot, base_dir=Path(args.map).parent)
@@ -364,7 +370,7 @@ def run(args) -> int:
     if not bodies:
         raise SystemExit(f"skinsafe poke: no link of {args.map or 'the sample skin'} carries 4 taxels or more; "
                          "design a skin with larger modules")
-    sweep = force_sweep(design, robot, params, depths, body=bodies[0])
+    sweep = force_sweep(design, robot, params, depths, body=bodies[0], stiffness=args.probe_stiffness)
     if len(sweep["force"]) < 2:
         raise SystemExit("skinsafe poke: fewer than two pokes triggered the skin; use deeper --depths")
     multi = multicontact(design, robot, params, bodies[:2], [30.0, 20.0], epsilons) if len(bodies) > 1 else []
