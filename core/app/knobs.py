@@ -140,30 +140,25 @@ def _timed_run(step, read, steps: int, every: int = 1):
 
 # --- knob: taxel density --------------------------------------------------------------------
 
-def probe_points(robot, per_body: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Probe contact points and outward normals (world, at home) on the cylindrical middle of the
-    sample-skin links of the UR5: the same points whatever the skin's pitch."""
-    import mujoco
+def probe_points(robot, per_body: int, seed: int = 0, cell: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+    """Probe contact points and outward normals (world, at home) on the sample-skin links of the
+    UR5, where the coarsest swept skin (pitch `cell`) has cells: random points in random cells, the
+    same points whatever the skin's pitch."""
+    from skinsafe.core.design.sample import make_sample_design
+    from skinsafe.core.robot.kinematics import TaxelKinematics
 
-    from skinsafe.core.design.sample import SAMPLE_BODIES
-
-    model = robot.model
-    data = mujoco.MjData(model)
-    data.qpos[:] = robot.home
-    mujoco.mj_kinematics(model, data)
+    coarse = make_sample_design("ur5", pitch=cell, robot=robot)
+    pos, frames = TaxelKinematics(robot.model, coarse).poses(robot.home)
     rng = np.random.default_rng(seed)
     pts, normals = [], []
-    for name in SAMPLE_BODIES["ur5"]:
-        bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
-        g = int(np.flatnonzero(model.geom_bodyid == bid)[0])
-        r, half = model.geom_size[g][:2]
-        phi = rng.uniform(0, 2 * np.pi, per_body)
-        z = rng.uniform(-0.5, 0.5, per_body) * half
-        radial = np.stack([np.cos(phi), np.sin(phi), np.zeros(per_body)], 1)
-        local = r * radial + z[:, None] * [0.0, 0.0, 1.0]
-        R = data.geom_xmat[g].reshape(3, 3)
-        pts.append(local @ R.T + data.geom_xpos[g])
-        normals.append(radial @ R.T)
+    for bi, name in enumerate(coarse.bodies):
+        idx = rng.choice(np.flatnonzero(coarse.taxels.body == bi), per_body)
+        r = float(robot.model.geom_size[robot.model.body(name).geomadr[0]][0])
+        u, v = rng.uniform(-0.5, 0.5, (2, per_body)) * cell
+        a = u / r  # around the axis (x), an arc on the cylinder
+        x, y, z = frames[idx, :, 0], frames[idx, :, 1], frames[idx, :, 2]
+        pts.append(pos[idx] + v[:, None] * y + (r * np.sin(a))[:, None] * x - (r * (1 - np.cos(a)))[:, None] * z)
+        normals.append(np.cos(a)[:, None] * z + np.sin(a)[:, None] * x)
     return np.concatenate(pts), np.concatenate(normals)
 
 
