@@ -96,22 +96,25 @@ def wrap_cylinder(model: mujoco.MjModel, geom: int, pitch: float, rows: int, col
     c = model.geom_pos[geom]
     modules, parts = [], []
     mid, tid = first_module, first_taxel
+    lo, hi = -half + margin, half - margin  # one row grid for the whole part: blocks stay aligned
+    n_along = int(np.floor((hi - lo) / pitch + 1e-9)) + 1 if hi >= lo else 0
+    row_z = lo + np.arange(n_along) * pitch + (hi - lo - (n_along - 1) * pitch) / 2
     for c0 in range(0, max(n_around, 0), cols):
-        lo, hi = -half + margin, half - margin
+        k0, k1 = 0, n_along
         if poses is not None:
             last = min(c0 + cols, n_around) - 1
             edges = 2 * np.pi * (np.linspace(c0 - 0.5, last + 0.5, 3 * (last - c0 + 1) + 1)) / n_around
             span = exposed_span(model, poses, geom, pitch, margin, edges)
-            if span is None:
+            free = np.flatnonzero((row_z >= span[0] - 1e-9) & (row_z <= span[1] + 1e-9)) if span else []
+            if not len(free):
                 continue
-            lo, hi = span
-        n_along = int(np.floor((hi - lo) / pitch + 1e-9)) + 1 if hi >= lo else 0
-        for r0 in range(0, n_along, rows):
-            ii, jj = np.meshgrid(np.arange(r0, min(r0 + rows, n_along)), np.arange(c0, min(c0 + cols, n_around)),
+            k0, k1 = int(free[0]), int(free[-1]) + 1
+        for r0 in range(k0, k1, rows):
+            ii, jj = np.meshgrid(np.arange(r0, min(r0 + rows, k1)), np.arange(c0, min(c0 + cols, n_around)),
                                  indexing="ij")
             ii, jj = ii.ravel(), jj.ravel()
             phi = 2 * np.pi * jj / n_around
-            z = lo + ii * pitch + (hi - lo - (n_along - 1) * pitch) / 2
+            z = row_z[ii]
             radial = np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], 1)
             tangent = np.stack([-np.sin(phi), np.cos(phi), np.zeros_like(phi)], 1)
             axis = np.broadcast_to([0.0, 0.0, 1.0], radial.shape)

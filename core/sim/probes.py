@@ -10,7 +10,7 @@ from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.robot.models import Robot
 from skinsafe.core.sim.scene import Obstacle, SceneOptions, build_scene
 
-BASE_PITCH, BASE_COUNT = 0.01, 2188  # the UR5 sample skin at 1 cm pitch has 2,188 taxels
+BASE_PITCH, BASE_COUNT = 0.01, 2149  # the UR5 sample skin at 1 cm pitch has 2,149 taxels
 PROBE_BODIES = ["upper_arm_link", "forearm_link", "wrist_1_link"]
 PROBE_R, DEPTH, SLIDE, SLIDE_HZ = 0.015, 0.005, 0.02, 1.0
 
@@ -31,7 +31,7 @@ class Probes:
         self.centres, self.axes = [], []
         for b in bodies:
             on = np.flatnonzero(np.asarray(design.bodies)[design.taxels.body] == b)
-            i = on[np.argmax(frames[on, 2, 2])]  # the taxel facing most upward
+            i = on[np.argmax(frames[on, 2, 2] + 2.0 * _inside(pos[on], frames[on, :, 1]))]  # facing up, slide on skin
             self.centres.append(pos[i] + frames[i][:, 2] * (PROBE_R - DEPTH))
             self.axes.append(frames[i][:, 1])  # along the link
         self.obstacles = [Obstacle(f"probe{k}", "sphere", (PROBE_R,), pos=tuple(c), mocap=True)
@@ -42,6 +42,16 @@ class Probes:
         s = SLIDE * np.sin(2 * np.pi * SLIDE_HZ * t)
         for k, (c, a) in enumerate(zip(self.centres, self.axes)):
             data.mocap_pos[k] = c + s * a
+
+
+def _inside(pos: np.ndarray, along: np.ndarray) -> np.ndarray:
+    """(k,) True where a probe sliding +-SLIDE along `along` stays over the link's skin: taxels lie
+    beyond SLIDE + PROBE_R both ways along it (within a probe radius of the line)."""
+    d = np.einsum("jki,ki->jk", pos[:, None] - pos[None], along)  # d[j, k]: taxel j along k's axis
+    off = np.linalg.norm(pos[:, None] - pos[None] - d[..., None] * along[None], axis=2)
+    near = off < PROBE_R
+    reach = SLIDE + PROBE_R
+    return ((d > reach) & near).any(axis=0) & ((d < -reach) & near).any(axis=0)
 
 
 def settled(robot: Robot, seconds: float = 1.0) -> np.ndarray:
