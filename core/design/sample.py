@@ -148,7 +148,8 @@ def make_sample_design(robot_name: str = "ur5", pitch: float = 0.01, rows: int =
                        board_capacity: int = 512, threshold: float = 2.0, robot: Robot | None = None) -> SkinDesign:
     """A skin of rows x cols modules on the main capsule of each sample body of a built-in robot."""
     if robot_name not in SAMPLE_BODIES:
-        raise DesignError(f"sample skin: robot '{robot_name}' unknown; use one of {sorted(SAMPLE_BODIES)}")
+        raise DesignError(f"sample skin: robot '{robot_name}' is not a built-in ({', '.join(sorted(SAMPLE_BODIES))}); "
+                          "for any other robot (a URDF, xacro or MJCF file) use `skinsafe design ROBOT`")
     if not (0 < pitch < 1):
         raise DesignError(f"sample skin: pitch {pitch} m is outside (0, 1); use e.g. 0.01")
     robot = robot or BUILTIN[robot_name]()
@@ -191,7 +192,8 @@ def design_with(n: int, robot=None):
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--robot", default="ur5", choices=sorted(SAMPLE_BODIES), help="built-in robot")
+    p.add_argument("--robot", default="ur5", help=f"built-in robot ({', '.join(sorted(SAMPLE_BODIES))}); "
+                   "for a URDF/xacro/MJCF use `skinsafe design`")
     p.add_argument("--pitch", type=float, default=0.01, help="taxel pitch in m (default 0.01)")
     p.add_argument("--out", default="out/sample_skin.json", help="taxel map to write")
 
