@@ -107,7 +107,7 @@ def run_sweep(knobs=tuple(KNOBS), quick: bool = False, address: str | None = Non
     where = None if where is None else str(Path(where).resolve())
     names = parse_knobs(knobs, where)
     if where is not None:  # refuse a bad map here, before any worker starts
-        from skinsafe.core.app.knobs import skin_of
+        from skinsafe.core.app.knob_skins import skin_of
 
         skin_of(where)
     started = not ray.is_initialized()
