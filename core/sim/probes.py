@@ -31,7 +31,9 @@ class Probes:
         self.centres, self.axes = [], []
         for b in bodies:
             on = np.flatnonzero(np.asarray(design.bodies)[design.taxels.body] == b)
-            i = on[np.argmax(frames[on, 2, 2] + 2.0 * _inside(pos[on], frames[on, :, 1]))]  # facing up, slide on skin
+            up = on[np.argsort(-frames[on, 2, 2], kind="stable")[:64]]  # the most upward-facing taxels
+            inside = _inside(pos[on], pos[up], frames[up, :, 1])
+            i = up[np.argmax(inside)] if inside.any() else up[0]  # facing up, the probe sliding over skin
             self.centres.append(pos[i] + frames[i][:, 2] * (PROBE_R - DEPTH))
             self.axes.append(frames[i][:, 1])  # along the link
         self.obstacles = [Obstacle(f"probe{k}", "sphere", (PROBE_R,), pos=tuple(c), mocap=True)
@@ -44,11 +46,12 @@ class Probes:
             data.mocap_pos[k] = c + s * a
 
 
-def _inside(pos: np.ndarray, along: np.ndarray) -> np.ndarray:
-    """(k,) True where a probe sliding +-SLIDE along `along` stays over the link's skin: taxels lie
-    beyond SLIDE + PROBE_R both ways along it (within a probe radius of the line)."""
-    d = np.einsum("jki,ki->jk", pos[:, None] - pos[None], along)  # d[j, k]: taxel j along k's axis
-    off = np.linalg.norm(pos[:, None] - pos[None] - d[..., None] * along[None], axis=2)
+def _inside(pos: np.ndarray, start: np.ndarray, along: np.ndarray) -> np.ndarray:
+    """(k,) True where a probe at `start` sliding +-SLIDE along `along` stays over the skin at `pos`:
+    taxels lie beyond SLIDE + PROBE_R both ways along it (within a probe radius of the line)."""
+    rel = pos[:, None] - start[None]  # (n, k, 3)
+    d = np.einsum("jki,ki->jk", rel, along)  # d[j, k]: taxel j along k's axis
+    off = np.linalg.norm(rel - d[..., None] * along[None], axis=2)
     near = off < PROBE_R
     reach = SLIDE + PROBE_R
     return ((d > reach) & near).any(axis=0) & ((d < -reach) & near).any(axis=0)
