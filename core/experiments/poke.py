@@ -352,6 +352,10 @@ def run(args) -> int:
     try:
         depths = [float(s) for s in args.depths.split(",")]
         epsilons = [float(s) for s in args.epsilons.split(",")]
+    except ValueError:
+        raise SystemExit(f"skinsafe poke: --depths '{args.depths}' and --epsilons '{args.epsilons}' must be "
+                         "comma-separated numbers (depths in m, e.g. 0.0005,0.001)") from None
+    try:
         params = RetractionParams(alpha=args.alpha, T=args.T, form=args.form)
     except ValueError as e:
         raise SystemExit(f"skinsafe poke: {e}")
