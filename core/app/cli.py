@@ -12,6 +12,7 @@ import importlib
 import json
 import signal
 import sys
+import warnings
 
 COMMANDS = {
     "demo": ("skinsafe.core.app.demo", "run the whole product on the bundled sample scene and write a report"),
@@ -149,6 +150,7 @@ def _run_module(mod, prog: str, helptext: str, argv: list[str], name: str, bench
     from skinsafe.core.skin.model import DesignError  # here: the CLI starts (and takes Ctrl-C) before numpy loads
 
     args = module_args(mod, prog, helptext, argv, name, bench)
+    warnings.showwarning = lambda msg, cat, *a, **k: print(f"skinsafe {name}: warning: {msg}", file=sys.stderr)
     try:
         if bench:
             print_rows(mod.rows(args), args.json)

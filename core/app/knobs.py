@@ -1,6 +1,10 @@
 """The knobs `skinsafe trade` sweeps: for each, its values (reference first), the task that
 measures one point (speed and what it computed) and the error of a point against the reference.
-See `skinsafe.core.app.trade` for what each knob trades."""
+See `skinsafe.core.app.trade` for what each knob trades.
+
+Every point runs on the UR5 sample skin, or with `where` (a taxel map path) on that map's robot
+and skin (`skin_of`): `density`, `timestep`, `collision` and `sensing` work on any robot; `nstep`
+does not depend on one; `damping` sweeps the UR5's elbow singularity and runs on the UR5 only."""
 from __future__ import annotations
 
 import tempfile
@@ -10,6 +14,8 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+
+from skinsafe.core.app.knob_skins import map_pitch, map_probe_points, probe_bodies, retiled, skin_of
 
 PROBE_R, PROBE_DEPTH = 0.01, 0.003  # m, density knob probes
 SAMPLE_DT = 0.008  # s between force samples of the timestep knob (every swept timestep divides it)
@@ -23,12 +29,16 @@ class Knob:
     name: str
     values: tuple
     quick: tuple
-    point: Callable[[object, bool], dict]  # (value, quick) -> {"ms", "unit", "out", extras...}
+    point: Callable[[object, bool, str | None], dict]  # (value, quick, where) -> {"ms", "unit", "out", extras...}
     error: Callable[[object, object], float]  # (out, reference out) -> error >= 0
     error_metric: str
     cost: str = "ms"  # the column minimised with the error on the Pareto front
+    any_robot: bool = True  # False: the UR5 only
+    on_map: Callable[[bool, str], tuple] | None = None  # (quick, where) -> values on a map's skin
 
-    def sweep(self, quick: bool) -> tuple:
+    def sweep(self, quick: bool, where: str | None = None) -> tuple:
+        if where is not None and self.on_map is not None:
+            return self.on_map(quick, where)
         return self.quick if quick else self.values
 
 
@@ -59,7 +69,7 @@ def _probe_scene(design, robot, **opts):
     from skinsafe.core.sim.probes import Probes
     from skinsafe.core.sim.scene import SceneOptions, build_scene
 
-    probes = Probes(design, robot)
+    probes = Probes(design, robot, probe_bodies(design))
     model = build_scene(design, robot, probes.obstacles, SceneOptions(**opts)).compile()
     data = mujoco.MjData(model)
     mujoco.mj_resetDataKeyframe(model, data, 0)
@@ -86,49 +96,45 @@ def _timed_run(step, read, steps: int, every: int = 1):
 
 # --- knob: taxel density --------------------------------------------------------------------
 
-def probe_points(robot, per_body: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Probe contact points and outward normals (world, at home) on the cylindrical middle of the
-    sample-skin links of the UR5: the same points whatever the skin's pitch."""
-    import mujoco
+def probe_points(robot, per_body: int, seed: int = 0, cell: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+    """Probe contact points and outward normals (world, at home) on the sample-skin links of the
+    UR5, where the coarsest swept skin (pitch `cell`) has cells: random points in random cells, the
+    same points whatever the skin's pitch."""
+    from skinsafe.core.design.sample import make_sample_design
+    from skinsafe.core.robot.kinematics import TaxelKinematics
 
-    from skinsafe.core.design.sample import SAMPLE_BODIES
-
-    model = robot.model
-    data = mujoco.MjData(model)
-    data.qpos[:] = robot.home
-    mujoco.mj_kinematics(model, data)
+    coarse = make_sample_design("ur5", pitch=cell, robot=robot)
+    pos, frames = TaxelKinematics(robot.model, coarse).poses(robot.home)
     rng = np.random.default_rng(seed)
     pts, normals = [], []
-    for name in SAMPLE_BODIES["ur5"]:
-        bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
-        g = int(np.flatnonzero(model.geom_bodyid == bid)[0])
-        r, half = model.geom_size[g][:2]
-        phi = rng.uniform(0, 2 * np.pi, per_body)
-        z = rng.uniform(-0.5, 0.5, per_body) * half
-        radial = np.stack([np.cos(phi), np.sin(phi), np.zeros(per_body)], 1)
-        local = r * radial + z[:, None] * [0.0, 0.0, 1.0]
-        R = data.geom_xmat[g].reshape(3, 3)
-        pts.append(local @ R.T + data.geom_xpos[g])
-        normals.append(radial @ R.T)
+    for bi, name in enumerate(coarse.bodies):
+        idx = rng.choice(np.flatnonzero(coarse.taxels.body == bi), per_body)
+        r = float(robot.model.geom_size[robot.model.body(name).geomadr[0]][0])
+        u, v = rng.uniform(-0.5, 0.5, (2, per_body)) * cell
+        a = u / r  # around the axis (x), an arc on the cylinder
+        x, y, z = frames[idx, :, 0], frames[idx, :, 1], frames[idx, :, 2]
+        pts.append(pos[idx] + v[:, None] * y + (r * np.sin(a))[:, None] * x - (r * (1 - np.cos(a)))[:, None] * z)
+        normals.append(np.cos(a)[:, None] * z + np.sin(a)[:, None] * x)
     return np.concatenate(pts), np.concatenate(normals)
 
 
-def density_point(pitch: float, quick: bool) -> dict:
+def density_point(pitch: float, quick: bool, where: str | None = None) -> dict:
     """Press a sphere 3 mm into each probe point (`mj_forward`, arm at rest at home); the skin's
     estimate is the force-weighted centroid of the lit taxels. Speed: the readout plus all
     taxels' Jacobians, once per control tick."""
     import mujoco
 
     from skinsafe.core.bench.timing import median_ms
-    from skinsafe.core.design.sample import make_sample_design
     from skinsafe.core.robot.kinematics import TaxelKinematics
-    from skinsafe.core.robot.models import build_ur5
     from skinsafe.core.sim.readout import SkinReadout
     from skinsafe.core.sim.scene import Obstacle, SceneOptions, build_scene
 
-    robot = build_ur5()
-    design = make_sample_design("ur5", pitch=float(pitch), robot=robot)
-    pts, normals = probe_points(robot, 2 if quick else 6)
+    if where is None:
+        robot, design = skin_of(None, pitch)
+        pts, normals = probe_points(robot, 2 if quick else 6)
+    else:
+        robot, design = retiled(where, pitch)
+        pts, normals = map_probe_points(where, 6 if quick else 12)
     probe = Obstacle("probe", "sphere", (PROBE_R,), pos=(0, 0, -5), mocap=True)
     model = build_scene(design, robot, [probe], SceneOptions(taxel_sites=False)).compile()
     model.opt.gravity[:] = 0  # the arm at rest at home: every probe contact pushes back
@@ -164,14 +170,11 @@ def density_error(est: np.ndarray, ref: np.ndarray) -> float:
 
 # --- knob: physics timestep -----------------------------------------------------------------
 
-def timestep_point(dt: float, quick: bool) -> dict:
+def timestep_point(dt: float, quick: bool, where: str | None = None) -> dict:
     """The sliding-probe scene for a fixed simulated time; taxel forces every SAMPLE_DT."""
-    from skinsafe.core.design.sample import make_sample_design
-    from skinsafe.core.robot.models import build_ur5
     from skinsafe.core.sim.readout import SkinReadout
 
-    robot = build_ur5()
-    design = make_sample_design("ur5", pitch=0.02 if quick else 0.01, robot=robot)
+    robot, design = skin_of(where, 0.02 if quick else 0.01)
     duration = 0.25 if quick else 0.5
     steps = int(round(duration / dt))
     every = int(round(SAMPLE_DT / dt))
@@ -190,20 +193,20 @@ def timestep_point(dt: float, quick: bool) -> dict:
 COLLISION_VALUES = ("full", "decimate2000", "decimate500", "decimate100", "hull", "primitive")
 
 
-def collision_point(value: str, quick: bool) -> dict:
-    """The sliding-probe scene on a UR5 whose links are fine meshes, collision geometry as asked."""
+def collision_point(value: str, quick: bool, where: str | None = None) -> dict:
+    """The sliding-probe scene on a UR5 whose links are fine meshes (or a map's robot with its
+    own meshes), collision geometry as asked."""
     import mujoco
 
-    from skinsafe.core.design.sample import make_sample_design
     from skinsafe.core.robot.models import mesh_ur5
     from skinsafe.core.sim.readout import SkinReadout
 
     mode = value.rstrip("0123456789")
     faces = int(value[len(mode):] or 500)
-    design = make_sample_design("ur5", pitch=0.02 if quick else 0.01)
+    design = skin_of(where, 0.02 if quick else 0.01)[1]
     steps = 100 if quick else 300
     with tempfile.TemporaryDirectory() as tmp:
-        robot = mesh_ur5(Path(tmp), sections=32 if quick else 64)
+        robot = mesh_ur5(Path(tmp), sections=32 if quick else 64) if where is None else skin_of(where)[0]
         model, data, step = _probe_scene(design, robot, collision=mode, target_faces=faces, taxel_sites=False)
         readout = SkinReadout(model, design)
         ms, forces = _timed_run(step, lambda: readout.read(data), steps, every=2)
@@ -218,17 +221,14 @@ def collision_point(value: str, quick: bool) -> dict:
 SENSING_VALUES = ("touch", "linear R=2p", "linear R=1p", "linear R=0.5p", "nearest R=1p")
 
 
-def sensing_point(value: str, quick: bool) -> dict:
+def sensing_point(value: str, quick: bool, where: str | None = None) -> dict:
     """Per-taxel MuJoCo touch sensors (the reference) or the vectorised readout with a kernel and
     footprint radius in units of the pitch p, on the same sliding-probe simulation."""
     from skinsafe.core.bench.timing import median_ms
-    from skinsafe.core.design.sample import make_sample_design
-    from skinsafe.core.robot.models import build_ur5
     from skinsafe.core.sim.readout import SkinReadout, TouchReadout
 
-    robot = build_ur5()
-    pitch = 0.02 if quick else 0.01
-    design = make_sample_design("ur5", pitch=pitch, robot=robot)
+    robot, design = skin_of(where, 0.02 if quick else 0.01)
+    pitch = map_pitch(where) if where is not None else (0.02 if quick else 0.01)
     steps = 100 if quick else 300
     touch = value == "touch"
     model, data, step = _probe_scene(design, robot, touch_sensors=touch)
@@ -246,7 +246,7 @@ def sensing_point(value: str, quick: bool) -> dict:
 
 # --- knob: n-step Monte Carlo samples -------------------------------------------------------
 
-def nstep_point(samples: int, quick: bool) -> dict:
+def nstep_point(samples: int, quick: bool, where: str | None = None) -> dict:
     """w of eq. 8 (horizon 4, gamma 0.9, uniform policy, Euler rollouts of 0.15 s) for a batch of
     UR5 joint states and velocity actions, through the danger potential of a fixed-seed TDM
     over 64 taxels (6-D state and action, as in `experiment tracking`; head weights scaled so
@@ -284,7 +284,7 @@ def rms_error(w: np.ndarray, ref: np.ndarray) -> float:
 ELBOW = 0.6  # rad from straight: the retraction (8.3 cm) needs more than the arm's remaining reach (about 4 cm)
 
 
-def damping_point(damping: float, quick: bool) -> dict:
+def damping_point(damping: float, quick: bool, where: str | None = None) -> dict:
     """A 20 N poke on the wrist_1 taxel whose retraction stretches the UR5 arm (elbow 0.6 rad from
     straight) into its elbow singularity; the defensiveness layer (default 3-D form) with the
     given DLS damping, integrated kinematically at 500 Hz with the joint limits lifted, so the
@@ -341,17 +341,26 @@ def path_error(path: np.ndarray, ref: np.ndarray) -> float:
     return float(np.linalg.norm(path - ref, axis=1).max() * 1e3)
 
 
+def _map_pitches(quick: bool, where: str) -> tuple:
+    p = map_pitch(where)
+    return tuple(round(p * s, 5) for s in ((1.0, 1.5, 2.5) if quick else (0.75, 1.0, 1.5, 2.0, 2.5)))
+
+
+def _map_collisions(quick: bool, where: str) -> tuple:
+    return ("skin", "full", "primitive") if quick else ("skin", "full", "decimate500", "decimate100", "hull", "primitive")
+
+
 KNOBS = {k.name: k for k in (
     Knob("density", (0.005, 0.0075, 0.01, 0.015, 0.02, 0.03), (0.01, 0.02, 0.03), density_point, density_error,
-         "mean |centroid - centroid at densest| (mm)"),
+         "mean |centroid - centroid at densest| (mm)", on_map=_map_pitches),
     Knob("timestep", (0.00025, 0.0005, 0.001, 0.002, 0.004, 0.008), (0.0005, 0.002, 0.008), timestep_point,
          _median_l1, "taxel force rel. L1 vs smallest dt (median)"),
     Knob("collision", COLLISION_VALUES, ("full", "decimate100", "primitive"), collision_point, _total_l1,
-         "taxel force rel. L1 vs full mesh"),
+         "taxel force rel. L1 vs the first (full mesh; on a map the skin-fitted model)", on_map=_map_collisions),
     Knob("sensing", SENSING_VALUES, ("touch", "linear R=1p", "nearest R=1p"), sensing_point, _median_l1,
          "taxel force rel. L1 vs touch sensors (median)"),
     Knob("nstep", (1024, 1, 2, 4, 8, 16, 64, 256), (256, 1, 4, 16), nstep_point, rms_error,
          "RMS |w - w(most samples)|"),
     Knob("damping", (0.0, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2), (0.0, 0.01, 0.05, 0.2), damping_point, path_error,
-         "max |taxel path - undamped path| (mm)", cost="peak_qdot"),
+         "max |taxel path - undamped path| (mm)", cost="peak_qdot", any_robot=False),
 )}

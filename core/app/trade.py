@@ -28,6 +28,7 @@ stops at the end.
 """
 from __future__ import annotations
 
+import argparse
 import io
 import json
 import sys
@@ -53,26 +54,31 @@ def pareto_front(cost, error) -> np.ndarray:
 
 # --- the sweep --------------------------------------------------------------------------------
 
-def _task(knob: str, value, quick: bool) -> dict:
+def _task(knob: str, value, quick: bool, where: str | None = None) -> dict:
     """One sweep point (runs in a Ray worker)."""
-    return KNOBS[knob].point(value, quick)
+    return KNOBS[knob].point(value, quick, where)
 
 
-def parse_knobs(text: str | list | tuple) -> list[str]:
+def parse_knobs(text: str | list | tuple, where: str | None = None) -> list[str]:
     names = [k.strip() for k in text.split(",")] if isinstance(text, str) else list(text)
     names = [k for k in names if k]
     bad = [k for k in names if k not in KNOBS]
     if bad or not names:
         raise ValueError(f"knobs {bad or '(none)'} unknown; choose from {', '.join(KNOBS)} (comma-separated)")
+    ur5 = [k for k in names if not KNOBS[k].any_robot]
+    if where is not None and ur5:
+        raise ValueError(f"knob '{ur5[0]}' sweeps the built-in UR5 only (not the robot of {where}); choose from "
+                         f"{', '.join(k for k in KNOBS if KNOBS[k].any_robot)}")
     return list(dict.fromkeys(names))
 
 
-def rows_from_results(results: dict[tuple[str, object], dict], knobs: list[str], quick: bool) -> list[dict]:
+def rows_from_results(results: dict[tuple[str, object], dict], knobs: list[str], quick: bool,
+                      where: str | None = None) -> list[dict]:
     """Flat rows (one per point, knob by knob in sweep order) with errors, speedups and Pareto flags."""
     rows = []
     for name in knobs:
         knob = KNOBS[name]
-        values = knob.sweep(quick)
+        values = knob.sweep(quick, where)
         ref = results[(name, values[0])]
         mine = []
         for v in values:
@@ -90,14 +96,20 @@ def rows_from_results(results: dict[tuple[str, object], dict], knobs: list[str],
 
 
 def run_sweep(knobs=tuple(KNOBS), quick: bool = False, address: str | None = None, out: str | Path | None = "out/trade",
-              progress: bool = True) -> list[dict]:
+              progress: bool = True, where: str | Path | None = None) -> list[dict]:
     """Sweep the knobs as Ray tasks (one per point) and return the rows; with `out`, also write
-    `trade.png`, `trade.md` and `trade.json` there. Joins the cluster at `address`, else starts a
-    local Ray (and stops it at the end) unless one is already initialised in this process."""
+    `trade.png`, `trade.md` and `trade.json` there. `where`: a taxel map (any robot; default the UR5
+    sample skin). Joins the cluster at `address`, else starts a local Ray (and stops it at the
+    end) unless one is already initialised in this process."""
     import ray
     from tqdm import tqdm
 
-    names = parse_knobs(knobs)
+    where = None if where is None else str(Path(where).resolve())
+    names = parse_knobs(knobs, where)
+    if where is not None:  # refuse a bad map here, before any worker starts
+        from skinsafe.core.app.knob_skins import skin_of
+
+        skin_of(where)
     started = not ray.is_initialized()
     if started:
         if address:
@@ -108,8 +120,8 @@ def run_sweep(knobs=tuple(KNOBS), quick: bool = False, address: str | None = Non
                      object_store_memory=256 * 2 ** 20)
     try:
         task = ray.remote(num_cpus=1)(_task)
-        points = [(n, v) for n in names for v in KNOBS[n].sweep(quick)]
-        refs = {task.remote(n, v, quick): (n, v) for n, v in points}
+        points = [(n, v) for n in names for v in KNOBS[n].sweep(quick, where)]
+        refs = {task.remote(n, v, quick, where): (n, v) for n, v in points}
         results: dict = {}
         pending = list(refs)
         with tqdm(total=len(pending), desc="trade sweep", disable=not progress, file=sys.stderr) as bar:
@@ -123,7 +135,7 @@ def run_sweep(knobs=tuple(KNOBS), quick: bool = False, address: str | None = Non
     finally:
         if started:
             ray.shutdown()
-    rows = rows_from_results(results, names, quick)
+    rows = rows_from_results(results, names, quick, where)
     if out is not None:
         write_outputs(rows, Path(out))
     return rows
@@ -193,8 +205,31 @@ def write_outputs(rows: list[dict], out: Path) -> list[Path]:
 
 # --- CLI ----------------------------------------------------------------------------------------
 
+def design_first(args) -> str:
+    """`--robot`: a skin designed from `--layout` (as `skinsafe design` does), saved in `--out`."""
+    from skinsafe.core.app import design
+    from skinsafe.core.bench.robot_import import ROBOTS
+
+    robot, dirs = args.robot, list(args.package_dir)
+    if robot in ROBOTS and ROBOTS[robot][0] == "urdf":  # the bundled sample description by name
+        robot, dirs = ROBOTS[robot][2], dirs or list(ROBOTS[robot][3])
+    out = Path(args.out) / "skin.json"
+    ns = argparse.Namespace(robot=robot, package_dir=dirs, xacro_arg=list(args.xacro_arg), layout=args.layout,
+                            bodies=None, rows=None, cols=None, pitch=None, max_taxels=None, out=str(out))
+    design.run(ns)
+    return str(out)
+
+
 def add_arguments(p) -> None:
-    p.add_argument("--knobs", default=",".join(KNOBS), help=f"comma-separated, from: {', '.join(KNOBS)}")
+    p.add_argument("--knobs", default=None, help=f"comma-separated, from: {', '.join(KNOBS)} (default: all; with "
+                   "--map or --robot those that run on any robot)")
+    p.add_argument("--map", default=None, help="taxel map of a skin on any robot (`skinsafe design` writes one); "
+                   "default: the UR5 sample skin")
+    p.add_argument("--robot", default=None, help="a robot to design a skin on first (built-in name, franka for the "
+                   "bundled Franka description, or a URDF/xacro/MJCF file), with --layout/--package-dir/--xacro-arg")
+    p.add_argument("--layout", default=None, help="layout spec JSON for --robot (see `skinsafe design --help`)")
+    p.add_argument("--package-dir", action="append", default=[], help="ROS package folder for --robot; repeatable")
+    p.add_argument("--xacro-arg", action="append", default=[], metavar="NAME:=VALUE", help="xacro argument for --robot")
     p.add_argument("--quick", action="store_true", help="a reduced sweep (a few points per knob, smaller scenes)")
     p.add_argument("--address", default=None, help="an existing Ray cluster (host:6379, ray://host:10001, or auto "
                    "for one started with `ray start` here); default: start a local Ray")
@@ -205,11 +240,15 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     from skinsafe.core.app.cli import print_rows
 
+    if args.map and args.robot:
+        raise SystemExit("skinsafe trade: give --map or --robot, not both")
+    where = args.map or (design_first(args) if args.robot else None)
+    default = [k for k, kn in KNOBS.items() if kn.any_robot] if where else list(KNOBS)
     try:
-        knobs = parse_knobs(args.knobs)
+        knobs = parse_knobs(args.knobs or default, where)
     except ValueError as e:
         raise SystemExit(f"skinsafe trade: --knobs: {e}")
-    rows = run_sweep(knobs, quick=args.quick, address=args.address, out=args.out)
+    rows = run_sweep(knobs, quick=args.quick, address=args.address, out=args.out, where=where)
     print_rows(rows, args.json)
     for name in ("trade.png", "trade.md", "trade.json"):
         print(f"wrote {Path(args.out) / name}", file=sys.stderr)

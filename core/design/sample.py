@@ -1,5 +1,6 @@
 """The sample skin: FPC grid modules wrapped around the capsule/cylinder link shapes of a
-built-in robot (`skinsafe sample`).
+built-in robot (`skinsafe sample`), only where no joint housing (of the same link, or coaxial with
+a joint to the next) covers the cells: a sample skin passes `skinsafe check`.
 
 On a cylinder, wrapping is exact and geodesic: a module's rows run along the axis, its columns
 around the circumference, at the module pitch in arc length. Taxel frames: x along a row
@@ -12,6 +13,7 @@ import numpy as np
 
 from skinsafe.core.design.coverage import coverage_report, format_report
 from skinsafe.core.robot.models import BUILTIN, Robot, build_ur5
+from skinsafe.core.robot.shapes import inside_depth
 from skinsafe.core.skin.boards import assign_boards, number_channels
 from skinsafe.core.skin.model import DesignError, Module, RobotRef, SkinDesign, Taxels
 
@@ -21,30 +23,98 @@ SAMPLE_BODIES = {
 }
 
 
+def turned_poses(model: mujoco.MjModel, home: np.ndarray, turn: float = 2.1) -> list[mujoco.MjData]:
+    """Kinematics at home and with every joint turned by +-`turn` (clipped to its limits): a cell
+    covered at all three is under a housing coaxial with a joint (or of its own link)."""
+    out = []
+    for sign in (0.0, 1.0, -1.0):
+        q = home.copy()
+        for j in range(model.njnt):
+            a = model.jnt_qposadr[j]
+            if int(model.jnt_type[j]) in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)):
+                q[a] += sign * turn
+                if model.jnt_limited[j]:
+                    q[a] = np.clip(q[a], *model.jnt_range[j])
+        d = mujoco.MjData(model)
+        d.qpos[:] = q
+        mujoco.mj_kinematics(model, d)
+        out.append(d)
+    return out
+
+
+def exposed_span(model: mujoco.MjModel, poses: list[mujoco.MjData], geom: int, pitch: float,
+                 margin: float, phi: np.ndarray) -> tuple[float, float] | None:
+    """The axial range (geom frame, m) of the cylindrical part of `geom` where no taxel cell lies
+    inside another colliding geom at every one of `poses` (see `turned_poses`), at the angles `phi`
+    around the axis (one column block of modules, cell edges included): the longest such run.
+    Cells under a housing of the same link, or one coaxial with the joint to the next link, would be
+    off the link's outer surface or buried at every pose (`skinsafe check` refuses both); a
+    neighbour that only passes over the cells at some poses does not count. None where nothing is free."""
+    r, half = model.geom_size[geom][:2]
+    s = np.arange(-half + margin, half - margin + 1e-9, pitch / 4)  # candidate ring centres
+    if not len(s):
+        return None
+    z = (s[:, None, None] + np.array([-pitch / 2, 0.0, pitch / 2])[None, :, None]) * np.ones_like(phi)
+    local = np.stack([r * np.cos(phi) * np.ones_like(z), r * np.sin(phi) * np.ones_like(z), z], -1).reshape(-1, 3)
+    covered = np.ones(len(local), bool)
+    for data in poses:
+        world = local @ data.geom_xmat[geom].reshape(3, 3).T + data.geom_xpos[geom]
+        now = np.zeros(len(local), bool)
+        for g in range(model.ngeom):
+            if g == geom or not (model.geom_contype[g] or model.geom_conaffinity[g]):
+                continue
+            p = (world - data.geom_xpos[g]) @ data.geom_xmat[g].reshape(3, 3)
+            now |= inside_depth(model, g, p) > 1e-4
+        covered &= now
+    free = ~covered.reshape(len(s), -1).any(axis=1)
+    best, start = (0, 0), None
+    for k, f in enumerate(np.append(free, False)):
+        if f and start is None:
+            start = k
+        elif not f and start is not None:
+            best = max(best, (k - start, start))
+            start = None
+    if not best[0]:
+        return None
+    n, first = best
+    return float(s[first]), float(s[first + n - 1])
+
+
 def wrap_cylinder(model: mujoco.MjModel, geom: int, pitch: float, rows: int, cols: int, margin: float,
                   first_module: int, first_taxel: int, body_index: int, body_name: str,
-                  taxel_diameter: float, threshold: float) -> tuple[list[Module], Taxels]:
-    """Cover the cylindrical part of a capsule/cylinder geom with rows x cols modules."""
+                  taxel_diameter: float, threshold: float, poses: list[mujoco.MjData] | None = None
+                  ) -> tuple[list[Module], Taxels | None]:
+    """Cover the cylindrical part of a capsule/cylinder geom with rows x cols modules: the whole
+    part less `margin`, or with `poses`, each column block of modules on its `exposed_span`."""
     if int(model.geom_type[geom]) not in (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER)):
         raise DesignError(f"geom {model.geom(geom).name}: only capsules and cylinders can be wrapped")
     r, half = model.geom_size[geom][:2]
     n_around = int(np.floor(2 * np.pi * r / pitch))
-    n_along = int(np.floor((2 * half - 2 * margin) / pitch)) + 1
-    if n_around < 1 or n_along < 1:
-        return [], None
     R = np.zeros(9)
     mujoco.mju_quat2Mat(R, model.geom_quat[geom])
     R = R.reshape(3, 3)
     c = model.geom_pos[geom]
     modules, parts = [], []
     mid, tid = first_module, first_taxel
-    for r0 in range(0, n_along, rows):
-        for c0 in range(0, n_around, cols):
-            ii, jj = np.meshgrid(np.arange(r0, min(r0 + rows, n_along)), np.arange(c0, min(c0 + cols, n_around)),
+    lo, hi = -half + margin, half - margin  # one row grid for the whole part: blocks stay aligned
+    n_along = int(np.floor((hi - lo) / pitch + 1e-9)) + 1 if hi >= lo else 0
+    row_z = lo + np.arange(n_along) * pitch + (hi - lo - (n_along - 1) * pitch) / 2
+    for c0 in range(0, max(n_around, 0), cols):
+        k0, k1 = 0, n_along
+        if poses is not None:
+            last = min(c0 + cols, n_around) - 1
+            edges = 2 * np.pi * (np.linspace(c0 - 0.5, last + 0.5, 3 * (last - c0 + 1) + 1)) / n_around
+            span = exposed_span(model, poses, geom, pitch, margin, edges)
+            free = np.flatnonzero((row_z >= span[0] - 1e-9) & (row_z <= span[1] + 1e-9)) if span else []
+            if not len(free):
+                continue
+            k0, k1 = int(free[0]), int(free[-1]) + 1
+        for r0 in range(k0, k1, rows):
+            ii, jj = np.meshgrid(np.arange(r0, min(r0 + rows, k1)), np.arange(c0, min(c0 + cols, n_around)),
                                  indexing="ij")
             ii, jj = ii.ravel(), jj.ravel()
             phi = 2 * np.pi * jj / n_around
-            z = -half + margin + ii * pitch + (2 * half - 2 * margin - (n_along - 1) * pitch) / 2
+            z = row_z[ii]
             radial = np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], 1)
             tangent = np.stack([-np.sin(phi), np.cos(phi), np.zeros_like(phi)], 1)
             axis = np.broadcast_to([0.0, 0.0, 1.0], radial.shape)
@@ -71,29 +141,33 @@ def wrap_cylinder(model: mujoco.MjModel, geom: int, pitch: float, rows: int, col
                            "row0": int(r0), "col0": int(c0), "n_around": n_around},
             ))
             mid, tid = mid + 1, tid + k
-    return modules, Taxels.concatenate(parts)
+    return modules, Taxels.concatenate(parts) if parts else None
 
 
 def make_sample_design(robot_name: str = "ur5", pitch: float = 0.01, rows: int = 8, cols: int = 8,
                        board_capacity: int = 512, threshold: float = 2.0, robot: Robot | None = None) -> SkinDesign:
     """A skin of rows x cols modules on the main capsule of each sample body of a built-in robot."""
     if robot_name not in SAMPLE_BODIES:
-        raise DesignError(f"sample skin: robot '{robot_name}' unknown; use one of {sorted(SAMPLE_BODIES)}")
+        raise DesignError(f"sample skin: robot '{robot_name}' is not a built-in ({', '.join(sorted(SAMPLE_BODIES))}); "
+                          "for any other robot (a URDF, xacro or MJCF file) use `skinsafe design ROBOT`")
     if not (0 < pitch < 1):
         raise DesignError(f"sample skin: pitch {pitch} m is outside (0, 1); use e.g. 0.01")
     robot = robot or BUILTIN[robot_name]()
     model = robot.model
-    bodies = SAMPLE_BODIES[robot_name]
+    bodies: list[str] = []
     modules: list[Module] = []
     parts: list[Taxels] = []
-    for bi, name in enumerate(bodies):
+    poses = turned_poses(model, robot.home)
+    for name in SAMPLE_BODIES[robot_name]:
         bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
         geom = int(np.flatnonzero(model.geom_bodyid == bid)[0])
         ms, tx = wrap_cylinder(model, geom, pitch, rows, cols, margin=0.5 * pitch,
                                first_module=len(modules), first_taxel=sum(len(p) for p in parts),
-                               body_index=bi, body_name=name, taxel_diameter=0.6 * pitch, threshold=threshold)
-        modules += ms
-        if tx is not None:
+                               body_index=len(bodies), body_name=name, taxel_diameter=0.6 * pitch,
+                               threshold=threshold, poses=poses)
+        if tx is not None:  # a link whose capsule is all under housings carries no skin
+            bodies.append(name)
+            modules += ms
             parts.append(tx)
     taxels = Taxels.concatenate(parts)
     sizes = {m.id: int((taxels.module == m.id).sum()) for m in modules}
@@ -118,7 +192,8 @@ def design_with(n: int, robot=None):
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--robot", default="ur5", choices=sorted(SAMPLE_BODIES), help="built-in robot")
+    p.add_argument("--robot", default="ur5", help=f"built-in robot ({', '.join(sorted(SAMPLE_BODIES))}); "
+                   "for a URDF/xacro/MJCF use `skinsafe design`")
     p.add_argument("--pitch", type=float, default=0.01, help="taxel pitch in m (default 0.01)")
     p.add_argument("--out", default="out/sample_skin.json", help="taxel map to write")
 

@@ -58,9 +58,13 @@ def _person(kin, design, T: float, attach: float = 1500.0):
     from skinsafe.core.sim.human import Human, Part
 
     q = _delivery(0.6 * T, T)[0]
-    pos, _ = kin.poses(q)
-    wrist = np.isin(design.taxels.body, [design.bodies.index(b) for b in ("wrist_1_link", "wrist_2_link")])
-    spot = pos[wrist].mean(0)
+    kin.poses(q)  # kinematics at q in kin.data
+    m, d = kin.model, kin.data
+    tubes = [m.body(b).geomadr[0] for b in ("wrist_1_link", "wrist_2_link")]
+    area = np.array([m.geom_size[g][0] * m.geom_size[g][1] for g in tubes])  # lateral areas (2 pi r 2h) / 4 pi
+    spot = area @ d.geom_xpos[tubes] / area.sum()  # the wrist housings' centre, whatever skin covers them
+    wrist = np.isin(design.taxels.body, [design.bodies.index(b) for b in ("wrist_1_link", "wrist_2_link")
+                                         if b in design.bodies])
     pan = q[0]
     side = np.array([np.sin(pan), -np.cos(pan), 0.0])  # where the sweep goes (d/dpan of -r(cos, sin))
     out = np.array([-np.cos(pan), -np.sin(pan), 0.0])  # radially outward at the wrist (the arm points along -x)

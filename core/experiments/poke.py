@@ -1,10 +1,14 @@
 """`skinsafe poke`: scripted pokes on the UR5 sample skin in MuJoCo, retraction by the
 defensiveness layer, plots and numbers (paper Fig. 8/12), and the multi-contact merge (Fig. 7) and the 3-D vs 6-D forms in kinematics.
 
-The arm is a gravity-compensated UR5 under its position servos; the layer's joint velocity is
-integrated into the servo targets at 500 Hz (the UR e-series rate). Probes are mocap spheres that
-jab a taxel along its normal to a set depth and withdraw; the skin is read with
-`SkinReadout(kernel="nearest")` (each contact goes to one taxel, like a real FSR cell).
+The arm (the UR5 sample skin, or the robot of any taxel map) is gravity-compensated under its
+position servos; the layer's joint velocity is integrated into the servo targets at 500 Hz (the UR
+e-series rate). Probes are spheres on a spring (`PROBE_STIFFNESS`, a sprung mocap `Obstacle`) whose
+holder jabs a taxel along its normal to a set depth and withdraws, so the force is about stiffness
+x depth on any robot; a rigid probe driven to a depth would meet a force that scales with the
+arm's effective mass at the taxel (1,200 kg near the Franka's shoulder axis: 60-300 kN at
+0.6-2 mm). The skin is read with `SkinReadout(kernel="nearest")` (each contact goes to one taxel,
+like a real FSR cell).
 
 Outputs in `--out`: `poke_force_distance.png` (retraction distance vs peak force, linear fit),
 `poke_displacement.png` (-z displacement vs time against eq. 10), `poke_multicontact.png`
@@ -32,6 +36,7 @@ from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.model import SkinDesign
 
 PROBE_RADIUS = 0.012  # m
+PROBE_STIFFNESS = 20e3  # N/m: 20 N per mm of the holder's travel past the skin (a firm finger or a force gauge)
 DT = 0.002  # s, control period
 
 
@@ -62,7 +67,8 @@ def _probe_path(poke: Poke, t: float) -> float:
     return max(0.0, reach - (s - t_in - poke.hold) * poke.speed_out)
 
 
-def simulate(design: SkinDesign, robot: Robot, pokes: list[Poke], params: RetractionParams, duration: float) -> dict:
+def simulate(design: SkinDesign, robot: Robot, pokes: list[Poke], params: RetractionParams, duration: float,
+             stiffness: float = PROBE_STIFFNESS) -> dict:
     """Run the pokes; returns per-tick times, joint positions, commands and the layer's record
     of every taxel it retracted (trigger time, peak force, normal, position at the trigger)."""
     from skinsafe.core.sim.readout import SkinReadout
@@ -76,15 +82,16 @@ def simulate(design: SkinDesign, robot: Robot, pokes: list[Poke], params: Retrac
         n = frames0[pk.taxel, :, 2]
         c = pos0[pk.taxel] + n * (PROBE_RADIUS + pk.gap)
         starts.append((c, n))
-        obstacles.append(Obstacle(f"probe{k}", "sphere", (PROBE_RADIUS,), pos=tuple(c), mocap=True))
+        obstacles.append(Obstacle(f"probe{k}", "sphere", (PROBE_RADIUS,), pos=tuple(c), quat=_quat_z_to(n),
+                                  mocap=True, spring=stiffness))
     model = build_scene(design, robot, obstacles, SceneOptions(timestep=DT)).compile()
     data = mujoco.MjData(model)
-    data.qpos[:] = robot.home
+    nq = robot.model.nq  # the probes' spring joints come after the robot's
+    data.qpos[:nq] = robot.home
     mujoco.mj_forward(model, data)
-    kin = TaxelKinematics(model, design)  # its own data: kinematics at the measured q
+    kin = TaxelKinematics(robot.model, design)  # its own data: kinematics at the measured q
     readout = SkinReadout(model, design, kernel="nearest")
     layer = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, params)
-    nq = robot.model.nq
     target = robot.home.copy()
     steps = int(round(duration / DT))
     T, Q, F = np.zeros(steps), np.zeros((steps, nq)), np.zeros((steps, len(pokes)))
@@ -111,6 +118,14 @@ def simulate(design: SkinDesign, robot: Robot, pokes: list[Poke], params: Retrac
     return {"t": T, "q": Q, "force": F, "record": record, "kin": TaxelKinematics(robot.model, design)}
 
 
+def _quat_z_to(n: np.ndarray) -> tuple:
+    """A MuJoCo quaternion (w, x, y, z) turning the z axis onto the unit vector n."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.align_vectors([n], [[0.0, 0.0, 1.0]])[0].as_quat()
+    return (w, x, y, z)
+
+
 def retracted_along(run: dict, taxel: int) -> tuple[np.ndarray, np.ndarray]:
     """(times since the trigger, displacement along -z(tau)) of a recorded taxel."""
     rec = run["record"][taxel]
@@ -120,22 +135,46 @@ def retracted_along(run: dict, taxel: int) -> tuple[np.ndarray, np.ndarray]:
     return run["t"][sel] - rec["tau"], disp
 
 
+def _levers(kin: TaxelKinematics, q: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """(k,) how fast each taxel can move along its normal per unit joint speed, ||J_p^T n|| (m/rad):
+    small near a joint axis, where no retraction within the joint speed limits gets far."""
+    J, _, frames = kin.jacobians_of(idx, q)
+    return np.linalg.norm(np.einsum("kin,ki->kn", J[:, :3], frames[:, :, 2]), axis=1)
+
+
 def pick_taxel(design: SkinDesign, robot: Robot, body: str) -> int:
-    """A taxel in the middle of `body` whose normal points up at home (a probe can reach it)."""
+    """A taxel in the middle of `body` whose normal points up at home (a probe can reach it),
+    among those the arm can move well along their normal (lever >= 70% of the body's best)."""
     kin = TaxelKinematics(robot.model, design)
     pos, frames = kin.poses(robot.home)
     on = np.flatnonzero(design.taxels.body == design.bodies.index(body))
+    lever = _levers(kin, robot.home, on)
+    on = on[lever >= 0.7 * lever.max()]
     mid = np.linalg.norm(pos[on] - pos[on].mean(axis=0), axis=1)
     score = frames[on, 2, 2] - 2.0 * mid / max(mid.max(), 1e-9)
     return int(on[np.argmax(score)])
 
 
-def force_sweep(design, robot, params, depths, body="forearm_link") -> dict:
+def poke_bodies(design: SkinDesign, robot: Robot) -> list[str]:
+    """The links to poke: the UR5's forearm, upper arm and wrist (the paper's Fig. 8/12), else the
+    skinned links with at least 4 taxels, best lever first (a link the arm can pull back)."""
+    ur5 = [b for b in ("forearm_link", "upper_arm_link", "wrist_2_link") if b in design.bodies]
+    if ur5:
+        return ur5
+    kin = TaxelKinematics(robot.model, design)
+    counts = np.bincount(design.taxels.body, minlength=len(design.bodies))
+    bodies = [b for b, c in zip(design.bodies, counts) if c >= 4]
+    best = {b: _levers(kin, robot.home, np.flatnonzero(design.taxels.body == design.bodies.index(b))).max()
+            for b in bodies}
+    return sorted(bodies, key=lambda b: -best[b])
+
+
+def force_sweep(design, robot, params, depths, body="forearm_link", stiffness: float = PROBE_STIFFNESS) -> dict:
     """Fig. 8/12: one poke per depth on one taxel; distance achieved vs peak force."""
     i = pick_taxel(design, robot, body)
     out = {"taxel": i, "body": body, "force": [], "distance": [], "desired": [], "curves": []}
     for depth in tqdm(depths, desc="pokes", leave=False):
-        run = simulate(design, robot, [Poke(i, depth)], params, 0.05 + params.T + 0.25)
+        run = simulate(design, robot, [Poke(i, depth)], params, 0.05 + params.T + 0.25, stiffness)
         rec = max(run["record"].items(), key=lambda kv: kv[1]["f"]) if run["record"] else None
         if rec is None:
             continue
@@ -273,6 +312,8 @@ def plots(sweep: dict, multi: list[dict], params: RetractionParams, out: Path) -
     fig.tight_layout()
     paths.append(_save_png(fig, out / "poke_displacement.png"))
 
+    if not multi:  # a skin on one link: no multi-contact figure
+        return paths
     fig, axes = plt.subplots(1, len(MERGES), figsize=(4.5 * len(MERGES), 4), sharey=True)
     for ax, kind in zip(axes, MERGES):
         rows = [r for r in multi if r["merge"] == kind]
@@ -303,17 +344,25 @@ def add_arguments(p) -> None:
     p.add_argument("--form", choices=("3d", "6d"), default="3d", help="retraction task form")
     p.add_argument("--epsilons", default="0,0.5,1", help="multi-contact tuning factors of the closed-form merges")
     p.add_argument("--forms-stride", type=int, default=25, help="3-D vs 6-D comparison on every k-th taxel")
+    p.add_argument("--probe-stiffness", type=float, default=PROBE_STIFFNESS,
+                   help="N/m of the probe's spring (force about stiffness x depth; default 20 N/mm)")
 
 
 def run(args) -> int:
     try:
         depths = [float(s) for s in args.depths.split(",")]
         epsilons = [float(s) for s in args.epsilons.split(",")]
+    except ValueError:
+        raise SystemExit(f"skinsafe poke: --depths '{args.depths}' and --epsilons '{args.epsilons}' must be "
+                         "comma-separated numbers (depths in m, e.g. 0.0005,0.001)") from None
+    try:
         params = RetractionParams(alpha=args.alpha, T=args.T, form=args.form)
     except ValueError as e:
         raise SystemExit(f"skinsafe poke: {e}")
-    if not depths or min(depths) <= 0:
+    if not depths or min(depths) <= 0 or not all(np.isfinite(depths)):
         raise SystemExit("skinsafe poke: --depths must be positive distances in m")
+    if not (np.isfinite(args.probe_stiffness) and args.probe_stiffness > 0) or args.forms_stride < 1:
+        raise SystemExit("skinsafe poke: --probe-stiffness must be a positive N/m and --forms-stride at least 1")
     out = Path(args.out)
     if args.map:  # any robot: the one the map names (issue 18)
         robot = load_robot(taxel_map.load(args.map).robot, base_dir=Path(args.map).parent)
@@ -321,10 +370,11 @@ def run(args) -> int:
     else:
         robot = build_ur5()
         design = make_sample_design("ur5", robot=robot)
-    counts = np.bincount(design.taxels.body, minlength=len(design.bodies))
-    bodies = [b for b in ("forearm_link", "upper_arm_link", "wrist_2_link") if b in design.bodies] or \
-        [design.bodies[i] for i in np.argsort(-counts)[:3]]
-    sweep = force_sweep(design, robot, params, depths, body=bodies[0])
+    bodies = poke_bodies(design, robot)[:3]
+    if not bodies:
+        raise SystemExit(f"skinsafe poke: no link of {args.map or 'the sample skin'} carries 4 taxels or more; "
+                         "design a skin with larger modules")
+    sweep = force_sweep(design, robot, params, depths, body=bodies[0], stiffness=args.probe_stiffness)
     if len(sweep["force"]) < 2:
         raise SystemExit("skinsafe poke: fewer than two pokes triggered the skin; use deeper --depths")
     multi = multicontact(design, robot, params, bodies[:2], [30.0, 20.0], epsilons) if len(bodies) > 1 else []

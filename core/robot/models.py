@@ -6,6 +6,7 @@ acceleration limits and a home configuration.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -224,9 +225,32 @@ def load_robot(ref: RobotRef, base_dir: str | Path | None = None,
     else:
         from skinsafe.core.robot.urdf_import import urdf_spec
 
-        spec, vel_by_name = urdf_spec(path, [rel(d) for d in ref.package_dirs], ref.xacro_args)
-    return robot_from_spec(spec, ref.name or path.name.split(".")[0], vel_by_name, default_vel_limit,
-                           default_acc_limit, path=str(path))
+        spec, vel_by_name, guessed = urdf_spec(path, [rel(d) for d in ref.package_dirs], ref.xacro_args)
+    robot = robot_from_spec(spec, ref.name or path.name.split(".")[0], vel_by_name, default_vel_limit,
+                            default_acc_limit, path=str(path))
+    if ref.kind == "urdf" and guessed:
+        _warn_guessed_inertia(robot, path, guessed)
+    return robot
+
+
+class InertiaWarning(UserWarning):
+    """An imported robot whose link masses MuJoCo had to guess from their shapes."""
+
+
+def _warn_guessed_inertia(robot: Robot, path: Path, links: list[str]) -> None:
+    from skinsafe.core.robot.urdf_import import xacro_arg_names
+
+    m = robot.model
+    welds = {int(m.body_weldid[m.body(b).id]) for b in links if b in robot.body_names}
+    mass = float(sum(m.body_mass[b] for b in range(m.nbody) if m.body_weldid[b] in welds))
+    declared = xacro_arg_names(path) if path.suffix == ".xacro" else []
+    fix = (f"pass the xacro argument that adds them (--xacro-arg NAME:=VALUE; this file declares "
+           f"{', '.join(declared)})" if declared else "add <inertial> elements to those links")
+    warnings.warn(InertiaWarning(
+        f"robot file '{path.name}': {len(links)} moving links have no <inertial> ({', '.join(links[:3])}"
+        f"{', ...' if len(links) > 3 else ''}): MuJoCo guessed {mass:.1f} kg for them from their collision "
+        f"shapes at the density of water, so gravity, servo gains and effective masses are guesses; {fix}"),
+        stacklevel=3)
 
 
 def robot_from_spec(spec: mujoco.MjSpec, name: str, vel_by_name: dict | None = None,

@@ -22,6 +22,10 @@ from skinsafe.core.robot.meshes import load_checked
 from skinsafe.core.skin.model import DesignError
 
 URDF_JOINTS = ("revolute", "continuous", "prismatic", "fixed")
+# xacro arguments a description needs for its real inertials, applied to xacro files of that ROS
+# package unless the user gives the argument: franka_description adds <inertial> only for gazebo
+# (without them MuJoCo guesses 92 kg for the 16.7 kg arm from its collision meshes)
+DESCRIPTION_ARGS = {"franka_description": {"gazebo": "true"}}
 MESH_FORMATS = (".stl", ".obj", ".dae", ".ply", ".off", ".glb", ".gltf")
 VISUAL_GROUP = 1
 COLLISION_GROUP = 3
@@ -119,21 +123,61 @@ def check_joints(root: ET.Element, src: str) -> None:
                               f"does not support; use one of {', '.join(URDF_JOINTS)}")
 
 
-def urdf_spec(path: str | Path, package_dirs=(), args: dict | None = None) -> tuple[mujoco.MjSpec, dict]:
+def default_args(path: Path, roots: dict[str, Path], args: dict | None) -> dict:
+    """`args` over the DESCRIPTION_ARGS of the ROS package holding `path` (xacro files only)."""
+    for pkg, defaults in DESCRIPTION_ARGS.items():
+        if path.suffix == ".xacro" and pkg in roots and path.is_relative_to(roots[pkg].resolve()):
+            return {**defaults, **(args or {})}
+    return dict(args or {})
+
+
+def links_without_inertia(root: ET.Element) -> list[str]:
+    """Moving links whose mass MuJoCo would guess: a link moved by a joint that, with the links
+    welded to it by fixed joints, carries geometry but no <inertial>."""
+    links = {link.get("name"): link for link in root.findall("link")}
+    parent = {j.find("child").get("link"): (j.find("parent").get("link"), j.get("type"))
+              for j in root.findall("joint") if j.find("child") is not None and j.find("parent") is not None}
+
+    def group(name):  # the link a fixed-joint chain hangs from (its weld root), None for the base
+        while name in parent and parent[name][1] == "fixed":
+            name = parent[name][0]
+        return name if name in parent else None
+
+    groups: dict[str, list] = {}
+    for name, link in links.items():
+        g = group(name)
+        if g is not None:
+            groups.setdefault(g, []).append(link)
+    return [g for g, members in groups.items()
+            if not any(m.find("inertial") is not None for m in members)
+            and any(m.find("visual") is not None or m.find("collision") is not None for m in members)]
+
+
+def xacro_arg_names(path: Path) -> list[str]:
+    """The arguments a xacro file declares (`<xacro:arg name=...>`), for messages."""
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError):
+        return []
+    return [el.get("name") for el in root.iter() if el.tag.endswith("}arg") and el.get("name")]
+
+
+def urdf_spec(path: str | Path, package_dirs=(), args: dict | None = None) -> tuple[mujoco.MjSpec, dict, list[str]]:
     """An MjSpec of a URDF/xacro with every mesh loaded and validated here; also the URDF's joint
-    velocity limits by name."""
+    velocity limits by name and the moving links without <inertial> (`links_without_inertia`)."""
     path = Path(path).resolve()
     if not path.is_file():
         raise DesignError(f"robot: file '{path}' not found; check the path")
     roots = package_roots(package_dirs)
     roots.setdefault(path.parent.name, path.parent)
     try:
-        root = ET.fromstring(expand(path, roots, args))
+        root = ET.fromstring(expand(path, roots, default_args(path, roots, args)))
     except ET.ParseError as e:
         raise DesignError(f"robot file '{path}': not valid XML ({e}); check the file") from None
     if root.tag != "robot":
         raise DesignError(f"robot file '{path}': top element is <{root.tag}>, expected <robot>; is it a URDF?")
     check_joints(root, str(path))
+    guessed = links_without_inertia(root)
     meshes = []  # (link, kind, index, file, scale, pos, quat)
     for link in root.findall("link"):
         for kind in ("visual", "collision"):
@@ -175,4 +219,4 @@ def urdf_spec(path: str | Path, package_dirs=(), args: dict | None = None) -> tu
                       quat=quat, group=VISUAL_GROUP if visual else COLLISION_GROUP,
                       contype=0 if visual else 1, conaffinity=0 if visual else 1, density=0 if visual else 1000,
                       rgba=[0.85, 0.85, 0.88, 1] if visual else [0.5, 0.5, 0.6, 0.3])
-    return spec, vel
+    return spec, vel, guessed

@@ -12,7 +12,7 @@ from skinsafe.core.robot.kinematics import TaxelKinematics, body_ids
 from skinsafe.core.robot.models import Robot
 from skinsafe.core.sim.scene import Obstacle, SceneOptions, build_scene, taxel_cell
 
-BASE_PITCH, BASE_COUNT = 0.01, 2792  # the UR5 sample skin at 1 cm pitch has 2,792 taxels
+BASE_PITCH, BASE_COUNT = 0.01, 2149  # the UR5 sample skin at 1 cm pitch has 2,149 taxels
 PROBE_BODIES = ["upper_arm_link", "forearm_link", "wrist_1_link"]
 PROBE_R, DEPTH, SLIDE, SLIDE_HZ = 0.015, 0.005, 0.02, 1.0
 
@@ -33,7 +33,9 @@ class Probes:
         self.centres, self.axes = [], []
         for b in bodies:
             on = np.flatnonzero(np.asarray(design.bodies)[design.taxels.body] == b)
-            i = on[np.argmax(frames[on, 2, 2])]  # the taxel facing most upward
+            up = on[np.argsort(-frames[on, 2, 2], kind="stable")[:64]]  # the most upward-facing taxels
+            inside = _inside(pos[on], pos[up], frames[up, :, 1])
+            i = up[np.argmax(inside)] if inside.any() else up[0]  # facing up, the probe sliding over skin
             self.centres.append(pos[i] + frames[i][:, 2] * (PROBE_R - DEPTH))
             self.axes.append(frames[i][:, 1])  # along the link
         self.obstacles = [Obstacle(f"probe{k}", "sphere", (PROBE_R,), pos=tuple(c), mocap=True)
@@ -128,6 +130,17 @@ class Truth:
             self.unsensed += force[0] * (1 - share.sum() / weight.sum())
             np.add.at(out, taxel[hit], force[0] * share[hit] / weight.sum())
         return out
+
+
+def _inside(pos: np.ndarray, start: np.ndarray, along: np.ndarray) -> np.ndarray:
+    """(k,) True where a probe at `start` sliding +-SLIDE along `along` stays over the skin at `pos`:
+    taxels lie beyond SLIDE + PROBE_R both ways along it (within a probe radius of the line)."""
+    rel = pos[:, None] - start[None]  # (n, k, 3)
+    d = np.einsum("jki,ki->jk", rel, along)  # d[j, k]: taxel j along k's axis
+    off = np.linalg.norm(rel - d[..., None] * along[None], axis=2)
+    near = off < PROBE_R
+    reach = SLIDE + PROBE_R
+    return ((d > reach) & near).any(axis=0) & ((d < -reach) & near).any(axis=0)
 
 
 def settled(robot: Robot, seconds: float = 1.0) -> np.ndarray:

@@ -31,6 +31,8 @@ GEOM_TYPES = {
 MAP_FILE = "taxel_map.json"
 SITE_GROUP = 3
 TACTILE_POINTS = (1, 7, 19, 37)  # tactile mesh vertices per taxel: hexagonal rings 0, 1, 2, 3
+TIP_MASS = 0.5  # kg, a sprung obstacle's tip: its contacts are stiff (about 35 kN/m) against its spring
+TIP_SOLREF = (0.004, 1.0)  # s: the stiffest contact MuJoCo keeps stable at a 2 ms step
 COLLISION_MODES = ("skin",) + meshlib.MODES  # hidden in the viewer by default: a dense skin would hide the robot
 
 
@@ -40,6 +42,12 @@ class Obstacle:
 
     `mocap`: a kinematic body moved through `data.mocap_pos/mocap_quat` (probes, a human arm);
     `free`: a dynamic body with a free joint (falls, rests on the robot); neither: fixed.
+    `spring` (N/m, mocap only): the geom rides on a light tip (`<name>_tip`, `TIP_MASS` kg) that
+    slides along the obstacle's local z on a critically damped spring (joint `<name>_spring`),
+    like a finger or a force gauge. A rigid mocap body driven to a depth meets MuJoCo's contact
+    model, whose force at a given penetration scales with the robot's effective mass there
+    (kN at sub-mm depths near a joint axis); through the spring the force is about
+    `spring` x compression on any robot. The tip's joint comes after the robot's in `qpos`.
     """
 
     name: str
@@ -52,6 +60,7 @@ class Obstacle:
     rgba: tuple = (0.8, 0.3, 0.3, 1)
     free: bool = False
     mass: float | None = None  # kg, for free bodies (default: density of water)
+    spring: float | None = None  # N/m: a sprung tip on a mocap holder (see above)
 
 
 @dataclass
@@ -277,6 +286,8 @@ def _add_obstacles(spec: mujoco.MjSpec, obstacles: list[Obstacle]) -> None:
             raise DesignError(f"{where}: field 'kind' is '{ob.kind}'; use one of {sorted(GEOM_TYPES)}")
         if ob.mocap and ob.free:
             raise DesignError(f"{where}: is both mocap and free; choose one")
+        if ob.spring is not None and not (ob.mocap and np.isfinite(ob.spring) and ob.spring > 0):
+            raise DesignError(f"{where}: field 'spring' is {ob.spring}; give a positive stiffness in N/m on a mocap obstacle")
         gtype, nsize = GEOM_TYPES[ob.kind]
         size = [float(s) for s in ob.size]
         if len(size) != nsize or not all(np.isfinite(size)) or any(s <= 0 for s in size):
@@ -286,6 +297,11 @@ def _add_obstacles(spec: mujoco.MjSpec, obstacles: list[Obstacle]) -> None:
         if ob.free:
             body.add_freejoint(name=f"{ob.name}_free")
         geom = dict(name=ob.name, type=gtype, rgba=list(ob.rgba))
+        if ob.spring is not None:
+            body = body.add_body(name=f"{ob.name}_tip", gravcomp=1.0)  # its weight would load the skin
+            body.add_joint(name=f"{ob.name}_spring", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 0, 1],
+                           stiffness=float(ob.spring), damping=2 * float(np.sqrt(ob.spring * TIP_MASS)))
+            geom.update(mass=TIP_MASS, priority=1, solref=list(TIP_SOLREF))
         if ob.kind == "mesh":
             if not ob.mesh_file:
                 raise DesignError(f"{where}: kind 'mesh' needs 'mesh_file'")

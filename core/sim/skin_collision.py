@@ -18,6 +18,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, HalfspaceIntersection
 
 from skinsafe.core.design.surface import skin_geoms
+from skinsafe.core.robot.shapes import inside_depth, mesh_vertices
 from skinsafe.core.skin.model import SkinDesign
 
 PROBE = "skinsafe_probe"
@@ -86,7 +87,7 @@ def fit_to_skin(spec: mujoco.MjSpec, design: SkinDesign, tol: float = 1e-3, shel
         if not _collides(model, g) or model.geom_bodyid[g] == 0 or g in surface:
             continue
         Rg, xg = data.geom_xmat[g].reshape(3, 3), data.geom_xpos[g]
-        d = _inside_depth(model, g, (world - xg) @ Rg)
+        d = inside_depth(model, g, (world - xg) @ Rg)
         if d.max() > tol:
             _shrink(spec, model, g, float(d.max()) + 0.5e-3, report)
             weld = model.body_weldid[model.geom_bodyid[g]]
@@ -98,36 +99,6 @@ def fit_to_skin(spec: mujoco.MjSpec, design: SkinDesign, tol: float = 1e-3, shel
     return report
 
 
-def _inside_depth(model, g, p) -> np.ndarray:
-    """Depth (m, <= 0 outside) of points p (geom frame) inside geom g (meshes: their convex hull)."""
-    kind, s = int(model.geom_type[g]), model.geom_size[g]
-    G = mujoco.mjtGeom
-    if kind == G.mjGEOM_SPHERE:
-        return s[0] - np.linalg.norm(p, axis=1)
-    if kind == G.mjGEOM_CAPSULE:
-        z = np.clip(p[:, 2], -s[1], s[1])
-        return s[0] - np.linalg.norm(p - np.stack([0 * z, 0 * z, z], 1), axis=1)
-    if kind == G.mjGEOM_CYLINDER:
-        return np.minimum(s[0] - np.hypot(p[:, 0], p[:, 1]), s[1] - np.abs(p[:, 2]))
-    if kind == G.mjGEOM_BOX:
-        return (s[:3] - np.abs(p)).min(axis=1)
-    if kind == G.mjGEOM_ELLIPSOID:
-        return (1 - np.linalg.norm(p / s[:3], axis=1)) * s[:3].min()
-    if kind == G.mjGEOM_MESH:
-        eq = _hull_equations(model, g)
-        return -(p @ eq[:, :3].T + eq[:, 3]).max(axis=1)
-    return np.full(len(p), -np.inf)
-
-
-def _mesh_vertices(model, g) -> np.ndarray:
-    m = model.geom_dataid[g]
-    return model.mesh_vert[model.mesh_vertadr[m]:model.mesh_vertadr[m] + model.mesh_vertnum[m]].astype(float)
-
-
-def _hull_equations(model, g) -> np.ndarray:
-    return ConvexHull(_mesh_vertices(model, g)).equations
-
-
 def _shrink(spec, model, g, delta: float, report: dict) -> None:
     """Move geom g's surface inward by `delta` (drop it from contacts if nothing is left)."""
     sg = spec.geom(model.geom(g).name)
@@ -135,7 +106,7 @@ def _shrink(spec, model, g, delta: float, report: dict) -> None:
     kind, size = int(model.geom_type[g]), model.geom_size[g].copy()
     sg.pos, sg.quat = model.geom_pos[g].tolist(), model.geom_quat[g].tolist()
     if kind == G.mjGEOM_MESH:
-        v = _mesh_vertices(model, g)
+        v = mesh_vertices(model, g)
         eq = ConvexHull(v).equations.copy()
         c = v.mean(axis=0)
         eq[:, 3] += delta

@@ -16,7 +16,7 @@ def test_heavier_poke_retracts_further_linearly():
     params = RetractionParams(alpha=0.01)
     sweep = force_sweep(design, robot, params, [0.0005, 0.0015])
     f, d = np.array(sweep["force"]), np.array(sweep["distance"])
-    assert len(f) == 2 and f[1] > f[0] > 2.0 and d[1] > d[0] > 0
+    assert len(f) == 2 and 60.0 > f[1] > f[0] > 2.0 and d[1] > d[0] > 0  # a 20 N/mm probe, not a rigid one
     assert np.allclose(d, 0.01 * f / 12, rtol=0.02)  # eq. 10: alpha f / 12
     assert abs(sweep["slope"] - 0.01 / 12) < 0.02 * 0.01 / 12
     assert max(sweep["profile_rel_err"]) < 0.15
