@@ -58,7 +58,7 @@ def test_bench_rows_small(tmp_path):
 
     from skinsafe.core.bench import sensing as bench_sensing
 
-    args = argparse.Namespace(sizes="256", steps=20, sweeps="taxels,timestep", timesteps="0.002",
+    args = argparse.Namespace(sizes="1024", steps=20, sweeps="taxels,timestep", timesteps="0.002",
                               tactile_points="1,7", plot=str(tmp_path / "p.png"))
     rows = bench_sensing.rows(args)
     taxel = [r for r in rows if r["sweep"] == "taxels"]
