@@ -33,8 +33,6 @@ from skinsafe.core.safety.retraction import (
     profile,
     profile_rate,
     retract_qdot,
-    task_jacobians,
-    task_velocities,
 )
 
 MAX_TASKS = 64
@@ -193,19 +191,17 @@ class DefensivenessLayer:
             rows[:, 0], rows[:, 1], rows[:, 2] = new, t, 0.0
             rows[:, 3:6], rows[:, 6:9] = pos[len(st):], frames[len(st):, :, 2]
             st = np.concatenate([st, rows])
-        order, w, done, speed = _rank(st, pos, self._severity_now(finite, idx), t, p.T, p.max_distance)
+        six = p.form == "6d"
+        order, w, done, speed, self.A, self.b, Jt, rt = _rank(st, pos, self._severity_now(finite, idx), t, p.T,
+                                                              p.max_distance, J, six, p.recovery_gain, MAX_TASKS)
         self._state, self.priorities, self.retracted = st[order], w, done
-        J, back = J[order], -self._state[:, 6:9]
-        self.A = np.einsum("kij,ki->kj", J[:, :3, :], back)  # a_k = J_p,k^T d_k: speed along -z_k(tau)
-        self.b = np.minimum(p.recovery_gain * np.maximum(-done, 0.0), 0.05)  # push back what drifted in
         info = TickInfo(nonfinite=tuple(bad), clock_reset=clock_reset, retracting=True)
         if p.merge != "qp":  # the closed-form references, limited as before (uniform scaling)
-            return self._finish(scale_into(self._merged(J, back, speed), prev, self.limits, dt), info, prev)
+            return self._finish(scale_into(self._merged(J[order], -self._state[:, 6:9], speed), prev, self.limits, dt),
+                                info, prev)
         lo, hi = self.limits.box(prev, dt)
         A, b = _distinct_rows(self.A, self.b) if len(self.A) > MAX_TASKS else (self.A, self.b)
-        m = min(len(J), MAX_TASKS)
-        sol = prioritised(task_jacobians(J[:m], p.form), task_velocities(back[:m], speed[:m], p.form), A, b, lo, hi,
-                          self.limits.vel, p.damping, p.sv_threshold, p.rank_tol, start=prev)
+        sol = prioritised(Jt, rt, A, b, lo, hi, self.limits.vel, p.damping, p.sv_threshold, p.rank_tol)
         for name in ("limited", "blocked", "infeasible", "recovery_dropped", "damped", "dominant_residual"):
             setattr(info, name, getattr(sol, name))
         return self._finish(sol.qd, info, prev)
@@ -264,10 +260,13 @@ def _distinct_rows(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 @numba.njit(cache=True, nogil=True)
-def _rank(st, pos, severity, t, T, max_distance):
+def _rank(st, pos, severity, t, T, max_distance, J, six, recovery_gain, max_tasks):
     """Eq. 12 for the pool rows `st` (updated in place: peak severity): the priority order
-    (stable, highest first) and, in that order, priorities, distances retracted and speeds."""
-    K = st.shape[0]
+    (stable, highest first) and, in that order, priorities, distances retracted and speeds; then
+    the no-push rows `A qd >= b` (a_k = J_p,k^T d_k, d_k = -z_k(tau): speed along the retraction
+    axis; b pushes back what drifted in) and the tasks of the first `max_tasks` (task Jacobians
+    (m, 3 or 6, nv) and their eq. 10 velocities along d_k, zero rotation in 6-D)."""
+    K, nv = st.shape[0], J.shape[2]
     D, w, done = np.empty(K), np.empty(K), np.empty(K)
     for k in range(K):
         if severity[k] > st[k, 2]:
@@ -277,8 +276,20 @@ def _rank(st, pos, severity, t, T, max_distance):
                     + (pos[k, 2] - st[k, 5]) * st[k, 8])  # along -z(tau)
         w[k] = D[k] / 12 - done[k]
     order = np.argsort(-w, kind="mergesort")
-    speed = np.empty(K)
+    m, rows = min(K, max_tasks), 6 if six else 3
+    speed, A, b = np.empty(K), np.zeros((K, nv)), np.empty(K)
+    Jt, rt = np.zeros((m, rows, nv)), np.zeros((m, rows))
     for i in range(K):
         k = order[i]
         speed[i] = D[k] * profile_rate((t - st[k, 1]) / T) / T
-    return order, w[order], done[order], speed
+        b[i] = min(recovery_gain * max(-done[k], 0.0), 0.05)  # push back what drifted in
+        for c in range(3):
+            for j in range(nv):
+                A[i, j] -= J[k, c, j] * st[k, 6 + c]
+        if i < m:
+            for c in range(3):
+                rt[i, c] = -st[k, 6 + c] * speed[i]
+            for c in range(rows):
+                for j in range(nv):
+                    Jt[i, c, j] = J[k, c, j]
+    return order, w[order], done[order], speed, A, b, Jt, rt
