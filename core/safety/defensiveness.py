@@ -48,7 +48,9 @@ class TickInfo:
     retracts less rather than push another one into its contact); `infeasible`: no command within
     the velocity and acceleration limits kept every contacted taxel out of its contact (the
     least-violating one was sent); `recovery_dropped`: a drifted
-    taxel could not be pushed back this tick; `damped`: the dominant task is near a singularity."""
+    taxel could not be pushed back this tick; `damped`: the dominant task is near a singularity;
+    `pushing`: the measured joint velocity (`SafetyStack.tick(qdot=...)`) moved a contacted taxel
+    into its contact."""
 
     nonfinite: tuple = ()
     safe: bool = False
@@ -59,6 +61,7 @@ class TickInfo:
     infeasible: bool = False
     recovery_dropped: bool = False
     damped: bool = False
+    pushing: bool = False
     dominant_residual: float = 0.0
     flags: tuple = field(default=())
 

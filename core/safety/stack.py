@@ -18,7 +18,12 @@ A command source is anything callable as `source(t, q) -> qdot_planned (nv,)`: a
    modulated command is projected, so modulation can never push a contacted taxel into its
    contact and the acceleration limit never makes one move into it).
 
-Fail safe: a tick with a non-finite clock, q, dt, planned command, reading, TDM output or
+Measured velocity: `tick(..., qdot=measured)` takes the robot's measured joint velocity, distinct
+from the planned command: the acceleration limits (and the brake) then start from it rather than
+from the last command sent, and while taxels retract a measured motion that carries one of them
+into its contact (`a_k . qdot < 0`) is flagged `pushing`.
+
+Fail safe: a tick with a non-finite clock, q, dt, measured velocity, planned command, reading, TDM output or
 potential sends the safe command (`limits.brake`) or, where its own inputs are finite, the
 ongoing retraction (unmodulated when the potential is the bad input), never the plan, and counts
 the input in `flags`; `info` says what happened. A clock that goes backwards resets the layers.
@@ -161,20 +166,30 @@ class SafetyStack:
             self.defensiveness.reset()
 
     def tick(self, t: float, q: np.ndarray, readings: dict[str, np.ndarray] | None, command: np.ndarray,
-             dt: float) -> np.ndarray:
-        """The joint velocity to send now (module docstring)."""
+             dt: float, qdot: np.ndarray | None = None) -> np.ndarray:
+        """The joint velocity to send now (module docstring). `qdot`: the robot's measured joint
+        velocity, if known; the limits then start from it instead of the last command."""
         j, d, prev = self.joints, self.defensiveness, self.last
         q = np.asarray(q, dtype=float)
         v = np.array(command, dtype=float)
-        bad = [n for n, x in (("clock", t), ("q", q), ("dt", dt), ("command", v)) if not np.all(np.isfinite(x))]
+        checks = [("clock", t), ("q", q), ("dt", dt), ("command", v)]
+        if qdot is not None:
+            qdot = np.asarray(qdot, dtype=float)
+            if qdot.shape != prev.shape:
+                raise ValueError(f"SafetyStack.tick: qdot has shape {qdot.shape}; pass the robot's {len(prev)} "
+                                 "measured joint velocities (or None)")
+            checks.append(("qdot", qdot))
+        bad = [n for n, x in checks if not np.all(np.isfinite(x))]
         bad += [f"readings:{n}" for n, x in (readings or {}).items() if not np.all(np.isfinite(x))]
         if "clock" not in bad and t < self._t:  # the clock went backwards: start again
             self.reset()
             self.last = prev
             self.flags["clock_reset"] += 1
-        if {"clock", "q", "dt"} & set(bad):
+        if {"clock", "q", "dt", "qdot"} & set(bad):
             return self._send(brake(prev, self.limits), TickInfo(nonfinite=tuple(bad), safe=True))
         self._t = t
+        if qdot is not None:
+            prev = qdot
         plan_ok = not bad
         s = q[j]
         if self.strategy is not None and plan_ok:
@@ -207,16 +222,19 @@ class SafetyStack:
         A, b = (d.A, d.b) if retracting else (None, None)
         proj = final_command(v, prev, self.limits, A, b)
         info.infeasible = info.infeasible or proj.infeasible
+        if qdot is not None and retracting:  # the robot is moving a contacted taxel into its contact now
+            info.pushing = bool(np.any(A @ qdot < -1e-9))
         return self._send(proj.v, info)
 
     def _send(self, v: np.ndarray, info: TickInfo) -> np.ndarray:
         flags = [f"nonfinite:{n}" for n in info.nonfinite] + (["nonfinite"] if info.nonfinite else [])
-        flags += [n for n in ("safe", "infeasible") if getattr(info, n)]
+        flags += [n for n in ("safe", "infeasible", "pushing") if getattr(info, n)]
         self.flags.update(flags)
         info.flags = tuple(flags)
         self.info, self.last = info, v
         return v.copy()
 
-    def run(self, source: CommandSource, t: float, q: np.ndarray, readings, dt: float) -> np.ndarray:
+    def run(self, source: CommandSource, t: float, q: np.ndarray, readings, dt: float,
+            qdot: np.ndarray | None = None) -> np.ndarray:
         """One tick for a command source (planner or teleoperation stream)."""
-        return self.tick(t, q, readings, source(t, q), dt)
+        return self.tick(t, q, readings, source(t, q), dt, qdot)
