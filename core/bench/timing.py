@@ -18,3 +18,18 @@ def median_ms(fn: Callable[[], object], repeat: int = 50, warmup: int = 3, min_t
         fn()
         times.append(time.perf_counter() - t0)
     return float(np.median(times) * 1e3)
+
+
+def interleaved_ms(fns: list[Callable[[], object]], repeat: int = 200, warmup: int = 3) -> list[np.ndarray]:
+    """Wall times (ms) of each of `fns`, called in turn `repeat` times: on a shared machine the
+    load then falls on all of them alike, so their ratios hold even when the times do not."""
+    for fn in fns:
+        for _ in range(warmup):
+            fn()
+    times = np.empty((len(fns), repeat))
+    for r in range(repeat):
+        for k, fn in enumerate(fns):
+            t0 = time.perf_counter()
+            fn()
+            times[k, r] = time.perf_counter() - t0
+    return list(times * 1e3)

@@ -104,6 +104,8 @@ class FastPotential:
             self._W.append(np.ascontiguousarray(w))
             self._b.append(np.ascontiguousarray(b))
         self._kinds = np.array([k for _, _, k in layers], dtype=np.int64)
+        self._memo = None  # (s, a, log_safe, n) of the last few-row log_safety call
+        self._panels = None  # the head as panels for the fused pass, made on first use
 
     def _trunk(self, s, a):
         """The activations of the compiled layers (input first) for states and actions."""
@@ -123,16 +125,37 @@ class FastPotential:
         log_safe, sig = _head_terms(_rows_times(acts[len(acts) - 1], w.T) + b, grad)
         return acts, log_safe, _rows_times(sig, w) if grad else None
 
+    def _fused(self, s, a):
+        """log p(not D) (B,) and df/ds (B, d) for a few rows in one compiled call: trunk forward,
+        one pass over the head (logits, total danger and the gradient's weighted sum of head rows
+        together, a block of rows at a time while it is in L1 cache), trunk backward."""
+        s, a = np.atleast_2d(np.asarray(s, dtype=np.float64)), np.atleast_2d(np.asarray(a, dtype=np.float64))
+        if s.shape[0] != a.shape[0] or s.shape[1] + a.shape[1] != len(self.mean):
+            self._trunk(s, a)  # raises the clear error
+        if self._panels is None:
+            self._panels = panels(*self.head)
+        return _tdm_eval(s, a, self.mean, self.std, self._W, self._b, self._kinds, *self._panels, len(self.head[1]))
+
     def log_safety(self, s, a) -> np.ndarray:
-        """log p(not D | s, a) (B,) of a TDM potential (eq. 1 in log space), no gradient."""
+        """log p(not D | s, a) (B,) of a TDM potential (eq. 1 in log space). For a few rows (the
+        strategy filter's candidates) the normals come in the same pass over the head and are
+        kept: the modulation of the chosen candidate then reads them instead of a second pass."""
         if self.output != "total_danger":
             raise TypeError("FastPotential.log_safety needs a DangerPotential over a TDM")
-        return self._danger(s, a, False)[1]
+        if np.ndim(a) != 2 or len(a) > FUSED_ROWS:
+            return self._danger(s, a, False)[1]
+        log_safe, n = self._fused(s, a)
+        self._memo = (np.array(s, dtype=np.float64, ndmin=2), np.array(a, dtype=np.float64), log_safe, n)
+        return log_safe
 
     def __call__(self, s, a) -> tuple[np.ndarray, np.ndarray]:
         """f (B,) and df/ds (B, d) for states (B, d) or (d,) and actions (B, m) or (m,)."""
         d = np.shape(s)[-1]
         if self.output == "total_danger":
+            if np.ndim(a) == 1 or len(a) <= FUSED_ROWS:
+                hit = self._recall(s, a) if self._memo is not None else None
+                log_safe, n = hit if hit is not None else self._fused(s, a)
+                return -np.expm1(log_safe), n
             acts, log_safe, g = self._danger(s, a, True)
             f = -np.expm1(log_safe)  # eq. 1 in log space
             g *= np.exp(log_safe).astype(np.float32)[:, None]  # df/dz_i = (1 - f) sigmoid(z_i)
@@ -141,6 +164,38 @@ class FastPotential:
             f = expit(acts[len(acts) - 1][:, 0].astype(np.float64))
             g = (f * (1.0 - f)).astype(np.float32)[:, None]
         return f, _mlp_backward(g, self.std, self._W, acts, self._kinds)[:, :d].astype(np.float64)
+
+    def _recall(self, s, a):
+        """(log_safe, n) of one (s, a) scored by the last `log_safety` call, or None."""
+        if np.ndim(s) != 1 or np.ndim(a) != 1:
+            return None
+        ms, ma, log_safe, n = self._memo
+        k = _find_row(ms, ma, np.asarray(s, dtype=np.float64), np.asarray(a, dtype=np.float64))
+        return None if k < 0 else (log_safe[k:k + 1], n[k:k + 1])
+
+
+FUSED_ROWS = 8
+"""Up to this many rows the TDM potential runs as one fused compiled pass (`_tdm_eval`); more
+rows (batches for training and experiments) go through BLAS."""
+
+
+@numba.njit(cache=True, nogil=True)
+def _find_row(ms, ma, s, a):
+    """The row k with ms[k or 0] == s and ma[k] == a (exactly), or -1."""
+    for k in range(ma.shape[0]):
+        row = ms[k if ms.shape[0] > 1 else 0]
+        same = len(row) == len(s) and ma.shape[1] == len(a)
+        for j in range(len(s)):
+            if not same or row[j] != s[j]:
+                same = False
+                break
+        for j in range(len(a)):
+            if not same or ma[k, j] != a[j]:
+                same = False
+                break
+        if same:
+            return k
+    return -1
 
 
 _FAST = {"reassoc", "contract", "nsz", "arcp"}  # reorder sums, keep inf and NaN semantics
@@ -222,6 +277,94 @@ def _head_sums(z, e, grad):
             for i in range(N):
                 sig[r, i] = (np.float32(1.0) if z[r, i] >= 0 else e[r, i]) / (np.float32(1.0) + e[r, i])
     return log_safe, sig
+
+
+PANEL = 64
+"""Head rows per panel of the fused pass (`panels`): one panel's weights (PANEL x hidden float32,
+32 KB at 128 hidden) stay in L1 cache while every input row uses them."""
+
+
+def panels(W: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The head (N, H) as contiguous panels (P, H, PANEL), `out[p, j, i] = W[p * PANEL + i, j]`,
+    and the bias (P, PANEL); the last panel padded with zeros (its length is taken from N)."""
+    N, H = W.shape
+    P = -(-N // PANEL)
+    Wp = np.zeros((P * PANEL, H), np.float32)
+    Wp[:N] = W
+    bp = np.zeros(P * PANEL, np.float32)
+    bp[:N] = b
+    return np.ascontiguousarray(Wp.reshape(P, PANEL, H).transpose(0, 2, 1)), bp.reshape(P, PANEL)
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _tdm_eval(s, a, mean, std, Ws, bs, kinds, Wp, bp, N):
+    """`FastPotential._fused`: log p(not D) (B,) and df/ds (B, ds) of a TDM potential. The head
+    is read once, one panel (`panels`) at a time, for every input row: the panel's logits
+    (`z += W[:, j] h_j`, vertical SIMD), exp(-|z|) in float64 (`_exp_neg`; numpy's float32 exp
+    agrees to an ulp), the softplus sums exactly as `_head_sums` (one log per 64 factors) and
+    `sum_i sigmoid(z_i) W_i`."""
+    acts = _mlp_forward(s, a, mean, std, Ws, bs, kinds)
+    h = acts[len(acts) - 1]
+    B, P, H = h.shape[0], Wp.shape[0], Wp.shape[1]
+    total = np.zeros(B)
+    g = np.zeros((B, H), np.float32)
+    z = np.empty(PANEL, np.float32)
+    x = np.empty(PANEL)
+    e = np.empty(PANEL, np.float32)
+    sg = np.empty(PANEL, np.float32)
+    for p in range(P):
+        Wk = Wp[p]
+        m = min(PANEL, N - p * PANEL)
+        for r in range(B):
+            hr, gr = h[r], g[r]
+            for i in range(PANEL):
+                z[i] = bp[p, i]
+            for j in range(H):
+                hj = hr[j]
+                for i in range(PANEL):
+                    z[i] += Wk[j, i] * hj
+            for i in range(PANEL):
+                x[i] = -abs(np.float64(z[i]))
+            _exp_neg(x, PANEL)
+            prod = 1.0
+            for i in range(m):
+                e[i] = np.float32(x[i])
+                total[r] += max(np.float64(z[i]), 0.0)
+                prod *= 1.0 + np.float64(e[i])
+                sg[i] = (np.float32(1.0) if z[i] >= 0 else e[i]) / (np.float32(1.0) + e[i])
+            total[r] += np.log(prod)
+            for i in range(m, PANEL):
+                sg[i] = 0.0
+            for j in range(H):
+                acc = np.float32(0.0)
+                for i in range(PANEL):
+                    acc += Wk[j, i] * sg[i]
+                gr[j] += acc
+    log_safe = -total
+    for r in range(B):
+        scale = np.float32(np.exp(log_safe[r]))  # df/dz_i = (1 - f) sigmoid(z_i)
+        for j in range(H):
+            g[r, j] *= scale
+    return log_safe, _mlp_backward(g, std, Ws, acts, kinds)[:, :s.shape[1]].astype(np.float64)
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _exp_neg(x, m):
+    """x[:m] <- exp(x[:m]) for x <= 0 (float64; under -700 it is 0 to float32 anyway): 2^k exp(r)
+    with r = x - k ln2 in [-ln2/2, ln2/2] (two-part ln2) and a degree-10 Taylor polynomial
+    (relative error < 1e-12), 2^k from the exponent bits; a loop the compiler vectorises."""
+    bits = np.empty(m, np.int64)
+    for i in range(m):
+        v = max(x[i], -700.0)
+        k = np.floor(v * 1.4426950408889634 + 0.5)
+        r = (v - k * 0.693145751953125) - k * 1.4286068203094173e-06
+        p = 1.0 + r * (1.0 + r * (0.5 + r * (1 / 6 + r * (1 / 24 + r * (1 / 120 + r * (1 / 720 + r * (
+            1 / 5040 + r * (1 / 40320 + r * (1 / 362880 + r / 3628800)))))))))
+        x[i] = p
+        bits[i] = (np.int64(k) + 1023) << 52
+    scale = bits.view(np.float64)
+    for i in range(m):
+        x[i] *= scale[i]
 
 
 def _rows_times(x: np.ndarray, w: np.ndarray) -> np.ndarray:

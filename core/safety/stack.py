@@ -9,10 +9,14 @@ A command source is anything callable as `source(t, q) -> qdot_planned (nv,)`: a
    versions of it, down to stop) with a prior p(a|s) that prefers the command; eq. 3 re-weights
    them by the TDM's p(not D | s, a) and the most probable candidate (MAP) is kept - the argmax
    of `log p(a|s) + log p(not D|s,a)`, as eq. 3's denominator does not depend on a;
-2. tactile defensiveness (III-C): a retraction, when active, outranks the plan;
+2. tactile defensiveness (III-C): a retraction, when active, outranks the plan (the layer runs
+   first, and the strategy filter only on ticks without a retraction, whose plan is used);
 3. modulation (III-B): whatever comes out - plan or retraction - is modulated by the danger
    potential (`ModulationLayer`; a retraction leaving danger keeps its speed, one heading into
-   danger, e.g. toward a desk, is slowed);
+   danger, e.g. toward a desk, is slowed). With a strategy filter over the same TDM, both share
+   one evaluator (`FastPotential`): the candidates' scores come with their normals in one pass
+   over the TDM's head, and the modulation of the chosen one reads them (one pass per tick
+   where the first candidate wins, the planned command unlimited until step 4);
 4. limits (`limits.final_command`) on the final command: velocity and acceleration limits from
    the last command sent; while taxels are retracting, also their no-push constraints (the
    modulated command is projected, so modulation can never push a contacted taxel into its
@@ -92,6 +96,7 @@ class StrategyFilter:
     def __init__(self, tdm, scales=SCALES, prior=PRIOR):
         from skinsafe.core.safety.potential import DangerPotential, FastPotential
 
+        self.tdm = tdm
         self.fast = FastPotential(DangerPotential(tdm))
         self.scales = np.asarray(scales, dtype=float)
         prior = np.asarray(prior, dtype=float)
@@ -148,6 +153,11 @@ class SafetyStack:
                              f"{d.kin.model.nv} joints; give one limit per joint")
         self.defensiveness, self.modulation, self.strategy = defensiveness, modulation, strategy
         self.pfl = pfl  # optional ISO/TS 15066 speed cap `pfl(q, qdot) -> qdot` (pfl.PFLCap), after modulation
+        if strategy is not None and modulation is not None:
+            from skinsafe.core.safety.potential import FastPotential
+
+            if isinstance(modulation._eval, FastPotential) and getattr(modulation.potential, "tdm", None) is strategy.tdm:
+                strategy.fast = modulation._eval  # one evaluator: the modulation reads the chosen candidate's normal
         self.joints = np.arange(len(vel)) if joints is None else np.asarray(joints)
         self.flags: Counter = Counter()
         self.reset()
@@ -192,21 +202,25 @@ class SafetyStack:
             prev = qdot
         plan_ok = not bad
         s = q[j]
-        if self.strategy is not None and plan_ok:
-            v[j] = self.strategy(s, v[j])
-            if self.strategy.nonfinite:
-                bad.append("tdm")
-                plan_ok = False
         info = TickInfo(nonfinite=tuple(bad))
         if d is not None:
-            v = d.tick(t, q, readings or {}, v if plan_ok else None, dt, prev=prev)
+            vd = d.tick(t, q, readings or {}, None, dt, prev=prev)
             info = d.info
             info.nonfinite = tuple(bad + [n for n in info.nonfinite if n not in bad])
             if info.safe:
-                return self._send(v, info)
+                return self._send(vd, info)
         retracting = d is not None and d.active
-        if not plan_ok and not retracting:
-            return self._send(brake(prev, self.limits), TickInfo(nonfinite=tuple(bad), safe=True))
+        if retracting:  # the retraction outranks the plan: no strategy filter needed this tick
+            v = vd
+        else:
+            if self.strategy is not None and plan_ok:
+                v[j] = self.strategy(s, v[j])
+                if self.strategy.nonfinite:
+                    bad.append("tdm")
+                    info.nonfinite = info.nonfinite + ("tdm",)
+                    plan_ok = False
+            if not plan_ok:
+                return self._send(brake(prev, self.limits), TickInfo(nonfinite=info.nonfinite, safe=True))
         if self.modulation is not None:
             w = v.copy()
             w[j], f = self.modulation(s, v[j])
