@@ -25,7 +25,7 @@ import numba
 import numpy as np
 
 from skinsafe.core.robot.kinematics import TaxelKinematics
-from skinsafe.core.safety.limits import JointLimits, brake, scale_into
+from skinsafe.core.safety.limits import JointLimits, brake, finite, scale_into
 from skinsafe.core.safety.qp import prioritised
 from skinsafe.core.safety.retraction import (
     RetractionParams,
@@ -138,27 +138,26 @@ class DefensivenessLayer:
         seconds ago (default: the construction's dt). Fail-safe rules: module docstring."""
         p, nv = self.params, self.kin.model.nv
         prev = self.last if prev is None else np.asarray(prev, dtype=float)
-        prev = np.where(np.isfinite(prev), prev, 0.0)
+        prev = prev if finite(prev) else np.where(np.isfinite(prev), prev, 0.0)
         dt = self.limits.dt if dt is None else float(dt)
         q = np.asarray(q, dtype=float)
         if q.shape != (self.kin.model.nq,):
             raise ValueError(f"DefensivenessLayer.tick: q has shape {q.shape}; pass the robot's {self.kin.model.nq} "
                              "joint positions")
-        bad, finite = [], {}
+        bad, clean = [], {}
         for name, value in readings.items():
             value = np.asarray(value, dtype=float)
             if value.shape != (self.kin.n,):
                 raise ValueError(f"DefensivenessLayer.tick: readings['{name}'] has shape {value.shape}; "
                                  f"pass one (N,) array per stimulus with N = {self.kin.n}")
-            if not np.isfinite(value).all():
+            if not finite(value):
                 bad.append(f"readings:{name}")
                 value = np.where(np.isfinite(value), value, -np.inf)  # a non-finite reading never triggers
-            finite[name] = value
+            clean[name] = value
         plan = None if qdot_planned is None else np.asarray(qdot_planned, dtype=float)
-        if plan is not None and not np.all(np.isfinite(plan)):
+        if plan is not None and not finite(plan):
             bad.append("command")
-        fatal = [n for n, ok in (("clock", np.isfinite(t)), ("q", np.all(np.isfinite(q))),
-                                 ("dt", np.isfinite(dt) and dt > 0)) if not ok]
+        fatal = [n for n, ok in (("clock", finite(t)), ("q", finite(q)), ("dt", finite(dt) and dt > 0)) if not ok]
         clock_reset = not fatal and t < self._t
         if clock_reset:
             last = prev
@@ -169,7 +168,7 @@ class DefensivenessLayer:
             return self._finish(brake(prev, self.limits), TickInfo(nonfinite=tuple(fatal + bad), safe=True), prev)
         self._t = t
         events = np.zeros(self.kin.n, bool)
-        for name, value in finite.items():
+        for name, value in clean.items():
             if name in self.thresholds:
                 events |= value > self.thresholds[name]
         st = self._state
@@ -195,7 +194,7 @@ class DefensivenessLayer:
             rows[:, 3:6], rows[:, 6:9] = pos[len(st):], frames[len(st):, :, 2]
             st = np.concatenate([st, rows])
         six = p.form == "6d"
-        order, w, done, speed, self.A, self.b, Jt, rt = _rank(st, pos, self._severity_now(finite, idx), t, p.T,
+        order, w, done, speed, self.A, self.b, Jt, rt = _rank(st, pos, self._severity_now(clean, idx), t, p.T,
                                                               p.max_distance, J, six, p.recovery_gain, MAX_TASKS)
         self._state, self.priorities, self.retracted = st[order], w, done
         info = TickInfo(nonfinite=tuple(bad), clock_reset=clock_reset, retracting=True)

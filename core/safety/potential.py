@@ -104,7 +104,7 @@ class FastPotential:
             self._W.append(np.ascontiguousarray(w))
             self._b.append(np.ascontiguousarray(b))
         self._kinds = np.array([k for _, _, k in layers], dtype=np.int64)
-        self._memo = None  # (s, a, log_safe, n) of the last few-row log_safety call
+        self._memo = None  # (s, a, log_safe, sigmoids) of the last few-row log_safety call
         self._panels = None  # the head as panels for the fused pass, made on first use
 
     def _trunk(self, s, a):
@@ -125,37 +125,47 @@ class FastPotential:
         log_safe, sig = _head_terms(_rows_times(acts[len(acts) - 1], w.T) + b, grad)
         return acts, log_safe, _rows_times(sig, w) if grad else None
 
-    def _fused(self, s, a):
-        """log p(not D) (B,) and df/ds (B, d) for a few rows in one compiled call: trunk forward,
-        one pass over the head (logits, total danger and the gradient's weighted sum of head rows
-        together, a block of rows at a time while it is in L1 cache), trunk backward."""
+    def _inputs(self, s, a):
         s, a = np.atleast_2d(np.asarray(s, dtype=np.float64)), np.atleast_2d(np.asarray(a, dtype=np.float64))
         if s.shape[0] != a.shape[0] or s.shape[1] + a.shape[1] != len(self.mean):
             self._trunk(s, a)  # raises the clear error
         if self._panels is None:
             self._panels = panels(*self.head)
-        return _tdm_eval(s, a, self.mean, self.std, self._W, self._b, self._kinds, *self._panels, len(self.head[1]))
+        return s, a
+
+    def _forward(self, s, a):
+        """(s, a, log p(not D) (B,), sigmoids of the head logits) for a few rows: one compiled
+        pass over the head (`_tdm_forward`)."""
+        s, a = self._inputs(s, a)
+        return (s, a) + _tdm_forward(s, a, self.mean, self.std, self._W, self._b, self._kinds, *self._panels,
+                                     len(self.head[1]))
+
+    def _normal(self, s, a, sig, log_safe):
+        return _tdm_backward(s, a, self.mean, self.std, self._W, self._b, self._kinds, self._panels[0], sig, log_safe)
 
     def log_safety(self, s, a) -> np.ndarray:
         """log p(not D | s, a) (B,) of a TDM potential (eq. 1 in log space). For a few rows (the
-        strategy filter's candidates) the normals come in the same pass over the head and are
-        kept: the modulation of the chosen candidate then reads them instead of a second pass."""
+        strategy filter's candidates) the head's sigmoids are kept: the modulation of the chosen
+        candidate then needs only the backward pass (`__call__`)."""
         if self.output != "total_danger":
             raise TypeError("FastPotential.log_safety needs a DangerPotential over a TDM")
         if np.ndim(a) != 2 or len(a) > FUSED_ROWS:
             return self._danger(s, a, False)[1]
-        log_safe, n = self._fused(s, a)
-        self._memo = (np.array(s, dtype=np.float64, ndmin=2), np.array(a, dtype=np.float64), log_safe, n)
-        return log_safe
+        self._memo = self._forward(s, a)
+        return self._memo[2]
 
     def __call__(self, s, a) -> tuple[np.ndarray, np.ndarray]:
         """f (B,) and df/ds (B, d) for states (B, d) or (d,) and actions (B, m) or (m,)."""
         d = np.shape(s)[-1]
         if self.output == "total_danger":
             if np.ndim(a) == 1 or len(a) <= FUSED_ROWS:
-                hit = self._recall(s, a) if self._memo is not None else None
-                log_safe, n = hit if hit is not None else self._fused(s, a)
-                return -np.expm1(log_safe), n
+                k = self._recall(s, a)
+                if k < 0:
+                    s2, a2, log_safe, sig = self._forward(s, a)
+                else:
+                    ms, ma, log_safe, sig = self._memo
+                    s2, a2, log_safe, sig = ms[k if len(ms) > 1 else 0][None], ma[k][None], log_safe[k:k + 1], sig[k:k + 1]
+                return -np.expm1(log_safe), self._normal(s2, a2, sig, log_safe)
             acts, log_safe, g = self._danger(s, a, True)
             f = -np.expm1(log_safe)  # eq. 1 in log space
             g *= np.exp(log_safe).astype(np.float32)[:, None]  # df/dz_i = (1 - f) sigmoid(z_i)
@@ -165,18 +175,18 @@ class FastPotential:
             g = (f * (1.0 - f)).astype(np.float32)[:, None]
         return f, _mlp_backward(g, self.std, self._W, acts, self._kinds)[:, :d].astype(np.float64)
 
-    def _recall(self, s, a):
-        """(log_safe, n) of one (s, a) scored by the last `log_safety` call, or None."""
-        if np.ndim(s) != 1 or np.ndim(a) != 1:
-            return None
-        ms, ma, log_safe, n = self._memo
-        k = _find_row(ms, ma, np.asarray(s, dtype=np.float64), np.asarray(a, dtype=np.float64))
-        return None if k < 0 else (log_safe[k:k + 1], n[k:k + 1])
+    def _recall(self, s, a) -> int:
+        """The row of the last `log_safety` call that scored exactly this one (s, a), or -1."""
+        if self._memo is None or np.ndim(s) != 1 or np.ndim(a) != 1:
+            return -1
+        ms, ma = self._memo[:2]
+        return _find_row(ms, ma, np.asarray(s, dtype=np.float64), np.asarray(a, dtype=np.float64))
 
 
 FUSED_ROWS = 8
-"""Up to this many rows the TDM potential runs as one fused compiled pass (`_tdm_eval`); more
-rows (batches for training and experiments) go through BLAS."""
+"""Up to this many rows the TDM potential runs compiled, one pass over the head forward
+(`_tdm_forward`) and one backward (`_tdm_backward`); more rows (batches for training and
+experiments) go through BLAS."""
 
 
 @numba.njit(cache=True, nogil=True)
@@ -297,26 +307,23 @@ def panels(W: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _tdm_eval(s, a, mean, std, Ws, bs, kinds, Wp, bp, N):
-    """`FastPotential._fused`: log p(not D) (B,) and df/ds (B, ds) of a TDM potential. The head
-    is read once, one panel (`panels`) at a time, for every input row: the panel's logits
+def _tdm_forward(s, a, mean, std, Ws, bs, kinds, Wp, bp, N):
+    """log p(not D) (B,) and sigmoid(z) (B, P * PANEL) of a TDM potential's head logits z. The
+    head is read once, one panel (`panels`) at a time, for every input row: the panel's logits
     (`z += W[:, j] h_j`, vertical SIMD), exp(-|z|) in float64 (`_exp_neg`; numpy's float32 exp
-    agrees to an ulp), the softplus sums exactly as `_head_sums` (one log per 64 factors) and
-    `sum_i sigmoid(z_i) W_i`."""
+    agrees to an ulp) and the softplus sums exactly as `_head_sums` (one log per 64 factors)."""
     acts = _mlp_forward(s, a, mean, std, Ws, bs, kinds)
     h = acts[len(acts) - 1]
     B, P, H = h.shape[0], Wp.shape[0], Wp.shape[1]
     total = np.zeros(B)
-    g = np.zeros((B, H), np.float32)
+    sig = np.zeros((B, P * PANEL), np.float32)
     z = np.empty(PANEL, np.float32)
     x = np.empty(PANEL)
-    e = np.empty(PANEL, np.float32)
-    sg = np.empty(PANEL, np.float32)
     for p in range(P):
         Wk = Wp[p]
         m = min(PANEL, N - p * PANEL)
         for r in range(B):
-            hr, gr = h[r], g[r]
+            hr = h[r]
             for i in range(PANEL):
                 z[i] = bp[p, i]
             for j in range(H):
@@ -328,24 +335,35 @@ def _tdm_eval(s, a, mean, std, Ws, bs, kinds, Wp, bp, N):
             _exp_neg(x, PANEL)
             prod = 1.0
             for i in range(m):
-                e[i] = np.float32(x[i])
+                e = np.float32(x[i])
                 total[r] += max(np.float64(z[i]), 0.0)
-                prod *= 1.0 + np.float64(e[i])
-                sg[i] = (np.float32(1.0) if z[i] >= 0 else e[i]) / (np.float32(1.0) + e[i])
+                prod *= 1.0 + np.float64(e)
+                sig[r, p * PANEL + i] = (np.float32(1.0) if z[i] >= 0 else e) / (np.float32(1.0) + e)
             total[r] += np.log(prod)
-            for i in range(m, PANEL):
-                sg[i] = 0.0
+    return -total, sig
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _tdm_backward(s, a, mean, std, Ws, bs, kinds, Wp, sig, log_safe):
+    """df/ds (B, ds) from `_tdm_forward`'s sigmoids: `(1 - f) sum_i sigmoid(z_i) W_i` (one
+    more read of the head) taken back through the trunk (its forward recomputed: small)."""
+    acts = _mlp_forward(s, a, mean, std, Ws, bs, kinds)
+    B, P, H = sig.shape[0], Wp.shape[0], Wp.shape[1]
+    g = np.zeros((B, H), np.float32)
+    for p in range(P):
+        Wk = Wp[p]
+        for r in range(B):
+            sg = sig[r, p * PANEL:(p + 1) * PANEL]
             for j in range(H):
                 acc = np.float32(0.0)
                 for i in range(PANEL):
                     acc += Wk[j, i] * sg[i]
-                gr[j] += acc
-    log_safe = -total
+                g[r, j] += acc
     for r in range(B):
         scale = np.float32(np.exp(log_safe[r]))  # df/dz_i = (1 - f) sigmoid(z_i)
         for j in range(H):
             g[r, j] *= scale
-    return log_safe, _mlp_backward(g, std, Ws, acts, kinds)[:, :s.shape[1]].astype(np.float64)
+    return _mlp_backward(g, std, Ws, acts, kinds)[:, :s.shape[1]].astype(np.float64)
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)

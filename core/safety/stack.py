@@ -43,7 +43,7 @@ from typing import Callable
 import numpy as np
 
 from skinsafe.core.safety.defensiveness import TickInfo
-from skinsafe.core.safety.limits import JointLimits, brake, final_command
+from skinsafe.core.safety.limits import JointLimits, brake, final_command, finite
 from skinsafe.core.safety.modulation import ModulationLayer
 
 CommandSource = Callable[[float, np.ndarray], np.ndarray]
@@ -129,7 +129,7 @@ class StrategyFilter:
 
     def _scores(self, s, cand, log_prior):
         log_safe = np.asarray(self.fast.log_safety(np.broadcast_to(s, (len(cand), len(s))), cand), dtype=float)
-        if not np.all(np.isfinite(log_safe)):
+        if not finite(log_safe):
             self.nonfinite = True
         return log_prior + log_safe
 
@@ -189,8 +189,8 @@ class SafetyStack:
                 raise ValueError(f"SafetyStack.tick: qdot has shape {qdot.shape}; pass the robot's {len(prev)} "
                                  "measured joint velocities (or None)")
             checks.append(("qdot", qdot))
-        bad = [n for n, x in checks if not np.all(np.isfinite(x))]
-        bad += [f"readings:{n}" for n, x in (readings or {}).items() if not np.all(np.isfinite(x))]
+        bad = [n for n, x in checks if not finite(x)]
+        bad += [f"readings:{n}" for n, x in (readings or {}).items() if not finite(x)]
         if "clock" not in bad and t < self._t:  # the clock went backwards: start again
             self.reset()
             self.last = prev
@@ -225,7 +225,7 @@ class SafetyStack:
             w = v.copy()
             w[j], f = self.modulation(s, v[j])
             self.last_f = f
-            if not (self.modulation.finite and np.all(np.isfinite(w))):
+            if not (self.modulation.finite and finite(w)):
                 info.nonfinite = info.nonfinite + ("potential",)
                 if not retracting:
                     return self._send(brake(prev, self.limits), TickInfo(nonfinite=info.nonfinite, safe=True))
