@@ -104,7 +104,7 @@ class FastPotential:
             self._W.append(np.ascontiguousarray(w))
             self._b.append(np.ascontiguousarray(b))
         self._kinds = np.array([k for _, _, k in layers], dtype=np.int64)
-        self._memo = None  # (s, a, log_safe, sigmoids) of the last few-row log_safety call
+        self._memo = []  # (s, a, log_safe, sigmoids) of the last two few-row log_safety calls
         self._panels = None  # the head as panels for the fused pass, made on first use
 
     def _trunk(self, s, a):
@@ -151,19 +151,19 @@ class FastPotential:
             raise TypeError("FastPotential.log_safety needs a DangerPotential over a TDM")
         if np.ndim(a) != 2 or len(a) > FUSED_ROWS:
             return self._danger(s, a, False)[1]
-        self._memo = self._forward(s, a)
-        return self._memo[2]
+        self._memo = [self._forward(s, a)] + self._memo[:1]  # the filter scores in up to two calls
+        return self._memo[0][2]
 
     def __call__(self, s, a) -> tuple[np.ndarray, np.ndarray]:
         """f (B,) and df/ds (B, d) for states (B, d) or (d,) and actions (B, m) or (m,)."""
         d = np.shape(s)[-1]
         if self.output == "total_danger":
             if np.ndim(a) == 1 or len(a) <= FUSED_ROWS:
-                k = self._recall(s, a)
+                m, k = self._recall(s, a)
                 if k < 0:
                     s2, a2, log_safe, sig = self._forward(s, a)
                 else:
-                    ms, ma, log_safe, sig = self._memo
+                    ms, ma, log_safe, sig = self._memo[m]
                     s2, a2, log_safe, sig = ms[k if len(ms) > 1 else 0][None], ma[k][None], log_safe[k:k + 1], sig[k:k + 1]
                 return -np.expm1(log_safe), self._normal(s2, a2, sig, log_safe)
             acts, log_safe, g = self._danger(s, a, True)
@@ -175,12 +175,17 @@ class FastPotential:
             g = (f * (1.0 - f)).astype(np.float32)[:, None]
         return f, _mlp_backward(g, self.std, self._W, acts, self._kinds)[:, :d].astype(np.float64)
 
-    def _recall(self, s, a) -> int:
-        """The row of the last `log_safety` call that scored exactly this one (s, a), or -1."""
-        if self._memo is None or np.ndim(s) != 1 or np.ndim(a) != 1:
-            return -1
-        ms, ma = self._memo[:2]
-        return _find_row(ms, ma, np.asarray(s, dtype=np.float64), np.asarray(a, dtype=np.float64))
+    def _recall(self, s, a) -> tuple[int, int]:
+        """(call, row) of the last two `log_safety` calls that scored exactly this one (s, a), or
+        (-1, -1)."""
+        if np.ndim(s) != 1 or np.ndim(a) != 1:
+            return -1, -1
+        s, a = np.asarray(s, dtype=np.float64), np.asarray(a, dtype=np.float64)
+        for m, (ms, ma, _, _) in enumerate(self._memo):
+            k = _find_row(ms, ma, s, a)
+            if k >= 0:
+                return m, k
+        return -1, -1
 
 
 FUSED_ROWS = 8
