@@ -6,7 +6,9 @@ stack's strategy filter + modulation + defensiveness with `active` contacts), `n
 in the same run (autograd for the normal, the layers one after another without the fast paths).
 Full rows: `ms` is the tick with `active` contacts retracting; `ms_all_candidates` the other
 kind of tick, no contact and a flat prior, so that the strategy filter must score every
-candidate; `ms_worst` the larger of the two medians and `ms_p99` the 99th percentile over both
+candidate; `ms_worst` the larger of the two medians and `ms_p99` the 99th percentile over both,
+`ms_best`/`ms_all_candidates_best` the fastest tick of each kind (on a loaded machine the closest
+to its unloaded cost)
 (`ms_ref_worst`, `worst_speedup_vs_ref` the same for the reference); the four are timed
 interleaved, tick by tick, so that the load of a shared machine falls on all alike;
 `max_abs_diff` between the commands of the two paths.
@@ -139,6 +141,7 @@ def full_tick_rows(taxels, actives, hidden: int, repeat: int) -> list[dict]:
             med = [float(np.median(x)) for x in (ms, ms_all, ms_ref, ms_all_ref)]
             rows.append({"layer": "full", "n_taxels": n, "active": a, "ms": med[0], "ms_all_candidates": med[1],
                          "ms_worst": max(med[:2]), "ms_p99": float(np.percentile(np.r_[ms, ms_all], 99)),
+                         "ms_best": float(ms.min()), "ms_all_candidates_best": float(ms_all.min()),
                          "ms_ref": med[2], "ms_ref_worst": max(med[2:]), "speedup_vs_ref": med[2] / med[0],
                          "worst_speedup_vs_ref": max(med[2:]) / max(med[:2]), "max_abs_diff": diff})
     return rows

@@ -3,7 +3,8 @@
 `ms`: the default tick (prioritised QP with the no-push constraints and the limits, DAQP), median;
 `ms_closed_form`: the same layer with the closed-form merge (`merge="joint"`, the reference the
 QP replaced), timed interleaved with it tick by tick, and `qp_over_closed_form` the ratio of the
-medians; `_p99` and `_worst` (maximum) beside each; `loop_ms`: the closed form
+medians; `_p99`, `_worst` (maximum) and `_best` (minimum: on a loaded machine the closest to the
+unloaded cost) beside each; `loop_ms`: the closed form
 written as a straightforward loop (one `mj_jac`, one SVD and one Gram-Schmidt step per active
 taxel), `speedup_vs_loop` = loop_ms / ms and `max_abs_diff` between the compiled closed form
 and that loop (they must agree to rounding)."""
@@ -87,7 +88,8 @@ def rows(args) -> list[dict]:
         ms_loop = median_ms(lambda: loop.tick(t, q, readings), repeat=max(5, args.repeat // 10), warmup=2)
         med, med_closed = float(np.median(ms)), float(np.median(ms_closed))
         out.append({"active": k, "n_taxels": args.taxels, "ms": round(med, 4), "ms_p99": round(float(np.percentile(ms, 99)), 4),
-                    "ms_worst": round(float(ms.max()), 3), "ms_closed_form": round(med_closed, 4),
+                    "ms_worst": round(float(ms.max()), 3), "ms_best": round(float(ms.min()), 4),
+                    "ms_closed_form": round(med_closed, 4), "ms_closed_form_best": round(float(ms_closed.min()), 4),
                     "ms_closed_form_p99": round(float(np.percentile(ms_closed, 99)), 4),
                     "ms_closed_form_worst": round(float(ms_closed.max()), 3),
                     "qp_over_closed_form": round(med / med_closed, 2), "loop_ms": round(ms_loop, 3),
