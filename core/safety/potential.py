@@ -151,8 +151,10 @@ class FastPotential:
             raise TypeError("FastPotential.log_safety needs a DangerPotential over a TDM")
         if np.ndim(a) != 2 or len(a) > FUSED_ROWS:
             return self._danger(s, a, False)[1]
-        self._memo = [self._forward(s, a)] + self._memo[:1]  # the filter scores in up to two calls
-        return self._memo[0][2]
+        s2, a2, log_safe, sig = self._forward(s, a)
+        # copies: a caller may reuse its arrays; the filter scores in up to two calls
+        self._memo = [(s2.copy(), a2.copy(), log_safe, sig)] + self._memo[:1]
+        return log_safe
 
     def __call__(self, s, a) -> tuple[np.ndarray, np.ndarray]:
         """f (B,) and df/ds (B, d) for states (B, d) or (d,) and actions (B, m) or (m,)."""

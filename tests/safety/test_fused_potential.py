@@ -84,3 +84,13 @@ def test_stack_reads_the_head_once_per_tick_where_the_first_candidate_wins():
     assert calls[0] == {"rows": 20, "backward": 20}  # one forward row + the backward per tick
     assert calls[1] == {"rows": 10, "backward": 10}  # retracting: only the modulation's own pass
     assert calls[2] == {"rows": 60, "backward": 20}  # flat prior: every candidate scored, one backward
+
+
+def test_a_caller_reusing_its_arrays_gets_fresh_values():
+    fp, fresh = FastPotential(DangerPotential(_tdm(200))), FastPotential(DangerPotential(_tdm(200)))
+    rng = np.random.default_rng(2)
+    s, a = rng.normal(size=(1, 6)), rng.normal(size=(1, 6))
+    fp.log_safety(s, a)
+    a *= 3.0  # in place: the kept candidate must not follow
+    assert fp._recall(s[0], a[0]) == (-1, -1)
+    assert np.allclose(fp(s[0], a[0])[1], fresh(s[0], a[0])[1], rtol=1e-6, atol=1e-12)
