@@ -38,3 +38,18 @@ def test_chunks_reuse_and_merge():
     ms = np.random.default_rng(0).lognormal(-1, 1, 10001)
     counts = np.histogram(ms, BINS)[0]
     assert abs(np.log(_quantile(counts, 0.5) / np.median(ms))) < np.log(BINS[1] / BINS[0])
+
+
+def test_ray_fan_out_gives_the_in_process_rows(tmp_path, capsys):
+    """The same chunks run as Ray tasks (cached, niced workers) and in this process: the same
+    numbers (times aside), each chunk from its own random stream; the cache then serves a rerun."""
+    args = ["bench", "safety", "--json", "--cases", "2", "--nonfinite", "2", "--contacts", "2", "--robots", "ur5"]
+    assert main(args + ["--workers", "0"]) == 0
+    here = json.loads(capsys.readouterr().out)
+    assert main(args + ["--workers", "1", "--cache", str(tmp_path), "--out", str(tmp_path / "rows.json")]) == 0
+    fanned = json.loads(capsys.readouterr().out)
+    assert fanned == json.loads((tmp_path / "rows.json").read_text())
+    assert len(list(tmp_path.glob("safety-ur5-2c-0_s0.json"))) == 1
+    times = {"ms_median", "ms_worst", "ms_p999"}
+    assert [{k: v for k, v in r.items() if k not in times} for r in fanned] == \
+        [{k: v for k, v in r.items() if k not in times} for r in here]
