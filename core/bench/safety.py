@@ -38,6 +38,7 @@ from __future__ import annotations
 import functools
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
@@ -67,6 +68,8 @@ def add_arguments(p) -> None:
     p.add_argument("--workers", type=int, default=2, help="Ray workers (0: run in this process, no Ray)")
     p.add_argument("--cache", default="out/safety_audit_cache",
                    help="finished chunks are kept here; a rerun reuses them")
+    p.add_argument("--from-cache", action="store_true",
+                   help="no new work: rows from the chunks of this run already in --cache (a stopped run)")
     p.add_argument("--out", default=None, help="also write the rows to this JSON file (atomically)")
 
 
@@ -329,14 +332,20 @@ def rows(args) -> list[dict]:
     robots, contacts = args.robots.split(","), [int(c) for c in args.contacts.split(",")]
     n_bad = max(1, args.cases // 10) if args.nonfinite is None else args.nonfinite
     tasks = tasks_for(robots, contacts, args.cases, n_bad, args.seed)
-    if args.workers == 0:  # in this process, no Ray (small runs, tests)
+    if args.from_cache:  # a stopped run: its finished chunks only
+        from skinsafe.core.experiments.runner import cached
+
+        results = [cached(Path(args.cache), t) for t in tasks]
+        tasks, results = [t for t, r in zip(tasks, results) if r], [r for r in results if r]
+    elif args.workers == 0:  # in this process, no Ray (small runs, tests)
         results = [audit_task(**t) for t in tqdm(tasks, desc="safety audit", leave=False)]
     else:
         from skinsafe.core.experiments.runner import run_tasks
 
         results = run_tasks(niced_audit_task, tasks, args.cache, workers=args.workers, desc="safety audit")
-    out = [_merge(r, c, [x for t, x in zip(tasks, results) if (t["robot"], t["contacts"]) == (r, c)])
-           for r in robots for c in contacts]
+    parts = {(r, c): [x for t, x in zip(tasks, results) if (t["robot"], t["contacts"]) == (r, c)]
+             for r in robots for c in contacts}
+    out = [_merge(r, c, parts[r, c]) for r in robots for c in contacts if parts[r, c]]
     if args.out:
         atomic_write(args.out, json.dumps(out, indent=1) + "\n")
     return out

@@ -50,6 +50,8 @@ def test_ray_fan_out_gives_the_in_process_rows(tmp_path, capsys):
     fanned = json.loads(capsys.readouterr().out)
     assert fanned == json.loads((tmp_path / "rows.json").read_text())
     assert len(list(tmp_path.glob("safety-ur5-2c-0_s0.json"))) == 1
+    assert main(args + ["--from-cache", "--cache", str(tmp_path)]) == 0  # what a stopped run has finished
+    assert json.loads(capsys.readouterr().out) == fanned  # only the finished chunk: no new work
     times = {"ms_median", "ms_worst", "ms_p999"}
     assert [{k: v for k, v in r.items() if k not in times} for r in fanned] == \
         [{k: v for k, v in r.items() if k not in times} for r in here]
