@@ -10,7 +10,7 @@ candidate; `ms_worst` the larger of the two medians and `ms_p99` the 99th percen
 `ms_best`/`ms_all_candidates_best` the fastest tick of each kind (on a loaded machine the closest
 to its unloaded cost)
 (`ms_ref_worst`, `worst_speedup_vs_ref` the same for the reference); the four are timed
-interleaved, tick by tick, so that the load of a shared machine falls on all alike;
+interleaved in blocks of 20 ticks (`timing.interleaved_ms`), so that the load of a shared machine falls on all alike;
 `max_abs_diff` between the commands of the two paths.
 With `--nstep`, rows `layer` = "nstep" add the Monte Carlo trade of eq. 8 on a sharp potential:
 horizon and samples vs the RMS error of w against 1,024 rollouts, the time for 256 states, and

@@ -2,7 +2,7 @@
 
 `ms`: the default tick (prioritised QP with the no-push constraints and the limits, DAQP), median;
 `ms_closed_form`: the same layer with the closed-form merge (`merge="joint"`, the reference the
-QP replaced), timed interleaved with it tick by tick, and `qp_over_closed_form` the ratio of the
+QP replaced), timed interleaved with it in blocks of 20 ticks, and `qp_over_closed_form` the ratio of the
 medians; `_p99`, `_worst` (maximum) and `_best` (minimum: on a loaded machine the closest to the
 unloaded cost) beside each; `loop_ms`: the closed form
 written as a straightforward loop (one `mj_jac`, one SVD and one Gram-Schmidt step per active

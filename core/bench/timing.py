@@ -20,16 +20,20 @@ def median_ms(fn: Callable[[], object], repeat: int = 50, warmup: int = 3, min_t
     return float(np.median(times) * 1e3)
 
 
-def interleaved_ms(fns: list[Callable[[], object]], repeat: int = 200, warmup: int = 3) -> list[np.ndarray]:
-    """Wall times (ms) of each of `fns`, called in turn `repeat` times: on a shared machine the
-    load then falls on all of them alike, so their ratios hold even when the times do not."""
+def interleaved_ms(fns: list[Callable[[], object]], repeat: int = 200, warmup: int = 3, block: int = 20) -> list[np.ndarray]:
+    """Wall times (ms) of each of `fns`, `repeat` calls each, taken in alternating blocks of
+    `block` calls: on a shared machine the load then falls on all of them alike, so their ratios
+    hold even when the times do not. The first call of each block is not recorded (it pays for
+    the caches the other function's block evicted, a cost of the bench, not of the code)."""
     for fn in fns:
         for _ in range(warmup):
             fn()
-    times = np.empty((len(fns), repeat))
-    for r in range(repeat):
+    times: list[list[float]] = [[] for _ in fns]
+    while len(times[0]) < repeat:
         for k, fn in enumerate(fns):
-            t0 = time.perf_counter()
             fn()
-            times[k, r] = time.perf_counter() - t0
-    return list(times * 1e3)
+            for _ in range(min(block, repeat - len(times[k]))):
+                t0 = time.perf_counter()
+                fn()
+                times[k].append(time.perf_counter() - t0)
+    return [np.array(t) * 1e3 for t in times]
