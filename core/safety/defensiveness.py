@@ -167,16 +167,21 @@ class DefensivenessLayer:
         if fatal:
             return self._finish(brake(prev, self.limits), TickInfo(nonfinite=tuple(fatal + bad), safe=True), prev)
         self._t = t
-        events = np.zeros(self.kin.n, bool)
+        events = None
         for name, value in clean.items():
             if name in self.thresholds:
-                events |= value > self.thresholds[name]
+                over_th = value > self.thresholds[name]
+                events = over_th if events is None else events | over_th
         st = self._state
-        over = t - st[:, 1] > p.T  # retractions that are over leave the pool
-        if over.any():
-            self._in_pool[st[over, 0].astype(np.intp)] = False
-            st = st[~over]
-        new = np.flatnonzero(events & ~self._in_pool)
+        if len(st):
+            over = t - st[:, 1] > p.T  # retractions that are over leave the pool
+            if over.any():
+                self._in_pool[st[over, 0].astype(np.intp)] = False
+                st = st[~over]
+        if events is None:
+            new = np.zeros(0, np.intp)
+        else:
+            new = np.flatnonzero(events & ~self._in_pool if len(st) else events)
         if len(st) + len(new) == 0:
             self._state, self.priorities, self.retracted = st, np.zeros(0), np.zeros(0)
             self.A, self.b = np.zeros((0, nv)), np.zeros(0)
