@@ -28,6 +28,11 @@ layer's command is integrated tick by tick (dt 2 ms) over the whole retraction (
 * `ms_median`, `ms_worst`: the defensiveness tick over all ticks of the cases (`ms_p999`: the
   99.9th percentile, as the maximum on a shared machine is the scheduler's).
 
+The default run (2,500 sets per robot and contact count) is fanned out with Ray in chunks of
+`CHUNK` sets (`audit_task`, niced workers, the experiments' `run_tasks`: cached per chunk, a tqdm
+bar); `--workers 0` runs in this process, `--from-cache` gives the rows of a stopped run's finished
+chunks, `--out` writes the rows atomically.
+
 With `--eq2` only, rows `estimator` = "eq2" instead: the bias of eq. 2's importance-sampling
 estimate (`danger.marginal_danger`) against the exact integral, per sample count K, on a
 proposal that puts little mass where the danger is (`bias_pct` over all estimates,
