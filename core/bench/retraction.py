@@ -1,8 +1,10 @@
 """`skinsafe bench retraction`: one defensiveness tick with K active taxels out of N.
 
-`ms`: the default tick (prioritised QP with the no-push constraints and the limits, DAQP);
+`ms`: the default tick (prioritised QP with the no-push constraints and the limits, DAQP), median;
 `ms_closed_form`: the same layer with the closed-form merge (`merge="joint"`, the reference the
-QP replaced) and `qp_over_closed_form` their ratio in the same run; `loop_ms`: the closed form
+QP replaced), timed interleaved with it in blocks of 20 ticks, and `qp_over_closed_form` the ratio of the
+medians; `_p99`, `_worst` (maximum) and `_best` (minimum: on a loaded machine the closest to the
+unloaded cost) beside each; `loop_ms`: the closed form
 written as a straightforward loop (one `mj_jac`, one SVD and one Gram-Schmidt step per active
 taxel), `speedup_vs_loop` = loop_ms / ms and `max_abs_diff` between the compiled closed form
 and that loop (they must agree to rounding)."""
@@ -13,7 +15,7 @@ from dataclasses import replace
 import mujoco
 import numpy as np
 
-from skinsafe.core.bench.timing import median_ms
+from skinsafe.core.bench.timing import interleaved_ms, median_ms
 from skinsafe.core.design.sample import design_with
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.robot.models import build_ur5
@@ -81,10 +83,15 @@ def rows(args) -> list[dict]:
         primed(qp, q, active, args.taxels)
         t = 0.1 * params.T
         diff = float(np.abs(fast.tick(t, q, readings) - loop.tick(t, q, readings)).max())
-        ms = median_ms(lambda: qp.tick(t, q, readings), repeat=args.repeat, warmup=5)
-        ms_closed = median_ms(lambda: fast.tick(t, q, readings), repeat=args.repeat, warmup=5)
+        ms, ms_closed = interleaved_ms([lambda: qp.tick(t, q, readings), lambda: fast.tick(t, q, readings)],
+                                       repeat=args.repeat, warmup=5)
         ms_loop = median_ms(lambda: loop.tick(t, q, readings), repeat=max(5, args.repeat // 10), warmup=2)
-        out.append({"active": k, "n_taxels": args.taxels, "ms": round(ms, 4), "ms_closed_form": round(ms_closed, 4),
-                    "qp_over_closed_form": round(ms / ms_closed, 2), "loop_ms": round(ms_loop, 3),
-                    "speedup_vs_loop": round(ms_loop / ms, 1), "max_abs_diff": diff})
+        med, med_closed = float(np.median(ms)), float(np.median(ms_closed))
+        out.append({"active": k, "n_taxels": args.taxels, "ms": round(med, 4), "ms_p99": round(float(np.percentile(ms, 99)), 4),
+                    "ms_worst": round(float(ms.max()), 3), "ms_best": round(float(ms.min()), 4),
+                    "ms_closed_form": round(med_closed, 4), "ms_closed_form_best": round(float(ms_closed.min()), 4),
+                    "ms_closed_form_p99": round(float(np.percentile(ms_closed, 99)), 4),
+                    "ms_closed_form_worst": round(float(ms_closed.max()), 3),
+                    "qp_over_closed_form": round(med / med_closed, 2), "loop_ms": round(ms_loop, 3),
+                    "speedup_vs_loop": round(ms_loop / med, 1), "max_abs_diff": diff})
     return out

@@ -28,6 +28,7 @@ import io
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import mujoco
@@ -40,6 +41,11 @@ from skinsafe.core.robot.models import build_ur5, mesh_ur5
 from skinsafe.core.sim.probes import BASE_PITCH, Probes, design_for, probe_scene
 from skinsafe.core.sim.readout import SkinReadout, TactileReadout, TouchReadout
 
+
+def _medians(fns: dict[str, Callable[[], object]], repeat: int) -> dict[str, float]:
+    """Median ms of each named function, timed interleaved (`timing.interleaved_ms`)."""
+    times = interleaved_ms(list(fns.values()), repeat=repeat)
+    return {k: float(np.median(t)) for k, t in zip(fns, times)}
 
 def add_arguments(p) -> None:
     p.add_argument("--sizes", default="256,1024,4096,16384", help="target taxel counts (comma separated)")
@@ -75,9 +81,9 @@ def taxel_rows(sizes, steps: int, tactile_points=TACTILE_POINTS) -> list[dict]:
         for _ in range(50):  # settle the contacts
             _stepper(mb, db, probes)()
         readers = {k: SkinReadout(mb, design, kernel=k) for k in ("linear", "nearest")}
-        t_ms = interleaved_ms({"skinless": _stepper(m0, d0, probes), "bare": _stepper(mb, db, probes),
+        t_ms = _medians({"skinless": _stepper(m0, d0, probes), "bare": _stepper(mb, db, probes),
                               "sites": _stepper(msites, dsites, probes), "touch": _stepper(mt, dt, probes),
-                              **{k: (lambda r=r: r.read(db)) for k, r in readers.items()}}, repeat=max(steps // 5, 10))
+                              **{k: (lambda r=r: r.read(db)) for k, r in readers.items()}}, repeat=max(steps // 5, 10) * 7)
         skinless, bare, sites, touch_step = t_ms["skinless"], t_ms["bare"], t_ms["sites"], t_ms["touch"]
         read_ms = {k: t_ms[k] for k in readers}
         agree = _agreement(mt, dt, design, probes, steps)
@@ -90,8 +96,8 @@ def taxel_rows(sizes, steps: int, tactile_points=TACTILE_POINTS) -> list[dict]:
         tactile = []
         for pts in tactile_points:
             mk, dk = probe_scene(design, robot, probes.obstacles, probes.q, tactile_sensors=True, tactile_points=pts)
-            both = interleaved_ms({"skinless": _stepper(m0, d0, probes), "tactile": _stepper(mk, dk, probes)},
-                                  repeat=max(steps // 5, 10))
+            both = _medians({"skinless": _stepper(m0, d0, probes), "tactile": _stepper(mk, dk, probes)},
+                                  repeat=max(steps // 5, 10) * 7)
             step_ms = both["tactile"] * skinless / both["skinless"]  # on the same skinless scale as the readout
             acc = _accuracy(design, robot, probes, steps, lambda m, d, p=pts: TactileReadout(m, d, design, p).read,
                             calibrate=True, tactile_sensors=True, tactile_points=pts)

@@ -20,11 +20,20 @@ def median_ms(fn: Callable[[], object], repeat: int = 50, warmup: int = 3, min_t
     return float(np.median(times) * 1e3)
 
 
-def interleaved_ms(fns: dict[str, Callable[[], object]], repeat: int = 50, rounds: int = 7) -> dict[str, float]:
-    """Median wall times (ms) of several functions measured in alternating rounds of `repeat`
-    runs each, so a change in the machine's load between them shifts all alike (their ratios hold)."""
-    per = {k: [] for k in fns}
-    for _ in range(rounds):
-        for k, fn in fns.items():
-            per[k].append(median_ms(fn, repeat=repeat, warmup=1))
-    return {k: float(np.median(v)) for k, v in per.items()}
+def interleaved_ms(fns: list[Callable[[], object]], repeat: int = 200, warmup: int = 3, block: int = 20) -> list[np.ndarray]:
+    """Wall times (ms) of each of `fns`, `repeat` calls each, taken in alternating blocks of
+    `block` calls: on a shared machine the load then falls on all of them alike, so their ratios
+    hold even when the times do not. The first call of each block is not recorded (it pays for
+    the caches the other function's block evicted, a cost of the bench, not of the code)."""
+    for fn in fns:
+        for _ in range(warmup):
+            fn()
+    times: list[list[float]] = [[] for _ in fns]
+    while len(times[0]) < repeat:
+        for k, fn in enumerate(fns):
+            fn()
+            for _ in range(min(block, repeat - len(times[k]))):
+                t0 = time.perf_counter()
+                fn()
+                times[k].append(time.perf_counter() - t0)
+    return [np.array(t) * 1e3 for t in times]

@@ -25,7 +25,7 @@ import numba
 import numpy as np
 
 from skinsafe.core.robot.kinematics import TaxelKinematics
-from skinsafe.core.safety.limits import JointLimits, brake, scale_into
+from skinsafe.core.safety.limits import JointLimits, brake, finite, scale_into
 from skinsafe.core.safety.qp import prioritised
 from skinsafe.core.safety.retraction import (
     RetractionParams,
@@ -33,8 +33,6 @@ from skinsafe.core.safety.retraction import (
     profile,
     profile_rate,
     retract_qdot,
-    task_jacobians,
-    task_velocities,
 )
 
 MAX_TASKS = 64
@@ -50,7 +48,9 @@ class TickInfo:
     retracts less rather than push another one into its contact); `infeasible`: no command within
     the velocity and acceleration limits kept every contacted taxel out of its contact (the
     least-violating one was sent); `recovery_dropped`: a drifted
-    taxel could not be pushed back this tick; `damped`: the dominant task is near a singularity."""
+    taxel could not be pushed back this tick; `damped`: the dominant task is near a singularity;
+    `pushing`: the measured joint velocity (`SafetyStack.tick(qdot=...)`) moved a contacted taxel
+    into its contact."""
 
     nonfinite: tuple = ()
     safe: bool = False
@@ -61,6 +61,7 @@ class TickInfo:
     infeasible: bool = False
     recovery_dropped: bool = False
     damped: bool = False
+    pushing: bool = False
     dominant_residual: float = 0.0
     flags: tuple = field(default=())
 
@@ -137,27 +138,26 @@ class DefensivenessLayer:
         seconds ago (default: the construction's dt). Fail-safe rules: module docstring."""
         p, nv = self.params, self.kin.model.nv
         prev = self.last if prev is None else np.asarray(prev, dtype=float)
-        prev = np.where(np.isfinite(prev), prev, 0.0)
+        prev = prev if finite(prev) else np.where(np.isfinite(prev), prev, 0.0)
         dt = self.limits.dt if dt is None else float(dt)
         q = np.asarray(q, dtype=float)
         if q.shape != (self.kin.model.nq,):
             raise ValueError(f"DefensivenessLayer.tick: q has shape {q.shape}; pass the robot's {self.kin.model.nq} "
                              "joint positions")
-        bad, finite = [], {}
+        bad, clean = [], {}
         for name, value in readings.items():
             value = np.asarray(value, dtype=float)
             if value.shape != (self.kin.n,):
                 raise ValueError(f"DefensivenessLayer.tick: readings['{name}'] has shape {value.shape}; "
                                  f"pass one (N,) array per stimulus with N = {self.kin.n}")
-            if not np.isfinite(value).all():
+            if not finite(value):
                 bad.append(f"readings:{name}")
                 value = np.where(np.isfinite(value), value, -np.inf)  # a non-finite reading never triggers
-            finite[name] = value
+            clean[name] = value
         plan = None if qdot_planned is None else np.asarray(qdot_planned, dtype=float)
-        if plan is not None and not np.all(np.isfinite(plan)):
+        if plan is not None and not finite(plan):
             bad.append("command")
-        fatal = [n for n, ok in (("clock", np.isfinite(t)), ("q", np.all(np.isfinite(q))),
-                                 ("dt", np.isfinite(dt) and dt > 0)) if not ok]
+        fatal = [n for n, ok in (("clock", finite(t)), ("q", finite(q)), ("dt", finite(dt) and dt > 0)) if not ok]
         clock_reset = not fatal and t < self._t
         if clock_reset:
             last = prev
@@ -167,16 +167,21 @@ class DefensivenessLayer:
         if fatal:
             return self._finish(brake(prev, self.limits), TickInfo(nonfinite=tuple(fatal + bad), safe=True), prev)
         self._t = t
-        events = np.zeros(self.kin.n, bool)
-        for name, value in finite.items():
+        events = None
+        for name, value in clean.items():
             if name in self.thresholds:
-                events |= value > self.thresholds[name]
+                over_th = value > self.thresholds[name]
+                events = over_th if events is None else events | over_th
         st = self._state
-        over = t - st[:, 1] > p.T  # retractions that are over leave the pool
-        if over.any():
-            self._in_pool[st[over, 0].astype(np.intp)] = False
-            st = st[~over]
-        new = np.flatnonzero(events & ~self._in_pool)
+        if len(st):
+            over = t - st[:, 1] > p.T  # retractions that are over leave the pool
+            if over.any():
+                self._in_pool[st[over, 0].astype(np.intp)] = False
+                st = st[~over]
+        if events is None:
+            new = np.zeros(0, np.intp)
+        else:
+            new = np.flatnonzero(events & ~self._in_pool if len(st) else events)
         if len(st) + len(new) == 0:
             self._state, self.priorities, self.retracted = st, np.zeros(0), np.zeros(0)
             self.A, self.b = np.zeros((0, nv)), np.zeros(0)
@@ -193,19 +198,17 @@ class DefensivenessLayer:
             rows[:, 0], rows[:, 1], rows[:, 2] = new, t, 0.0
             rows[:, 3:6], rows[:, 6:9] = pos[len(st):], frames[len(st):, :, 2]
             st = np.concatenate([st, rows])
-        order, w, done, speed = _rank(st, pos, self._severity_now(finite, idx), t, p.T, p.max_distance)
+        six = p.form == "6d"
+        order, w, done, speed, self.A, self.b, Jt, rt = _rank(st, pos, self._severity_now(clean, idx), t, p.T,
+                                                              p.max_distance, J, six, p.recovery_gain, MAX_TASKS)
         self._state, self.priorities, self.retracted = st[order], w, done
-        J, back = J[order], -self._state[:, 6:9]
-        self.A = np.einsum("kij,ki->kj", J[:, :3, :], back)  # a_k = J_p,k^T d_k: speed along -z_k(tau)
-        self.b = np.minimum(p.recovery_gain * np.maximum(-done, 0.0), 0.05)  # push back what drifted in
         info = TickInfo(nonfinite=tuple(bad), clock_reset=clock_reset, retracting=True)
         if p.merge != "qp":  # the closed-form references, limited as before (uniform scaling)
-            return self._finish(scale_into(self._merged(J, back, speed), prev, self.limits, dt), info, prev)
+            return self._finish(scale_into(self._merged(J[order], -self._state[:, 6:9], speed), prev, self.limits, dt),
+                                info, prev)
         lo, hi = self.limits.box(prev, dt)
         A, b = _distinct_rows(self.A, self.b) if len(self.A) > MAX_TASKS else (self.A, self.b)
-        m = min(len(J), MAX_TASKS)
-        sol = prioritised(task_jacobians(J[:m], p.form), task_velocities(back[:m], speed[:m], p.form), A, b, lo, hi,
-                          self.limits.vel, p.damping, p.sv_threshold, p.rank_tol, start=prev)
+        sol = prioritised(Jt, rt, A, b, lo, hi, self.limits.vel, p.damping, p.sv_threshold, p.rank_tol)
         for name in ("limited", "blocked", "infeasible", "recovery_dropped", "damped", "dominant_residual"):
             setattr(info, name, getattr(sol, name))
         return self._finish(sol.qd, info, prev)
@@ -264,10 +267,13 @@ def _distinct_rows(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 @numba.njit(cache=True, nogil=True)
-def _rank(st, pos, severity, t, T, max_distance):
+def _rank(st, pos, severity, t, T, max_distance, J, six, recovery_gain, max_tasks):
     """Eq. 12 for the pool rows `st` (updated in place: peak severity): the priority order
-    (stable, highest first) and, in that order, priorities, distances retracted and speeds."""
-    K = st.shape[0]
+    (stable, highest first) and, in that order, priorities, distances retracted and speeds; then
+    the no-push rows `A qd >= b` (a_k = J_p,k^T d_k, d_k = -z_k(tau): speed along the retraction
+    axis; b pushes back what drifted in) and the tasks of the first `max_tasks` (task Jacobians
+    (m, 3 or 6, nv) and their eq. 10 velocities along d_k, zero rotation in 6-D)."""
+    K, nv = st.shape[0], J.shape[2]
     D, w, done = np.empty(K), np.empty(K), np.empty(K)
     for k in range(K):
         if severity[k] > st[k, 2]:
@@ -277,8 +283,20 @@ def _rank(st, pos, severity, t, T, max_distance):
                     + (pos[k, 2] - st[k, 5]) * st[k, 8])  # along -z(tau)
         w[k] = D[k] / 12 - done[k]
     order = np.argsort(-w, kind="mergesort")
-    speed = np.empty(K)
+    m, rows = min(K, max_tasks), 6 if six else 3
+    speed, A, b = np.empty(K), np.zeros((K, nv)), np.empty(K)
+    Jt, rt = np.zeros((m, rows, nv)), np.zeros((m, rows))
     for i in range(K):
         k = order[i]
         speed[i] = D[k] * profile_rate((t - st[k, 1]) / T) / T
-    return order, w[order], done[order], speed
+        b[i] = min(recovery_gain * max(-done[k], 0.0), 0.05)  # push back what drifted in
+        for c in range(3):
+            for j in range(nv):
+                A[i, j] -= J[k, c, j] * st[k, 6 + c]
+        if i < m:
+            for c in range(3):
+                rt[i, c] = -st[k, 6 + c] * speed[i]
+            for c in range(rows):
+                for j in range(nv):
+                    Jt[i, c, j] = J[k, c, j]
+    return order, w[order], done[order], speed, A, b, Jt, rt

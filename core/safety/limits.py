@@ -19,6 +19,7 @@ the planned command.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numba
@@ -70,6 +71,23 @@ class JointLimits:
         return vel, acc
 
 
+def finite(x) -> bool:
+    """True when x (a number or an array of numbers) holds no NaN or infinity; cheap for both
+    (a control tick checks a dozen inputs)."""
+    if isinstance(x, (float, int)):
+        return math.isfinite(x)
+    x = np.asarray(x, dtype=np.float64)
+    return _all_finite(x.reshape(-1)) if x.flags.c_contiguous else bool(np.isfinite(x).all())
+
+
+@numba.njit(cache=True, nogil=True)
+def _all_finite(x):
+    for i in range(x.shape[0]):
+        if not np.isfinite(x[i]):
+            return False
+    return True
+
+
 def brake(prev: np.ndarray, limits: JointLimits) -> np.ndarray:
     """The safe command: each joint's speed reduced toward 0 by at most its acc * dt."""
     step = limits.acc * limits.dt
@@ -116,16 +134,51 @@ def final_command(v: np.ndarray, prev: np.ndarray, limits: JointLimits, A: np.nd
     if A is None or len(A) == 0:
         out = scale_into(v, prev, limits)
         return Projection(out, changed=not np.array_equal(out, v))
-    lo, hi = limits.box(prev)
-    if np.all(v >= lo - tol) and np.all(v <= hi + tol) and np.all(A @ v >= b - tol):
-        return Projection(np.clip(v, lo, hi))
+    v = np.asarray(v, dtype=np.float64)
+    inside, lo, hi, C, lower, upper = _projection(v, np.asarray(prev, dtype=np.float64), limits.vel, limits.acc,
+                                                  limits.dt, np.ascontiguousarray(A, dtype=np.float64),
+                                                  np.ascontiguousarray(b, dtype=np.float64), tol)
+    if inside:
+        return Projection(np.minimum(np.maximum(v, lo), hi))
     n = len(v)
-    H, f, C = np.eye(n), -np.asarray(v, dtype=float), np.ascontiguousarray(np.vstack([np.eye(n), A]))
-    x, ok, _ = qp.solve(H, f, C, np.r_[lo, b], np.r_[hi, np.full(len(b), qp.BIG)])
+    H, f = _EYE[n] if n < len(_EYE) else np.eye(n), -v
+    x, ok, _ = qp.solve(H, f, C, lower, upper)
     bb = b
     if not ok:
         bb = qp.relaxed_bounds(A, b, lo, hi)
-        x, ok, _ = qp.solve(H, f, C, np.r_[lo, bb], np.r_[hi, np.full(len(bb), qp.BIG)])
+        lower[n:] = bb
+        x, ok, _ = qp.solve(H, f, C, lower, upper)
     if not ok:  # cannot happen for bounds from relaxed_bounds; stay safe anyway
         return Projection(brake(prev, limits), True, True)
-    return Projection(np.clip(x, lo, hi), True, bool(np.any(bb < 0)))
+    return Projection(np.minimum(np.maximum(x, lo), hi), True, bool(np.any(bb < 0)))
+
+
+_EYE = [np.eye(n) for n in range(16)]
+
+
+@numba.njit(cache=True, nogil=True)
+def _projection(v, prev, vel, acc, dt, A, b, tol):
+    """The box (`JointLimits.box`), whether v already meets it and every no-push row (to tol),
+    and the projection QP's rows: `lower <= [I; A] x <= upper`."""
+    n, K = len(v), len(b)
+    lo, hi = np.empty(n), np.empty(n)
+    inside = True
+    for i in range(n):
+        lo[i] = max(-vel[i], prev[i] - acc[i] * dt)
+        hi[i] = min(vel[i], prev[i] + acc[i] * dt)
+        if v[i] < lo[i] - tol or v[i] > hi[i] + tol:
+            inside = False
+    C = np.zeros((n + K, n))
+    lower, upper = np.empty(n + K), np.empty(n + K)
+    for i in range(n):
+        C[i, i] = 1.0
+        lower[i], upper[i] = max(lo[i], -qp.BIG), min(hi[i], qp.BIG)
+    for k in range(K):
+        s = 0.0
+        for i in range(n):
+            C[n + k, i] = A[k, i]
+            s += A[k, i] * v[i]
+        if s < b[k] - tol:
+            inside = False
+        lower[n + k], upper[n + k] = b[k], qp.BIG
+    return inside, lo, hi, C, lower, upper

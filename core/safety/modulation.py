@@ -134,6 +134,6 @@ class ModulationLayer:
         single = np.ndim(v) == 1
         a = v if a is None else a
         f, n = self._eval(s, a)
-        self.finite = bool(np.all(np.isfinite(f)) and np.all(np.isfinite(n)))
+        self.finite = bool(np.isfinite(f).all() and np.isfinite(n).all())
         out = modulate(v, f, n, self.eps_grad, self.keep_away, self.tangent_gain)
         return (out, float(f[0])) if single else (out, f)

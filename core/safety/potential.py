@@ -11,6 +11,8 @@
   all the modulation needs (dividing by sum_t gamma^t instead would cap the foresight at
   1 / sum_t gamma^t of a certain danger one step ahead). D_t is replaced by its expectation
   f(s_t, a_t) (same mean as sampling D_t, less variance); rollouts do not stop at a danger event.
+
+`FastPotential`'s compiled kernels are in `potential_kernels.py`.
 """
 from __future__ import annotations
 
@@ -26,6 +28,16 @@ from scipy.special import expit
 from torch import nn
 
 from skinsafe.core.safety.danger import total_danger
+from skinsafe.core.safety.potential_kernels import (
+    _FAST,
+    FUSED_ROWS,
+    _find_row,
+    _mlp_backward,
+    _mlp_forward,
+    _tdm_backward,
+    _tdm_forward,
+    panels,
+)
 
 Potential = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """(s (B, d), a (B, m)) -> (B,) potential in [0, 1], differentiable in s."""
@@ -104,6 +116,8 @@ class FastPotential:
             self._W.append(np.ascontiguousarray(w))
             self._b.append(np.ascontiguousarray(b))
         self._kinds = np.array([k for _, _, k in layers], dtype=np.int64)
+        self._memo = []  # (s, a, log_safe, sigmoids) of the last two few-row log_safety calls
+        self._panels = None  # the head as panels for the fused pass, made on first use
 
     def _trunk(self, s, a):
         """The activations of the compiled layers (input first) for states and actions."""
@@ -123,16 +137,49 @@ class FastPotential:
         log_safe, sig = _head_terms(_rows_times(acts[len(acts) - 1], w.T) + b, grad)
         return acts, log_safe, _rows_times(sig, w) if grad else None
 
+    def _inputs(self, s, a):
+        s, a = np.atleast_2d(np.asarray(s, dtype=np.float64)), np.atleast_2d(np.asarray(a, dtype=np.float64))
+        if s.shape[0] != a.shape[0] or s.shape[1] + a.shape[1] != len(self.mean):
+            self._trunk(s, a)  # raises the clear error
+        if self._panels is None:
+            self._panels = panels(*self.head)
+        return s, a
+
+    def _forward(self, s, a):
+        """(s, a, log p(not D) (B,), sigmoids of the head logits) for a few rows: one compiled
+        pass over the head (`_tdm_forward`)."""
+        s, a = self._inputs(s, a)
+        return (s, a) + _tdm_forward(s, a, self.mean, self.std, self._W, self._b, self._kinds, *self._panels,
+                                     len(self.head[1]))
+
+    def _normal(self, s, a, sig, log_safe):
+        return _tdm_backward(s, a, self.mean, self.std, self._W, self._b, self._kinds, self._panels[0], sig, log_safe)
+
     def log_safety(self, s, a) -> np.ndarray:
-        """log p(not D | s, a) (B,) of a TDM potential (eq. 1 in log space), no gradient."""
+        """log p(not D | s, a) (B,) of a TDM potential (eq. 1 in log space). For a few rows (the
+        strategy filter's candidates) the head's sigmoids are kept: the modulation of the chosen
+        candidate then needs only the backward pass (`__call__`)."""
         if self.output != "total_danger":
             raise TypeError("FastPotential.log_safety needs a DangerPotential over a TDM")
-        return self._danger(s, a, False)[1]
+        if np.ndim(a) != 2 or len(a) > FUSED_ROWS:
+            return self._danger(s, a, False)[1]
+        s2, a2, log_safe, sig = self._forward(s, a)
+        # copies: a caller may reuse its arrays; the filter scores in up to two calls
+        self._memo = [(s2.copy(), a2.copy(), log_safe, sig)] + self._memo[:1]
+        return log_safe
 
     def __call__(self, s, a) -> tuple[np.ndarray, np.ndarray]:
         """f (B,) and df/ds (B, d) for states (B, d) or (d,) and actions (B, m) or (m,)."""
         d = np.shape(s)[-1]
         if self.output == "total_danger":
+            if np.ndim(a) == 1 or len(a) <= FUSED_ROWS:
+                m, k = self._recall(s, a)
+                if k < 0:
+                    s2, a2, log_safe, sig = self._forward(s, a)
+                else:
+                    ms, ma, log_safe, sig = self._memo[m]
+                    s2, a2, log_safe, sig = ms[k if len(ms) > 1 else 0][None], ma[k][None], log_safe[k:k + 1], sig[k:k + 1]
+                return -np.expm1(log_safe), self._normal(s2, a2, sig, log_safe)
             acts, log_safe, g = self._danger(s, a, True)
             f = -np.expm1(log_safe)  # eq. 1 in log space
             g *= np.exp(log_safe).astype(np.float32)[:, None]  # df/dz_i = (1 - f) sigmoid(z_i)
@@ -142,57 +189,17 @@ class FastPotential:
             g = (f * (1.0 - f)).astype(np.float32)[:, None]
         return f, _mlp_backward(g, self.std, self._W, acts, self._kinds)[:, :d].astype(np.float64)
 
-
-_FAST = {"reassoc", "contract", "nsz", "arcp"}  # reorder sums, keep inf and NaN semantics
-
-
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _mlp_forward(s, a, mean, std, Ws, bs, kinds):
-    """Activations (input first) of the layers `Ws, bs` with `kinds` (0 linear, 1 ReLU, 2 tanh)
-    on the normalised input `([s, a] - mean) / std`, float32."""
-    B, ds = s.shape
-    x = np.empty((B, ds + a.shape[1]), np.float32)
-    for r in range(B):
-        for j in range(x.shape[1]):
-            x[r, j] = ((s[r, j] if j < ds else a[r, j - ds]) - mean[j]) / std[j]
-    acts = typed.List()
-    acts.append(x)
-    for k in range(len(Ws)):
-        W, bias = Ws[k], bs[k]
-        y = np.empty((B, W.shape[0]), np.float32)
-        for r in range(B):
-            for o in range(W.shape[0]):
-                acc = bias[o]
-                for i in range(W.shape[1]):
-                    acc += W[o, i] * x[r, i]
-                if kinds[k] == 1:
-                    acc = max(acc, np.float32(0.0))
-                elif kinds[k] == 2:
-                    acc = np.tanh(acc)
-                y[r, o] = acc
-        acts.append(y)
-        x = y
-    return acts
-
-
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _mlp_backward(g, std, Ws, acts, kinds):
-    """The gradient `g` at the last layer's output taken back to the (unnormalised) input."""
-    B = g.shape[0]
-    for k in range(len(Ws) - 1, -1, -1):
-        W, y = Ws[k], acts[k + 1]
-        if kinds[k] == 1:
-            g = np.where(y > 0, g, np.float32(0.0))
-        elif kinds[k] == 2:
-            g = g * (np.float32(1.0) - y * y)
-        out = np.zeros((B, W.shape[1]), np.float32)
-        for r in range(B):
-            for o in range(W.shape[0]):
-                go = g[r, o]
-                for i in range(W.shape[1]):
-                    out[r, i] += go * W[o, i]
-        g = out
-    return g / std
+    def _recall(self, s, a) -> tuple[int, int]:
+        """(call, row) of the last two `log_safety` calls that scored exactly this one (s, a), or
+        (-1, -1)."""
+        if np.ndim(s) != 1 or np.ndim(a) != 1:
+            return -1, -1
+        s, a = np.asarray(s, dtype=np.float64), np.asarray(a, dtype=np.float64)
+        for m, (ms, ma, _, _) in enumerate(self._memo):
+            k = _find_row(ms, ma, s, a)
+            if k >= 0:
+                return m, k
+        return -1, -1
 
 
 def _head_terms(z: np.ndarray, grad: bool):

@@ -41,17 +41,15 @@ import numba
 import numpy as np
 
 BIG = 1e30  # DAQP's "no bound"
+_SENSE = np.zeros(256, dtype=np.int32)  # every row an inequality (read-only use)
 
 
-def solve(H, f, C, lower, upper, start=None):
+def solve(H, f, C, lower, upper):
     """min 1/2 x'Hx + f'x s.t. lower <= C x <= upper (+-1e30 for none), all float64
     C-contiguous. Returns (x, ok, lam), lam the rows' multipliers (0 where inactive); ok is
     checked against the rows (primal tolerance 1e-9, rows met to 1e-7), not only DAQP's exit flag."""
-    sense = np.zeros(len(lower), dtype=np.int32)
-    if start is None:
-        x, _, flag, info = daqp.solve(H, f, C, upper, lower, sense, primal_tol=1e-9)
-    else:
-        x, _, flag, info = daqp.solve(H, f, C, upper, lower, sense, primal_tol=1e-9, primal_start=start)
+    sense = _SENSE[:len(lower)] if len(lower) <= len(_SENSE) else np.zeros(len(lower), dtype=np.int32)
+    x, _, flag, info = daqp.solve(H, f, C, upper, lower, sense, primal_tol=1e-9)
     x = np.asarray(x)
     return x, flag >= 1 and _meets(C, x, lower, upper), info["lam"]
 
@@ -132,47 +130,94 @@ def _level(Jk, Z, x, rk, A, b, lo, hi, damping, sv_threshold, rank_tol, reg):
     return H, f, C, lower, upper, rank, np.ascontiguousarray(Vt[rank:].T), damped, free, free_ok
 
 
-def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: float, rank_tol: float = 1e-3,
-                reg: float = 1e-9, start=None) -> Prioritised:
-    """The prioritised command (module docstring). J (K, m, nv) task Jacobians and r (K, m)
-    task velocities, highest priority first; A (K, nv), b (K,) no-push rows; lo, hi the box;
-    `limits_vel` the velocity limits (the box left when the acceleration limit must yield)."""
-    J, r, A, b = (np.ascontiguousarray(a, dtype=np.float64) for a in (J, r, A, b))
-    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
-    K, _, n = J.shape
-    x = np.zeros(n)
-    Z = np.eye(n)
-    out = Prioritised(x)
-    pushing = bool(np.any(b > 0))
-    for k in range(K):
+@numba.njit(cache=True, nogil=True)
+def _levels(J, r, A, b, lo, hi, damping, sv_threshold, rank_tol, reg, x, Z, k, levels, first, z, null, lam):
+    """The recursion from level k. A level whose unconstrained (closed-form) step meets every
+    constraint takes it (that is its QP's optimum); at the first level that needs a QP, return
+    its data. `z`, `null`, `lam` (non-empty z): the QP solution of level k - 1 to apply first.
+    `first` [damped, dominant_residual, limited, blocked] is written while no level has been
+    accepted yet. Returns (k, x, Z, levels, H, f, C, lower, upper, null); k == K: done, x clipped."""
+    K, n = J.shape[0], J.shape[2]
+    if len(z):
+        x = x + Z @ z
+        if levels == 0:
+            _first_level(J[k - 1], r[k - 1], x, lam, n, first)
+        levels += 1
+        Z = np.ascontiguousarray(Z @ null)
+    d0 = Z.shape[1]
+    while k < K and Z.shape[1] > 0:
         H, f, C, lower, upper, rank, null, damped, free, free_ok = _level(J[k], Z, x, r[k], A, b, lo, hi, damping,
                                                                           sv_threshold, rank_tol, reg)
         if rank == 0:
+            k += 1
             continue
-        if out.levels == 0:  # singular: the task asks for a direction its Jacobian barely has
-            out.damped = damped
-        if free_ok:  # no constraint binds: the closed-form step is the QP's optimum
-            z, ok, lam = free, True, np.zeros(len(lower))
-        else:
-            z, ok, lam = solve(H, f, C, lower, upper, start if out.levels == 0 else None)
-        if not ok and out.levels == 0:  # fallback chain (module docstring); x = 0 here
+        if levels == 0:
+            first[0] = 1.0 if damped else 0.0
+        if not free_ok:
+            return k, x, Z, levels, H, f, C, lower, upper, null
+        x = x + Z @ free
+        if levels == 0:
+            _first_level(J[k], r[k], x, np.zeros(0), n, first)
+        levels += 1
+        Z = np.ascontiguousarray(Z @ null)
+        k += 1
+    none = np.empty((0, 0))
+    return K, np.minimum(np.maximum(x, lo), hi), Z, levels, none, np.empty(0), np.empty((0, d0)), np.empty(0), \
+        np.empty(0), none
+
+
+@numba.njit(cache=True, nogil=True)
+def _first_level(Jk, rk, x, lam, n, first):
+    """The dominant level's record: residual |J_1 qd - r_1| / |r_1|, and whether a box row
+    (limited) or a no-push row (blocked) was active (multipliers lam; none: nothing bound)."""
+    e = Jk @ x - rk
+    nr = np.sqrt(np.sum(rk * rk))
+    first[1] = np.sqrt(np.sum(e * e)) / nr if nr > 0 else 0.0
+    first[2] = first[3] = 0.0
+    for i in range(len(lam)):
+        if abs(lam[i]) > 1e-9:
+            first[2 if i < n else 3] = 1.0
+
+
+def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: float, rank_tol: float = 1e-3,
+                reg: float = 1e-9) -> Prioritised:
+    """The prioritised command (module docstring). J (K, m, nv) task Jacobians and r (K, m)
+    task velocities, highest priority first; A (K, nv), b (K,) no-push rows; lo, hi the box;
+    `limits_vel` the velocity limits (the box left when the acceleration limit must yield).
+
+    One compiled call runs the levels whose closed-form step meets every constraint; DAQP is
+    called only for the levels where a constraint binds, then the next compiled call goes on
+    (cold solves: a primal warm start made DAQP report feasible levels infeasible, and a cold
+    solve takes about 6 us here)."""
+    J, r, A, b = (np.ascontiguousarray(a, dtype=np.float64) for a in (J, r, A, b))
+    lo, hi = np.ascontiguousarray(lo, dtype=np.float64), np.ascontiguousarray(hi, dtype=np.float64)
+    K, n = J.shape[0], J.shape[2]
+    x, Z, k, levels, first = np.zeros(n), np.eye(n), 0, 0, np.zeros(4)
+    z, null, lam = _NONE, _NONE2, _NONE
+    out = Prioritised(x)
+    while True:
+        k, x, Z, levels, H, f, C, lower, upper, null = _levels(J, r, A, b, lo, hi, damping, sv_threshold, rank_tol,
+                                                               reg, x, Z, k, levels, first, z, null, lam)
+        if k >= K:
+            break
+        z, ok, lam = solve(H, f, C, lower, upper)
+        if not ok and levels == 0:  # fallback chain (module docstring); x = 0 here
+            pushing = bool(np.any(b > 0))
             b = relaxed_bounds(A, b, lo, hi)
             out.recovery_dropped, out.infeasible = pushing, bool(np.any(b < 0))
-            z, ok, lam = solve(H, f, C, np.r_[lower[:n], b], upper)
+            lower = lower.copy()
+            lower[n:] = b
+            z, ok, lam = solve(H, f, C, lower, upper)
+        k += 1
         if not ok:  # z = 0 is feasible here (x met every constraint at the level before): keep x
-            continue
-        x = x + Z @ z
-        if out.levels == 0:
-            active = np.abs(lam) > 1e-9
-            out.limited, out.blocked = bool(active[:n].any()), bool(active[n:].any())
-            nr = np.linalg.norm(r[k])
-            out.dominant_residual = float(np.linalg.norm(J[k] @ x - r[k]) / nr) if nr > 0 else 0.0
-        out.levels += 1
-        Z = Z @ null  # keep every higher task's achieved velocity
-        if Z.shape[1] == 0:
-            break
-    out.qd = np.clip(x, lo, hi)
+            z = _NONE
+    out.qd, out.levels = x, levels
+    out.damped, out.dominant_residual, out.limited, out.blocked = bool(first[0]), float(first[1]), bool(first[2]), \
+        bool(first[3])
     return out
+
+
+_NONE, _NONE2 = np.zeros(0), np.zeros((0, 0))
 
 
 def relaxed_bounds(A, b, lo, hi) -> np.ndarray:

@@ -9,16 +9,25 @@ A command source is anything callable as `source(t, q) -> qdot_planned (nv,)`: a
    versions of it, down to stop) with a prior p(a|s) that prefers the command; eq. 3 re-weights
    them by the TDM's p(not D | s, a) and the most probable candidate (MAP) is kept - the argmax
    of `log p(a|s) + log p(not D|s,a)`, as eq. 3's denominator does not depend on a;
-2. tactile defensiveness (III-C): a retraction, when active, outranks the plan;
+2. tactile defensiveness (III-C): a retraction, when active, outranks the plan (the layer runs
+   first, and the strategy filter only on ticks without a retraction, whose plan is used);
 3. modulation (III-B): whatever comes out - plan or retraction - is modulated by the danger
    potential (`ModulationLayer`; a retraction leaving danger keeps its speed, one heading into
-   danger, e.g. toward a desk, is slowed);
+   danger, e.g. toward a desk, is slowed). With a strategy filter over the same TDM, both share
+   one evaluator (`FastPotential`): the candidates' scores come with their normals in one pass
+   over the TDM's head, and the modulation of the chosen one reads them (one pass per tick
+   where the first candidate wins, the planned command unlimited until step 4);
 4. limits (`limits.final_command`) on the final command: velocity and acceleration limits from
    the last command sent; while taxels are retracting, also their no-push constraints (the
    modulated command is projected, so modulation can never push a contacted taxel into its
    contact and the acceleration limit never makes one move into it).
 
-Fail safe: a tick with a non-finite clock, q, dt, planned command, reading, TDM output or
+Measured velocity: `tick(..., qdot=measured)` takes the robot's measured joint velocity, distinct
+from the planned command: the acceleration limits (and the brake) then start from it rather than
+from the last command sent, and while taxels retract a measured motion that carries one of them
+into its contact (`a_k . qdot < 0`) is flagged `pushing`.
+
+Fail safe: a tick with a non-finite clock, q, dt, measured velocity, planned command, reading, TDM output or
 potential sends the safe command (`limits.brake`) or, where its own inputs are finite, the
 ongoing retraction (unmodulated when the potential is the bad input), never the plan, and counts
 the input in `flags`; `info` says what happened. A clock that goes backwards resets the layers.
@@ -34,7 +43,7 @@ from typing import Callable
 import numpy as np
 
 from skinsafe.core.safety.defensiveness import TickInfo
-from skinsafe.core.safety.limits import JointLimits, brake, final_command
+from skinsafe.core.safety.limits import JointLimits, brake, final_command, finite
 from skinsafe.core.safety.modulation import ModulationLayer
 
 CommandSource = Callable[[float, np.ndarray], np.ndarray]
@@ -87,6 +96,7 @@ class StrategyFilter:
     def __init__(self, tdm, scales=SCALES, prior=PRIOR):
         from skinsafe.core.safety.potential import DangerPotential, FastPotential
 
+        self.tdm = tdm
         self.fast = FastPotential(DangerPotential(tdm))
         self.scales = np.asarray(scales, dtype=float)
         prior = np.asarray(prior, dtype=float)
@@ -119,7 +129,7 @@ class StrategyFilter:
 
     def _scores(self, s, cand, log_prior):
         log_safe = np.asarray(self.fast.log_safety(np.broadcast_to(s, (len(cand), len(s))), cand), dtype=float)
-        if not np.all(np.isfinite(log_safe)):
+        if not finite(log_safe):
             self.nonfinite = True
         return log_prior + log_safe
 
@@ -143,6 +153,11 @@ class SafetyStack:
                              f"{d.kin.model.nv} joints; give one limit per joint")
         self.defensiveness, self.modulation, self.strategy = defensiveness, modulation, strategy
         self.pfl = pfl  # optional ISO/TS 15066 speed cap `pfl(q, qdot) -> qdot` (pfl.PFLCap), after modulation
+        if strategy is not None and modulation is not None:
+            from skinsafe.core.safety.potential import FastPotential
+
+            if isinstance(modulation._eval, FastPotential) and getattr(modulation.potential, "tdm", None) is strategy.tdm:
+                strategy.fast = modulation._eval  # one evaluator: the modulation reads the chosen candidate's normal
         self.joints = np.arange(len(vel)) if joints is None else np.asarray(joints)
         self.flags: Counter = Counter()
         self.reset()
@@ -161,42 +176,56 @@ class SafetyStack:
             self.defensiveness.reset()
 
     def tick(self, t: float, q: np.ndarray, readings: dict[str, np.ndarray] | None, command: np.ndarray,
-             dt: float) -> np.ndarray:
-        """The joint velocity to send now (module docstring)."""
+             dt: float, qdot: np.ndarray | None = None) -> np.ndarray:
+        """The joint velocity to send now (module docstring). `qdot`: the robot's measured joint
+        velocity, if known; the limits then start from it instead of the last command."""
         j, d, prev = self.joints, self.defensiveness, self.last
         q = np.asarray(q, dtype=float)
         v = np.array(command, dtype=float)
-        bad = [n for n, x in (("clock", t), ("q", q), ("dt", dt), ("command", v)) if not np.all(np.isfinite(x))]
-        bad += [f"readings:{n}" for n, x in (readings or {}).items() if not np.all(np.isfinite(x))]
+        checks = [("clock", t), ("q", q), ("dt", dt), ("command", v)]
+        if qdot is not None:
+            qdot = np.asarray(qdot, dtype=float)
+            if qdot.shape != prev.shape:
+                raise ValueError(f"SafetyStack.tick: qdot has shape {qdot.shape}; pass the robot's {len(prev)} "
+                                 "measured joint velocities (or None)")
+            checks.append(("qdot", qdot))
+        bad = [n for n, x in checks if not finite(x)]
+        bad += [f"readings:{n}" for n, x in (readings or {}).items() if not finite(x)]
         if "clock" not in bad and t < self._t:  # the clock went backwards: start again
             self.reset()
             self.last = prev
             self.flags["clock_reset"] += 1
-        if {"clock", "q", "dt"} & set(bad):
+        if {"clock", "q", "dt", "qdot"} & set(bad):
             return self._send(brake(prev, self.limits), TickInfo(nonfinite=tuple(bad), safe=True))
         self._t = t
+        if qdot is not None:
+            prev = qdot
         plan_ok = not bad
         s = q[j]
-        if self.strategy is not None and plan_ok:
-            v[j] = self.strategy(s, v[j])
-            if self.strategy.nonfinite:
-                bad.append("tdm")
-                plan_ok = False
         info = TickInfo(nonfinite=tuple(bad))
         if d is not None:
-            v = d.tick(t, q, readings or {}, v if plan_ok else None, dt, prev=prev)
+            vd = d.tick(t, q, readings or {}, None, dt, prev=prev)
             info = d.info
             info.nonfinite = tuple(bad + [n for n in info.nonfinite if n not in bad])
             if info.safe:
-                return self._send(v, info)
+                return self._send(vd, info)
         retracting = d is not None and d.active
-        if not plan_ok and not retracting:
-            return self._send(brake(prev, self.limits), TickInfo(nonfinite=tuple(bad), safe=True))
+        if retracting:  # the retraction outranks the plan: no strategy filter needed this tick
+            v = vd
+        else:
+            if self.strategy is not None and plan_ok:
+                v[j] = self.strategy(s, v[j])
+                if self.strategy.nonfinite:
+                    bad.append("tdm")
+                    info.nonfinite = info.nonfinite + ("tdm",)
+                    plan_ok = False
+            if not plan_ok:
+                return self._send(brake(prev, self.limits), TickInfo(nonfinite=info.nonfinite, safe=True))
         if self.modulation is not None:
             w = v.copy()
             w[j], f = self.modulation(s, v[j])
             self.last_f = f
-            if not (self.modulation.finite and np.all(np.isfinite(w))):
+            if not (self.modulation.finite and finite(w)):
                 info.nonfinite = info.nonfinite + ("potential",)
                 if not retracting:
                     return self._send(brake(prev, self.limits), TickInfo(nonfinite=info.nonfinite, safe=True))
@@ -207,16 +236,19 @@ class SafetyStack:
         A, b = (d.A, d.b) if retracting else (None, None)
         proj = final_command(v, prev, self.limits, A, b)
         info.infeasible = info.infeasible or proj.infeasible
+        if qdot is not None and retracting:  # the robot is moving a contacted taxel into its contact now
+            info.pushing = bool(np.any(A @ qdot < -1e-9))
         return self._send(proj.v, info)
 
     def _send(self, v: np.ndarray, info: TickInfo) -> np.ndarray:
         flags = [f"nonfinite:{n}" for n in info.nonfinite] + (["nonfinite"] if info.nonfinite else [])
-        flags += [n for n in ("safe", "infeasible") if getattr(info, n)]
+        flags += [n for n in ("safe", "infeasible", "pushing") if getattr(info, n)]
         self.flags.update(flags)
         info.flags = tuple(flags)
         self.info, self.last = info, v
         return v.copy()
 
-    def run(self, source: CommandSource, t: float, q: np.ndarray, readings, dt: float) -> np.ndarray:
+    def run(self, source: CommandSource, t: float, q: np.ndarray, readings, dt: float,
+            qdot: np.ndarray | None = None) -> np.ndarray:
         """One tick for a command source (planner or teleoperation stream)."""
-        return self.tick(t, q, readings, source(t, q), dt)
+        return self.tick(t, q, readings, source(t, q), dt, qdot)

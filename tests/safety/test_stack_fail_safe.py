@@ -120,3 +120,52 @@ def test_severity_counts_only_stimuli_over_their_thresholds():
     L.reset()
     L.tick(0.0, ROBOT.home, {"force": f, "temperature": temp})
     assert L.desired_distance()[0] == pytest.approx(0.002 * 130.0 / 12)
+
+
+# ---- the measured joint velocity (distinct from the planned command)
+
+def test_limits_start_from_the_measured_velocity():
+    """The robot lags: it measures 0 while the last command was at speed. The next command may
+    differ from the measured velocity by at most acc * dt, not from the last command."""
+    stack = SafetyStack(ROBOT.vel_limits, layer())
+    last = ramp(stack)
+    step = stack.limits.acc * DT
+    assert np.abs(last).max() > 4 * step.max()
+    measured = np.zeros(6)
+    out = stack.tick(0.2, ROBOT.home, {"force": np.zeros(N)}, PLAN, DT, qdot=measured)
+    assert np.all(np.abs(out - measured) <= step * (1 + 1e-9))
+    assert np.abs(out - last).max() > 2 * step.max()  # it did not start from the last command
+    same = stack.tick(0.202, ROBOT.home, {"force": np.zeros(N)}, PLAN, DT, qdot=out)
+    assert np.all(np.abs(same - out) <= step * (1 + 1e-9))
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+def test_nonfinite_measured_velocity_brakes_and_is_counted(value):
+    stack = SafetyStack(ROBOT.vel_limits, layer())
+    last = ramp(stack)
+    bad = last.copy()
+    bad[2] = value
+    out = stack.tick(0.2, ROBOT.home, {"force": np.zeros(N)}, PLAN, DT, qdot=bad)
+    assert np.array_equal(out, brake(last, stack.limits)) and stack.info.safe
+    assert stack.flags["nonfinite:qdot"] == 1 and stack.flags["nonfinite"] == 1
+    nxt = stack.tick(0.202, ROBOT.home, {"force": np.zeros(N)}, PLAN, DT, qdot=out)  # nothing latches
+    assert not stack.info.safe and np.abs(nxt).max() > np.abs(out).max()
+    with pytest.raises(ValueError, match="measured joint velocities"):
+        stack.tick(0.204, ROBOT.home, {"force": np.zeros(N)}, PLAN, DT, qdot=np.zeros(5))
+
+
+def test_measured_motion_into_a_contact_is_flagged():
+    """While a taxel retracts, a measured velocity that carries it into its contact raises
+    `pushing` (counted); one that carries it out does not."""
+    stack = SafetyStack(ROBOT.vel_limits, layer())
+    force = np.zeros(N)
+    taxel = int(np.argmax(KIN.body_id))
+    force[taxel] = 40.0
+    stack.tick(0.0, ROBOT.home, {"force": force}, np.zeros(6), DT)
+    a = stack.defensiveness.A[0]  # a . qdot: the taxel's speed along its retraction axis
+    into = -0.05 * a / np.linalg.norm(a)
+    stack.tick(0.002, ROBOT.home, {"force": np.zeros(N)}, np.zeros(6), DT, qdot=into)
+    assert stack.info.pushing and stack.flags["pushing"] == 1
+    stack.tick(0.004, ROBOT.home, {"force": np.zeros(N)}, np.zeros(6), DT, qdot=-into)
+    assert not stack.info.pushing and stack.flags["pushing"] == 1
+
