@@ -159,6 +159,10 @@ def _run_module(mod, prog: str, helptext: str, argv: list[str], name: str, bench
     except (DesignError, FileNotFoundError) as e:
         print(f"skinsafe {name}: error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # a folder that cannot be made or written: name it, no traceback
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"skinsafe {name}: error: {where}{e.strerror or e}; choose a folder you can write to", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -174,3 +174,14 @@ def test_cli_export(tmp_path, capsys):
     assert main(["export", str(tmp_path / "missing.json"), str(tmp_path / "x")]) == 1
     assert "missing.json" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_export_into_an_unmakeable_folder_is_one_clear_error(tmp_path, capsys):
+    from skinsafe.core.app.cli import main
+
+    assert main(["sample", "--pitch", "0.03", "--out", str(tmp_path / "skin.json")]) == 0
+    (tmp_path / "file").write_text("not a folder")
+    assert main(["export", str(tmp_path / "skin.json"), str(tmp_path / "file" / "scene")]) == 2
+    err = capsys.readouterr().err
+    assert "skinsafe export: error:" in err and str(tmp_path / "file") in err and "Traceback" not in err
+    assert not (tmp_path / "file" / "scene").exists()
