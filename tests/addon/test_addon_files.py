@@ -10,7 +10,6 @@ import bpy
 import numpy as np
 import pytest
 
-import skinsafe.addon as addon
 from skinsafe.addon import blender_to_core as b2c
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -41,13 +40,6 @@ def _urdf(tmp: Path, mesh="prism.obj", joint="revolute") -> Path:
             <axis xyz="0 1 0"/><limit lower="-1" upper="1" effort="1" velocity="1.5"/></joint>
         </robot>"""))
     return path
-
-
-@pytest.fixture(scope="module", autouse=True)
-def registered():
-    addon.register()
-    yield
-    addon.unregister()
 
 
 def test_urdf_import_place_on_mesh_and_refusals(tmp_path):

@@ -9,7 +9,6 @@ import pytest
 from mathutils import Vector
 from mathutils.bvhtree import BVHTree
 
-import skinsafe.addon as addon
 from skinsafe.addon import blender_to_core as b2c
 from skinsafe.addon import core_to_blender as c2b
 from skinsafe.core.robot.kinematics import TaxelKinematics, retractability
@@ -17,14 +16,6 @@ from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.skin import taxel_map
 
 E = 0.13585 - 0.1197  # UR5 forearm capsule axis height (body frame), radius 0.04
-
-
-@pytest.fixture(scope="module", autouse=True)
-def registered():
-    addon.register()
-    yield
-    addon.unregister()
-    assert not any(getattr(f, "__module__", "").startswith("skinsafe") for f in bpy.app.handlers.depsgraph_update_post)
 
 
 @pytest.fixture

@@ -1,22 +1,13 @@
 """The PFL heat map operator through bpy.ops, headless: per-taxel v_max on the module meshes."""
 import bpy
 import numpy as np
-import pytest
 
-import skinsafe.addon as addon
 from skinsafe.addon import blender_to_core as b2c
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.safety import pfl
 
 E = 0.13585 - 0.1197  # UR5 forearm capsule axis height (body frame)
-
-
-@pytest.fixture(scope="module", autouse=True)
-def registered():
-    addon.register()
-    yield
-    addon.unregister()
 
 
 def test_pfl_heat_map_matches_core(tmp_path):

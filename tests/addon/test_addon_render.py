@@ -2,20 +2,11 @@
 robot and its skin inside the camera's view, tiles filling the cells and put back afterwards."""
 import bpy
 import numpy as np
-import pytest
 
-import skinsafe.addon as addon
 from skinsafe.addon import blender_to_core as b2c
 from skinsafe.addon import headless
 
 E = 0.13585 - 0.1197  # UR5 forearm capsule axis height (body frame)
-
-
-@pytest.fixture(scope="module", autouse=True)
-def registered():
-    addon.register()
-    yield
-    addon.unregister()
 
 
 def test_frame_holds_the_whole_robot_and_tiles_fill_cells():

@@ -14,17 +14,6 @@ from skinsafe.core.skin.model import Module
 ASSET = Path(__file__).resolve().parents[2] / "blend_assets" / "franka_description"
 
 
-@pytest.fixture(scope="module")
-def franka_map(tmp_path_factory):
-    out = tmp_path_factory.mktemp("franka") / "skin.json"
-    spec = out.parent / "layout.json"
-    spec.write_text(json.dumps({"module": {"rows": 3, "cols": 3, "pitch": 0.012}, "bodies": ["panda_link4"]}))
-    rc = main(["design", str(ASSET / "robots/panda/panda.urdf.xacro"), "--package-dir", str(ASSET),
-               "--layout", str(spec), "--out", str(out)])
-    assert rc == 0
-    return out
-
-
 def test_design_on_a_urdf_and_check_passes(franka_map, capsys):
     raw = json.loads(franka_map.read_text())
     assert raw["robot"]["kind"] == "urdf" and raw["bodies"] == ["panda_link4"]
