@@ -49,17 +49,22 @@ def add_arguments(p) -> None:
     p.add_argument("--no-progress", action="store_true")
 
 
-def run_one(method: str, seed: int, episodes: int, max_steps: int) -> dict:
-    """Train one method with one seed; per-episode returns, contact events (costs), goals and lengths."""
+def run_one(method: str, seed: int, episodes: int, max_steps: int, agent_kw: dict | None = None) -> dict:
+    """Train one method with one seed; per-episode returns, contact events (costs), goals and lengths.
+    `agent_kw` overrides the agent's keyword arguments (`make_agent`); a TDM `fit` is a FitConfig dict."""
     import torch
 
     from skinsafe.core.learn.baselines import make_agent
     from skinsafe.core.learn.maze_env import MazeEnv, MazeFeatures
+    from skinsafe.core.learn.tdm_training import FitConfig
 
     torch.set_num_threads(1)
     t0, c0 = time.perf_counter(), time.process_time()
     env = MazeEnv(max_steps=max_steps)
-    agent = make_agent(method, 4, env.action_space.n, env.n_taxels, MazeFeatures(env.walls), seed=seed)
+    kw = dict(agent_kw or {})
+    if "fit" in kw:
+        kw["fit"] = FitConfig(**kw["fit"])
+    agent = make_agent(method, 4, env.action_space.n, env.n_taxels, MazeFeatures(env.walls), seed=seed, **kw)
     returns, costs, goals, steps = [], [], [], []
     for ep in range(episodes):
         obs, _ = env.reset(seed=seed * 100003 + ep)
