@@ -9,8 +9,12 @@ and, for the policy filter, `action_probs(features) -> (B, A)`.
 
 Choices that make them learn (issue 16):
 
-- The TDM is refitted every `refit_every` environment steps and after every contact event, with a
-  budget of gradient steps and a validation split (`TDMTrainer`), not a few epochs at episode ends.
+- The TDM is refitted every `refit_every` environment steps (25 gradient steps, warm started) and after
+  every contact event (100), with a validation split (`TDMTrainer`), not a few epochs at episode ends.
+  The filter's danger is the TDM's shrunk by experience (`TDMShield`): untried actions are lowered,
+  never removed, so the agent keeps exploring where its TDM only extrapolates.
+- Discrete SAC takes one gradient step every `update_every` = 2 environment steps (Christodoulou's
+  discrete SAC updates every 4 on Atari), one backward pass for critics, actor and temperature.
 - Discrete SAC's temperature aims at a discrete target entropy (a fraction of log |A|), and log
   alpha is bounded so the whole discounted entropy bonus, `alpha log|A| / (1 - gamma)`, stays below
   `entropy_share` of the task reward: exploring can never pay more than reaching the goal.
@@ -71,8 +75,8 @@ class VisitCounts:
 
 class TDMShield:
     """The strategy layer inside an agent: logs (features, action, per-taxel danger), refits its TDM
-    every `refit_every` steps and after every contact event (budgeted, early-stopped, validated on 10%
-    of the samples) and gives log p(not D | s, a).
+    every `refit_every` steps (`fit.steps` gradient steps, warm started) and after every contact event
+    (`contact_steps`; validated on 10% of the samples) and gives log p(not D | s, a).
 
     Where the TDM has no experience of an action it extrapolates, and in the maze it extrapolates
     "moving is dangerous" to moves never tried, so eq. 3 would all but remove them and the agent stops
@@ -82,10 +86,11 @@ class TDMShield:
     one at most `unseen_max`, so the filter lowers its chance but never removes it."""
 
     def __init__(self, feat_dim: int, n_actions: int, n_taxels: int, seed: int, refit_every: int = 20,
-                 fit: FitConfig | None = None, hidden=(64, 64), unseen_max: float = 0.5, prior_count: float = 0.5):
+                 fit: FitConfig | None = None, hidden=(64, 64), unseen_max: float = 0.8, prior_count: float = 0.5,
+                 contact_steps: int = 100):
         self.model = TactileDangerModel(feat_dim, n_actions, n_taxels, hidden)
-        self.trainer = TDMTrainer(self.model, fit or FitConfig(steps=100, min_steps=100, batch_size=64, val_fraction=0.1), seed=seed + 7919)
-        self.n_actions, self.refit_every = n_actions, int(refit_every)
+        self.trainer = TDMTrainer(self.model, fit or FitConfig(steps=25, min_steps=25, batch_size=64, val_fraction=0.1), seed=seed + 7919)
+        self.n_actions, self.refit_every, self.contact_steps = n_actions, int(refit_every), int(contact_steps)
         self.counts = VisitCounts(feat_dim, n_actions)
         self.unseen_max, self.prior_count = float(unseen_max), float(prior_count)
         self.eye = np.eye(n_actions, dtype=np.float32)
@@ -96,12 +101,14 @@ class TDMShield:
         self.trainer.add(feat, self.eye[action], danger)
         self.counts.add(feat, action)
         self.since += 1
-        if self.since >= self.refit_every or danger.any():  # a new contact is news: learn it now
+        if danger.any():  # a new contact is news: learn it now, with the larger budget
+            self.fit(self.contact_steps)
+        elif self.since >= self.refit_every:
             self.fit()
 
-    def fit(self) -> dict:
+    def fit(self, steps: int | None = None) -> dict:
         self.since = 0
-        return self.trainer.fit()
+        return self.trainer.fit(steps)
 
     @torch.no_grad()
     def log_safety(self, feat: torch.Tensor) -> torch.Tensor:
@@ -234,7 +241,7 @@ class DiscreteSAC(Agent):
     the executed policy, a bounded automatic temperature toward a discrete target entropy (module doc)."""
 
     def __init__(self, *args, batch_size: int = 64, tau: float = 0.02, target_entropy_frac: float = 0.98,
-                 entropy_share: float = 0.1, task_reward: float = 100.0, update_every: int = 1, actor_lr: float = 1e-3,
+                 entropy_share: float = 0.1, task_reward: float = 100.0, update_every: int = 2, actor_lr: float = 1e-3,
                  **kw):
         super().__init__(*args, **kw)
         f, A = self.feat_dim, self.n_actions

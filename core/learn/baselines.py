@@ -101,11 +101,13 @@ class RecoveryRL(_RiskSAC):
 
 class SQRL(_RiskSAC):
     """SQRL: actions whose Q_risk exceeds eps are rejected from the policy's distribution (the least
-    risky one is taken if none is left), and the actor pays nu * E_pi[Q_risk] (recovery-rl's DGD penalty)."""
+    risky one is taken if none is left), and the actor pays nu (E_pi[Q_risk] - eps) with the multiplier
+    nu >= 0 set by dual gradient descent, nu <- max(0, nu + nu_lr (E_pi[Q_risk] - eps)) (recovery-rl's
+    DGD constraint): a fixed large nu makes the actor minimise risk alone before it ever sees the goal."""
 
-    def __init__(self, *args, nu: float = 10.0, **kw):
+    def __init__(self, *args, nu: float = 1.0, nu_lr: float = 0.01, **kw):
         super().__init__(*args, **kw)
-        self.nu = nu
+        self.nu, self.nu_lr = nu, nu_lr
 
     def act(self, obs) -> int:
         feat = self.features(obs)
@@ -122,7 +124,9 @@ class SQRL(_RiskSAC):
     def actor_extra_loss(self, s, probs) -> torch.Tensor:
         with torch.no_grad():
             risk = self.risk(s)
-        return self.nu * (probs * risk).sum(-1).mean()
+        expected = (probs * risk).sum(-1).mean()
+        self.nu = max(0.0, self.nu + self.nu_lr * (float(expected) - self.eps_risk))
+        return self.nu * (expected - self.eps_risk)
 
 
 class CPO(Agent):

@@ -233,3 +233,22 @@ def test_visit_counts_are_local_to_the_state_and_the_action():
     n = c(torch.tensor([[0.0, 0, 0], [1, 0, 0], [5, 5, 5]])).numpy()
     k = np.exp(-1 / (2 * 0.3 ** 2))  # kernel weight one unit away
     np.testing.assert_allclose(n, [[k, 2], [1, 2 * k], [0, 0]], atol=1e-6)
+
+
+def test_sqrl_multiplier_follows_the_risk_constraint():
+    """Dual gradient descent: nu falls while E_pi[Q_risk] is under eps and rises while it is over."""
+    env, agent = _maze_agent("SQRL")
+    s = MazeFeatures(env.walls)(env.reset()[0])[0]
+    for _ in range(64):
+        agent.buffer.add(s, 0, 0.0, 0.0, s, 0.0)
+    for _ in range(20):
+        agent.update(*agent.buffer.sample(agent.rng, 64))
+    assert agent.nu < 1.0
+    low = agent.nu
+    agent.buffer = type(agent.buffer)(agent.feat_dim)
+    for a in range(4):  # every action touches: the safety critic learns risk -> 1
+        for _ in range(16):
+            agent.buffer.add(s, a, 0.0, 1.0, s, 0.0)
+    for _ in range(150):
+        agent.update(*agent.buffer.sample(agent.rng, 64))
+    assert float(agent.risk(torch.as_tensor(s[None])).min()) > agent.eps_risk and agent.nu > low
