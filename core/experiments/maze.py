@@ -43,6 +43,8 @@ def add_arguments(p) -> None:
     p.add_argument("--episodes", type=int, help="training episodes per run (overrides the preset)")
     p.add_argument("--max-steps", type=int, help="macro-actions per episode (overrides the preset)")
     p.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset of %(default)s")
+    p.add_argument("--tdm-refit-steps", type=int, help="-TDM agents: gradient steps per periodic refit (default 25)")
+    p.add_argument("--tdm-unseen-max", type=float, help="-TDM agents: most danger the filter gives an untried move (default 0.8)")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="local Ray CPUs (default %(default)s)")
     p.add_argument("--address", default=None, help="join this Ray cluster instead of starting a local Ray")
     p.add_argument("--fresh", action="store_true", help="re-run every task instead of reusing finished ones")
@@ -209,6 +211,21 @@ def plot_curves(runs: list[dict], methods: list[str], path: Path, window: int = 
     os.replace(tmp, path)
 
 
+def tdm_overrides(args) -> dict:
+    """The -TDM agents' keyword overrides from the command line (empty: the defaults)."""
+    kw = {}
+    if getattr(args, "tdm_refit_steps", None) is not None:
+        if args.tdm_refit_steps < 1:
+            raise SystemExit(f"skinsafe experiment maze: --tdm-refit-steps must be >= 1, got {args.tdm_refit_steps}")
+        k = args.tdm_refit_steps
+        kw["fit"] = {"steps": k, "min_steps": k, "batch_size": 64, "val_fraction": 0.1}
+    if getattr(args, "tdm_unseen_max", None) is not None:
+        if not 0 < args.tdm_unseen_max <= 1:
+            raise SystemExit(f"skinsafe experiment maze: --tdm-unseen-max must lie in (0, 1], got {args.tdm_unseen_max}")
+        kw["unseen_max"] = args.tdm_unseen_max
+    return kw
+
+
 def config_from_args(args) -> dict:
     cfg = dict(PRESETS[args.preset])
     for k in ("seeds", "episodes", "max_steps"):
@@ -230,6 +247,10 @@ def run(args) -> int:
     t0 = time.perf_counter()
     tasks = [{"method": m, "seed": s, "episodes": cfg["episodes"], "max_steps": cfg["max_steps"]}
              for s in range(cfg["seeds"]) for m in methods]
+    agent_kw = tdm_overrides(args)
+    for t in tasks:
+        if agent_kw and t["method"].endswith("-TDM"):
+            t["agent_kw"] = agent_kw
     runs = run_tasks(run_one, tasks, out / "tasks", address=args.address, workers=args.workers,
                      progress=not args.no_progress, desc="maze runs", fresh=args.fresh)
     summary = summarise(runs, methods)

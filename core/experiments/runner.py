@@ -9,6 +9,7 @@ needs skinsafe installed). Progress is shown as tasks finish.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import sys
@@ -21,7 +22,11 @@ from skinsafe.core.skin.files import atomic_write
 
 
 def task_file(cache: Path, task: dict) -> Path:
-    return Path(cache) / f"{task['method']}_s{task['seed']}.json"
+    """`<method>_s<seed>.json`, with a short digest of any `agent_kw` overrides (so variants do not collide)."""
+    tag = ""
+    if task.get("agent_kw"):
+        tag = "_" + hashlib.sha1(json.dumps(task["agent_kw"], sort_keys=True).encode()).hexdigest()[:8]
+    return Path(cache) / f"{task['method']}_s{task['seed']}{tag}.json"
 
 
 def cached(cache: Path, task: dict) -> dict | None:

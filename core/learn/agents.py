@@ -130,14 +130,15 @@ class Agent:
 
     def __init__(self, obs_dim: int, n_actions: int, n_taxels: int, features=None, seed: int = 0,
                  cost_penalty: float = 0.0, use_tdm: bool = False, gamma: float = 0.97, lr: float = 3e-3,
-                 hidden=(64, 64), refit_every: int = 20, fit: FitConfig | None = None):
+                 hidden=(64, 64), refit_every: int = 20, fit: FitConfig | None = None, unseen_max: float = 0.8):
         torch.manual_seed(seed)
         self.rng = np.random.default_rng(seed)
         self.features = features if features is not None else (lambda o: np.atleast_2d(np.asarray(o, np.float32)))
         self.feat_dim = int(self.features(np.zeros(obs_dim, np.float32)).shape[-1])
         self.n_actions, self.gamma, self.lr, self.hidden = n_actions, gamma, lr, hidden
         self.cost_penalty = float(cost_penalty)
-        self.shield = TDMShield(self.feat_dim, n_actions, n_taxels, seed, refit_every, fit) if use_tdm else None
+        self.shield = (TDMShield(self.feat_dim, n_actions, n_taxels, seed, refit_every, fit, unseen_max=unseen_max)
+                       if use_tdm else None)
 
     # p(a|s) of the raw policy, on features: the interface `safety.danger.PolicyFilter` wraps.
     @torch.no_grad()

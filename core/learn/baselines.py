@@ -125,7 +125,7 @@ class SQRL(_RiskSAC):
         with torch.no_grad():
             risk = self.risk(s)
         expected = (probs * risk).sum(-1).mean()
-        self.nu = max(0.0, self.nu + self.nu_lr * (float(expected) - self.eps_risk))
+        self.nu = max(0.0, self.nu + self.nu_lr * (float(expected.detach()) - self.eps_risk))
         return self.nu * (expected - self.eps_risk)
 
 

@@ -30,3 +30,24 @@ def test_tasks_run_on_ray_are_cached_and_reused(tmp_path, monkeypatch):
     assert runner.cached(tmp_path, tasks[0]) is None
     with pytest.raises(AssertionError, match="must not start Ray"):
         runner.run_tasks(run_one, tasks, tmp_path, workers=1, progress=False)
+
+
+def test_agent_overrides_get_their_own_task_file_and_reach_the_agent(tmp_path):
+    import argparse
+
+    from skinsafe.core.experiments import maze
+
+    p = argparse.ArgumentParser()
+    maze.add_arguments(p)
+    kw = maze.tdm_overrides(p.parse_args(["--tdm-refit-steps", "7", "--tdm-unseen-max", "0.6"]))
+    assert kw == {"fit": {"steps": 7, "min_steps": 7, "batch_size": 64, "val_fraction": 0.1}, "unseen_max": 0.6}
+    assert maze.tdm_overrides(p.parse_args([])) == {}
+    with pytest.raises(SystemExit, match="unseen-max"):
+        maze.tdm_overrides(p.parse_args(["--tdm-unseen-max", "0"]))
+    plain = {"method": "AC-TDM", "seed": 0, "episodes": 1, "max_steps": 5}
+    tuned = dict(plain, agent_kw=kw)
+    assert runner.task_file(tmp_path, plain).name == "AC-TDM_s0.json"
+    assert runner.task_file(tmp_path, tuned).name.startswith("AC-TDM_s0_") and runner.task_file(tmp_path, tuned) != runner.task_file(
+        tmp_path, dict(plain, agent_kw={"unseen_max": 0.5}))
+    r = run_one(**tuned)
+    assert r["stats"]["tdm"]["fits"] >= 1 and all(f["steps"] in (7, 100) for f in r["tdm_fits"])
