@@ -252,3 +252,20 @@ def test_sqrl_multiplier_follows_the_risk_constraint():
     for _ in range(150):
         agent.update(*agent.buffer.sample(agent.rng, 64))
     assert float(agent.risk(torch.as_tensor(s[None])).min()) > agent.eps_risk and agent.nu > low
+
+
+def test_twin_critics_are_two_independent_mlps():
+    from skinsafe.core.learn.agents import TwinQ, mlp
+
+    torch.manual_seed(0)
+    twin = TwinQ(5, 3, (8, 8))
+    x = torch.randn(7, 5)
+    out = twin(x)
+    assert out.shape == (2, 7, 3) and not torch.allclose(out[0], out[1])  # initialised independently
+    for k in range(2):
+        net = mlp(5, 3, (8, 8))
+        with torch.no_grad():
+            for layer, w, b in zip([m for m in net if isinstance(m, torch.nn.Linear)], twin.w, twin.b):
+                layer.weight.copy_(w[k].T)
+                layer.bias.copy_(b[k, 0])
+        torch.testing.assert_close(out[k], net(x))
