@@ -51,3 +51,20 @@ def test_agent_overrides_get_their_own_task_file_and_reach_the_agent(tmp_path):
         tmp_path, dict(plain, agent_kw={"unseen_max": 0.5}))
     r = run_one(**tuned)
     assert r["stats"]["tdm"]["fits"] >= 1 and all(f["steps"] in (7, 100) for f in r["tdm_fits"])
+
+
+def test_a_ray_that_cannot_start_is_retried_then_named(tmp_path, monkeypatch):
+    import ray
+
+    calls = []
+
+    def fails(*a, **k):
+        calls.append(k.get("address"))
+        raise Exception("The current node timed out during startup.")
+
+    monkeypatch.setattr(ray, "init", fails)
+    monkeypatch.setattr(runner.time, "sleep", lambda s: None)
+    with pytest.raises(SystemExit, match="re-run the same command"):
+        runner.run_tasks(run_one, [{"method": "AC", "seed": 0, "episodes": 1, "max_steps": 2}], tmp_path, workers=1,
+                         progress=False)
+    assert calls == ["local"] * 3
