@@ -154,6 +154,13 @@ def test_claim_check_reports_both_ways():
     rows["RRL"]["total_contacts_mean"] = 10.0
     c = experiment_maze.claim_check(rows)
     assert not c["holds"] and "RRL" in c["statement"]
+    assert c["holds_among_goal_reaching"] is None  # SAC-TDM is the only goal-reaching method: nothing to compare
+    rows["SAC"]["goal_rate_last_mean"] = 0.9
+    c = experiment_maze.claim_check(rows)
+    # RRL touches less but never learned the task: among the goal-reaching methods the claim holds
+    assert not c["holds"] and c["holds_among_goal_reaching"] is True and "Among the methods that reach the goal" in c["statement"]
+    rows["SAC"]["total_contacts_mean"] = 15.0
+    assert experiment_maze.claim_check(rows)["holds_among_goal_reaching"] is False
 
 
 def experiment_maze_args(out):
