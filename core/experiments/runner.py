@@ -9,9 +9,11 @@ needs skinsafe installed). Progress is shown as tasks finish.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -21,7 +23,11 @@ from skinsafe.core.skin.files import atomic_write
 
 
 def task_file(cache: Path, task: dict) -> Path:
-    return Path(cache) / f"{task['method']}_s{task['seed']}.json"
+    """`<method>_s<seed>.json`, with a short digest of any `agent_kw` overrides (so variants do not collide)."""
+    tag = ""
+    if task.get("agent_kw"):
+        tag = "_" + hashlib.sha1(json.dumps(task["agent_kw"], sort_keys=True).encode()).hexdigest()[:8]
+    return Path(cache) / f"{task['method']}_s{task['seed']}{tag}.json"
 
 
 def cached(cache: Path, task: dict) -> dict | None:
@@ -32,6 +38,26 @@ def cached(cache: Path, task: dict) -> dict | None:
     except (OSError, ValueError):
         return None
     return doc.get("result") if doc.get("task") == json.loads(json.dumps(task)) else None
+
+
+def _start_ray(ray, address: str | None, workers: int | None, tries: int = 3) -> None:
+    """Start (or join) Ray; on an overloaded machine a local raylet can miss its start-up timeout, so a
+    local start is retried, and a final failure is one clear message (finished tasks stay cached)."""
+    for k in range(1 if address else tries):
+        try:
+            if address:
+                ray.init(address=address, log_to_driver=False)
+            else:
+                n = int(workers or min(2, os.cpu_count() or 1))
+                ray.init(address="local", num_cpus=n, include_dashboard=False, log_to_driver=False,
+                         object_store_memory=128 * 2 ** 20)
+            return
+        except Exception as e:  # noqa: BLE001 - Ray raises plain Exception for a start-up timeout
+            ray.shutdown()
+            last = e
+            time.sleep(5 * (k + 1))
+    raise SystemExit(f"Ray could not start ({'joining ' + address if address else 'locally'}): {last}. On a busy machine "
+                     "re-run the same command (finished tasks are reused) or set RAY_raylet_start_wait_time_s=180.")
 
 
 def run_tasks(fn: Callable[..., dict], tasks: list[dict], cache: str | Path, address: str | None = None,
@@ -48,12 +74,7 @@ def run_tasks(fn: Callable[..., dict], tasks: list[dict], cache: str | Path, add
 
         started = not ray.is_initialized()
         if started:
-            if address:
-                ray.init(address=address, log_to_driver=False)
-            else:
-                n = int(workers or min(2, os.cpu_count() or 1))
-                ray.init(address="local", num_cpus=n, include_dashboard=False, log_to_driver=False,
-                         object_store_memory=128 * 2 ** 20)
+            _start_ray(ray, address, workers)
         try:
             remote = ray.remote(num_cpus=1)(fn)
             refs = {remote.remote(**tasks[i]): i for i in todo}

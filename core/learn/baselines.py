@@ -16,43 +16,53 @@ from skinsafe.core.learn.agents import ActorCritic, Agent, DiscreteSAC, Replay, 
 
 
 class SafetyCritic:
-    """Q_risk(s, a): discounted probability of a future constraint violation (recovery-rl's safety critic)."""
+    """Q_risk(s, a): discounted probability of a future constraint violation (recovery-rl's safety critic).
+    Its loss joins the agent's one backward pass (`DiscreteSAC.extra_loss`); `soft_update` follows."""
 
-    def __init__(self, feat_dim: int, n_actions: int, hidden, lr: float, gamma_safe: float = 0.7, tau: float = 0.05):
+    def __init__(self, feat_dim: int, n_actions: int, hidden, gamma_safe: float = 0.5, tau: float = 0.05):
         self.q = mlp(feat_dim, n_actions, hidden)
         torch.nn.init.constant_(self.q[-1].bias, -3.0)  # start optimistic (risk ~5%), like the TDM's prior
         self.q_t = mlp(feat_dim, n_actions, hidden)
         self.q_t.load_state_dict(self.q.state_dict())
-        self.opt = torch.optim.Adam(self.q.parameters(), lr=lr)
         self.gamma_safe, self.tau = gamma_safe, tau
+        self.targets, self.sources = list(self.q_t.parameters()), list(self.q.parameters())
 
     def __call__(self, s: torch.Tensor) -> torch.Tensor:
         return torch.sigmoid(self.q(s))
 
-    def update(self, s, a, c, s2, done, next_probs: torch.Tensor) -> None:
+    def loss(self, s, a, c, s2, done, next_probs: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():
             q2 = (next_probs * torch.sigmoid(self.q_t(s2))).sum(-1)
             y = c + (1 - c) * (1 - done) * self.gamma_safe * q2
-        loss = F.binary_cross_entropy(self(s).gather(1, a[:, None]).squeeze(1), y.clamp(0, 1))
-        self.opt.zero_grad()
-        loss.backward()
-        self.opt.step()
-        with torch.no_grad():
-            for w, wt in zip(self.q.parameters(), self.q_t.parameters()):
-                wt.mul_(1 - self.tau).add_(self.tau * w)
+        return F.binary_cross_entropy(self(s).gather(1, a[:, None]).squeeze(1), y.clamp(0, 1))
+
+    @torch.no_grad()
+    def soft_update(self) -> None:
+        torch._foreach_lerp_(self.targets, self.sources, self.tau)
 
 
 class _RiskSAC(DiscreteSAC):
-    def __init__(self, *args, eps_risk: float = 0.3, gamma_safe: float = 0.7, **kw):
+    """SAC with a safety critic trained on the same batches (or, with `risk_replay`, its own)."""
+
+    def __init__(self, *args, eps_risk: float = 0.3, gamma_safe: float = 0.5, **kw):
         super().__init__(*args, **kw)
-        self.risk = SafetyCritic(self.feat_dim, self.n_actions, self.hidden, self.lr, gamma_safe)
+        self.risk = SafetyCritic(self.feat_dim, self.n_actions, self.hidden, gamma_safe)
+        self.opt.add_param_group({"params": self.risk.q.parameters(), "lr": self.lr})
         self.eps_risk = eps_risk
+        self._risk_batch = None
 
     def update(self, s, a, r, c, s2, done) -> None:
+        if self._risk_batch is None:
+            self._risk_batch = (s, a, c, s2, done)
         super().update(s, a, r, c, s2, done)
+        self.risk.soft_update()
+        self._risk_batch = None
+
+    def extra_loss(self) -> torch.Tensor:
+        s, a, c, s2, done = self._risk_batch
         with torch.no_grad():
             next_probs = torch.softmax(self.actor(s2), -1)
-        self.risk.update(s, a, c, s2, done, next_probs)
+        return self.risk.loss(s, a, c, s2, done, next_probs)
 
     @torch.no_grad()
     def q_risk(self, feat: np.ndarray) -> np.ndarray:
@@ -84,20 +94,20 @@ class RecoveryRL(_RiskSAC):
         self.risk_replay.add(s, action, 0.0, cost, s2, float(terminated))
         self.steps += 1
         if self.buffer.n >= self.batch_size and self.steps % self.update_every == 0:
-            DiscreteSAC.update(self, *self.buffer.sample(self.rng, self.batch_size))
             s_b, a_b, _, c_b, s2_b, d_b = self.risk_replay.sample(self.rng, self.batch_size)
-            with torch.no_grad():
-                next_probs = torch.softmax(self.actor(s2_b), -1)
-            self.risk.update(s_b, a_b, c_b, s2_b, d_b, next_probs)
+            self._risk_batch = (s_b, a_b, c_b, s2_b, d_b)
+            self.update(*self.buffer.sample(self.rng, self.batch_size))
 
 
 class SQRL(_RiskSAC):
     """SQRL: actions whose Q_risk exceeds eps are rejected from the policy's distribution (the least
-    risky one is taken if none is left), and the actor pays nu * E_pi[Q_risk] (recovery-rl's DGD penalty)."""
+    risky one is taken if none is left), and the actor pays nu (E_pi[Q_risk] - eps) with the multiplier
+    nu >= 0 set by dual gradient descent, nu <- max(0, nu + nu_lr (E_pi[Q_risk] - eps)) (recovery-rl's
+    DGD constraint): a fixed large nu makes the actor minimise risk alone before it ever sees the goal."""
 
-    def __init__(self, *args, nu: float = 10.0, **kw):
+    def __init__(self, *args, nu: float = 1.0, nu_lr: float = 0.01, **kw):
         super().__init__(*args, **kw)
-        self.nu = nu
+        self.nu, self.nu_lr = nu, nu_lr
 
     def act(self, obs) -> int:
         feat = self.features(obs)
@@ -114,7 +124,9 @@ class SQRL(_RiskSAC):
     def actor_extra_loss(self, s, probs) -> torch.Tensor:
         with torch.no_grad():
             risk = self.risk(s)
-        return self.nu * (probs * risk).sum(-1).mean()
+        expected = (probs * risk).sum(-1).mean()
+        self.nu = max(0.0, self.nu + self.nu_lr * (float(expected.detach()) - self.eps_risk))
+        return self.nu * (expected - self.eps_risk)
 
 
 class CPO(Agent):
@@ -288,11 +300,12 @@ AGENTS = {
 
 
 def make_agent(name: str, obs_dim: int, n_actions: int, n_taxels: int, features=None, seed: int = 0,
-               rp_penalty: float = 1.0) -> Agent:
-    """An agent by its name in the paper's Fig. 9 (SAC, SAC-RP, SAC-TDM, AC, AC-RP, AC-TDM, RRL, CPO, SQRL)."""
+               rp_penalty: float = 1.0, **overrides) -> Agent:
+    """An agent by its name in the paper's Fig. 9 (SAC, SAC-RP, SAC-TDM, AC, AC-RP, AC-TDM, RRL, CPO, SQRL);
+    `overrides` replace the class's keyword arguments (e.g. `refit_every`, `fit` for the -TDM agents)."""
     if name not in AGENTS:
         raise ValueError(f"unknown agent '{name}'; choose from {', '.join(AGENTS)}")
     cls, kw = AGENTS[name]
     if "cost_penalty" in kw:
         kw = dict(kw, cost_penalty=rp_penalty)
-    return cls(obs_dim, n_actions, n_taxels, features=features, seed=seed, **kw)
+    return cls(obs_dim, n_actions, n_taxels, features=features, seed=seed, **{**kw, **overrides})

@@ -28,5 +28,44 @@ def test_tasks_run_on_ray_are_cached_and_reused(tmp_path, monkeypatch):
     assert runner.cached(tmp_path, changed) is None and runner.cached(tmp_path, tasks[0]) == again[0]
     (tmp_path / "AC_s0.json").write_text("{not json")  # a half-written file counts as missing
     assert runner.cached(tmp_path, tasks[0]) is None
-    with pytest.raises(AssertionError, match="must not start Ray"):
+    monkeypatch.setattr(runner.time, "sleep", lambda s: None)
+    with pytest.raises(SystemExit, match="must not start Ray"):  # a missing task does start Ray (retried, then named)
         runner.run_tasks(run_one, tasks, tmp_path, workers=1, progress=False)
+
+
+def test_agent_overrides_get_their_own_task_file_and_reach_the_agent(tmp_path):
+    import argparse
+
+    from skinsafe.core.experiments import maze
+
+    p = argparse.ArgumentParser()
+    maze.add_arguments(p)
+    kw = maze.tdm_overrides(p.parse_args(["--tdm-refit-steps", "7", "--tdm-unseen-max", "0.6"]))
+    assert kw == {"fit": {"steps": 7, "min_steps": 7, "batch_size": 64, "val_fraction": 0.1}, "unseen_max": 0.6}
+    assert maze.tdm_overrides(p.parse_args([])) == {}
+    with pytest.raises(SystemExit, match="unseen-max"):
+        maze.tdm_overrides(p.parse_args(["--tdm-unseen-max", "0"]))
+    plain = {"method": "AC-TDM", "seed": 0, "episodes": 1, "max_steps": 5}
+    tuned = dict(plain, agent_kw=kw)
+    assert runner.task_file(tmp_path, plain).name == "AC-TDM_s0.json"
+    assert runner.task_file(tmp_path, tuned).name.startswith("AC-TDM_s0_") and runner.task_file(tmp_path, tuned) != runner.task_file(
+        tmp_path, dict(plain, agent_kw={"unseen_max": 0.5}))
+    r = run_one(**tuned)
+    assert r["stats"]["tdm"]["fits"] >= 1 and all(f["steps"] in (7, 100) for f in r["tdm_fits"])
+
+
+def test_a_ray_that_cannot_start_is_retried_then_named(tmp_path, monkeypatch):
+    import ray
+
+    calls = []
+
+    def fails(*a, **k):
+        calls.append(k.get("address"))
+        raise Exception("The current node timed out during startup.")
+
+    monkeypatch.setattr(ray, "init", fails)
+    monkeypatch.setattr(runner.time, "sleep", lambda s: None)
+    with pytest.raises(SystemExit, match="re-run the same command"):
+        runner.run_tasks(run_one, [{"method": "AC", "seed": 0, "episodes": 1, "max_steps": 2}], tmp_path, workers=1,
+                         progress=False)
+    assert calls == ["local"] * 3

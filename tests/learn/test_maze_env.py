@@ -154,6 +154,13 @@ def test_claim_check_reports_both_ways():
     rows["RRL"]["total_contacts_mean"] = 10.0
     c = experiment_maze.claim_check(rows)
     assert not c["holds"] and "RRL" in c["statement"]
+    assert c["holds_among_goal_reaching"] is None  # SAC-TDM is the only goal-reaching method: nothing to compare
+    rows["SAC"]["goal_rate_last_mean"] = 0.9
+    c = experiment_maze.claim_check(rows)
+    # RRL touches less but never learned the task: among the goal-reaching methods the claim holds
+    assert not c["holds"] and c["holds_among_goal_reaching"] is True and "Among the methods that reach the goal" in c["statement"]
+    rows["SAC"]["total_contacts_mean"] = 15.0
+    assert experiment_maze.claim_check(rows)["holds_among_goal_reaching"] is False
 
 
 def experiment_maze_args(out):
@@ -194,17 +201,19 @@ def test_sac_tdm_values_and_policy_ignore_actions_the_filter_removes():
         agent.shield.model.trunk[2].weight[0, 0] = 1.0
         agent.shield.model.head.weight.zero_()
         agent.shield.model.head.weight[:, 0] = 40.0
-        for q in (agent.q1_t, agent.q2_t):  # the target critics love action 0
-            q[-1].weight.zero_()
-            q[-1].bias.copy_(torch.tensor([1000.0, 1.0, 2.0, 3.0]))
+        agent.q_t.w[-1].zero_()  # both target critics love action 0
+        agent.q_t.b[-1].copy_(torch.tensor([1000.0, 1.0, 2.0, 3.0]))
     s = torch.as_tensor(MazeFeatures(env.walls)(env.reset()[0]))
-    assert agent.policy_log_probs(s).exp()[0, 0] < 1e-6
+    untried = float(agent.policy_log_probs(s).exp()[0, 0].detach())
+    assert 0.05 < untried < float(agent.action_probs(s.numpy())[0, 0])  # untried: p(D) capped at 0.5, lowered, not removed
+    for _ in range(1000):  # experience of action 0 here: the TDM's own danger counts
+        agent.shield.counts.add(s.numpy()[0], 0)
+    assert agent.policy_log_probs(s).exp()[0, 0] < 1e-3
     assert float(agent.soft_value(s)[0]) < 5.0  # only actions 1-3 count
     plain = make_agent("SAC", 4, 4, env.n_taxels, MazeFeatures(env.walls), seed=0)
     with torch.no_grad():
-        for q in (plain.q1_t, plain.q2_t):
-            q[-1].weight.zero_()
-            q[-1].bias.copy_(torch.tensor([1000.0, 1.0, 2.0, 3.0]))
+        plain.q_t.w[-1].zero_()
+        plain.q_t.b[-1].copy_(torch.tensor([1000.0, 1.0, 2.0, 3.0]))
     assert float(plain.soft_value(s)[0]) > 100.0
 
 
@@ -219,3 +228,51 @@ def test_actor_critic_learns_during_the_episode():
         obs = nxt
     assert not term and not trunc  # no episode end yet ...
     assert any(not torch.equal(b, w) for b, w in zip(before, agent.actor.parameters()))  # ... and it learned
+
+
+def test_visit_counts_are_local_to_the_state_and_the_action():
+    from skinsafe.core.learn.agents import VisitCounts
+
+    c = VisitCounts(3, 2, width=0.3)
+    for x, a in (([0, 0, 0], 1), ([0, 0, 0], 1), ([1, 0, 0], 0)):
+        c.add(np.array(x, np.float32), a)
+    assert len(c.index) == 2  # identical inputs stored once
+    n = c(torch.tensor([[0.0, 0, 0], [1, 0, 0], [5, 5, 5]])).numpy()
+    k = np.exp(-1 / (2 * 0.3 ** 2))  # kernel weight one unit away
+    np.testing.assert_allclose(n, [[k, 2], [1, 2 * k], [0, 0]], atol=1e-6)
+
+
+def test_sqrl_multiplier_follows_the_risk_constraint():
+    """Dual gradient descent: nu falls while E_pi[Q_risk] is under eps and rises while it is over."""
+    env, agent = _maze_agent("SQRL")
+    s = MazeFeatures(env.walls)(env.reset()[0])[0]
+    for _ in range(64):
+        agent.buffer.add(s, 0, 0.0, 0.0, s, 0.0)
+    for _ in range(20):
+        agent.update(*agent.buffer.sample(agent.rng, 64))
+    assert agent.nu < 1.0
+    low = agent.nu
+    agent.buffer = type(agent.buffer)(agent.feat_dim)
+    for a in range(4):  # every action touches: the safety critic learns risk -> 1
+        for _ in range(16):
+            agent.buffer.add(s, a, 0.0, 1.0, s, 0.0)
+    for _ in range(150):
+        agent.update(*agent.buffer.sample(agent.rng, 64))
+    assert float(agent.risk(torch.as_tensor(s[None])).min().detach()) > agent.eps_risk and agent.nu > low
+
+
+def test_twin_critics_are_two_independent_mlps():
+    from skinsafe.core.learn.agents import TwinQ, mlp
+
+    torch.manual_seed(0)
+    twin = TwinQ(5, 3, (8, 8))
+    x = torch.randn(7, 5)
+    out = twin(x)
+    assert out.shape == (2, 7, 3) and not torch.allclose(out[0], out[1])  # initialised independently
+    for k in range(2):
+        net = mlp(5, 3, (8, 8))
+        with torch.no_grad():
+            for layer, w, b in zip([m for m in net if isinstance(m, torch.nn.Linear)], twin.w, twin.b):
+                layer.weight.copy_(w[k].T)
+                layer.bias.copy_(b[k, 0])
+        torch.testing.assert_close(out[k], net(x))
