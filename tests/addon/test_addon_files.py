@@ -163,7 +163,7 @@ def test_sample_blend_asset_holds_a_full_skin():
     bpy.ops.wm.open_mainfile(filepath=str(path))
     scene = bpy.context.scene
     d = b2c.design_of(scene)
-    assert d.n_taxels >= 2000 and len(d.boards) >= 2
+    assert d.n_taxels >= 1500 and len(d.boards) >= 2
     assert {"upper_arm_link", "forearm_link", "wrist_1_link"} <= {m.body for m in d.modules}
     assert sum(len(o.data.polygons) for o in b2c.module_objects(scene)) == d.n_taxels
     for m in d.modules:  # each module on one board, within capacity
