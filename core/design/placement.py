@@ -340,10 +340,14 @@ def placed_from_design(design: SkinDesign, module_id: int) -> PlacedModule:
     return PlacedModule(m, t.positions[on], t.frames[on], idx // max(m.cols, 1), idx % max(m.cols, 1), float("inf"))
 
 
-def ring_layout(model, body: str, module: Module) -> list[tuple[np.ndarray, np.ndarray]]:
+def ring_layout(model, body: str, module: Module, poses=None) -> list[tuple[np.ndarray, np.ndarray]]:
     """Anchors and row directions (body frame) tiling the straight part of a body's first
-    capsule/cylinder geom with `module`: rows along the axis, modules side by side around it."""
+    capsule/cylinder geom with `module`: rows along the axis, modules side by side around it.
+    With `poses` (`sample.turned_poses`), only slots whose cells no other geom covers at every
+    pose (`sample.exposed_span`: under a joint housing, where `skinsafe check` refuses them)."""
     import mujoco
+
+    from skinsafe.core.design.sample import exposed_span
 
     bid = model.body(body).id
     geoms = [g for g in np.flatnonzero(model.geom_bodyid == bid)
@@ -358,11 +362,17 @@ def ring_layout(model, body: str, module: Module) -> list[tuple[np.ndarray, np.n
     along = (module.cols - 1) * module.pitch + 2 * clearance(module)
     around = (module.rows - 1) * module.pitch + 2 * clearance(module)
     n_along, n_around = int((2 * half) // along), int((2 * np.pi * r) // around)
+    inner = along / 2 - module.pitch / 2  # from the slot's centre to its outermost ring of cells
     out = []
     for i in range(n_along):
         z = -half + (i + 0.5) * (2 * half / n_along)
         for k in range(n_around):
             phi = 2 * np.pi * k / max(n_around, 1)
+            if poses is not None:
+                span = exposed_span(model, poses, g, module.pitch, 0.5 * module.pitch,
+                                    phi + np.linspace(-around / (2 * r), around / (2 * r), 7))
+                if not span or not span[0] <= z - inner or not z + inner <= span[1]:
+                    continue
             radial = np.cos(phi) * R[:, 0] + np.sin(phi) * R[:, 1]
             out.append((model.geom_pos[g] + z * R[:, 2] + r * radial, R[:, 2].copy()))
     return out
