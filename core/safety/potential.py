@@ -36,7 +36,8 @@ from skinsafe.core.safety.potential_kernels import (
     _mlp_forward,
     _tdm_backward,
     _tdm_forward,
-    panels,
+    _tdm_fused,
+    columns,
 )
 
 Potential = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -83,8 +84,10 @@ class FastPotential:
 
     Supports `DangerPotential` over a TDM with `trunk` (Sequential) and `head` (Linear), and
     `NStepPotential`; anything else raises TypeError (use `potential_and_normal`). The small
-    layers run in one compiled call each way (`_mlp_forward`, `_mlp_backward`); a TDM's wide head
-    is two BLAS matrix-vector products around one compiled pass over its logits (`_head_terms`).
+    layers run in one compiled call each way (`_mlp_forward`, `_mlp_backward`). A TDM's wide head
+    is read by compiled passes for a few rows (`potential_kernels`: one read for f and its
+    normal, or one for the scores of the strategy filter's candidates and one more for the
+    chosen one's normal); batches of more rows go through BLAS (`_head_terms`).
     """
 
     def __init__(self, potential: nn.Module):
@@ -117,7 +120,7 @@ class FastPotential:
             self._b.append(np.ascontiguousarray(b))
         self._kinds = np.array([k for _, _, k in layers], dtype=np.int64)
         self._memo = []  # (s, a, log_safe, sigmoids) of the last two few-row log_safety calls
-        self._panels = None  # the head as panels for the fused pass, made on first use
+        self._padded = None  # the head as padded columns for the few-row passes, made on first use
 
     def _trunk(self, s, a):
         """The activations of the compiled layers (input first) for states and actions."""
@@ -141,19 +144,25 @@ class FastPotential:
         s, a = np.atleast_2d(np.asarray(s, dtype=np.float64)), np.atleast_2d(np.asarray(a, dtype=np.float64))
         if s.shape[0] != a.shape[0] or s.shape[1] + a.shape[1] != len(self.mean):
             self._trunk(s, a)  # raises the clear error
-        if self._panels is None:
-            self._panels = panels(*self.head)
+        if self._padded is None:
+            self._padded = columns(*self.head)
         return s, a
 
     def _forward(self, s, a):
         """(s, a, log p(not D) (B,), sigmoids of the head logits) for a few rows: one compiled
         pass over the head (`_tdm_forward`)."""
         s, a = self._inputs(s, a)
-        return (s, a) + _tdm_forward(s, a, self.mean, self.std, self._W, self._b, self._kinds, *self._panels,
+        return (s, a) + _tdm_forward(s, a, self.mean, self.std, self._W, self._b, self._kinds, *self._padded,
                                      len(self.head[1]))
 
     def _normal(self, s, a, sig, log_safe):
-        return _tdm_backward(s, a, self.mean, self.std, self._W, self._b, self._kinds, self._panels[0], sig, log_safe)
+        """df/ds from `_forward`'s sigmoids (one more pass over the head)."""
+        return _tdm_backward(s, a, self.mean, self.std, self._W, self._b, self._kinds, self._padded[0], sig, log_safe)
+
+    def _fused(self, s, a):
+        """(log p(not D) (B,), df/ds (B, d)) for a few rows in one pass over the head."""
+        s, a = self._inputs(s, a)
+        return _tdm_fused(s, a, self.mean, self.std, self._W, self._b, self._kinds, *self._padded, len(self.head[1]))
 
     def log_safety(self, s, a) -> np.ndarray:
         """log p(not D | s, a) (B,) of a TDM potential (eq. 1 in log space). For a few rows (the
@@ -175,10 +184,10 @@ class FastPotential:
             if np.ndim(a) == 1 or len(a) <= FUSED_ROWS:
                 m, k = self._recall(s, a)
                 if k < 0:
-                    s2, a2, log_safe, sig = self._forward(s, a)
-                else:
-                    ms, ma, log_safe, sig = self._memo[m]
-                    s2, a2, log_safe, sig = ms[k if len(ms) > 1 else 0][None], ma[k][None], log_safe[k:k + 1], sig[k:k + 1]
+                    log_safe, n = self._fused(s, a)
+                    return -np.expm1(log_safe), n
+                ms, ma, log_safe, sig = self._memo[m]
+                s2, a2, log_safe, sig = ms[k if len(ms) > 1 else 0][None], ma[k][None], log_safe[k:k + 1], sig[k:k + 1]
                 return -np.expm1(log_safe), self._normal(s2, a2, sig, log_safe)
             acts, log_safe, g = self._danger(s, a, True)
             f = -np.expm1(log_safe)  # eq. 1 in log space

@@ -2,9 +2,12 @@
 the few-row pass over a TDM potential's wide head (the strategy filter's candidates and the
 modulation's one state per control tick).
 
-The head (N taxels x hidden) is stored as contiguous panels of PANEL taxels; a forward pass reads
-each panel once for every input row and keeps the head's sigmoids, a backward pass turns the
-chosen row's sigmoids into the normal.
+The head is stored as columns (hidden x N taxels, zero-padded to whole blocks of BLOCK taxels)
+and read a block at a time: a forward pass computes the block's logits for every input row and
+keeps its sigmoids, a backward pass turns the chosen row's sigmoids into the normal, and a fused
+pass does both in one read of the head (a state whose candidates were not scored before). Only
+the columns of hidden units that are not 0 for a row are read (after the trunk's last ReLU,
+about half): exact, and half the work.
 """
 from __future__ import annotations
 
@@ -89,81 +92,181 @@ def _find_row(ms, ma, s, a):
     return -1
 
 
-PANEL = 64
-"""Head rows per panel of the fused pass (`panels`): one panel's weights (PANEL x hidden float32,
-32 KB at 128 hidden) stay in L1 cache while every input row uses them."""
+BLOCK = 256
+"""Taxels per block of the few-row passes: a block's logits (one float32 row per input row) stay
+in L1 cache and its weights (hidden x BLOCK, 128 KB at 128 hidden) in L2 while every input row,
+and then the gradient, use them."""
 
 
-def panels(W: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The head (N, H) as contiguous panels (P, H, PANEL), `out[p, j, i] = W[p * PANEL + i, j]`,
-    and the bias (P, PANEL); the last panel padded with zeros (its length is taken from N)."""
+def columns(W: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The head W (N, H) as float32 columns (H, n), one contiguous row of taxel weights per hidden
+    unit, and the bias (n,), zero-padded to whole blocks, n >= N (the passes take the real N)."""
     N, H = W.shape
-    P = -(-N // PANEL)
-    Wp = np.zeros((P * PANEL, H), np.float32)
-    Wp[:N] = W
-    bp = np.zeros(P * PANEL, np.float32)
+    n = -(-N // BLOCK) * BLOCK
+    Wc = np.zeros((H, n), np.float32)
+    Wc[:, :N] = W.T
+    bp = np.zeros(n, np.float32)
     bp[:N] = b
-    return np.ascontiguousarray(Wp.reshape(P, PANEL, H).transpose(0, 2, 1)), bp.reshape(P, PANEL)
+    return Wc, bp
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _tdm_forward(s, a, mean, std, Ws, bs, kinds, Wp, bp, N):
-    """log p(not D) (B,) and sigmoid(z) (B, P * PANEL) of a TDM potential's head logits z. The
-    head is read once, one panel (`panels`) at a time, for every input row: the panel's logits
-    (`z += W[:, j] h_j`, vertical SIMD), exp(-|z|) in float64 (`_exp_neg`; numpy's float32 exp
-    agrees to an ulp) and the softplus sums exactly as `_head_sums` (one log per 64 factors)."""
+def _tdm_forward(s, a, mean, std, Ws, bs, kinds, Wc, b, N):
+    """log p(not D) (B,) and sigmoid(z) (B, padded N) of a TDM potential's head logits z: one
+    read of the head for every input row."""
     acts = _mlp_forward(s, a, mean, std, Ws, bs, kinds)
-    h = acts[len(acts) - 1]
-    B, P, H = h.shape[0], Wp.shape[0], Wp.shape[1]
-    total = np.zeros(B)
-    sig = np.zeros((B, P * PANEL), np.float32)
-    z = np.empty(PANEL, np.float32)
-    x = np.empty(PANEL)
-    for p in range(P):
-        Wk = Wp[p]
-        m = min(PANEL, N - p * PANEL)
-        for r in range(B):
-            hr = h[r]
-            for i in range(PANEL):
-                z[i] = bp[p, i]
-            for j in range(H):
-                hj = hr[j]
-                for i in range(PANEL):
-                    z[i] += Wk[j, i] * hj
-            for i in range(PANEL):
-                x[i] = -abs(np.float64(z[i]))
-            _exp_neg(x, PANEL)
-            prod = 1.0
-            for i in range(m):
-                e = np.float32(x[i])
-                total[r] += max(np.float64(z[i]), 0.0)
-                prod *= 1.0 + np.float64(e)
-                sig[r, p * PANEL + i] = (np.float32(1.0) if z[i] >= 0 else e) / (np.float32(1.0) + e)
-            total[r] += np.log(prod)
-    return -total, sig
+    log_safe, sig, _ = _head_pass(acts[len(Ws)], kinds, Wc, b, N, True, False)
+    return log_safe, sig
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _tdm_backward(s, a, mean, std, Ws, bs, kinds, Wp, sig, log_safe):
-    """df/ds (B, ds) from `_tdm_forward`'s sigmoids: `(1 - f) sum_i sigmoid(z_i) W_i` (one
-    more read of the head) taken back through the trunk (its forward recomputed: small)."""
+def _tdm_backward(s, a, mean, std, Ws, bs, kinds, Wc, sig, log_safe):
+    """df/ds (B, ds) from `_tdm_forward`'s sigmoids: one more read of the head (its columns
+    that the rows use)."""
     acts = _mlp_forward(s, a, mean, std, Ws, bs, kinds)
-    B, P, H = sig.shape[0], Wp.shape[0], Wp.shape[1]
-    g = np.zeros((B, H), np.float32)
-    for p in range(P):
-        Wk = Wp[p]
-        for r in range(B):
-            sg = sig[r, p * PANEL:(p + 1) * PANEL]
-            for j in range(H):
-                acc = np.float32(0.0)
-                for i in range(PANEL):
-                    acc += Wk[j, i] * sg[i]
-                g[r, j] += acc
-    for r in range(B):
-        scale = np.float32(np.exp(log_safe[r]))  # df/dz_i = (1 - f) sigmoid(z_i)
-        for j in range(H):
+    h = acts[len(Ws)]
+    idx, cnt = _used(h, kinds)
+    g = np.zeros(h.shape, np.float32)
+    for i0 in range(0, Wc.shape[1], BLOCK):
+        for r in range(h.shape[0]):
+            _dot_columns(g[r], sig[r, i0:i0 + BLOCK], Wc, idx[r], cnt[r], i0)
+    return _normal_from(g, log_safe, std, Ws, acts, kinds, s.shape[1])
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _tdm_fused(s, a, mean, std, Ws, bs, kinds, Wc, b, N):
+    """log p(not D) (B,) and df/ds (B, ds) in one read of the head: each block's sigmoids turn
+    into its share of the gradient while its weights are still in cache."""
+    acts = _mlp_forward(s, a, mean, std, Ws, bs, kinds)
+    log_safe, _, g = _head_pass(acts[len(Ws)], kinds, Wc, b, N, False, True)
+    return log_safe, _normal_from(g, log_safe, std, Ws, acts, kinds, s.shape[1])
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _normal_from(g, log_safe, std, Ws, acts, kinds, ds):
+    """df/ds from g = sum_i sigmoid(z_i) W_i at the head's input: df/dz_i = (1 - f) sigmoid(z_i)."""
+    for r in range(g.shape[0]):
+        scale = np.float32(np.exp(log_safe[r]))
+        for j in range(g.shape[1]):
             g[r, j] *= scale
-    return _mlp_backward(g, std, Ws, acts, kinds)[:, :s.shape[1]].astype(np.float64)
+    return _mlp_backward(g, std, Ws, acts, kinds)[:, :ds].astype(np.float64)
+
+
+@numba.njit(cache=True, nogil=True)
+def _used(h, kinds):
+    """Per row of the head's input h (B, H), the hidden units whose columns the passes read
+    (idx (B, H), cnt (B,)): where the trunk ends in a ReLU, those not 0 (about half; a 0 adds
+    nothing to the logits and the ReLU zeroes its gradient, so skipping it is exact), else all."""
+    B, H = h.shape
+    relu = len(kinds) > 0 and kinds[len(kinds) - 1] == 1
+    idx = np.empty((B, H), np.int64)
+    cnt = np.zeros(B, np.int64)
+    for r in range(B):
+        for j in range(H):
+            if h[r, j] != 0 or not relu:
+                idx[r, cnt[r]] = j
+                cnt[r] += 1
+    return idx, cnt
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _head_pass(h, kinds, Wc, b, N, keep, grad):
+    """One pass over the head's columns for the rows of h (B, H), the output of layers `kinds`:
+    log p(not D) (B,), with `keep` the sigmoids (B, padded N), with `grad`
+    g = sum_i sigmoid(z_i) W_i (B, H) (0 where `_used` skips a unit)."""
+    B, H = h.shape
+    n = Wc.shape[1]
+    idx, cnt = _used(h, kinds)
+    total = np.zeros(B)
+    sig = np.zeros((B, n if keep else 0), np.float32)
+    g = np.zeros((B, H if grad else 0), np.float32)
+    z = np.empty((B, BLOCK), np.float32)
+    x = np.empty(BLOCK)
+    for i0 in range(0, n, BLOCK):
+        for r in range(B):
+            zr = z[r]
+            for i in range(BLOCK):
+                zr[i] = b[i0 + i]
+            _axpy_columns(zr, h[r], Wc, idx[r], cnt[r], i0)
+        _block_softplus(total, z, x, min(BLOCK, N - i0))
+        for r in range(B):
+            if keep:
+                sig[r, i0:i0 + BLOCK] = z[r]
+            if grad:
+                _dot_columns(g[r], z[r], Wc, idx[r], cnt[r], i0)
+    return -total, sig, g
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _axpy_columns(z, h, Wc, idx, cnt, i0):
+    """z (BLOCK,) += sum_c h[idx[c]] Wc[idx[c], i0:i0 + BLOCK] over c < cnt, four columns at a
+    time (one load and store of z per four products; the compiler vectorises over taxels)."""
+    c = 0
+    while c + 4 <= cnt:
+        j0, j1, j2, j3 = idx[c], idx[c + 1], idx[c + 2], idx[c + 3]
+        h0, h1, h2, h3 = h[j0], h[j1], h[j2], h[j3]
+        w0, w1, w2, w3 = Wc[j0, i0:i0 + BLOCK], Wc[j1, i0:i0 + BLOCK], Wc[j2, i0:i0 + BLOCK], Wc[j3, i0:i0 + BLOCK]
+        for i in range(BLOCK):
+            z[i] += h0 * w0[i] + h1 * w1[i] + h2 * w2[i] + h3 * w3[i]
+        c += 4
+    for c in range(c, cnt):
+        hj, w = h[idx[c]], Wc[idx[c], i0:i0 + BLOCK]
+        for i in range(BLOCK):
+            z[i] += hj * w[i]
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _dot_columns(g, sig, Wc, idx, cnt, i0):
+    """g[idx[c]] += sig . Wc[idx[c], i0:i0 + BLOCK] over c < cnt, four columns at a time."""
+    c = 0
+    while c + 4 <= cnt:
+        j0, j1, j2, j3 = idx[c], idx[c + 1], idx[c + 2], idx[c + 3]
+        w0, w1, w2, w3 = Wc[j0, i0:i0 + BLOCK], Wc[j1, i0:i0 + BLOCK], Wc[j2, i0:i0 + BLOCK], Wc[j3, i0:i0 + BLOCK]
+        a0 = a1 = a2 = a3 = np.float32(0.0)
+        for i in range(BLOCK):
+            si = sig[i]
+            a0 += w0[i] * si
+            a1 += w1[i] * si
+            a2 += w2[i] * si
+            a3 += w3[i] * si
+        g[j0] += a0
+        g[j1] += a1
+        g[j2] += a2
+        g[j3] += a3
+        c += 4
+    for c in range(c, cnt):
+        w = Wc[idx[c], i0:i0 + BLOCK]
+        acc = np.float32(0.0)
+        for i in range(BLOCK):
+            acc += w[i] * sig[i]
+        g[idx[c]] += acc
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _block_softplus(total, z, x, m):
+    """total[r] += sum_i softplus(z[r, i]) over the block's m real taxels, and z <- sigmoid(z)
+    (0 past m). softplus(z) = max(z, 0) + log(1 + e), e = exp(-|z|) in float64 (`_exp_neg`;
+    float32's exp agrees to an ulp); no log1p: the logs of 64 factors (1 + e) in (1, 2] are
+    taken as one log of their float64 product (exact to ~1e-14; float32 1 + e would drop every
+    e under 6e-8)."""
+    for r in range(z.shape[0]):
+        zr = z[r]
+        for i in range(BLOCK):
+            x[i] = -abs(np.float64(zr[i]))
+        _exp_neg(x, BLOCK)
+        lin = 0.0
+        for i in range(m):
+            lin += max(np.float64(zr[i]), 0.0)
+        total[r] += lin
+        for start in range(0, m, 64):
+            prod = 1.0
+            for i in range(start, min(start + 64, m)):
+                prod *= 1.0 + x[i]
+            total[r] += np.log(prod)
+        for i in range(BLOCK):
+            e = np.float32(x[i])
+            sg = (np.float32(1.0) if zr[i] >= 0 else e) / (np.float32(1.0) + e)
+            zr[i] = sg if i < m else np.float32(0.0)
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)

@@ -1,5 +1,5 @@
-"""The compiled few-row TDM potential (`FastPotential`'s forward/backward passes over the panelled
-head) and the evaluator the strategy filter and the modulation share."""
+"""The compiled few-row TDM potential (`FastPotential`'s forward, backward and fused passes over
+the blocked head) and the evaluator the strategy filter and the modulation share."""
 import numpy as np
 import pytest
 import torch
@@ -22,7 +22,7 @@ def _tdm(n, seed=0):
     return tdm
 
 
-@pytest.mark.parametrize("n", [1, 100, 640])  # a partial last panel, and whole panels
+@pytest.mark.parametrize("n", [1, 100, 640])  # a partial last block, and whole blocks
 def test_few_rows_agree_with_blas_and_autograd(n):
     pot = DangerPotential(_tdm(n))
     fp = FastPotential(pot)
@@ -52,7 +52,7 @@ def test_scored_candidates_give_the_same_normal_without_a_second_forward_pass():
     assert fp._recall(s, 0.25 * a) == (-1, -1) and fp._recall(s + 1e-12, cand[0]) == (-1, -1)
 
 
-def test_stack_reads_the_head_once_per_tick_where_the_first_candidate_wins():
+def test_stack_reads_the_head_once_per_tick_where_the_first_candidate_wins_or_it_retracts():
     robot = build_ur5()
     design = make_sample_design("ur5", robot=robot)
     kin = TaxelKinematics(robot.model, design)
@@ -66,24 +66,25 @@ def test_stack_reads_the_head_once_per_tick_where_the_first_candidate_wins():
         stack = SafetyStack(robot.vel_limits, d, ModulationLayer(DangerPotential(tdm)), StrategyFilter(tdm, prior=prior))
         fp = stack.strategy.fast
         assert fp is stack.modulation._eval
-        count = {"rows": 0, "backward": 0}
-        fwd, bwd = fp._forward, fp._normal
+        count = {"rows": 0, "backward": 0, "fused": 0}
+        fwd, bwd, fused = fp._forward, fp._normal, fp._fused
         fp._forward = lambda s, a: (count.__setitem__("rows", count["rows"] + np.atleast_2d(a).shape[0]), fwd(s, a))[1]
         fp._normal = lambda *x: (count.__setitem__("backward", count["backward"] + 1), bwd(*x))[1]
+        fp._fused = lambda *x: (count.__setitem__("fused", count["fused"] + 1), fused(*x))[1]
         cmd = np.array([0.3, -0.2, 0.1, 0.2, 0.1, -0.1])
         for i in range(20):
             stack.tick(i * 0.002, robot.home, {"force": np.zeros(n)}, cmd, 0.002)
         calls.append(dict(count))
         force = np.zeros(n)
         force[np.argmax(kin.body_id)] = 40.0  # a contact: retraction, the strategy filter is not asked
-        count["rows"] = count["backward"] = 0
+        count["rows"] = count["backward"] = count["fused"] = 0
         for i in range(20, 30):
             stack.tick(i * 0.002, robot.home, {"force": force}, cmd, 0.002)
             assert d.active
         calls.append(dict(count))
-    assert calls[0] == {"rows": 20, "backward": 20}  # one forward row + the backward per tick
-    assert calls[1] == {"rows": 10, "backward": 10}  # retracting: only the modulation's own pass
-    assert calls[2] == {"rows": 60, "backward": 20}  # flat prior: every candidate scored, one backward
+    assert calls[0] == {"rows": 20, "backward": 20, "fused": 0}  # one forward row + the backward per tick
+    assert calls[1] == {"rows": 0, "backward": 0, "fused": 10}  # retracting: the modulation's own pass, one read
+    assert calls[2] == {"rows": 60, "backward": 20, "fused": 0}  # flat prior: every candidate scored, one backward
 
 
 def test_a_caller_reusing_its_arrays_gets_fresh_values():
