@@ -181,14 +181,14 @@ def _head_pass(h, kinds, Wc, b, N, keep, grad):
     sig = np.zeros((B, n if keep else 0), np.float32)
     g = np.zeros((B, H if grad else 0), np.float32)
     z = np.empty((B, BLOCK), np.float32)
-    x = np.empty(BLOCK)
+    e = np.empty(BLOCK, np.float32)
     for i0 in range(0, n, BLOCK):
         for r in range(B):
             zr = z[r]
             for i in range(BLOCK):
                 zr[i] = b[i0 + i]
             _axpy_columns(zr, h[r], Wc, idx[r], cnt[r], i0)
-        _block_softplus(total, z, x, min(BLOCK, N - i0))
+        _block_softplus(total, z, e, min(BLOCK, N - i0))
         for r in range(B):
             if keep:
                 sig[r, i0:i0 + BLOCK] = z[r]
@@ -243,17 +243,17 @@ def _dot_columns(g, sig, Wc, idx, cnt, i0):
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _block_softplus(total, z, x, m):
+def _block_softplus(total, z, e, m):
     """total[r] += sum_i softplus(z[r, i]) over the block's m real taxels, and z <- sigmoid(z)
-    (0 past m). softplus(z) = max(z, 0) + log(1 + e), e = exp(-|z|) in float64 (`_exp_neg`;
-    float32's exp agrees to an ulp); no log1p: the logs of 64 factors (1 + e) in (1, 2] are
-    taken as one log of their float64 product (exact to ~1e-14; float32 1 + e would drop every
-    e under 6e-8)."""
+    (0 past m). softplus(z) = max(z, 0) + log(1 + e) with e = exp(-|z|) (`_exp_neg32`, float32 as
+    the logits are); no log1p: the logs of 64 factors (1 + e) in (1, 2] are taken as one log of
+    their float64 product (float32 1 + e would drop every e under 6e-8)."""
+    one = np.float32(1.0)
     for r in range(z.shape[0]):
         zr = z[r]
         for i in range(BLOCK):
-            x[i] = -abs(np.float64(zr[i]))
-        _exp_neg(x, BLOCK)
+            e[i] = -abs(zr[i])
+        _exp_neg32(e)
         lin = 0.0
         for i in range(m):
             lin += max(np.float64(zr[i]), 0.0)
@@ -261,28 +261,37 @@ def _block_softplus(total, z, x, m):
         for start in range(0, m, 64):
             prod = 1.0
             for i in range(start, min(start + 64, m)):
-                prod *= 1.0 + x[i]
+                prod *= 1.0 + np.float64(e[i])
             total[r] += np.log(prod)
         for i in range(BLOCK):
-            e = np.float32(x[i])
-            sg = (np.float32(1.0) if zr[i] >= 0 else e) / (np.float32(1.0) + e)
-            zr[i] = sg if i < m else np.float32(0.0)
+            zr[i] = (one if zr[i] >= 0 else e[i]) / (one + e[i])
+        for i in range(m, BLOCK):
+            zr[i] = np.float32(0.0)
+
+
+_LOG2E, _LN2_HI, _LN2_LO = np.float32(1.44269504), np.float32(0.693359375), np.float32(-2.12194440e-4)
+_P = tuple(np.float32(c) for c in (1.9875691500e-4, 1.3981999507e-3, 8.3334519073e-3, 4.1665795894e-2,
+                                   1.6666665459e-1, 5.0000001201e-1))
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _exp_neg(x, m):
-    """x[:m] <- exp(x[:m]) for x <= 0 (float64; under -700 it is 0 to float32 anyway): 2^k exp(r)
-    with r = x - k ln2 in [-ln2/2, ln2/2] (two-part ln2) and a degree-10 Taylor polynomial
-    (relative error < 1e-12), 2^k from the exponent bits; a loop the compiler vectorises."""
-    bits = np.empty(m, np.int64)
-    for i in range(m):
-        v = max(x[i], -700.0)
-        k = np.floor(v * 1.4426950408889634 + 0.5)
-        r = (v - k * 0.693145751953125) - k * 1.4286068203094173e-06
-        p = 1.0 + r * (1.0 + r * (0.5 + r * (1 / 6 + r * (1 / 24 + r * (1 / 120 + r * (1 / 720 + r * (
-            1 / 5040 + r * (1 / 40320 + r * (1 / 362880 + r / 3628800)))))))))
-        x[i] = p
-        bits[i] = (np.int64(k) + 1023) << 52
-    scale = bits.view(np.float64)
-    for i in range(m):
-        x[i] *= scale[i]
+def _exp_neg32(x):
+    """x <- exp(x) for float32 x <= 0 (Cephes' expf: 2^k exp(r), r = x - k ln2 in [-ln2/2, ln2/2]
+    with a two-part ln2 and a degree-6 polynomial, relative error about 1e-7; 2^k from the
+    exponent bits; 0 under -87, where float32 has no normal numbers left); a loop the compiler
+    vectorises."""
+    bits = np.empty(x.shape[0], np.int32)
+    for i in range(x.shape[0]):
+        v = max(x[i], np.float32(-87.0))
+        under = x[i] < np.float32(-87.0)
+        k = np.floor(v * _LOG2E + np.float32(0.5))
+        r = (v - k * _LN2_HI) - k * _LN2_LO
+        p = _P[0]
+        p = p * r + _P[1]
+        p = p * r + _P[2]
+        p = p * r + _P[3]
+        p = p * r + _P[4]
+        p = p * r + _P[5]
+        x[i] = p * r * r + r + np.float32(1.0)
+        bits[i] = np.int32(0) if under else (np.int32(k) + np.int32(127)) << 23
+    x *= bits.view(np.float32)

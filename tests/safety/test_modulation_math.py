@@ -128,4 +128,8 @@ def test_bench_modulation_rows_fast_path_matches_reference():
     assert [(r["layer"], r["n_taxels"]) for r in out] == [("modulation", 256), ("full", 256)]
     full = out[1]
     assert full["active"] == 8 and full["ms"] > 0 and full["ms_worst"] > 0 and full["ms_ref"] > 0
+    # ms_worst: the median of the costlier tick kind; the jitter beside it, never folded in
+    assert full["ms_worst"] == max(full["ms"], full["ms_all_candidates"])
+    assert full["ms_max"] >= full["ms_p99"] >= min(full["ms_best"], full["ms_all_candidates_best"])
+    assert full["ms_max"] >= full["ms_worst"]
     assert full["max_abs_diff"] < 1e-4  # the fast potential, modulation and retraction give the same command
