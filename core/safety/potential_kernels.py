@@ -16,9 +16,11 @@ import numpy as np
 from numba import typed
 
 _FAST = {"reassoc", "contract", "nsz", "arcp"}  # reorder sums, keep inf and NaN semantics
+# The kernels use numpy's error model: a division by 0 gives inf or NaN (which the safety stack
+# treats as a bad input) instead of raising, and divisions vectorise.
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST, error_model="numpy")
 def _mlp_forward(s, a, mean, std, Ws, bs, kinds):
     """Activations (input first) of the layers `Ws, bs` with `kinds` (0 linear, 1 ReLU, 2 tanh)
     on the normalised input `([s, a] - mean) / std`, float32."""
@@ -47,7 +49,7 @@ def _mlp_forward(s, a, mean, std, Ws, bs, kinds):
     return acts
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST, error_model="numpy")
 def _mlp_backward(g, std, Ws, acts, kinds):
     """The gradient `g` at the last layer's output taken back to the (unnormalised) input."""
     B = g.shape[0]
@@ -110,7 +112,7 @@ def columns(W: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return Wc, bp
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST, error_model="numpy")
 def _tdm_forward(s, a, mean, std, Ws, bs, kinds, Wc, b, N):
     """log p(not D) (B,) and sigmoid(z) (B, padded N) of a TDM potential's head logits z: one
     read of the head for every input row."""
@@ -119,7 +121,7 @@ def _tdm_forward(s, a, mean, std, Ws, bs, kinds, Wc, b, N):
     return log_safe, sig
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST, error_model="numpy")
 def _tdm_backward(s, a, mean, std, Ws, bs, kinds, Wc, sig, log_safe):
     """df/ds (B, ds) from `_tdm_forward`'s sigmoids: one more read of the head (its columns
     that the rows use)."""
@@ -133,7 +135,7 @@ def _tdm_backward(s, a, mean, std, Ws, bs, kinds, Wc, sig, log_safe):
     return _normal_from(g, log_safe, std, Ws, acts, kinds, s.shape[1])
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST, error_model="numpy")
 def _tdm_fused(s, a, mean, std, Ws, bs, kinds, Wc, b, N):
     """log p(not D) (B,) and df/ds (B, ds) in one read of the head: each block's sigmoids turn
     into its share of the gradient while its weights are still in cache."""
@@ -142,7 +144,7 @@ def _tdm_fused(s, a, mean, std, Ws, bs, kinds, Wc, b, N):
     return log_safe, _normal_from(g, log_safe, std, Ws, acts, kinds, s.shape[1])
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST, error_model="numpy")
 def _normal_from(g, log_safe, std, Ws, acts, kinds, ds):
     """df/ds from g = sum_i sigmoid(z_i) W_i at the head's input: df/dz_i = (1 - f) sigmoid(z_i)."""
     for r in range(g.shape[0]):
@@ -169,7 +171,7 @@ def _used(h, kinds):
     return idx, cnt
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST, error_model="numpy")
 def _head_pass(h, kinds, Wc, b, N, keep, grad):
     """One pass over the head's columns for the rows of h (B, H), the output of layers `kinds`:
     log p(not D) (B,), with `keep` the sigmoids (B, padded N), with `grad`
@@ -197,7 +199,7 @@ def _head_pass(h, kinds, Wc, b, N, keep, grad):
     return -total, sig, g
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST, error_model="numpy")
 def _axpy_columns(z, h, Wc, idx, cnt, i0):
     """z (BLOCK,) += sum_c h[idx[c]] Wc[idx[c], i0:i0 + BLOCK] over c < cnt, four columns at a
     time (one load and store of z per four products; the compiler vectorises over taxels)."""
@@ -215,7 +217,7 @@ def _axpy_columns(z, h, Wc, idx, cnt, i0):
             z[i] += hj * w[i]
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST, error_model="numpy")
 def _dot_columns(g, sig, Wc, idx, cnt, i0):
     """g[idx[c]] += sig . Wc[idx[c], i0:i0 + BLOCK] over c < cnt, four columns at a time."""
     c = 0
@@ -242,7 +244,7 @@ def _dot_columns(g, sig, Wc, idx, cnt, i0):
         g[idx[c]] += acc
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST, error_model="numpy")
 def _block_softplus(total, z, e, m):
     """total[r] += sum_i softplus(z[r, i]) over the block's m real taxels, and z <- sigmoid(z)
     (0 past m). softplus(z) = max(z, 0) + log(1 + e) with e = exp(-|z|) (`_exp_neg32`, float32 as
@@ -264,7 +266,8 @@ def _block_softplus(total, z, e, m):
                 prod *= 1.0 + np.float64(e[i])
             total[r] += np.log(prod)
         for i in range(BLOCK):
-            zr[i] = (one if zr[i] >= 0 else e[i]) / (one + e[i])
+            ei = e[i]
+            zr[i] = (ei if zr[i] < 0 else one) / (one + ei)
         for i in range(m, BLOCK):
             zr[i] = np.float32(0.0)
 
@@ -274,7 +277,7 @@ _P = tuple(np.float32(c) for c in (1.9875691500e-4, 1.3981999507e-3, 8.333451907
                                    1.6666665459e-1, 5.0000001201e-1))
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST, error_model="numpy")
 def _exp_neg32(x):
     """x <- exp(x) for float32 x <= 0 (Cephes' expf: 2^k exp(r), r = x - k ln2 in [-ln2/2, ln2/2]
     with a two-part ln2 and a degree-6 polynomial, relative error about 1e-7; 2^k from the
