@@ -180,7 +180,7 @@ def _head_pass(h, kinds, Wc, b, N, keep, grad):
     n = Wc.shape[1]
     idx, cnt = _used(h, kinds)
     total = np.zeros(B)
-    sig = np.zeros((B, n if keep else 0), np.float32)
+    sig = np.empty((B, n if keep else 0), np.float32)  # every block written below
     g = np.zeros((B, H if grad else 0), np.float32)
     z = np.empty((B, BLOCK), np.float32)
     e = np.empty(BLOCK, np.float32)

@@ -95,3 +95,36 @@ def test_a_caller_reusing_its_arrays_gets_fresh_values():
     a *= 3.0  # in place: the kept candidate must not follow
     assert fp._recall(s[0], a[0]) == (-1, -1)
     assert np.allclose(fp(s[0], a[0])[1], fresh(s[0], a[0])[1], rtol=1e-6, atol=1e-12)
+
+
+def test_bench_sized_head_agrees_with_autograd_at_16384_taxels():
+    """The bench's TDM (hidden 128, 16,384 taxels): the one-read pass (`_fused`), and the scored
+    candidates' forward plus backward, against autograd in float64; the skipped hidden units (0
+    after the trunk's ReLU) are really there."""
+    from skinsafe.core.bench.modulation import _tdm as bench_tdm
+
+    pot = DangerPotential(bench_tdm(16384, 128).double())
+    fp = FastPotential(pot)
+    rng = np.random.default_rng(7)
+    s, a = rng.uniform(-1, 1, (3, 6)), rng.uniform(-1, 1, (3, 6))
+    h = fp._trunk(s, a)[-1]
+    assert 0.2 < (h == 0).mean() < 0.8
+    f_ref, n_ref = potential_and_normal(pot, s, a, dtype=torch.float64)
+    fp.log_safety(s, a)
+    for k in range(3):
+        log_safe, n_fused = fp._fused(s[k:k + 1], a[k:k + 1])
+        assert fp._recall(s[k], a[k]) == (0, k)  # the scored row: the backward pass
+        for f, n in (fp(s[k], a[k]), (-np.expm1(log_safe), n_fused)):
+            assert abs(f[0] - f_ref[k]) <= 1e-5 * f_ref[k]
+            assert np.abs(n - n_ref[k]).max() <= 1e-4 * np.abs(n_ref[k]).max()
+
+
+def test_bench_full_tick_commands_match_the_reference_at_16384_taxels():
+    import argparse
+
+    from skinsafe.core.bench.modulation import rows
+
+    out = rows(argparse.Namespace(taxels=[16384], active=[8], hidden=128, repeat=20, nstep=False, no_full=False))
+    full = out[1]
+    assert full["n_taxels"] == 16384 and full["layer"] == "full"
+    assert full["max_abs_diff"] < 1e-6  # every timed tick of both kinds, fast vs the autograd reference
