@@ -22,6 +22,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from skinsafe.core.safety.limits import finite
+
 EPS_GRAD = 1e-3
 """Default gradient norm (potential units per state unit) below which the normal is blended out."""
 
@@ -134,6 +136,6 @@ class ModulationLayer:
         single = np.ndim(v) == 1
         a = v if a is None else a
         f, n = self._eval(s, a)
-        self.finite = bool(np.isfinite(f).all() and np.isfinite(n).all())
+        self.finite = finite(f) and finite(n)
         out = modulate(v, f, n, self.eps_grad, self.keep_away, self.tangent_gain)
         return (out, float(f[0])) if single else (out, f)
