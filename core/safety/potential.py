@@ -125,8 +125,9 @@ class FastPotential:
     def _trunk(self, s, a):
         """The activations of the compiled layers (input first) for states and actions."""
         s, a = np.atleast_2d(np.asarray(s, dtype=np.float64)), np.atleast_2d(np.asarray(a, dtype=np.float64))
-        if s.shape[0] != a.shape[0]:
-            raise ValueError(f"potential: states have {s.shape[0]} rows but actions {a.shape[0]}; give one action per state")
+        if s.shape[0] not in (1, a.shape[0]):
+            raise ValueError(f"potential: states have {s.shape[0]} rows but actions {a.shape[0]}; give one action per "
+                             "state (or one state for all actions)")
         if s.shape[1] + a.shape[1] != len(self.mean):
             raise ValueError(f"potential: a state of {s.shape[1]} and an action of {a.shape[1]} values; the network "
                              f"takes {len(self.mean)} inputs in all (state then action)")
@@ -142,7 +143,7 @@ class FastPotential:
 
     def _inputs(self, s, a):
         s, a = np.atleast_2d(np.asarray(s, dtype=np.float64)), np.atleast_2d(np.asarray(a, dtype=np.float64))
-        if s.shape[0] != a.shape[0] or s.shape[1] + a.shape[1] != len(self.mean):
+        if s.shape[0] not in (1, a.shape[0]) or s.shape[1] + a.shape[1] != len(self.mean):
             self._trunk(s, a)  # raises the clear error
         if self._padded is None:
             self._padded = columns(*self.head)
@@ -165,9 +166,10 @@ class FastPotential:
         return _tdm_fused(s, a, self.mean, self.std, self._W, self._b, self._kinds, *self._padded, len(self.head[1]))
 
     def log_safety(self, s, a) -> np.ndarray:
-        """log p(not D | s, a) (B,) of a TDM potential (eq. 1 in log space). For a few rows (the
-        strategy filter's candidates) the head's sigmoids are kept: the modulation of the chosen
-        candidate then needs only the backward pass (`__call__`)."""
+        """log p(not D | s, a) (B,) of a TDM potential (eq. 1 in log space) for states (B, d), or
+        one state (1, d) for all B actions. For a few rows (the strategy filter's candidates) the
+        head's sigmoids are kept: the modulation of the chosen candidate then needs only the
+        backward pass (`__call__`)."""
         if self.output != "total_danger":
             raise TypeError("FastPotential.log_safety needs a DangerPotential over a TDM")
         if np.ndim(a) != 2 or len(a) > FUSED_ROWS:

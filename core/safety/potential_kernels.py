@@ -23,12 +23,14 @@ _FAST = {"reassoc", "contract", "nsz", "arcp"}  # reorder sums, keep inf and NaN
 @numba.njit(cache=True, nogil=True, fastmath=_FAST, error_model="numpy")
 def _mlp_forward(s, a, mean, std, Ws, bs, kinds):
     """Activations (input first) of the layers `Ws, bs` with `kinds` (0 linear, 1 ReLU, 2 tanh)
-    on the normalised input `([s, a] - mean) / std`, float32."""
-    B, ds = s.shape
+    on the normalised input `([s, a] - mean) / std`, float32; one row per action (one state row:
+    the same state for every action)."""
+    B, ds = a.shape[0], s.shape[1]
     x = np.empty((B, ds + a.shape[1]), np.float32)
     for r in range(B):
+        sr = r if s.shape[0] > 1 else 0
         for j in range(x.shape[1]):
-            x[r, j] = ((s[r, j] if j < ds else a[r, j - ds]) - mean[j]) / std[j]
+            x[r, j] = ((s[sr, j] if j < ds else a[r, j - ds]) - mean[j]) / std[j]
     acts = typed.List()
     acts.append(x)
     for k in range(len(Ws)):

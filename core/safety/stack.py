@@ -104,6 +104,8 @@ class StrategyFilter:
             raise ValueError(f"StrategyFilter: give one positive prior weight per scale ({len(self.scales)})")
         self.log_prior = np.log(prior / prior.sum())
         self.order = np.argsort(-self.log_prior, kind="stable")
+        rest = self.order[1:]
+        self._rest = (self.scales[rest, None], self.log_prior[rest], self.log_prior[rest].max() if len(rest) else 0.0)
         self.nonfinite = False  # the last call met a non-finite TDM output (and chose to stop)
 
     def __call__(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
@@ -113,22 +115,23 @@ class StrategyFilter:
         prior. A non-finite TDM output (NaN or infinite log-safety) for any scored candidate
         returns a stop (zeros) and sets `nonfinite`."""
         self.nonfinite = False
-        first, rest = self.order[0], self.order[1:]
+        first = self.order[0]
+        rest_scales, rest_prior, rest_max = self._rest
         best = self.scales[first] * a
         score = self._scores(s, best[None], self.log_prior[first:first + 1])[0]
         if self.nonfinite:
             return np.zeros_like(a)
-        if len(rest) == 0 or score >= self.log_prior[rest].max():
+        if len(rest_prior) == 0 or score >= rest_max:
             return best
-        cand = self.scales[rest, None] * a
-        scores = self._scores(s, cand, self.log_prior[rest])
+        cand = rest_scales * a
+        scores = self._scores(s, cand, rest_prior)
         if self.nonfinite:
             return np.zeros_like(a)
         k = int(np.argmax(scores))
         return cand[k] if scores[k] > score else best
 
     def _scores(self, s, cand, log_prior):
-        log_safe = np.asarray(self.fast.log_safety(np.broadcast_to(s, (len(cand), len(s))), cand), dtype=float)
+        log_safe = np.asarray(self.fast.log_safety(np.asarray(s, dtype=float)[None], cand), dtype=float)  # one state, all candidates
         if not finite(log_safe):
             self.nonfinite = True
         return log_prior + log_safe
