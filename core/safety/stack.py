@@ -14,9 +14,10 @@ A command source is anything callable as `source(t, q) -> qdot_planned (nv,)`: a
 3. modulation (III-B): whatever comes out - plan or retraction - is modulated by the danger
    potential (`ModulationLayer`; a retraction leaving danger keeps its speed, one heading into
    danger, e.g. toward a desk, is slowed). With a strategy filter over the same TDM, both share
-   one evaluator (`FastPotential`): the candidates' scores come with their normals in one pass
-   over the TDM's head, and the modulation of the chosen one reads them (one pass per tick
-   where the first candidate wins, the planned command unlimited until step 4);
+   one evaluator (`FastPotential`): scoring the candidates is one forward pass over the TDM's
+   head that keeps its sigmoids, and the modulation of the chosen one needs only the backward
+   pass (the planned command unlimited until step 4); a retraction's modulation is one fused
+   pass;
 4. limits (`limits.final_command`) on the final command: velocity and acceleration limits from
    the last command sent; while taxels are retracting, also their no-push constraints (the
    modulated command is projected, so modulation can never push a contacted taxel into its
