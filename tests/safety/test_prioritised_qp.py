@@ -5,7 +5,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from skinsafe.core.safety.qp import prioritised, recursive_qdot
+from skinsafe.core.safety.qp import _svd, prioritised, recursive_qdot
 from skinsafe.core.safety.retraction import merge, single_qdots
 
 FAST = settings(max_examples=60, deadline=None)
@@ -109,3 +109,28 @@ def test_infeasible_box_keeps_limits_least_violation_and_says_so():
     assert sol.infeasible and sol.qd[0] == pytest.approx(-0.97)
     pushing = prioritised(J, r, A, np.array([0.02]), -np.full(6, 3.0), np.full(6, 3.0), np.full(6, 3.0), 0.05, 0.05)
     assert not pushing.infeasible and pushing.qd[0] >= 0.02 - 1e-9
+
+
+@FAST
+@given(st.integers(0, 10 ** 6), st.sampled_from([3, 6]), st.integers(1, 7), st.sampled_from(["full", "dup", "rank1", "zero"]))
+def test_compiled_svd_matches_lapack(seed, m, d, kind):
+    """qp._svd (Jacobi, no LAPACK) against np.linalg.svd on the level blocks J_k Z, incl. rank
+    deficient and zero ones: same singular values, M = U S V^T, orthonormal U and full V."""
+    rng = np.random.default_rng(seed)
+    M = rng.normal(size=(m, d))
+    if kind == "dup" and d > 1:
+        M[:, 1] = 2 * M[:, 0]
+    elif kind == "rank1":
+        M = np.outer(rng.normal(size=m), rng.normal(size=d))
+    elif kind == "zero":
+        M[:] = 0.0
+    S, U, Vt = _svd(M)
+    S0 = np.linalg.svd(M, compute_uv=False)
+    scale = max(S0[0], 1.0)
+    k = min(m, d)
+    assert S.shape == (k,) and U.shape == (m, k) and Vt.shape == (d, d)
+    np.testing.assert_allclose(S, S0, atol=1e-12 * scale)
+    np.testing.assert_allclose(U @ np.diag(S) @ Vt[:k], M, atol=1e-12 * scale)
+    np.testing.assert_allclose(U.T @ U, np.eye(k), atol=1e-12)
+    np.testing.assert_allclose(Vt @ Vt.T, np.eye(d), atol=1e-12)
+    assert np.all(np.diff(S) <= 1e-12 * scale)  # descending
