@@ -167,21 +167,17 @@ class DefensivenessLayer:
         if fatal:
             return self._finish(brake(prev, self.limits), TickInfo(nonfinite=tuple(fatal + bad), safe=True), prev)
         self._t = t
-        events = None
-        for name, value in clean.items():
-            if name in self.thresholds:
-                over_th = value > self.thresholds[name]
-                events = over_th if events is None else events | over_th
         st = self._state
         if len(st):
             over = t - st[:, 1] > p.T  # retractions that are over leave the pool
             if over.any():
                 self._in_pool[st[over, 0].astype(np.intp)] = False
                 st = st[~over]
-        if events is None:
-            new = np.zeros(0, np.intp)
-        else:
-            new = np.flatnonzero(events & ~self._in_pool if len(st) else events)
+        events = np.zeros(self.kin.n, bool)  # above a threshold and not retracting already
+        for name, value in clean.items():
+            if name in self.thresholds:
+                _mark_over(value, self.thresholds[name], self._in_pool, len(st) > 0, events)
+        new = np.flatnonzero(events)
         if len(st) + len(new) == 0:
             self._state, self.priorities, self.retracted = st, np.zeros(0), np.zeros(0)
             self.A, self.b = np.zeros((0, nv)), np.zeros(0)
@@ -216,7 +212,8 @@ class DefensivenessLayer:
     def _finish(self, out: np.ndarray, info: TickInfo, prev: np.ndarray) -> np.ndarray:
         flags = [f"nonfinite:{n}" for n in info.nonfinite] + (["nonfinite"] if info.nonfinite else [])
         flags += [n for n in ("safe", "infeasible", "recovery_dropped", "blocked") if getattr(info, n)]
-        self.flags.update(flags)
+        if flags:
+            self.flags.update(flags)
         info.flags = tuple(flags)
         self.info, self.last = info, out
         return out.copy()
@@ -264,6 +261,15 @@ def _distinct_rows(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray
     bmax = np.zeros(len(first))
     np.maximum.at(bmax, inv, b / scale)
     return A[first], bmax * scale[first]
+
+
+@numba.njit(cache=True, nogil=True)
+def _mark_over(value, threshold, in_pool, skip_pool, events):
+    """`events |= (value > threshold) & ~in_pool` (`in_pool` only with `skip_pool`), in place:
+    one pass over the skin, no temporaries."""
+    for i in range(value.shape[0]):
+        if value[i] > threshold[i] and not (skip_pool and in_pool[i]):
+            events[i] = True
 
 
 @numba.njit(cache=True, nogil=True)

@@ -152,7 +152,7 @@ def final_command(v: np.ndarray, prev: np.ndarray, limits: JointLimits, A: np.nd
         x, ok, _ = qp.solve(H, f, C, lower, upper)
     if not ok:  # cannot happen for bounds from relaxed_bounds; stay safe anyway
         return Projection(brake(prev, limits), True, True)
-    return Projection(np.minimum(np.maximum(x, lo), hi), True, bool(np.any(bb < 0)))
+    return Projection(np.minimum(np.maximum(x, lo), hi), True, bool((bb < 0).any()))
 
 
 _EYE = [np.eye(n) for n in range(16)]

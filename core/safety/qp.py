@@ -264,7 +264,7 @@ def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: fl
 
     One compiled call runs the levels whose closed-form step meets every constraint; DAQP is
     called only for the levels where a constraint binds, then the next compiled call goes on
-    (cold solves: a primal warm start made DAQP report feasible levels infeasible, and a cold
+    (none when that level left no freedom or no task) (cold solves: a primal warm start made DAQP report feasible levels infeasible, and a cold
     solve takes about 6 us here)."""
     J, r, A, b = (np.ascontiguousarray(a, dtype=np.float64) for a in (J, r, A, b))
     lo, hi = np.ascontiguousarray(lo, dtype=np.float64), np.ascontiguousarray(hi, dtype=np.float64)
@@ -288,6 +288,12 @@ def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: fl
         k += 1
         if not ok:  # z = 0 is feasible here (x met every constraint at the level before): keep x
             z = _NONE
+        elif k >= K or null.shape[1] == 0:  # no level left to run: apply z here (what the next call would do)
+            x = x + Z @ z
+            if levels == 0:
+                _first_level(J[k - 1], r[k - 1], x, lam, n, first)
+            x, levels = np.minimum(np.maximum(x, lo), hi), levels + 1
+            break
     out.qd, out.levels = x, levels
     out.damped, out.dominant_residual, out.limited, out.blocked = bool(first[0]), float(first[1]), bool(first[2]), \
         bool(first[3])

@@ -247,7 +247,8 @@ class SafetyStack:
     def _send(self, v: np.ndarray, info: TickInfo) -> np.ndarray:
         flags = [f"nonfinite:{n}" for n in info.nonfinite] + (["nonfinite"] if info.nonfinite else [])
         flags += [n for n in ("safe", "infeasible", "pushing") if getattr(info, n)]
-        self.flags.update(flags)
+        if flags:
+            self.flags.update(flags)
         info.flags = tuple(flags)
         self.info, self.last = info, v
         return v.copy()

@@ -41,7 +41,7 @@ def contact_set(design, kind, k, rng):
         return on[np.linalg.norm(n - n[0], axis=1) < 1e-6][:k]
     if kind == "opposite":  # both sides of one link
         back = on[n @ n[0] < -0.9]
-        return np.concatenate([on[:1], back[:1], rng.choice(on, max(0, k - 2), replace=False)])[:k]
+        return np.concatenate([on[:1], back[:1], rng.choice(on, min(max(0, k - 2), len(on)), replace=False)])[:k]
     return rng.choice(on, min(k, len(on)), replace=False)  # "one_link": all on one link
 
 
