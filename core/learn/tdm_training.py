@@ -73,7 +73,7 @@ class TDMTrainer:
         self.model, self.cfg = model, cfg or FitConfig()
         self.rng = np.random.default_rng(seed)
         self.gen = torch.Generator().manual_seed(seed)
-        self.opt = torch.optim.Adam(model.parameters(), lr=self.cfg.lr, foreach=True)
+        self.opt = torch.optim.Adam(model.parameters(), lr=self.cfg.lr, fused=True)
         cap = self.cfg.capacity
         self.s = np.zeros((cap, model.state_dim), np.float32)
         self.a = np.zeros((cap, model.action_dim), np.float32)
