@@ -61,13 +61,18 @@ def _start_ray(ray, address: str | None, workers: int | None, tries: int = 3) ->
 
 
 def run_tasks(fn: Callable[..., dict], tasks: list[dict], cache: str | Path, address: str | None = None,
-              workers: int | None = None, progress: bool = True, desc: str = "tasks", fresh: bool = False) -> list[dict]:
+              workers: int | None = None, progress: bool = True, desc: str = "tasks", fresh: bool = False,
+              cost: Callable[[dict], float] | None = None) -> list[dict]:
     """Results of `fn(**task)` for every task, in the order given (module doc). `fn` must be a
-    module-level function (Ray pickles it by reference); `fresh` ignores cached results."""
+    module-level function (Ray pickles it by reference); `fresh` ignores cached results. `cost`, an
+    estimate of a task's run time, submits the longest first (so that no long task starts last and
+    runs alone on an otherwise idle machine)."""
     cache = Path(cache)
     cache.mkdir(parents=True, exist_ok=True)
     results: list[dict | None] = [None if fresh else cached(cache, t) for t in tasks]
     todo = [i for i, r in enumerate(results) if r is None]
+    if cost is not None:
+        todo.sort(key=lambda i: -cost(tasks[i]))
     bar = tqdm(total=len(tasks), initial=len(tasks) - len(todo), desc=desc, disable=not progress, file=sys.stderr)
     if todo:
         import ray

@@ -73,7 +73,7 @@ class TDMTrainer:
         self.model, self.cfg = model, cfg or FitConfig()
         self.rng = np.random.default_rng(seed)
         self.gen = torch.Generator().manual_seed(seed)
-        self.opt = torch.optim.Adam(model.parameters(), lr=self.cfg.lr, foreach=True)
+        self.opt = torch.optim.Adam(model.parameters(), lr=self.cfg.lr, fused=True)
         cap = self.cfg.capacity
         self.s = np.zeros((cap, model.state_dim), np.float32)
         self.a = np.zeros((cap, model.action_dim), np.float32)
@@ -120,21 +120,33 @@ class TDMTrainer:
         s, a, d = (torch.as_tensor(x[idx]) for x in (self.s, self.a, self.d))
         return float(self._loss(self.model(s, a), d))
 
-    def fit(self, steps: int | None = None) -> dict:
-        """One refit of at most `steps` gradient steps (default the config's); returns its record."""
+    @property
+    def last(self) -> int:
+        """Index of the most recently logged sample (for `fit(focus=...)`)."""
+        return (self.i - 1) % self.cfg.capacity
+
+    def fit(self, steps: int | None = None, focus=()) -> dict:
+        """One refit of at most `steps` gradient steps (default the config's); returns its record.
+        `focus`: sample indices put in every batch (those in the training split), e.g. a contact just
+        logged, which a uniform batch of a few thousand samples would see a handful of times. A focused
+        fit runs its whole budget and keeps its weights: the validation split has never seen the new
+        sample, so early stopping on it would throw the lesson away."""
         cfg = self.cfg
         steps = cfg.steps if steps is None else int(steps)
         train, val = self._split()
+        focus = np.asarray([i for i in focus if i < self.n and not self.val[i]], np.int64)
         if len(train) == 0:
             return {}
         t0 = time.perf_counter()
-        check = len(val) >= cfg.min_val
+        check = len(val) >= cfg.min_val and not len(focus)
         best, best_state, bad, done, loss = (self._val_loss(val) if check else np.inf), None, 0, 0, np.nan
         if check:  # a fit that never beats the weights it started from keeps them
             best_state = {k: t.clone() for k, t in self.model.state_dict().items()}
         self.model.train()
         while done < steps:
-            pick = torch.as_tensor(train[torch.randint(len(train), (min(cfg.batch_size, len(train)),), generator=self.gen).numpy()])
+            pick = train[torch.randint(len(train), (min(cfg.batch_size, len(train)),), generator=self.gen).numpy()]
+            if len(focus):
+                pick = np.concatenate([pick, focus])
             out = self.model(torch.as_tensor(self.s[pick]), torch.as_tensor(self.a[pick]))
             loss = self._loss(out, torch.as_tensor(self.d[pick]))
             self.opt.zero_grad()

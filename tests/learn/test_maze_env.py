@@ -276,3 +276,40 @@ def test_twin_critics_are_two_independent_mlps():
                 layer.weight.copy_(w[k].T)
                 layer.bias.copy_(b[k, 0])
         torch.testing.assert_close(out[k], net(x))
+
+
+def test_tdm_filter_overrides_a_saturated_raw_policy():
+    """eq. 3 can only move the probability the raw policy gives: a raw policy saturated on a move the TDM
+    knows is dangerous defeats it, unless the raw policy keeps a floor of the uniform one."""
+    env, floored = _maze_agent("SAC-TDM")
+    _, bare = _maze_agent("SAC-TDM")
+    bare.raw_floor = 0.0
+    s = torch.as_tensor(MazeFeatures(env.walls)(env.reset()[0]))
+    for agent in (floored, bare):
+        with torch.no_grad():
+            agent.actor[-1].weight.zero_()
+            agent.actor[-1].bias.copy_(torch.tensor([40.0, 0.0, 0.0, 0.0]))  # raw p(action 0) = 1 - 1e-17
+            head = agent.shield.model.head
+            head.weight.zero_()
+            head.bias.copy_(torch.full_like(head.bias, -30.0))
+        for a in range(4):  # the TDM has seen every move here: its own danger counts
+            for _ in range(200):
+                agent.shield.counts.add(s.numpy()[0], a)
+    with torch.no_grad():  # action 0 rated 99% dangerous on one taxel, the others safe
+        for agent in (floored, bare):
+            first = agent.shield.model.trunk[0]
+            first.weight.zero_()
+            first.bias.zero_()
+            first.weight[0, agent.feat_dim + 0] = 1.0
+            agent.shield.model.trunk[2].weight.zero_()
+            agent.shield.model.trunk[2].bias.zero_()
+            agent.shield.model.trunk[2].weight[0, 0] = 1.0
+            agent.shield.model.head.weight[0, 0] = 30.0 + np.log(99.0)  # logit log(99): p(D | action 0) = 0.99
+    p_bare = bare.policy_log_probs(s).exp()[0].detach().numpy()
+    p_floor = floored.policy_log_probs(s).exp()[0].detach().numpy()
+    assert p_bare[0] > 0.99  # the filter changes nothing on a saturated raw policy
+    w = 200 / (200 + 0.5)  # experience weight of the shield (`TDMShield`): 200 samples of action 0 here
+    safe = 1 - (w * 0.99 + (1 - w) * 0.8)
+    expect = (0.95 + 0.0125) * safe / ((0.95 + 0.0125) * safe + 3 * 0.0125)  # floor 5%: (1 - f) p + f / 4
+    assert p_floor[0] == pytest.approx(expect, rel=1e-3)
+    assert p_floor[0] < 0.25
