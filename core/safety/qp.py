@@ -40,6 +40,8 @@ import daqp
 import numba
 import numpy as np
 
+from skinsafe.core.safety.jacobi import orthogonalise_columns
+
 BIG = 1e30  # DAQP's "no bound"
 _SENSE = np.zeros(256, dtype=np.int32)  # every row an inequality (read-only use)
 
@@ -98,36 +100,12 @@ def _svd(M):
     descending, Vt (d, d) full: one-sided (Hestenes) Jacobi on the columns of M (rotate pairs
     until orthogonal, `M W = B`; V = W, sigma_i = |B_i|, U_i = B_i / sigma_i). No LAPACK call:
     about 1 us for the 3 x 6 blocks here where a `gesdd` call with its workspace takes 15 us
-    (the same scheme as `retraction._dls_solve`). Columns of U for zero singular values
+    (`jacobi.orthogonalise_columns`, shared with `retraction._dls_solve`). Columns of U for zero singular values
     complete an orthonormal basis (as LAPACK's do)."""
     m, d = M.shape
     B = np.ascontiguousarray(M).copy()
     W = np.eye(d)
-    tiny = 1e-30 * np.sum(B * B)  # a column this small is numerically zero: never rotate it
-    for _ in range(60):
-        rotated = False
-        for p in range(d - 1):
-            for q in range(p + 1, d):
-                alpha = beta = gamma = 0.0
-                for i in range(m):
-                    alpha += B[i, p] * B[i, p]
-                    beta += B[i, q] * B[i, q]
-                    gamma += B[i, p] * B[i, q]
-                if alpha <= tiny or beta <= tiny or abs(gamma) <= 1e-15 * np.sqrt(alpha) * np.sqrt(beta):
-                    continue
-                rotated = True
-                zeta = (beta - alpha) / (2.0 * gamma)
-                t = (1.0 if zeta >= 0 else -1.0) / (abs(zeta) + np.sqrt(1.0 + zeta * zeta))
-                c = 1.0 / np.sqrt(1.0 + t * t)
-                s = c * t
-                for i in range(m):
-                    bp, bq = B[i, p], B[i, q]
-                    B[i, p], B[i, q] = c * bp - s * bq, s * bp + c * bq
-                for i in range(d):
-                    wp, wq = W[i, p], W[i, q]
-                    W[i, p], W[i, q] = c * wp - s * wq, s * wp + c * wq
-        if not rotated:
-            break
+    orthogonalise_columns(B, W)
     norms = np.empty(d)
     for j in range(d):
         norms[j] = np.sqrt(np.sum(B[:, j] * B[:, j]))

@@ -51,6 +51,8 @@ from types import MappingProxyType
 import numba
 import numpy as np
 
+from skinsafe.core.safety.jacobi import orthogonalise_columns
+
 FORMS = ("3d", "6d")
 MERGES = ("qp", "joint", "paper")  # prioritised QP (default); closed forms: eq. 13 intent in joint space, as printed
 
@@ -151,31 +153,7 @@ def _dls_solve(J, rhs, damping, sv_threshold):
         W[:] = 0.0
         for i in range(m):
             W[i, i] = 1.0
-        tiny = 1e-30 * np.sum(A * A)  # a column this small is numerically zero: never rotate it
-        for _ in range(60):
-            rotated = False
-            for p in range(m - 1):
-                for q in range(p + 1, m):
-                    alpha = beta = gamma = 0.0
-                    for i in range(n):
-                        alpha += A[i, p] * A[i, p]
-                        beta += A[i, q] * A[i, q]
-                        gamma += A[i, p] * A[i, q]
-                    if alpha <= tiny or beta <= tiny or abs(gamma) <= 1e-15 * np.sqrt(alpha) * np.sqrt(beta):
-                        continue
-                    rotated = True
-                    zeta = (beta - alpha) / (2.0 * gamma)
-                    t = (1.0 if zeta >= 0 else -1.0) / (abs(zeta) + np.sqrt(1.0 + zeta * zeta))
-                    c = 1.0 / np.sqrt(1.0 + t * t)
-                    s = c * t
-                    for i in range(n):
-                        ap, aq = A[i, p], A[i, q]
-                        A[i, p], A[i, q] = c * ap - s * aq, s * ap + c * aq
-                    for i in range(m):
-                        wp, wq = W[i, p], W[i, q]
-                        W[i, p], W[i, q] = c * wp - s * wq, s * wp + c * wq
-            if not rotated:
-                break
+        orthogonalise_columns(A, W)
         for i in range(m):
             s2 = 0.0
             for j in range(n):
