@@ -114,14 +114,13 @@ class TDMShield:
         self.counts.add(feat, action)
         self.since += 1
         if danger.any():  # a new contact is news: learn it now, with the larger budget, in every batch
-            self.since = 0
-            self.trainer.fit(self.contact_steps, focus=[self.trainer.last])
+            self.fit(self.contact_steps, focus=[self.trainer.last])
         elif self.since >= self.refit_every:
             self.fit()
 
-    def fit(self, steps: int | None = None) -> dict:
+    def fit(self, steps: int | None = None, focus=()) -> dict:
         self.since = 0
-        return self.trainer.fit(steps)
+        return self.trainer.fit(steps, focus)
 
     @torch.no_grad()
     def log_safety(self, feat: torch.Tensor) -> torch.Tensor:
@@ -144,14 +143,14 @@ class Agent:
     def __init__(self, obs_dim: int, n_actions: int, n_taxels: int, features=None, seed: int = 0,
                  cost_penalty: float = 0.0, use_tdm: bool = False, gamma: float = 0.97, lr: float = 3e-3,
                  hidden=(64, 64), refit_every: int = 20, fit: FitConfig | None = None, unseen_max: float = 0.8,
-                 raw_floor: float = 0.05, raw_entropy_coef: float | None = None):
+                 raw_floor: float = 0.05):
         torch.manual_seed(seed)
         self.rng = np.random.default_rng(seed)
         self.features = features if features is not None else (lambda o: np.atleast_2d(np.asarray(o, np.float32)))
         self.feat_dim = int(self.features(np.zeros(obs_dim, np.float32)).shape[-1])
         self.n_actions, self.gamma, self.lr, self.hidden = n_actions, gamma, lr, hidden
         self.cost_penalty = float(cost_penalty)
-        self.raw_floor, self.raw_entropy_coef = float(raw_floor), raw_entropy_coef
+        self.raw_floor = float(raw_floor)
         self.shield = (TDMShield(self.feat_dim, n_actions, n_taxels, seed, refit_every, fit, unseen_max=unseen_max)
                        if use_tdm else None)
 
@@ -180,14 +179,14 @@ class Agent:
             raw = torch.logaddexp(raw + float(np.log1p(-self.raw_floor)), torch.full_like(raw, float(np.log(self.raw_floor / self.n_actions))))
         return filter_log_probs(raw, self.shield.log_safety(s))
 
-    def raw_entropy(self, s: torch.Tensor) -> torch.Tensor:
-        """Mean entropy of the unfiltered policy: with the TDM, the actions the filter removes get no
-        gradient from the filtered loss, so without this term their logits drift (a raw policy of 0.99 on
-        a filtered action defeats any filter whose safety estimate is not exactly 0)."""
+    def raw_entropy(self, raw: torch.Tensor) -> torch.Tensor:
+        """Mean entropy of the unfiltered policy, from its log-probabilities `raw`: with the TDM, the
+        actions the filter removes get no gradient from the filtered loss, so without this term their
+        logits drift (a raw policy of 0.99 on a filtered action defeats any filter whose safety estimate
+        is not exactly 0)."""
         if self.shield is None:
             return torch.zeros(())
-        logp = F.log_softmax(self._logits(s), -1)
-        return -(logp.exp() * logp).sum(-1).mean()
+        return -(raw.exp() * raw).sum(-1).mean()
 
     def act(self, obs) -> int:
         p = self.behaviour_probs(self.features(obs))
@@ -327,10 +326,8 @@ class DiscreteSAC(Agent):
         loss_q = 2 * F.mse_loss(qs.gather(2, idx.expand(2, -1, 1)).squeeze(2), y.expand(2, -1))  # sum of both critics' MSE
         p = logp.exp()
         q = qs.min(0).values.detach()
-        loss_pi = (p * (alpha * logp.clamp_min(-30) - q)).sum(-1).mean() + self.actor_extra_loss(s, p)
-        if self.shield is not None:  # keep the raw policy's entropy too (`raw_entropy`)
-            coef = alpha if self.raw_entropy_coef is None else self.raw_entropy_coef
-            loss_pi = loss_pi + coef * (raw[:b].exp() * raw[:b]).sum(-1).mean()
+        loss_pi = ((p * (alpha * logp.clamp_min(-30) - q)).sum(-1).mean() + self.actor_extra_loss(s, p)
+                   - alpha * self.raw_entropy(raw[:b]))
         entropy = -(p * logp.clamp_min(-30)).sum(-1).mean().detach()
         loss_alpha = self.log_alpha * (entropy - self.target_entropy)
         self.opt.zero_grad()
@@ -390,9 +387,9 @@ class ActorCritic(Agent):
             adv[t] = acc
         adv_t = torch.as_tensor(adv)
         ret = torch.as_tensor(adv + v)
-        logp = self.policy_log_probs(s)
-        entropy = -(logp.exp() * logp.clamp_min(-30)).sum(-1).mean()
-        entropy = entropy + self.raw_entropy(s)
+        raw = F.log_softmax(self._logits(s), -1)
+        logp = self.executed_log_probs(raw, s)
+        entropy = -(logp.exp() * logp.clamp_min(-30)).sum(-1).mean() + self.raw_entropy(raw)
         loss = (-(adv_t / self.value_scale * logp.gather(1, a[:, None]).squeeze(1)).mean() - self.entropy_coef * entropy
                 + 0.5 * F.mse_loss(self._v(s) / self.value_scale, ret / self.value_scale))
         self.opt.zero_grad()
