@@ -49,6 +49,8 @@ def add_arguments(p) -> None:
     p.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset of %(default)s")
     p.add_argument("--tdm-refit-steps", type=int, help="-TDM agents: gradient steps per periodic refit (default 25)")
     p.add_argument("--tdm-unseen-max", type=float, help="-TDM agents: most danger the filter gives an untried move (default 0.8)")
+    p.add_argument("--tdm-prior-count", type=float,
+                   help="-TDM agents: tries of a move after which the filter trusts the TDM's danger half-way (default 0.01)")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="local Ray CPUs (default %(default)s)")
     p.add_argument("--address", default=None, help="join this Ray cluster instead of starting a local Ray")
     p.add_argument("--fresh", action="store_true", help="re-run every task instead of reusing finished ones")
@@ -239,6 +241,10 @@ def tdm_overrides(args) -> dict:
         if not 0 < args.tdm_unseen_max <= 1:
             raise SystemExit(f"skinsafe experiment maze: --tdm-unseen-max must lie in (0, 1], got {args.tdm_unseen_max}")
         kw["unseen_max"] = args.tdm_unseen_max
+    if getattr(args, "tdm_prior_count", None) is not None:
+        if not args.tdm_prior_count > 0:
+            raise SystemExit(f"skinsafe experiment maze: --tdm-prior-count must be > 0, got {args.tdm_prior_count}")
+        kw["prior_count"] = args.tdm_prior_count
     return kw
 
 

@@ -15,7 +15,12 @@ Choices that make them learn (issue 16):
   the lesson away; SAC-TDM seeds 0-3, contacts in the first 50 episodes 145/210/226/298 -> 155/118/191/148),
   with a validation split (`TDMTrainer`), not a few epochs at episode ends.
   The filter's danger is the TDM's shrunk by experience (`TDMShield`): untried actions are lowered,
-  never removed, so the agent keeps exploring where its TDM only extrapolates.
+  never removed, so the agent keeps exploring where its TDM only extrapolates; one try is enough to
+  trust the TDM there (`prior_count` 0.01). With a prior worth half a try (0.5) a move that had just
+  bumped kept p(not D) = 0.1 / (n + 0.5) after n bumps (0.067 after one), which a raw policy on that
+  move lets through: SAC-TDM seed 0 made 132 contacts in its first 50 episodes, 79 of them repeats of
+  53 (state, action) pairs. At 0.01, 200 episodes, seeds 0 and 1: SAC-TDM 77 / 69, AC-TDM 79 / 76
+  total contacts (0.5: 157 / 192 and 250 / 216), all reaching the goal in the last 20 episodes.
 - Discrete SAC takes one gradient step per environment step with one backward pass for critics, actor
   and temperature (every 2 steps, seed 0 collapsed onto bumping a wall: 22,178 contacts, goal 0.01).
 - Discrete SAC's temperature aims at a discrete target entropy (a fraction of log |A|), and log
@@ -98,7 +103,7 @@ class TDMShield:
     one at most `unseen_max`, so the filter lowers its chance but never removes it."""
 
     def __init__(self, feat_dim: int, n_actions: int, n_taxels: int, seed: int, refit_every: int = 20,
-                 fit: FitConfig | None = None, hidden=(64, 64), unseen_max: float = 0.8, prior_count: float = 0.5,
+                 fit: FitConfig | None = None, hidden=(64, 64), unseen_max: float = 0.8, prior_count: float = 0.01,
                  contact_steps: int = 100):
         self.model = TactileDangerModel(feat_dim, n_actions, n_taxels, hidden)
         self.trainer = TDMTrainer(self.model, fit or FitConfig(steps=25, min_steps=25, batch_size=64, val_fraction=0.1), seed=seed + 7919)
@@ -143,7 +148,7 @@ class Agent:
     def __init__(self, obs_dim: int, n_actions: int, n_taxels: int, features=None, seed: int = 0,
                  cost_penalty: float = 0.0, use_tdm: bool = False, gamma: float = 0.97, lr: float = 3e-3,
                  hidden=(64, 64), refit_every: int = 20, fit: FitConfig | None = None, unseen_max: float = 0.8,
-                 raw_floor: float = 0.05):
+                 prior_count: float = 0.01, raw_floor: float = 0.05):
         torch.manual_seed(seed)
         self.rng = np.random.default_rng(seed)
         self.features = features if features is not None else (lambda o: np.atleast_2d(np.asarray(o, np.float32)))
@@ -151,8 +156,8 @@ class Agent:
         self.n_actions, self.gamma, self.lr, self.hidden = n_actions, gamma, lr, hidden
         self.cost_penalty = float(cost_penalty)
         self.raw_floor = float(raw_floor)
-        self.shield = (TDMShield(self.feat_dim, n_actions, n_taxels, seed, refit_every, fit, unseen_max=unseen_max)
-                       if use_tdm else None)
+        self.shield = (TDMShield(self.feat_dim, n_actions, n_taxels, seed, refit_every, fit, unseen_max=unseen_max,
+                                 prior_count=prior_count) if use_tdm else None)
 
     # p(a|s) of the raw policy, on features: the interface `safety.danger.PolicyFilter` wraps.
     @torch.no_grad()

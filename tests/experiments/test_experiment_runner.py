@@ -40,11 +40,14 @@ def test_agent_overrides_get_their_own_task_file_and_reach_the_agent(tmp_path):
 
     p = argparse.ArgumentParser()
     maze.add_arguments(p)
-    kw = maze.tdm_overrides(p.parse_args(["--tdm-refit-steps", "7", "--tdm-unseen-max", "0.6"]))
-    assert kw == {"fit": {"steps": 7, "min_steps": 7, "batch_size": 64, "val_fraction": 0.1}, "unseen_max": 0.6}
+    kw = maze.tdm_overrides(p.parse_args(["--tdm-refit-steps", "7", "--tdm-unseen-max", "0.6", "--tdm-prior-count", "0.2"]))
+    assert kw == {"fit": {"steps": 7, "min_steps": 7, "batch_size": 64, "val_fraction": 0.1}, "unseen_max": 0.6,
+                  "prior_count": 0.2}
     assert maze.tdm_overrides(p.parse_args([])) == {}
     with pytest.raises(SystemExit, match="unseen-max"):
         maze.tdm_overrides(p.parse_args(["--tdm-unseen-max", "0"]))
+    with pytest.raises(SystemExit, match="prior-count"):
+        maze.tdm_overrides(p.parse_args(["--tdm-prior-count", "-1"]))
     plain = {"method": "AC-TDM", "seed": 0, "episodes": 1, "max_steps": 5}
     tuned = dict(plain, agent_kw=kw)
     assert runner.task_file(tmp_path, plain).name == "AC-TDM_s0.json"

@@ -308,8 +308,29 @@ def test_tdm_filter_overrides_a_saturated_raw_policy():
     p_bare = bare.policy_log_probs(s).exp()[0].detach().numpy()
     p_floor = floored.policy_log_probs(s).exp()[0].detach().numpy()
     assert p_bare[0] > 0.99  # the filter changes nothing on a saturated raw policy
-    w = 200 / (200 + 0.5)  # experience weight of the shield (`TDMShield`): 200 samples of action 0 here
+    w = 200 / (200 + floored.shield.prior_count)  # experience weight of the shield (`TDMShield`): 200 samples of action 0
     safe = 1 - (w * 0.99 + (1 - w) * 0.8)
     expect = (0.95 + 0.0125) * safe / ((0.95 + 0.0125) * safe + 3 * 0.0125)  # floor 5%: (1 - f) p + f / 4
     assert p_floor[0] == pytest.approx(expect, rel=1e-3)
     assert p_floor[0] < 0.25
+
+
+def test_one_bump_is_enough_for_the_filter_to_trust_the_tdm_but_an_untried_move_stays_possible():
+    """After one try the filter uses the TDM's own danger (a move that bumped is all but removed); a move
+    never tried keeps at least 1 - unseen_max of safety however dangerous the TDM extrapolates it."""
+    env, agent = _maze_agent("SAC-TDM")
+    shield = agent.shield
+    s = MazeFeatures(env.walls)(env.reset()[0])
+    with torch.no_grad():  # the TDM rates every move 99.9% dangerous on taxel 0
+        for layer in (shield.model.trunk[0], shield.model.trunk[2]):
+            layer.weight.zero_()
+            layer.bias.zero_()
+        shield.model.head.weight.zero_()
+        shield.model.head.bias.fill_(-30.0)
+        shield.model.head.bias[0] = float(np.log(999.0))
+    shield.counts.add(s[0], FORWARD)  # forward tried (and bumped) once; the others never
+    safe = shield.log_safety(torch.as_tensor(s)).exp()[0].numpy()
+    w = 1 / (1 + shield.prior_count)
+    assert safe[FORWARD] == pytest.approx(w * 0.001 + (1 - w) * (1 - shield.unseen_max), rel=1e-3)
+    assert safe[FORWARD] < 0.005  # with a prior worth half a try it was 0.067: a saturated raw policy bumped again
+    assert np.allclose(safe[[BACKWARD, LEFT, RIGHT]], 1 - shield.unseen_max, atol=1e-5)
