@@ -2,8 +2,9 @@
 
 `run_tasks(fn, tasks, cache)` runs `fn(**task)` for every task dict as a Ray task (one CPU each).
 Each finished task is written at once to `cache/<method>_s<seed>.json` (atomically) together with
-the task it ran, so a restarted run reuses every task whose file holds the same task (the same
-method, seed and configuration) and only runs the rest. Ray is local by default (`workers`
+the task it ran and a digest of every skinsafe source file loaded where it ran, so a restarted run
+reuses every task whose file holds the same task (the same method, seed and configuration) run by
+the same code, and only runs the rest (a changed default in an agent re-runs its tasks). Ray is local by default (`workers`
 CPUs, a private instance that stops at the end); `address` joins a cluster instead (every node
 needs skinsafe installed). Progress is shown as tasks finish.
 """
@@ -37,7 +38,42 @@ def cached(cache: Path, task: dict) -> dict | None:
         doc = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-    return doc.get("result") if doc.get("task") == json.loads(json.dumps(task)) else None
+    if doc.get("task") != json.loads(json.dumps(task)) or not _unchanged(doc.get("sources")):
+        return None
+    return doc.get("result")
+
+
+ROOT = Path(__file__).resolve().parents[2]  # the folder the `skinsafe` package maps to
+
+
+def _digest(path: Path) -> str | None:
+    try:
+        return hashlib.sha1(path.read_bytes()).hexdigest()
+    except OSError:
+        return None
+
+
+def loaded_sources() -> dict[str, str]:
+    """{source file relative to the package: sha1} of every skinsafe module loaded in this process."""
+    out = {}
+    for name, mod in list(sys.modules.items()):
+        f = getattr(mod, "__file__", None)
+        if name.startswith("skinsafe.") and f and f.endswith(".py"):
+            path = Path(f).resolve()
+            if path.is_relative_to(ROOT):
+                out[path.relative_to(ROOT).as_posix()] = _digest(path)
+    return out
+
+
+def _unchanged(sources) -> bool:
+    """Whether a result's recorded sources are all still the same (none recorded: not known, so no)."""
+    return bool(sources) and all(_digest(ROOT / p) == h for p, h in sources.items())
+
+
+def traced(fn: Callable[..., dict], task: dict) -> tuple[dict, dict[str, str]]:
+    """`fn(**task)` and the skinsafe sources it ran with (`loaded_sources` after it)."""
+    result = fn(**task)
+    return result, loaded_sources()
 
 
 def _start_ray(ray, address: str | None, workers: int | None, tries: int = 3) -> None:
@@ -81,15 +117,16 @@ def run_tasks(fn: Callable[..., dict], tasks: list[dict], cache: str | Path, add
         if started:
             _start_ray(ray, address, workers)
         try:
-            remote = ray.remote(num_cpus=1)(fn)
-            refs = {remote.remote(**tasks[i]): i for i in todo}
+            remote = ray.remote(num_cpus=1)(traced)
+            refs = {remote.remote(fn, tasks[i]): i for i in todo}
             pending = list(refs)
             while pending:
                 done, pending = ray.wait(pending, num_returns=1)
                 for ref in done:
                     i = refs[ref]
-                    results[i] = ray.get(ref)
-                    atomic_write(task_file(cache, tasks[i]), json.dumps({"task": tasks[i], "result": results[i]}))
+                    results[i], sources = ray.get(ref)
+                    atomic_write(task_file(cache, tasks[i]), json.dumps({"task": tasks[i], "result": results[i],
+                                                                         "sources": sources}))
                     bar.set_postfix_str(f"{tasks[i]['method']} seed {tasks[i]['seed']}")
                     bar.update()
         finally:

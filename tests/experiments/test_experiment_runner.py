@@ -26,6 +26,12 @@ def test_tasks_run_on_ray_are_cached_and_reused(tmp_path, monkeypatch):
     # another configuration of one task is not taken from the cache
     changed = dict(tasks[0], max_steps=7)
     assert runner.cached(tmp_path, changed) is None and runner.cached(tmp_path, tasks[0]) == again[0]
+    # a result run by other code is not taken either: every loaded skinsafe source is recorded
+    doc = json.loads((tmp_path / "AC_s1.json").read_text())
+    assert {"core/learn/agents.py", "core/learn/maze_env.py", "core/experiments/maze.py"} <= set(doc["sources"])
+    doc["sources"]["core/learn/agents.py"] = "0" * 40
+    (tmp_path / "AC_s1.json").write_text(json.dumps(doc))
+    assert runner.cached(tmp_path, tasks[1]) is None and runner.cached(tmp_path, tasks[2]) == again[2]
     (tmp_path / "AC_s0.json").write_text("{not json")  # a half-written file counts as missing
     assert runner.cached(tmp_path, tasks[0]) is None
     monkeypatch.setattr(runner.time, "sleep", lambda s: None)
