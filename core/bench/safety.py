@@ -18,6 +18,8 @@ layer's command is integrated tick by tick (dt 2 ms) over the whole retraction (
   contact's no-push constraint, no singularity damping: where a limit binds, saturation
   preserves priorities instead); `dominant_cases` says how many cases had such ticks;
 * `vel_limit_violations`, `acc_limit_violations`: cases with any tick over a limit (all cases);
+* `solver_failed`: cases with a tick whose QP solver gave up on the dominant level (flagged; the
+  smallest command meeting every constraint was sent);
 * `nonfinite_cases`: further cases run through the full stack (strategy filter + defensiveness
   + modulation with a small TDM), each with one non-finite value (NaN, +Inf or -Inf) injected at
   a random tick into one of the readings (at a touched or a random taxel), q, the clock, the
@@ -122,7 +124,7 @@ def retraction_case(s: Setup, q, idx, f, times: list) -> dict:
     _, p0, fr0 = s.kin.jacobians_of(idx, q)
     z0 = fr0[:, :, 2].copy()
     prev = np.zeros(len(q))
-    out = {"into": 0.0, "ratio": np.inf, "feasible": True, "vel": False, "acc": False}
+    out = {"into": 0.0, "ratio": np.inf, "feasible": True, "vel": False, "acc": False, "solver_failed": False}
     for k in range(int(np.ceil(p.T / DT)) + 3):
         t = k * DT
         t0 = time.perf_counter()
@@ -133,6 +135,7 @@ def retraction_case(s: Setup, q, idx, f, times: list) -> dict:
         out["vel"] |= v
         out["acc"] |= a
         out["feasible"] &= not (info.infeasible or info.recovery_dropped)
+        out["solver_failed"] |= info.solver_failed
         if L.active and not (info.limited or info.blocked or info.damped):
             st = L._state[0]
             D = min(st[2], 12 * p.max_distance)
@@ -280,6 +283,7 @@ def audit_task(method: str, seed: int, robot: str, contacts: int, chunk: int, ca
             "vel": sum(r["vel"] for r in res) + sum(b[1] for b in bad),
             "acc": sum(r["acc"] for r in res) + sum(b[2] for b in bad),
             "nonfinite": len(bad), "fail_open": sum(b[0] for b in bad), "ms_max": float(ms.max(initial=0.0)),
+            "solver_failed": sum(r["solver_failed"] for r in res),
             "hist": [[int(i), int(hist[i])] for i in np.flatnonzero(hist)]}
 
 
@@ -313,6 +317,7 @@ def _merge(robot: str, contacts: int, parts: list[dict]) -> dict:
             "dominant_cases": sum(p["dominant_cases"] for p in parts),
             "vel_limit_violations": sum(p["vel"] for p in parts), "acc_limit_violations": sum(p["acc"] for p in parts),
             "nonfinite_cases": sum(p["nonfinite"] for p in parts), "fail_open": sum(p["fail_open"] for p in parts),
+            "solver_failed": sum(p.get("solver_failed", 0) for p in parts),
             "ms_median": round(_quantile(counts, 0.5), 4), "ms_worst": round(max(p["ms_max"] for p in parts), 3),
             "ms_p999": round(_quantile(counts, 0.999), 3)}
 

@@ -50,7 +50,8 @@ class TickInfo:
     least-violating one was sent); `recovery_dropped`: a drifted
     taxel could not be pushed back this tick; `damped`: the dominant task is near a singularity;
     `pushing`: the measured joint velocity (`SafetyStack.tick(qdot=...)`) moved a contacted taxel
-    into its contact."""
+    into its contact; `solver_failed`: the retraction QP's solver gave up on the dominant level (the
+    smallest command meeting every constraint was sent)."""
 
     nonfinite: tuple = ()
     safe: bool = False
@@ -62,6 +63,7 @@ class TickInfo:
     recovery_dropped: bool = False
     damped: bool = False
     pushing: bool = False
+    solver_failed: bool = False
     dominant_residual: float = 0.0
     flags: tuple = field(default=())
 
@@ -205,13 +207,14 @@ class DefensivenessLayer:
         lo, hi = self.limits.box(prev, dt)
         A, b = _distinct_rows(self.A, self.b) if len(self.A) > MAX_TASKS else (self.A, self.b)
         sol = prioritised(Jt, rt, A, b, lo, hi, self.limits.vel, p.damping, p.sv_threshold, p.rank_tol)
-        for name in ("limited", "blocked", "infeasible", "recovery_dropped", "damped", "dominant_residual"):
+        for name in ("limited", "blocked", "infeasible", "recovery_dropped", "damped", "dominant_residual",
+                     "solver_failed"):
             setattr(info, name, getattr(sol, name))
         return self._finish(sol.qd, info, prev)
 
     def _finish(self, out: np.ndarray, info: TickInfo, prev: np.ndarray) -> np.ndarray:
         flags = [f"nonfinite:{n}" for n in info.nonfinite] + (["nonfinite"] if info.nonfinite else [])
-        flags += [n for n in ("safe", "infeasible", "recovery_dropped", "blocked") if getattr(info, n)]
+        flags += [n for n in ("safe", "infeasible", "recovery_dropped", "blocked", "solver_failed") if getattr(info, n)]
         if flags:
             self.flags.update(flags)
         info.flags = tuple(flags)

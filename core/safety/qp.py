@@ -30,7 +30,10 @@ while the arm was moving into it faster than one tick's deceleration can undo, o
 terms b > 0 of opposing contacts): b is first lowered to 0; if that is still infeasible the
 limits stay hard and the no-push rows take the least-violating motion (`least_violation`:
 minimum sum of squared violations inside the box), and the result says so (`recovery_dropped`,
-`infeasible`). Never a silent push.
+`infeasible`). A region feasible only to within DAQP's tolerance gets the rows lowered by `MARGIN`
+as well; should DAQP still find no solution (H's condition near 5e8 with a region 1e-9 wide), the
+smallest command meeting every constraint is taken and `solver_failed` says so (zero within the
+box if even that fails). Never a silent push.
 """
 from __future__ import annotations
 
@@ -43,15 +46,24 @@ import numpy as np
 from skinsafe.core.safety.jacobi import orthogonalise_columns
 
 BIG = 1e30  # DAQP's "no bound"
+# A failed DAQP solve is retried once with this added to H's diagonal. In 60 Panda 8-contact sets
+# (`skinsafe bench safety --robots panda --contacts 8 --cases 60`) DAQP called 35 level problems
+# infeasible or cycling whose region linear programming (HiGHS) finds strictly feasible (margin
+# 2e-7 to 2e-5; H's condition 2.9e8); with 1e-8 to 1e-4 added, every one solved.
+RETRY_REG = 1e-6
+MARGIN = 1e-9  # m/s per unit row norm: how far relaxed no-push rows are lowered below what is just feasible
 _SENSE = np.zeros(256, dtype=np.int32)  # every row an inequality (read-only use)
 
 
 def solve(H, f, C, lower, upper):
     """min 1/2 x'Hx + f'x s.t. lower <= C x <= upper (+-1e30 for none), all float64
     C-contiguous. Returns (x, ok, lam), lam the rows' multipliers (0 where inactive); ok is
-    checked against the rows (primal tolerance 1e-9, rows met to 1e-7), not only DAQP's exit flag."""
+    checked against the rows (primal tolerance 1e-9, rows met to 1e-7), not only DAQP's exit flag
+    (a failed solve is retried once with `RETRY_REG` more regularisation)."""
     sense = _SENSE[:len(lower)] if len(lower) <= len(_SENSE) else np.zeros(len(lower), dtype=np.int32)
     x, _, flag, info = daqp.solve(H, f, C, upper, lower, sense, primal_tol=1e-9)
+    if flag < 1:  # H's condition reaches 1e9 near singularities: retried with a little more regularisation
+        x, _, flag, info = daqp.solve(H + RETRY_REG * np.eye(len(H)), f, C, upper, lower, sense, primal_tol=1e-9)
     x = np.asarray(x)
     return x, flag >= 1 and _meets(C, x, lower, upper), info["lam"]
 
@@ -73,7 +85,10 @@ class Prioritised:
     """One tick's solution. `limited`: a box row (velocity/acceleration limit) was active at the
     dominant level; `blocked`: a no-push row was (another contact stops the dominant one's
     retraction: an opposing pinch); `infeasible`: no command within the limits met every no-push
-    row (the least-violating one was taken); `dominant_residual`: |J_1 qd - r_1| / |r_1|."""
+    row (the least-violating one was taken); `dominant_residual`: |J_1 qd - r_1| / |r_1|;
+    `solver_failed`: DAQP found no solution to the first level's QP even with relaxed no-push rows;
+    the smallest command meeting every constraint was sent instead (zero within the box if even that
+    failed)."""
 
     qd: np.ndarray
     levels: int = 0
@@ -83,6 +98,7 @@ class Prioritised:
     recovery_dropped: bool = False
     damped: bool = False
     dominant_residual: float = 0.0
+    solver_failed: bool = False
 
 
 @numba.njit(cache=True, nogil=True)
@@ -297,6 +313,13 @@ def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: fl
             lower = lower.copy()
             lower[n:] = b
             z, ok, lam = solve(H, f, C, lower, upper)
+            if not ok:  # feasible only to within DAQP's tolerance: lower the rows by the margin as well
+                b = b - MARGIN * (1 + np.abs(A).sum(axis=1))
+                lower[n:] = b
+                z, ok, lam = solve(H, f, C, lower, upper)
+            if not ok:  # DAQP gives up on this H (condition ~5e8): the smallest command meeting every row
+                out.solver_failed = True
+                z, ok, lam = solve(np.eye(len(H)), np.zeros(len(H)), C, lower, upper)
         k += 1
         if not ok:  # z = 0 is feasible here (x met every constraint at the level before): keep x
             z = _NONE
@@ -333,7 +356,7 @@ def relaxed_bounds(A, b, lo, hi) -> np.ndarray:
     C[n + K:, n:] = np.eye(K)
     xs, ok, _ = solve(H, np.zeros(n + K), C, np.r_[lo, b0, np.zeros(K)], np.r_[hi, np.full(2 * K, BIG)])
     s = xs[n:] if ok else np.maximum(b0 - A @ np.clip(0.0, lo, hi), 0.0)  # the box's point nearest 0
-    return b0 - s - 1e-9 * (1 + np.abs(A).sum(axis=1))
+    return b0 - s - MARGIN * (1 + np.abs(A).sum(axis=1))
 
 
 def recursive_qdot(J, r, damping: float, sv_threshold: float, rank_tol: float = 1e-3) -> np.ndarray:

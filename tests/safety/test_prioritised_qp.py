@@ -1,5 +1,7 @@
 """The prioritised QP (qp.py) against the closed-form recursion, the J_i qd_(i-1) correction,
 priority-preserving saturation and the no-push constraints, on random small problems."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import assume, given, settings
@@ -134,3 +136,30 @@ def test_compiled_svd_matches_lapack(seed, m, d, kind):
     np.testing.assert_allclose(U.T @ U, np.eye(k), atol=1e-12)
     np.testing.assert_allclose(Vt @ Vt.T, np.eye(d), atol=1e-12)
     assert np.all(np.diff(S) <= 1e-12 * scale)  # descending
+
+
+def test_a_level_daqp_calls_infeasible_is_retried_and_solved():
+    """A level problem recorded in the audit (Panda, 8 contacts, case 14): H's condition 2.9e8, its
+    region strictly feasible (margin 2e-5 by linear programming), yet DAQP alone stops cycling."""
+    import daqp
+
+    from skinsafe.core.safety import qp
+
+    p = np.load(Path(__file__).parent / "data" / "daqp_cycling_level.npz")
+    H, f, C, lower, upper = (np.ascontiguousarray(p[k]) for k in ("H", "f", "C", "lower", "upper"))
+    assert daqp.solve(H, f, C, upper, lower, np.zeros(len(lower), np.int32), primal_tol=1e-9)[2] < 1
+    x, ok, _ = qp.solve(H, f, C, lower, upper)
+    cx = C @ x
+    assert ok and np.all(cx >= lower - 1e-7) and np.all(cx <= upper + 1e-7)
+
+
+def test_a_qp_without_a_solution_sends_zero_within_the_box_and_says_so(monkeypatch):
+    from skinsafe.core.safety import qp
+
+    rng = np.random.default_rng(3)
+    J, r = rng.normal(size=(2, 3, 6)), rng.normal(size=(2, 3))
+    A, b = rng.normal(size=(2, 6)), np.zeros(2)
+    lo, hi = np.full(6, 0.1), np.full(6, 0.5)  # zero is outside: the command is clipped into the box
+    monkeypatch.setattr(qp, "solve", lambda H, f, C, lower, upper: (np.zeros(len(H)), False, np.zeros(len(lower))))
+    sol = prioritised(J, r, A, b, lo, hi, np.full(6, 3.0), 0.05, 0.05)
+    assert sol.solver_failed and np.allclose(sol.qd, 0.1)
