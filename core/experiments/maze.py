@@ -174,7 +174,7 @@ def claim_check(rows: dict, learned_at: float = LEARNED_AT) -> dict:
     if learned:
         bad = [m for m, ok in learned.items() if not ok]
         s += (f" Learning: {', '.join(learned)} reach the goal in >= {learned_at:.0%} of the last {LAST} episodes."
-              if not bad else f" Learning: {', '.join(bad)} reach the goal in fewer than {learned_at:.0%} of the last "
+              if not bad else f" Learning: {', '.join(bad)} reach{'es' if len(bad) == 1 else ''} the goal in fewer than {learned_at:.0%} of the last "
               f"{LAST} episodes, so this budget does not show the trained behaviour of the paper.")
     return {"holds": bool(holds), "holds_among_goal_reaching": holds_r, "best_tdm": best_tdm, "best_other": best_other, "ratio_best_other_to_best_tdm": ratio,
             "learned": learned, "all_learned": bool(learned) and all(learned.values()), "statement": s}
