@@ -317,7 +317,7 @@ def _merge(robot: str, contacts: int, parts: list[dict]) -> dict:
             "dominant_cases": sum(p["dominant_cases"] for p in parts),
             "vel_limit_violations": sum(p["vel"] for p in parts), "acc_limit_violations": sum(p["acc"] for p in parts),
             "nonfinite_cases": sum(p["nonfinite"] for p in parts), "fail_open": sum(p["fail_open"] for p in parts),
-            "solver_failed": sum(p.get("solver_failed", 0) for p in parts),
+            "solver_failed": sum(p["solver_failed"] for p in parts),
             "ms_median": round(_quantile(counts, 0.5), 4), "ms_worst": round(max(p["ms_max"] for p in parts), 3),
             "ms_p999": round(_quantile(counts, 0.999), 3)}
 

@@ -314,7 +314,7 @@ def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: fl
             lower[n:] = b
             z, ok, lam = solve(H, f, C, lower, upper)
             if not ok:  # feasible only to within DAQP's tolerance: lower the rows by the margin as well
-                b = b - MARGIN * (1 + np.abs(A).sum(axis=1))
+                b = b - _margin(A)
                 lower[n:] = b
                 z, ok, lam = solve(H, f, C, lower, upper)
             if not ok:  # DAQP gives up on this H (condition ~5e8): the smallest command meeting every row
@@ -356,7 +356,12 @@ def relaxed_bounds(A, b, lo, hi) -> np.ndarray:
     C[n + K:, n:] = np.eye(K)
     xs, ok, _ = solve(H, np.zeros(n + K), C, np.r_[lo, b0, np.zeros(K)], np.r_[hi, np.full(2 * K, BIG)])
     s = xs[n:] if ok else np.maximum(b0 - A @ np.clip(0.0, lo, hi), 0.0)  # the box's point nearest 0
-    return b0 - s - MARGIN * (1 + np.abs(A).sum(axis=1))
+    return b0 - s - _margin(A)
+
+
+def _margin(A) -> np.ndarray:
+    """How far relaxed no-push rows are lowered below just feasible: `MARGIN` x (1 + the row's 1-norm)."""
+    return MARGIN * (1 + np.abs(A).sum(axis=1))
 
 
 def recursive_qdot(J, r, damping: float, sv_threshold: float, rank_tol: float = 1e-3) -> np.ndarray:
