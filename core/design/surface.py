@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import mujoco
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -42,13 +43,17 @@ class Surface:
         inv = lambda e: 1.0 / np.maximum(np.sum(e * e, axis=1, keepdims=True), 1e-300)  # noqa: E731
         self._pack = np.ascontiguousarray(np.concatenate(
             [a, ab, ac, bc, n * inv(n), inv(ab), inv(ac), inv(bc)], axis=1))
-        # The k-d tree holds points on every triangle (a barycentric grid, `m` steps per edge) so that
-        # each triangle point lies within `_reach` of one of its tree points: a few long slivers of a
-        # CAD mesh then do not widen every query (as one centroid per triangle would).
+        # The k-d tree holds points on every triangle: its centroid, and on a triangle longer than twice
+        # the median edge a barycentric grid of `m` steps per edge, so a few long slivers of a CAD mesh do
+        # not widen every query (as one centroid per triangle would). `_reach` bounds how far any point
+        # of a triangle lies from its nearest tree point: a centroid's farthest corner, or for a grid
+        # the covering radius of its sub-triangles (their longest edge / sqrt 3).
         edge = np.sqrt(np.maximum(np.maximum(_dot(ab, ab), _dot(ac, ac)), _dot(bc, bc)))
-        self._reach = float(max(2.0 * np.median(edge), 1e-9))
-        m = np.clip(np.ceil(edge / self._reach), 1, 64).astype(np.int64)
-        pts, owner = [tri.mean(axis=1)], [np.arange(len(tri))]
+        m = np.clip(np.ceil(edge / max(2.0 * float(np.median(edge)), 1e-9)), 1, 64).astype(np.int64)
+        centroid = tri.mean(axis=1)
+        corner = np.sqrt(np.max(np.sum((tri - centroid[:, None]) ** 2, axis=2), axis=1))
+        self._reach = float(max(np.max(np.where(m > 1, np.minimum(corner, edge / m / np.sqrt(3.0)), corner)), 1e-9))
+        pts, owner = [centroid], [np.arange(len(tri))]
         for k in np.unique(m[m > 1]):
             sel = np.flatnonzero(m == k)
             i, j = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
@@ -58,20 +63,17 @@ class Surface:
             owner.append(np.repeat(sel, len(u)))
         self._owner = np.concatenate(owner)
         self._tree = cKDTree(np.concatenate(pts))
-        self._reach = float(max(self._reach, (edge / m).max()))
-        self._k = int(min(8, len(self._owner)))
+        self._k = int(min(16, len(self._owner)))
 
     def _nearest(self, p, index, k):
-        """Best of the k nearest-centroid triangles; also which `index` entries may miss a closer one."""
+        """Best of the triangles owning the k nearest tree points; also which `index` entries may
+        miss a closer one."""
         dc, cand = self._tree.query(p, k=k)
         dc, cand = dc.reshape(len(p), -1), self._owner[cand.reshape(len(p), -1)]
-        q, w, d2 = closest_on_packed(p[:, None, :], self._pack[cand])
-        best = np.argmin(d2, axis=1)
-        rows = np.arange(len(p))
-        d2 = d2[rows, best]
+        q, w, d2, tri = closest_among(p, cand, self._pack)
         # Any triangle left out has all its tree points beyond dc[:, -1], so no point of it nearer than that - reach.
         unsure = (np.sqrt(d2) + self._reach > dc[:, -1]) & (k < len(self._owner))
-        return q[rows, best], w[rows, best], d2, cand[rows, best], index[unsure]
+        return q, w, d2, tri, index[unsure]
 
     @classmethod
     def from_mesh(cls, vertices, triangles, corner_normals=None, name: str = "surface",
@@ -111,12 +113,16 @@ class Surface:
         if len(unsure):  # a triangle beyond the k nearest centroids may be closer: look wider
             q2, b2, dd2, t2, still = self._nearest(p[unsure], unsure, min(6 * self._k, len(self._owner)))
             q[unsure], bary[unsure], d2[unsure], tri[unsure] = q2, b2, dd2, t2
-            for i in still:  # exhaustive within d + reach (rare: huge triangles)
-                ball = np.unique(self._owner[self._tree.query_ball_point(p[i], np.sqrt(d2[i]) + self._reach)])
-                qi, wi, di = closest_on_packed(p[i][None, :], self._pack[ball])
-                j = int(np.argmin(di))
-                if di[j] < d2[i]:
-                    q[i], bary[i], d2[i], tri[i] = qi[j], wi[j], di[j], ball[j]
+            if len(still):  # exhaustive within d + reach (rare: huge triangles)
+                balls = [np.unique(self._owner[b]) for b in
+                         self._tree.query_ball_point(p[still], np.sqrt(d2[still]) + self._reach)]
+                cand = np.full((len(still), max(len(b) for b in balls)), -1, np.int64)
+                for row, b in enumerate(balls):
+                    cand[row, :len(b)] = b
+                q3, b3, dd3, t3 = closest_among(p[still], cand, self._pack)
+                better = still[dd3 < d2[still]]
+                keep = dd3 < d2[still]
+                q[better], bary[better], d2[better], tri[better] = q3[keep], b3[keep], dd3[keep], t3[keep]
         n = np.einsum("mk,mkj->mj", bary, self.corner_normals[tri])
         n /= np.linalg.norm(n, axis=1, keepdims=True)
         return q, n, tri, np.sqrt(d2)
@@ -147,36 +153,49 @@ def _dot(u, v):
     return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1] + u[..., 2] * v[..., 2]
 
 
-def _cross(u, v):
-    return np.stack([u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1], u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2],
-                     u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]], axis=-1)
+@numba.njit(cache=True, nogil=True, inline="always")
+def _on_edge(p, s0, s1, s2, e0, e1, e2, inv):
+    """The clamped parameter f of the closest point s + f e on an edge to p, and its squared distance."""
+    f = min(max(((p[0] - s0) * e0 + (p[1] - s1) * e1 + (p[2] - s2) * e2) * inv, 0.0), 1.0)
+    return f, (p[0] - s0 - f * e0) ** 2 + (p[1] - s1 - f * e1) ** 2 + (p[2] - s2 - f * e2) ** 2
 
 
-def closest_on_packed(p, pk):
-    """Closest points on packed triangles pk (..., 19) to points p (broadcast ..., 3): points,
-    barycentric weights (..., 3) and squared distances."""
-    a, ab, ac, bc, n_over = pk[..., 0:3], pk[..., 3:6], pk[..., 6:9], pk[..., 9:12], pk[..., 12:15]
-    ap = p - a
-    v = _dot(_cross(ap, ac), n_over)
-    w = _dot(_cross(ab, ap), n_over)
-    u = 1.0 - v - w
-    best_q = a + v[..., None] * ab + w[..., None] * ac
-    best_w = np.stack([u, v, w], axis=-1)
-    inside = (u >= 0) & (v >= 0) & (w >= 0)
-    best_d = np.where(inside, _dot(p - best_q, p - best_q), np.inf)
-    b = a + ab
-    for i, (s, se, inv) in enumerate(((a, ab, pk[..., 15]), (b, bc, pk[..., 17]), (a + ac, -ac, pk[..., 16]))):
-        t = np.clip(_dot(p - s, se) * inv, 0.0, 1.0)
-        q = s + t[..., None] * se
-        d = _dot(p - q, p - q)
-        better = d < best_d
-        best_d = np.where(better, d, best_d)
-        best_q = np.where(better[..., None], q, best_q)
-        wt = np.zeros(t.shape + (3,))
-        wt[..., i] = 1.0 - t
-        wt[..., (i + 1) % 3] = t
-        best_w = np.where(better[..., None], wt, best_w)
-    return best_q, best_w, best_d
+@numba.njit(cache=True, nogil=True)
+def closest_among(p, cand, pk):
+    """For each point p[i] (m,3), the closest point on the packed triangles pk[cand[i, j]] (rows of
+    `cand` padded with -1): points (m,3), barycentric weights (m,3), squared distances (m,) and the
+    triangle (m,). Pack per triangle: a, ab, ac, bc, n/|n|^2, 1/|ab|^2, 1/|ac|^2, 1/|bc|^2."""
+    m = p.shape[0]
+    q_out, w_out = np.zeros((m, 3)), np.zeros((m, 3))
+    d_out, t_out = np.full(m, np.inf), np.full(m, -1, np.int64)
+    for i in range(m):
+        x = p[i]
+        for j in range(cand.shape[1]):
+            t = cand[i, j]
+            if t < 0:
+                continue
+            r = pk[t]
+            ap0, ap1, ap2 = x[0] - r[0], x[1] - r[1], x[2] - r[2]
+            # barycentric coordinates of the projection onto the plane: (ap x ac).n', (ab x ap).n'
+            v = (ap1 * r[8] - ap2 * r[7]) * r[12] + (ap2 * r[6] - ap0 * r[8]) * r[13] + (ap0 * r[7] - ap1 * r[6]) * r[14]
+            w = (r[4] * ap2 - r[5] * ap1) * r[12] + (r[5] * ap0 - r[3] * ap2) * r[13] + (r[3] * ap1 - r[4] * ap0) * r[14]
+            u = 1.0 - v - w
+            if u < 0.0 or v < 0.0 or w < 0.0:  # outside: the best of the three edges
+                f, dd = _on_edge(x, r[0], r[1], r[2], r[3], r[4], r[5], r[15])  # a -> b
+                u, v, w = 1.0 - f, f, 0.0
+                f, d1 = _on_edge(x, r[0] + r[3], r[1] + r[4], r[2] + r[5], r[9], r[10], r[11], r[17])  # b -> c
+                if d1 < dd:
+                    dd, u, v, w = d1, 0.0, 1.0 - f, f
+                f, d1 = _on_edge(x, r[0] + r[6], r[1] + r[7], r[2] + r[8], -r[6], -r[7], -r[8], r[16])  # c -> a
+                if d1 < dd:
+                    u, v, w = f, 0.0, 1.0 - f
+            q0, q1, q2 = r[0] + v * r[3] + w * r[6], r[1] + v * r[4] + w * r[7], r[2] + v * r[5] + w * r[8]
+            d2 = (x[0] - q0) ** 2 + (x[1] - q1) ** 2 + (x[2] - q2) ** 2
+            if d2 < d_out[i]:
+                d_out[i], t_out[i] = d2, t
+                q_out[i, 0], q_out[i, 1], q_out[i, 2] = q0, q1, q2
+                w_out[i, 0], w_out[i, 1], w_out[i, 2] = u, v, w
+    return q_out, w_out, d_out, t_out
 
 
 # ---- tessellation of MuJoCo geoms -------------------------------------------------------------
