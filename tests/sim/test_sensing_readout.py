@@ -140,3 +140,25 @@ def test_missing_touch_sensors_named():
     model = build_scene(design, build_ur5()).compile()
     with pytest.raises(DesignError, match=f"touch_{int(design.taxels.ids[0])}.*touch_sensors=True"):
         TouchReadout(model, design)
+
+
+@pytest.mark.parametrize("kernel", ["linear", "nearest"])
+def test_update_in_place_equals_a_fresh_read_every_step(scene, kernel):
+    """`update` clears only what it lit the step before: over pokes of different taxels, off-centre
+    pokes and steps with no contact, its buffer equals the reading of a readout that never read before."""
+    design, robot, model, pos, frames = scene
+    live = SkinReadout(model, design, kernel=kernel)
+    taxels = _pokeable(design, model, robot, pos, frames, count=6)
+    rng = np.random.default_rng(3)
+    lit_steps = 0
+    for i in taxels + taxels[::-1]:
+        shift = rng.uniform(-0.4, 0.4, 2) * 0.01
+        at = pos[i] + shift[0] * frames[i][:, 0] + shift[1] * frames[i][:, 1]
+        for data in (_poke(model, robot, at, frames[i][:, 2])[0], _poke(model, robot, at + 0.05 * frames[i][:, 2],
+                                                                          frames[i][:, 2])[0]):
+            got = live.update(data)
+            assert got is live.forces
+            ref = SkinReadout(model, design, kernel=kernel).read(data)
+            np.testing.assert_array_equal(got, ref)
+            lit_steps += int(ref.any())
+    assert lit_steps == len(taxels) * 2  # every poke lit something, every lift cleared it
