@@ -12,6 +12,7 @@ from skinsafe.core.design.surface import cached_surfaces, surface_bodies
 from skinsafe.core.skin.model import SkinDesign
 
 SURFACE_TOL = 0.002  # m
+BURIED_TOL = 1e-4  # m: a taxel deeper than this inside another link is buried (coincident faces pass)
 
 
 def sample_poses(model: mujoco.MjModel, home: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
@@ -61,7 +62,8 @@ def audit(design: SkinDesign, model: mujoco.MjModel, home: np.ndarray, poses: in
     buried = buried_taxels(design, model, home, poses)
     if buried.any():
         i = int(np.argmax(buried))
-        problems.append(f"{int(buried.sum())} taxels are buried inside another link at all {poses} sampled poses "
+        problems.append(f"{int(buried.sum())} taxels are buried more than {BURIED_TOL * 1e3:.1f} mm inside another link "
+                        f"at all {poses} sampled poses "
                         f"(first: taxel {int(t.ids[i])} on '{design.bodies[t.body[i]]}', module {int(t.module[i])}); "
                         "they can never be touched: move those modules away from the joint")
     return problems
@@ -88,7 +90,7 @@ def outline_overhang(surface, positions, frames, half, min_bend) -> np.ndarray:
 
 
 def buried_taxels(design: SkinDesign, model: mujoco.MjModel, home: np.ndarray, poses: int = 16,
-                  depth: float = 1e-3) -> np.ndarray:
+                  depth: float = BURIED_TOL) -> np.ndarray:
     """(N,) True where a taxel lies more than `depth` inside another link's surface at every pose."""
     t = design.taxels
     surfaces = cached_surfaces(model, surface_bodies(model))
