@@ -1,7 +1,8 @@
 """Geometric audit of a skin design on its robot (what `skinsafe check` refuses), on the surfaces
 the design was built on (`cached_surfaces`): taxels off their link's surface, module outlines
 overhanging it, placement anchors far from it, and taxels buried inside another link at every
-sampled pose (they can never be touched)."""
+sampled pose (they can never be touched). `enclosed` finds points on internal faces of a link's
+own mesh; the designers never place skin there."""
 from __future__ import annotations
 
 import mujoco
@@ -98,21 +99,23 @@ def buried_taxels(design: SkinDesign, model: mujoco.MjModel, home: np.ndarray, p
 
 
 def _cones(n: np.ndarray) -> np.ndarray:
-    """(N, 7, 3): each unit normal n and six directions 45 degrees off it, evenly around."""
+    """(N, 13, 3): each unit normal n, then six directions 45 degrees off it and six grazing ones
+    80 degrees off it, evenly around."""
     t = np.cross(n, np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
     t /= np.linalg.norm(t, axis=1, keepdims=True)
     b = np.cross(n, t)
     a = np.linspace(0, 2 * np.pi, 6, endpoint=False)[None, :, None]
-    side = np.sqrt(0.5) * (n[:, None] + np.cos(a) * t[:, None] + np.sin(a) * b[:, None])
-    return np.concatenate([n[:, None], side], axis=1)
+    around = np.cos(a) * t[:, None] + np.sin(a) * b[:, None]
+    tilt = np.radians([45.0, 80.0])
+    return np.concatenate([n[:, None]] + [np.cos(e) * n[:, None] + np.sin(e) * around for e in tilt], axis=1)
 
 
 def enclosed(model: mujoco.MjModel, data: mujoco.MjData, body: str, world: np.ndarray, normals: np.ndarray,
              lift: float = 1e-3) -> np.ndarray:
     """(N,) True where no ray from `lift` above a surface point of `body` (world frame, pose of
-    `data`), along its normal or 45 degrees off it, leaves the body's own skin geoms: the point is
-    on an internal face of the link's mesh (CAD visuals often carry them) or deep in a pocket;
-    either way no skin there can be touched."""
+    `data`), along its normal or 45 or 80 degrees off it, leaves the body's own skin geoms: the
+    point is on an internal face of the link's mesh (CAD visuals often carry them) or at the bottom
+    of a pocket; either way no skin there can be touched."""
     from skinsafe.core.design.surface import skin_geoms
 
     geoms = skin_geoms(model, model.body(body).id)
@@ -133,6 +136,21 @@ def enclosed(model: mujoco.MjModel, data: mujoco.MjData, body: str, world: np.nd
     starts, cones = world + lift * normals, _cones(normals)
     for i in range(len(world)):
         out[i] = all(hits(starts[i], v) for v in cones[i])
+    return out
+
+
+def enclosed_taxels(design: SkinDesign, model: mujoco.MjModel, home: np.ndarray) -> np.ndarray:
+    """(N,) True where a taxel is `enclosed` by its own link (pose-independent; computed at home)."""
+    t = design.taxels
+    data = mujoco.MjData(model)
+    data.qpos[:] = home
+    mujoco.mj_kinematics(model, data)
+    out = np.zeros(len(t), bool)
+    for bi, body in enumerate(design.bodies):
+        on = np.flatnonzero(t.body == bi)
+        b = model.body(body).id
+        R, x = data.xmat[b].reshape(3, 3), data.xpos[b]
+        out[on] = enclosed(model, data, body, t.positions[on] @ R.T + x, t.frames[on, :, 2] @ R.T)
     return out
 
 

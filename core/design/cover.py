@@ -38,7 +38,7 @@ from skinsafe.core.design.surface import Surface, cached_surfaces, surface_bodie
 from skinsafe.core.skin.model import DesignError, Module, RobotRef, SkinDesign, frames_from_normals
 
 COVER_MODULE = Module(0, "cover", "", rows=3, cols=3, pitch=0.01, taxel_diameter=0.006, margin=0.001,
-                      min_bend_radius=0.02)
+                      min_bend_radius=0.01)  # 3x3 cells of 1 cm; the FPC bends to 1 cm
 
 
 def random_points(surface: Surface, n: int, seed: int = 0) -> np.ndarray:
@@ -106,15 +106,20 @@ class _Home:
 
     def meets(self, world: np.ndarray, normals: np.ndarray, limit: float) -> bool:
         """Whether a placed taxel facing the same way (within 60 degrees) lies within `limit` of one
-        of the points `world` with their `normals` (facing surfaces across a gap do not meet)."""
+        of the points `world` (n,3) with their `normals` (facing surfaces across a gap do not meet)."""
+        return bool(self.meets_each(world[None], np.broadcast_to(normals, world.shape)[None], limit)[0])
+
+    def meets_each(self, world: np.ndarray, normals: np.ndarray, limit: float) -> np.ndarray:
+        """`meets` for k modules at once: world (k,n,3), normals (k,n,3) -> (k,) bool."""
+        k, n = world.shape[:2]
         if self.tree is None:
-            return False
-        d, j = self.tree.query(world, k=min(8, len(self.points)), distance_upper_bound=limit)
+            return np.zeros(k, bool)
+        d, j = self.tree.query(world.reshape(-1, 3), k=min(8, len(self.points)), distance_upper_bound=limit)
+        d, j = d.reshape(k * n, -1), j.reshape(k * n, -1)
         near = np.isfinite(d)
-        if not near.any():
-            return False
         rows = np.nonzero(near)[0]
-        return bool((np.sum(self.normals[j[near]] * np.broadcast_to(normals, world.shape)[rows], axis=1) > 0.5).any())
+        same = np.sum(self.normals[j[near]] * normals.reshape(-1, 3)[rows], axis=1) > 0.5
+        return np.bincount(rows[same] // n, minlength=k) > 0
 
     def exposed(self, body: str, surface: Surface, n: int = 4000) -> float:
         """The share of the link's surface area where skin can go (not `hidden`; Monte Carlo over
@@ -198,8 +203,10 @@ def cover_link(surface: Surface, home: _Home, template: Module, body: str, first
         uv = template_grid(m)[0]
         for direction in (np.broadcast_to(axis, pts.shape), np.cross(nrm, axis)):
             seeds = flat(uv, pts, frames_from_normals(nrm, direction))
-            for i in order:
-                if not open_[i] or home.meets(seeds[i], nrm[i] @ R.T, 0.8 * gap):
+            seed_n = np.broadcast_to((nrm @ R.T)[:, None], seeds.shape)
+            free = open_ & ~home.meets_each(seeds, seed_n, 0.8 * gap)  # before this pass, all at once
+            for i in order[free[order]]:
+                if home.meets(seeds[i], seed_n[i], 0.8 * gap):
                     continue
                 front = deque([(pts[i], None, direction[i])])  # the seed is checked already
                 while front:

@@ -88,12 +88,12 @@ def tile_body(surface: Surface, model, template: Module, body: str, first_id: in
 def without_buried(design, model, home, poses: int = 1):
     """The design minus the modules with a taxel buried inside another link at every one of
     `poses` sampled poses (`audit.buried_taxels`; the default, 1, is the home pose: no skin where
-    the robot covers itself at home, a superset of what `check` refuses). Returns (design,
-    dropped module ids)."""
-    from skinsafe.core.design.audit import buried_taxels
+    the robot covers itself at home, a superset of what `check` refuses) or enclosed by its own
+    link's mesh (`audit.enclosed_taxels`). Returns (design, dropped module ids)."""
+    from skinsafe.core.design.audit import buried_taxels, enclosed_taxels
     from skinsafe.core.design.placement import build_design, placed_from_design
 
-    buried = buried_taxels(design, model, home, poses)
+    buried = buried_taxels(design, model, home, poses) | enclosed_taxels(design, model, home)
     bad = {int(m) for m in np.unique(design.taxels.module[buried])}
     if not bad:
         return design, []

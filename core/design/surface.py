@@ -43,7 +43,8 @@ class Surface:
         self._pack = np.ascontiguousarray(np.concatenate(
             [a, ab, ac, bc, n * inv(n), inv(ab), inv(ac), inv(bc)], axis=1))
         # a bounding-volume hierarchy over the triangles: exact closest points, O(log T) each
-        self._bvh = _build_bvh(np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c), tri.mean(axis=1))
+        bvh = _build_bvh(np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c), tri.mean(axis=1))
+        self.kernel = (self._pack, self.corner_normals, *bvh)  # what compiled queries take (`closest_one`)
         self.lo, self.hi = self.vertices.min(axis=0), self.vertices.max(axis=0)  # bounding box
 
     @classmethod
@@ -80,7 +81,7 @@ class Surface:
         """Closest surface points (m,3), interpolated unit normals (m,3), triangle index (m,) and
         distance (m,) for query points (m,3)."""
         p = np.ascontiguousarray(np.asarray(points, dtype=float).reshape(-1, 3))
-        q, n, tri, d2 = _bvh_closest(p, self._pack, self.corner_normals, *self._bvh)
+        q, n, tri, d2 = _bvh_closest(p, *self.kernel)
         return q, n, tri, np.sqrt(d2)
 
 
@@ -192,46 +193,53 @@ def _on_triangle(x, r):
 
 
 @numba.njit(cache=True, nogil=True)
+def closest_one(x, q, n, stack, pk, corner_normals, node_lo, node_hi, child, span, order):
+    """The exact closest point q (3,) and unit normal n (3,) (corner normals interpolated) on the
+    triangles to the point x, by depth-first descent of the BVH (nearer child first, boxes farther
+    than the best so far skipped; `stack` has room for every node). Returns (triangle, squared
+    distance). `Surface.kernel` holds the arguments after `stack`."""
+    best, bt, bu, bv, bw = np.inf, -1, 0.0, 0.0, 0.0
+    top = 0
+    stack[0] = 0
+    while top >= 0:
+        node = stack[top]
+        top -= 1
+        if _box_d2(x, node_lo[node], node_hi[node]) >= best:
+            continue
+        if child[node, 0] < 0:
+            for j in range(span[node, 0], span[node, 0] + span[node, 1]):
+                t = order[j]
+                u, v, w, d2 = _on_triangle(x, pk[t])
+                if d2 < best:
+                    best, bt, bu, bv, bw = d2, t, u, v, w
+        else:
+            a, b = child[node, 0], child[node, 1]
+            if _box_d2(x, node_lo[a], node_hi[a]) < _box_d2(x, node_lo[b], node_hi[b]):
+                a, b = b, a
+            stack[top + 1], stack[top + 2] = a, b  # the nearer one on top
+            top += 2
+    r = pk[bt]
+    nn = 0.0
+    for k in range(3):
+        q[k] = r[k] + bv * r[3 + k] + bw * r[6 + k]
+        n[k] = bu * corner_normals[bt, 0, k] + bv * corner_normals[bt, 1, k] + bw * corner_normals[bt, 2, k]
+        nn += n[k] * n[k]
+    nn = np.sqrt(nn)
+    for k in range(3):
+        n[k] /= nn
+    return bt, best
+
+
+@numba.njit(cache=True, nogil=True)
 def _bvh_closest(p, pk, corner_normals, node_lo, node_hi, child, span, order):
-    """Exact closest points on the triangles to points p (m,3) by depth-first descent of the BVH,
-    nearer child first, skipping boxes farther than the best so far: points, unit normals
-    (corner normals interpolated), triangles and squared distances."""
+    """`closest_one` for every point p (m,3): points, normals, triangles, squared distances."""
     m = p.shape[0]
     q_out, n_out = np.zeros((m, 3)), np.zeros((m, 3))
-    d_out, t_out = np.full(m, np.inf), np.full(m, -1, np.int64)
+    d_out, t_out = np.zeros(m), np.zeros(m, np.int64)
     stack = np.empty(child.shape[0] + 1, np.int64)  # never more entries than nodes
     for i in range(m):
-        x = p[i]
-        best, bt, bu, bv, bw = np.inf, -1, 0.0, 0.0, 0.0
-        top = 0
-        stack[0] = 0
-        while top >= 0:
-            node = stack[top]
-            top -= 1
-            if _box_d2(x, node_lo[node], node_hi[node]) >= best:
-                continue
-            if child[node, 0] < 0:
-                for j in range(span[node, 0], span[node, 0] + span[node, 1]):
-                    t = order[j]
-                    u, v, w, d2 = _on_triangle(x, pk[t])
-                    if d2 < best:
-                        best, bt, bu, bv, bw = d2, t, u, v, w
-            else:
-                a, b = child[node, 0], child[node, 1]
-                if _box_d2(x, node_lo[a], node_hi[a]) < _box_d2(x, node_lo[b], node_hi[b]):
-                    a, b = b, a
-                stack[top + 1], stack[top + 2] = a, b  # the nearer one on top
-                top += 2
-        r = pk[bt]
-        d_out[i], t_out[i] = best, bt
-        nn = 0.0
-        for k in range(3):
-            q_out[i, k] = r[k] + bv * r[3 + k] + bw * r[6 + k]
-            n_out[i, k] = bu * corner_normals[bt, 0, k] + bv * corner_normals[bt, 1, k] + bw * corner_normals[bt, 2, k]
-            nn += n_out[i, k] ** 2
-        nn = np.sqrt(nn)
-        for k in range(3):
-            n_out[i, k] /= nn
+        t_out[i], d_out[i] = closest_one(p[i], q_out[i], n_out[i], stack, pk, corner_normals, node_lo, node_hi,
+                                         child, span, order)
     return q_out, n_out, t_out, d_out
 
 
