@@ -31,6 +31,7 @@ from skinsafe.core.design.placement import (
     build_design,
     clearance,
     place_module,
+    placed_from_design,
     placement_record,
     template_grid,
 )
@@ -225,10 +226,15 @@ def cover_link(surface: Surface, home: _Home, template: Module, body: str, first
 
 def cover_design(robot, ref: RobotRef, bodies: list[str] | None = None, template: Module = COVER_MODULE,
                  pitch: float | None = None, board_capacity: int = 512, force_threshold: float = 2.0,
-                 limit: int | None = None, progress=None) -> tuple[SkinDesign, dict]:
+                 limit: int | None = None, progress=None, keep: SkinDesign | None = None,
+                 surfaces: dict[str, Surface] | None = None) -> tuple[SkinDesign, dict]:
     """A skin covering `bodies` (default: every moving link with a real surface, the whole arm) of
     `robot` with copies of `template` (at `pitch` if given, the taxel diameter and margin scaled
-    with it). Returns the design and, per link, the refused attempts by reason."""
+    with it), around the modules of `keep` (kept, numbered first, never overlapped), on
+    `surfaces` (default: the links' design surfaces, `cached_surfaces`). Returns the design and,
+    per link, the refused attempts by reason."""
+    if template.template not in ("rect", "strip"):
+        raise DesignError(f"cover: a '{template.template}' module cannot be tiled; use rect or strip")
     if pitch is not None:
         if not 0 < pitch < 0.2:
             raise DesignError(f"cover: pitch {pitch} m is outside (0, 0.2); use e.g. 0.01")
@@ -240,20 +246,27 @@ def cover_design(robot, ref: RobotRef, bodies: list[str] | None = None, template
     if unknown:
         raise DesignError(f"cover: body '{unknown[0]}' is not in robot {robot.name}; use one of "
                           f"{sorted(robot.body_names - {'world'})}")
-    surfaces = cached_surfaces(robot.model, bodies)
+    surfaces = {**cached_surfaces(robot.model, [b for b in bodies if b not in (surfaces or {})]), **(surfaces or {})}
     home = _Home(robot.model, robot.home)
+    kept = [placed_from_design(keep, m.id) for m in keep.modules] if keep is not None else []
+    if kept:
+        rot = lambda b: home.data.xmat[robot.model.body(b).id].reshape(3, 3)  # noqa: E731
+        home.add(np.concatenate([home.world(p.module.body, p.positions) for p in kept]),
+                 np.concatenate([p.frames[:, :, 2] @ rot(p.module.body).T for p in kept]))
+    first = 1 + max([p.module.id for p in kept], default=-1)
     placed, refused = [], {}
     for b in bodies:
-        left = None if limit is None else limit - sum(len(p) for p in placed)
-        mine, refused[b] = cover_link(surfaces[b], home, template, b, len(placed), left)
+        left = None if limit is None else limit - sum(len(p) for p in kept + placed)
+        mine, refused[b] = cover_link(surfaces[b], home, template, b, first + len(placed), left)
         placed += mine
         if progress is not None:
             progress.update(1)
     if not placed:
         raise DesignError(f"cover: no {template.rows}x{template.cols} module at {template.pitch * 1e3:g} mm pitch fits on "
                           f"{bodies} (refused: {refused}); use a smaller module, a finer pitch or a smaller bend radius")
-    design = build_design(ref, placed, board_capacity, force_threshold,
-                          bodies=[b for b in bodies if any(p.module.body == b for p in placed)])
+    order = list(keep.bodies) if keep is not None else []
+    order += [b for b in bodies if b not in order and any(p.module.body == b for p in placed)]
+    design = build_design(ref, kept + placed, board_capacity, force_threshold, bodies=order)
     return design, refused
 
 
