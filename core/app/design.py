@@ -48,6 +48,7 @@ def add_arguments(p) -> None:
     p.add_argument("--pitch", type=float, help="taxel pitch, m")
     p.add_argument("--max-taxels", type=int)
     p.add_argument("--out", default="out/skin.json", help="taxel map to write")
+    p.add_argument("--report", metavar="JSON", help="with --cover: write the per-link cover report as JSON rows")
 
 
 def robot_ref(robot: str, package_dirs, out: Path, xacro_args: dict | None = None) -> RobotRef:
@@ -194,8 +195,15 @@ def run(args) -> int:
     path = save(design, out)
     if spec.get("cover"):
         from skinsafe.core.design.cover import cover_report, format_cover_report
+        from skinsafe.core.skin.files import atomic_write
 
-        print(format_cover_report(cover_report(design, robot.model, robot.home)))
+        report = cover_report(design, robot.model, robot.home)
+        print(format_cover_report(report))
+        if args.report:
+            mod = module_spec(spec)
+            rows = [{"robot": robot.name, "link": link, "module": f"{mod['rows']}x{mod['cols']}", "pitch": mod["pitch"],
+                     **r} for link, r in report.items()]
+            atomic_write(args.report, json.dumps(rows, indent=1) + "\n")
     else:
         print(format_report(design.coverage))
     tail = "coverage per link above" if spec.get("cover") else f"{len(refused)} candidate placements refused"

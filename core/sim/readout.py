@@ -85,9 +85,10 @@ class SkinReadout:
                                     ).astype(np.int64)
         self._floats = np.concatenate([[1.0 / g.h, self.inv_r, kernel == "nearest", self.pyramidal, self.n_rows],
                                        g.origin.ravel()])
-        self.forces = np.zeros(self.n)
-        self._lit = np.zeros(self.n + 1, np.int64)  # [count, taxels written since the last clear...]
-        self._no_dim = np.zeros(0, np.int32)
+        # the forces, then how many taxels were written since the last clear and which (as floats: one
+        # array for the compiled pass)
+        self._state = np.zeros(2 * self.n + 1)
+        self.forces = self._state[:self.n]
         self._data = self._xpos = self._xmat = None
         self._missed = 0
 
@@ -122,31 +123,33 @@ class SkinReadout:
         """The taxels' normal forces in `self.forces` (overwritten by the next update)."""
         if data is not self._data:  # body poses live in MjData's fixed buffer: one view per MjData
             self._data, self._xpos, self._xmat = data, data.xpos, data.xmat
-        if data.ncon == 0 and self._lit[0] == 0:
+        if data.ncon == 0 and self._state[self.n] == 0:
             self._missed = 0
             return self.forces
         con = data.contact
-        self._missed = _readout(self.forces, self._lit, con.geom, con.pos, con.frame, con.efc_address,
-                                con.dim if self.n_rows < 0 else self._no_dim, data.efc_force, self._xpos, self._xmat,
-                                self._ints, self._floats, self.packed)
+        self._missed = _readout(self._state, con.geom, con.pos, con.frame, con.efc_address, data.efc_force,
+                                self._xpos, self._xmat, self._ints, self._floats, self.packed)
         return self.forces
 
 
 @numba.njit(cache=True, nogil=True)
-def _readout(out, lit, geom, pos, frame, efc_address, dim, efc_force, xpos, xmat, ints, floats, packed):
+def _readout(state, geom, pos, frame, efc_address, efc_force, xpos, xmat, ints, floats, packed):
     """Every contact on a skinned body -> its facing taxels within the footprint (see SkinReadout).
-    Clears the taxels `lit` lists (all of `out` when it overflowed), adds the forces into `out`,
-    lists the taxels it writes in `lit` and returns the number of missed contacts.
+    `state`: the forces (n), then the count and indices of the taxels written since the last
+    clear (n + 1; count -1: all may be). Clears those, adds the forces, lists the taxels it writes
+    and returns the number of missed contacts.
 
     ints: n_geoms, n_bodies, then per geom its skinned body (-1: none), per skinned body its MuJoCo
     id, last voxel (3), voxel strides (3) and first voxel, then per voxel its row of `packed`.
     floats: 1 / voxel side, 1 / footprint radius, nearest kernel, pyramidal cone, efc rows per
-    contact (-1: from `dim`), then per skinned body its grid origin (3)."""
-    n = out.shape[0]
+    contact (-1: they differ; a contact's rows then run to the next contact's, contacts being
+    MuJoCo's last constraints), then per skinned body its grid origin (3)."""
+    n = (state.shape[0] - 1) // 2
+    out, lit = state[:n], state[n:]
     if lit[0] < 0:
         out[:] = 0.0
-    for i in range(lit[0]):
-        out[lit[1 + i]] = 0.0
+    for i in range(int(lit[0])):
+        out[int(lit[1 + i])] = 0.0
     lit[0] = 0
     inv_h, inv_r, nearest, pyramidal, n_rows = floats[0], floats[1], floats[2] > 0, floats[3] > 0, int(floats[4])
     g0 = 2  # per geom
@@ -161,7 +164,13 @@ def _readout(out, lit, geom, pos, frame, efc_address, dim, efc_force, xpos, xmat
         if not pyramidal:
             f = efc_force[adr]
         else:  # pyramidal cone: the normal force is the sum of the pyramid edge forces
-            rows = n_rows if n_rows > 0 else (2 * (dim[c] - 1) if dim[c] > 1 else 1)
+            rows = n_rows
+            if rows < 0:
+                rows = efc_force.shape[0] - adr
+                for c2 in range(c + 1, geom.shape[0]):
+                    if efc_address[c2] >= 0:
+                        rows = efc_address[c2] - adr
+                        break
             f = 0.0
             for k in range(rows):
                 f += efc_force[adr + k]
@@ -190,7 +199,7 @@ def _readout(out, lit, geom, pos, frame, efc_address, dim, efc_force, xpos, xmat
             # two passes over the row's candidates: the weights' total (and the best), then the shares
             total, best, best_k = 0.0, 0.0, -1
             for k in range(width):
-                wk = _weight(packed[row, k], lp0, lp1, lp2, ln0 * sign, ln1 * sign, ln2 * sign, inv_r)
+                wk = _weight(packed, row, k, lp0, lp1, lp2, ln0 * sign, ln1 * sign, ln2 * sign, inv_r)
                 total += wk
                 if wk > best:
                     best, best_k = wk, k
@@ -199,14 +208,14 @@ def _readout(out, lit, geom, pos, frame, efc_address, dim, efc_force, xpos, xmat
                 continue
             for k in range(width):
                 wk = f if nearest and k == best_k else (
-                    0.0 if nearest else _weight(packed[row, k], lp0, lp1, lp2, ln0 * sign, ln1 * sign, ln2 * sign, inv_r)
+                    0.0 if nearest else _weight(packed, row, k, lp0, lp1, lp2, ln0 * sign, ln1 * sign, ln2 * sign, inv_r)
                     * (f / total))
                 if wk <= 0.0:
                     continue
                 t = int(packed[row, k, 6])
                 if out[t] == 0.0:  # first force on this taxel since the last clear: list it
                     if 0 <= lit[0] < n:
-                        lit[1 + lit[0]] = t
+                        lit[1 + int(lit[0])] = t
                         lit[0] += 1
                     else:
                         lit[0] = -1
@@ -215,11 +224,13 @@ def _readout(out, lit, geom, pos, frame, efc_address, dim, efc_force, xpos, xmat
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _weight(cand, x, y, z, nx, ny, nz, inv_r):
+def _weight(packed, row, k, x, y, z, nx, ny, nz, inv_r):
     """Footprint weight 1 - d/R of a packed candidate taxel for a contact at (x, y, z) whose normal
     (nx, ny, nz) points into the skin (0 beyond R or where the taxel faces away)."""
-    wk = 1.0 - np.sqrt((cand[0] - x) ** 2 + (cand[1] - y) ** 2 + (cand[2] - z) ** 2) * inv_r
-    return wk if wk > 0.0 and cand[3] * nx + cand[4] * ny + cand[5] * nz > 0.0 else 0.0
+    d2 = ((packed[row, k, 0] - x) ** 2 + (packed[row, k, 1] - y) ** 2 + (packed[row, k, 2] - z) ** 2) * inv_r * inv_r
+    if d2 >= 1.0 or packed[row, k, 3] * nx + packed[row, k, 4] * ny + packed[row, k, 5] * nz <= 0.0:
+        return 0.0
+    return 1.0 - np.sqrt(d2)
 
 
 def _contact_rows(model: mujoco.MjModel) -> int | None:
