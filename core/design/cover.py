@@ -2,12 +2,15 @@
 
 `cover_link` tries a module centred on each point of an even sample of the link's surface (about
 one per pitch), in raster order along the link's principal axis (band by band, around the axis
-within a band), rows first along that axis, then across it. A module is kept where `place_module`
-accepts it (on the surface, within the FPC's bend radius), its outline does not overhang the
-link, none of its taxels is buried more than `audit.BURIED_TOL` inside another link at the home
-pose, and none of its cells meets a module already placed on this link or on any other link at
-home (links that coincide share one skin, never two on top of each other). Points a placed
-module already covers are not tried again, so the fill costs a few attempts per module.
+within a band), rows first along that axis, then across it; from each module it places, the
+neighbours that continue its taxel grid are tried next (a quilt), and then copies trimmed to fewer
+rows/columns fill what is left (`trimmed`). A module is kept where `place_module` accepts it (on
+the surface, within the FPC's bend radius), its outline does not overhang the link, none of its
+taxels is hidden (more than `audit.BURIED_TOL` inside another link at the home pose, or
+`audit.enclosed` by its own link's mesh), and none of its cells meets a same-facing module already
+placed on this link or on any other link at home (links that coincide share one skin, never two
+on top of each other). Points where a module laid flat would clearly meet one already placed are
+not tried.
 
 `cover_design` covers a robot's arm (or the named links) and `cover_report` says, per link, how
 much is covered, where it is bare (`coverage.gaps`), and whether any cells overlap or any taxel
@@ -42,22 +45,10 @@ COVER_MODULE = Module(0, "cover", "", rows=3, cols=3, pitch=0.01, taxel_diameter
                       min_bend_radius=0.01)  # 3x3 cells of 1 cm; the FPC bends to 1 cm
 
 
-def random_points(surface: Surface, n: int, seed: int = 0) -> np.ndarray:
-    """`n` points uniformly distributed over the surface's area (body frame)."""
-    tri = surface.vertices[surface.triangles]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    rng = np.random.default_rng(seed)
-    k = rng.choice(len(tri), n, p=area / area.sum())
-    r = rng.random((n, 2))
-    flip = r.sum(axis=1) > 1
-    r[flip] = 1 - r[flip]
-    return tri[k, 0] + r[:, :1] * (tri[k, 1] - tri[k, 0]) + r[:, 1:] * (tri[k, 2] - tri[k, 0])
-
-
 def surface_samples(surface: Surface, spacing: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Points (k,3) and their normals spread evenly over a surface, about one per `spacing`
     square: area-weighted random points thinned to one per voxel of side `spacing`."""
-    pts = random_points(surface, int(min(200_000, max(100, 8 * surface.area / spacing ** 2))), seed)
+    pts = surface.random_points(int(min(200_000, max(100, 8 * surface.area / spacing ** 2))), seed)
     _, first = np.unique(np.floor(pts / spacing).astype(np.int64), axis=0, return_index=True)
     pts = pts[np.sort(first)]
     return surface.closest(pts)[:2]
@@ -125,7 +116,7 @@ class _Home:
     def exposed(self, body: str, surface: Surface, n: int = 4000) -> float:
         """The share of the link's surface area where skin can go (not `hidden`; Monte Carlo over
         `n` area-uniform points: +-0.8% at 4,000)."""
-        q, nrm = surface.closest(random_points(surface, n, seed=1))[:2]
+        q, nrm = surface.closest(surface.random_points(n, seed=1))[:2]
         return float(1.0 - self.hidden(body, q, nrm).mean())
 
     def add(self, world: np.ndarray, normals: np.ndarray) -> None:

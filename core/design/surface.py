@@ -73,6 +73,16 @@ class Surface:
         n = np.cross(self._b - self._a, self._c - self._a)
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
+    def random_points(self, n: int, seed: int = 0) -> np.ndarray:
+        """`n` points uniformly distributed over the surface's area."""
+        area = 0.5 * np.linalg.norm(np.cross(self._b - self._a, self._c - self._a), axis=1)
+        rng = np.random.default_rng(seed)
+        k = rng.choice(len(area), n, p=area / area.sum())
+        r = rng.random((n, 2))
+        flip = r.sum(axis=1) > 1
+        r[flip] = 1 - r[flip]
+        return self._a[k] + r[:, :1] * (self._b[k] - self._a[k]) + r[:, 1:] * (self._c[k] - self._a[k])
+
     @property
     def area(self) -> float:
         return float(0.5 * np.linalg.norm(np.cross(self._b - self._a, self._c - self._a), axis=1).sum())

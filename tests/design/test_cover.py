@@ -6,6 +6,7 @@ import json
 import mujoco
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from skinsafe.core.app.cli import main
 from skinsafe.core.design.audit import audit, buried_taxels, enclosed_taxels
@@ -26,11 +27,11 @@ def _world(design, model, home):
             np.einsum("nij,nj->ni", R, design.taxels.frames[:, :, 2]))
 
 
-def _closest_foreign(design, pos, nrm):
-    """Per taxel, the nearest taxel of another module facing the same way (within 60 degrees)."""
-    d = np.linalg.norm(pos[:, None] - pos[None], axis=2)
-    mask = (design.taxels.module[:, None] != design.taxels.module[None]) & (nrm @ nrm.T > 0.5)
-    return np.where(mask, d, np.inf).min(axis=1)
+def _overlapping_pairs(design, pos, nrm, limit):
+    """Pairs of taxels of different modules, facing the same way (within 60 degrees), closer than `limit`."""
+    pairs = cKDTree(pos).query_pairs(limit, output_type="ndarray")
+    a, b = pairs[:, 0], pairs[:, 1]
+    return pairs[(design.taxels.module[a] != design.taxels.module[b]) & (np.sum(nrm[a] * nrm[b], axis=1) > 0.5)]
 
 
 @pytest.mark.parametrize("name,build", [("ur5", build_ur5), ("panda", build_panda)])
@@ -52,7 +53,8 @@ def test_every_arm_link_covered_without_overlap_or_buried_taxels(name, build):
         assert r["covered"] <= 1.0
     # checked here directly: no two modules' cells overlap (3/4 pitch), on one link or across links at home
     pos, nrm = _world(design, robot.model, robot.home)
-    assert _closest_foreign(design, pos, nrm).min() >= 0.75 * 0.01 - 1e-9
+    assert len(_overlapping_pairs(design, pos, nrm, 0.75 * 0.01 - 1e-9)) == 0
+    assert len(_overlapping_pairs(design, pos, nrm, 1.01 * 0.01)) > design.n_taxels / 4  # yet modules do abut
     # whole modules first, then trimmed ones only
     sizes = [(m.rows, m.cols) for m in design.modules]
     assert set(sizes) <= {(m.rows, m.cols) for m in trimmed(COVER_MODULE)}
