@@ -15,10 +15,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from skinsafe.core.design.surface import Surface
+from skinsafe.core.design.surface import Surface, closest_one
 from skinsafe.core.skin.boards import assign_boards, number_channels
 from skinsafe.core.skin.model import DesignError, Module, RobotRef, SkinDesign, Taxels, frames_from_normals
 
@@ -102,35 +103,62 @@ def _fmt(p) -> str:
     return "(" + ", ".join(f"{c:.4f}" for c in p) + ") m"
 
 
-def _tangent(t, n):
-    t = t - np.sum(t * n, axis=-1, keepdims=True) * n
-    return t / np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-300)
-
-
 def _march(surface: Surface, p, n, t, carry, hs: np.ndarray):
     """Walk points p (m,3) with normals n along tangents t in steps of surface lengths hs,
     carrying the tangent `carry` (m,3) along. Each step goes h' along the tangent and back onto
     the surface, h' stretched by the curvature seen on the previous step (tan(kh)/k) so the arc,
     not the chord, is h. Returns per-step arrays (steps+1, m, ...) and each walker's first failing
     step (-1 for none)."""
-    P, N, C = [p], [n], [carry]
-    fail = np.full(len(p), -1)
-    kappa = np.zeros(len(p))
-    for k, h in enumerate(hs, start=1):
-        kh = np.minimum(kappa * h, 1.0)
-        reach = np.where(kh > 1e-9, h * np.tan(kh) / np.maximum(kh, 1e-300), h)
-        q, n2, _, _ = surface.closest(p + reach[:, None] * t)
-        chord = np.linalg.norm(q - p, axis=1)
-        fail[(chord < 0.5 * h) & (fail < 0)] = k
-        theta = np.arccos(np.clip(np.sum(n * n2, axis=1), -1.0, 1.0))
-        half = np.maximum(theta / 2, 1e-12)
-        arc = chord * half / np.sin(half)
-        kappa = np.where(arc > 0, theta / np.maximum(arc, 1e-300), 0.0)
-        t = _tangent(t, n2)
-        carry = _tangent(carry, n2)
-        p, n = q, n2
-        P.append(p), N.append(n), C.append(carry)
-    return np.stack(P), np.stack(N), np.stack(C), fail
+    f = lambda a: np.ascontiguousarray(a, dtype=float)  # noqa: E731
+    return _march_kernel(f(p), f(n), f(t), f(carry), f(hs), *surface.kernel)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _onto(t, n):
+    """t made tangent to the unit normal n and unit (in place)."""
+    d = t[0] * n[0] + t[1] * n[1] + t[2] * n[2]
+    s = 0.0
+    for k in range(3):
+        t[k] -= d * n[k]
+        s += t[k] * t[k]
+    s = max(np.sqrt(s), 1e-300)
+    for k in range(3):
+        t[k] /= s
+
+
+@numba.njit(cache=True, nogil=True)
+def _march_kernel(p, n, t, carry, hs, *kernel):
+    m, steps = p.shape[0], hs.shape[0]
+    P, N, C = np.empty((steps + 1, m, 3)), np.empty((steps + 1, m, 3)), np.empty((steps + 1, m, 3))
+    P[0], N[0], C[0] = p, n, carry
+    fail = np.full(m, -1, np.int64)
+    stack = np.empty(kernel[4].shape[0] + 1, np.int64)
+    x, tt = np.empty(3), np.empty(3)
+    for i in range(m):
+        kappa = 0.0
+        tt[:] = t[i]
+        for k in range(1, steps + 1):
+            h = hs[k - 1]
+            kh = min(kappa * h, 1.0)
+            reach = h * np.tan(kh) / kh if kh > 1e-9 else h
+            for j in range(3):
+                x[j] = P[k - 1, i, j] + reach * tt[j]
+            closest_one(x, P[k, i], N[k, i], stack, *kernel)
+            chord, cos = 0.0, 0.0
+            for j in range(3):
+                chord += (P[k, i, j] - P[k - 1, i, j]) ** 2
+                cos += N[k - 1, i, j] * N[k, i, j]
+            chord = np.sqrt(chord)
+            if chord < 0.5 * h and fail[i] < 0:
+                fail[i] = k
+            theta = np.arccos(min(max(cos, -1.0), 1.0))
+            half = max(theta / 2, 1e-12)
+            arc = chord * half / np.sin(half)
+            kappa = theta / arc if arc > 0 else 0.0
+            _onto(tt, N[k, i])
+            C[k, i] = C[k - 1, i]
+            _onto(C[k, i], N[k, i])
+    return P, N, C, fail
 
 
 def place_module(surface: Surface, module: Module, anchor, direction, method: str = "geodesic",

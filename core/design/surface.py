@@ -13,8 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import mujoco
+import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from skinsafe.core.skin.model import DesignError
 
@@ -23,7 +23,7 @@ G = mujoco.mjtGeom
 
 @dataclass
 class Surface:
-    """A triangle mesh with per-corner normals and a centroid k-d tree for closest-point queries."""
+    """A triangle mesh with per-corner normals and a bounding-volume hierarchy for closest-point queries."""
 
     vertices: np.ndarray  # (V, 3) float64
     triangles: np.ndarray  # (T, 3) int64, counter-clockwise seen from outside
@@ -42,36 +42,10 @@ class Surface:
         inv = lambda e: 1.0 / np.maximum(np.sum(e * e, axis=1, keepdims=True), 1e-300)  # noqa: E731
         self._pack = np.ascontiguousarray(np.concatenate(
             [a, ab, ac, bc, n * inv(n), inv(ab), inv(ac), inv(bc)], axis=1))
-        # The k-d tree holds points on every triangle (a barycentric grid, `m` steps per edge) so that
-        # each triangle point lies within `_reach` of one of its tree points: a few long slivers of a
-        # CAD mesh then do not widen every query (as one centroid per triangle would).
-        edge = np.sqrt(np.maximum(np.maximum(_dot(ab, ab), _dot(ac, ac)), _dot(bc, bc)))
-        self._reach = float(max(2.0 * np.median(edge), 1e-9))
-        m = np.clip(np.ceil(edge / self._reach), 1, 64).astype(np.int64)
-        pts, owner = [tri.mean(axis=1)], [np.arange(len(tri))]
-        for k in np.unique(m[m > 1]):
-            sel = np.flatnonzero(m == k)
-            i, j = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
-            keep = (i + j) <= k
-            u, w = i[keep] / k, j[keep] / k
-            pts.append((a[sel, None] + u[None, :, None] * ab[sel, None] + w[None, :, None] * ac[sel, None]).reshape(-1, 3))
-            owner.append(np.repeat(sel, len(u)))
-        self._owner = np.concatenate(owner)
-        self._tree = cKDTree(np.concatenate(pts))
-        self._reach = float(max(self._reach, (edge / m).max()))
-        self._k = int(min(8, len(self._owner)))
-
-    def _nearest(self, p, index, k):
-        """Best of the k nearest-centroid triangles; also which `index` entries may miss a closer one."""
-        dc, cand = self._tree.query(p, k=k)
-        dc, cand = dc.reshape(len(p), -1), self._owner[cand.reshape(len(p), -1)]
-        q, w, d2 = closest_on_packed(p[:, None, :], self._pack[cand])
-        best = np.argmin(d2, axis=1)
-        rows = np.arange(len(p))
-        d2 = d2[rows, best]
-        # Any triangle left out has all its tree points beyond dc[:, -1], so no point of it nearer than that - reach.
-        unsure = (np.sqrt(d2) + self._reach > dc[:, -1]) & (k < len(self._owner))
-        return q[rows, best], w[rows, best], d2, cand[rows, best], index[unsure]
+        # a bounding-volume hierarchy over the triangles: exact closest points, O(log T) each
+        bvh = _build_bvh(np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c), tri.mean(axis=1))
+        self.kernel = (self._pack, self.corner_normals, *bvh)  # what compiled queries take (`closest_one`)
+        self.lo, self.hi = self.vertices.min(axis=0), self.vertices.max(axis=0)  # bounding box
 
     @classmethod
     def from_mesh(cls, vertices, triangles, corner_normals=None, name: str = "surface",
@@ -99,6 +73,16 @@ class Surface:
         n = np.cross(self._b - self._a, self._c - self._a)
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
+    def random_points(self, n: int, seed: int = 0) -> np.ndarray:
+        """`n` points uniformly distributed over the surface's area."""
+        area = 0.5 * np.linalg.norm(np.cross(self._b - self._a, self._c - self._a), axis=1)
+        rng = np.random.default_rng(seed)
+        k = rng.choice(len(area), n, p=area / area.sum())
+        r = rng.random((n, 2))
+        flip = r.sum(axis=1) > 1
+        r[flip] = 1 - r[flip]
+        return self._a[k] + r[:, :1] * (self._b[k] - self._a[k]) + r[:, 1:] * (self._c[k] - self._a[k])
+
     @property
     def area(self) -> float:
         return float(0.5 * np.linalg.norm(np.cross(self._b - self._a, self._c - self._a), axis=1).sum())
@@ -106,19 +90,8 @@ class Surface:
     def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Closest surface points (m,3), interpolated unit normals (m,3), triangle index (m,) and
         distance (m,) for query points (m,3)."""
-        p = np.asarray(points, dtype=float).reshape(-1, 3)
-        q, bary, d2, tri, unsure = self._nearest(p, np.arange(len(p)), self._k)
-        if len(unsure):  # a triangle beyond the k nearest centroids may be closer: look wider
-            q2, b2, dd2, t2, still = self._nearest(p[unsure], unsure, min(6 * self._k, len(self._owner)))
-            q[unsure], bary[unsure], d2[unsure], tri[unsure] = q2, b2, dd2, t2
-            for i in still:  # exhaustive within d + reach (rare: huge triangles)
-                ball = np.unique(self._owner[self._tree.query_ball_point(p[i], np.sqrt(d2[i]) + self._reach)])
-                qi, wi, di = closest_on_packed(p[i][None, :], self._pack[ball])
-                j = int(np.argmin(di))
-                if di[j] < d2[i]:
-                    q[i], bary[i], d2[i], tri[i] = qi[j], wi[j], di[j], ball[j]
-        n = np.einsum("mk,mkj->mj", bary, self.corner_normals[tri])
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        p = np.ascontiguousarray(np.asarray(points, dtype=float).reshape(-1, 3))
+        q, n, tri, d2 = _bvh_closest(p, *self.kernel)
         return q, n, tri, np.sqrt(d2)
 
 
@@ -143,40 +116,141 @@ def _smooth_corner_normals(t: np.ndarray, fn: np.ndarray, cos_crease: float) -> 
     return out.reshape(-1, 3, 3)
 
 
-def _dot(u, v):
-    return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1] + u[..., 2] * v[..., 2]
+LEAF = 4  # triangles per BVH leaf at most
 
 
-def _cross(u, v):
-    return np.stack([u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1], u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2],
-                     u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]], axis=-1)
+@numba.njit(cache=True, nogil=True)
+def _build_bvh(lo, hi, centroid):
+    """A BVH over boxes (T,3) lo/hi with centres `centroid`: per node its box (2T,3) lo/hi, its
+    children (left, right; -1 for a leaf) and its leaf range (start, count) into `order`, the
+    triangles by leaf."""
+    t = lo.shape[0]
+    order = np.arange(t)
+    node_lo, node_hi = np.empty((2 * t, 3)), np.empty((2 * t, 3))
+    child = np.full((2 * t, 2), -1, np.int64)
+    span = np.zeros((2 * t, 2), np.int64)
+    stack = [(0, 0, t)]
+    n_nodes = 1
+    while len(stack):
+        node, start, end = stack.pop()
+        node_lo[node], node_hi[node] = np.inf, -np.inf
+        for j in range(start, end):
+            for k in range(3):
+                node_lo[node, k] = min(node_lo[node, k], lo[order[j], k])
+                node_hi[node, k] = max(node_hi[node, k], hi[order[j], k])
+        span[node, 0], span[node, 1] = start, end - start
+        if end - start <= LEAF:
+            continue
+        # split at the middle of the centroids' extent along its longest axis (in place, O(n))
+        cmin, cmax = np.full(3, np.inf), np.full(3, -np.inf)
+        for j in range(start, end):
+            for k in range(3):
+                cmin[k] = min(cmin[k], centroid[order[j], k])
+                cmax[k] = max(cmax[k], centroid[order[j], k])
+        axis = np.argmax(cmax - cmin)
+        cut = 0.5 * (cmin[axis] + cmax[axis])
+        i, j = start, end - 1
+        while i <= j:
+            if centroid[order[i], axis] < cut:
+                i += 1
+            else:
+                order[i], order[j] = order[j], order[i]
+                j -= 1
+        mid = i if start < i < end else (start + end) // 2  # all on one side: halve by count
+        child[node, 0], child[node, 1] = n_nodes, n_nodes + 1
+        stack.append((n_nodes, start, mid))
+        stack.append((n_nodes + 1, mid, end))
+        n_nodes += 2
+    return node_lo[:n_nodes], node_hi[:n_nodes], child[:n_nodes], span[:n_nodes], order
 
 
-def closest_on_packed(p, pk):
-    """Closest points on packed triangles pk (..., 19) to points p (broadcast ..., 3): points,
-    barycentric weights (..., 3) and squared distances."""
-    a, ab, ac, bc, n_over = pk[..., 0:3], pk[..., 3:6], pk[..., 6:9], pk[..., 9:12], pk[..., 12:15]
-    ap = p - a
-    v = _dot(_cross(ap, ac), n_over)
-    w = _dot(_cross(ab, ap), n_over)
+@numba.njit(cache=True, nogil=True, inline="always")
+def _box_d2(x, lo, hi):
+    d2 = 0.0
+    for k in range(3):
+        e = max(lo[k] - x[k], 0.0, x[k] - hi[k])
+        d2 += e * e
+    return d2
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _on_edge(p, s0, s1, s2, e0, e1, e2, inv):
+    """The clamped parameter f of the closest point s + f e on an edge to p, and its squared distance."""
+    f = min(max(((p[0] - s0) * e0 + (p[1] - s1) * e1 + (p[2] - s2) * e2) * inv, 0.0), 1.0)
+    return f, (p[0] - s0 - f * e0) ** 2 + (p[1] - s1 - f * e1) ** 2 + (p[2] - s2 - f * e2) ** 2
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _on_triangle(x, r):
+    """Barycentric weights (u, v, w) of the closest point to x on the packed triangle r (a, ab, ac,
+    bc, n/|n|^2, 1/|ab|^2, 1/|ac|^2, 1/|bc|^2) and its squared distance."""
+    ap0, ap1, ap2 = x[0] - r[0], x[1] - r[1], x[2] - r[2]
+    # barycentric coordinates of the projection onto the plane: (ap x ac).n', (ab x ap).n'
+    v = (ap1 * r[8] - ap2 * r[7]) * r[12] + (ap2 * r[6] - ap0 * r[8]) * r[13] + (ap0 * r[7] - ap1 * r[6]) * r[14]
+    w = (r[4] * ap2 - r[5] * ap1) * r[12] + (r[5] * ap0 - r[3] * ap2) * r[13] + (r[3] * ap1 - r[4] * ap0) * r[14]
     u = 1.0 - v - w
-    best_q = a + v[..., None] * ab + w[..., None] * ac
-    best_w = np.stack([u, v, w], axis=-1)
-    inside = (u >= 0) & (v >= 0) & (w >= 0)
-    best_d = np.where(inside, _dot(p - best_q, p - best_q), np.inf)
-    b = a + ab
-    for i, (s, se, inv) in enumerate(((a, ab, pk[..., 15]), (b, bc, pk[..., 17]), (a + ac, -ac, pk[..., 16]))):
-        t = np.clip(_dot(p - s, se) * inv, 0.0, 1.0)
-        q = s + t[..., None] * se
-        d = _dot(p - q, p - q)
-        better = d < best_d
-        best_d = np.where(better, d, best_d)
-        best_q = np.where(better[..., None], q, best_q)
-        wt = np.zeros(t.shape + (3,))
-        wt[..., i] = 1.0 - t
-        wt[..., (i + 1) % 3] = t
-        best_w = np.where(better[..., None], wt, best_w)
-    return best_q, best_w, best_d
+    if u < 0.0 or v < 0.0 or w < 0.0:  # outside: the best of the three edges
+        f, dd = _on_edge(x, r[0], r[1], r[2], r[3], r[4], r[5], r[15])  # a -> b
+        u, v, w = 1.0 - f, f, 0.0
+        f, d1 = _on_edge(x, r[0] + r[3], r[1] + r[4], r[2] + r[5], r[9], r[10], r[11], r[17])  # b -> c
+        if d1 < dd:
+            dd, u, v, w = d1, 0.0, 1.0 - f, f
+        f, d1 = _on_edge(x, r[0] + r[6], r[1] + r[7], r[2] + r[8], -r[6], -r[7], -r[8], r[16])  # c -> a
+        if d1 < dd:
+            u, v, w = f, 0.0, 1.0 - f
+    q0, q1, q2 = r[0] + v * r[3] + w * r[6], r[1] + v * r[4] + w * r[7], r[2] + v * r[5] + w * r[8]
+    return u, v, w, (x[0] - q0) ** 2 + (x[1] - q1) ** 2 + (x[2] - q2) ** 2
+
+
+@numba.njit(cache=True, nogil=True)
+def closest_one(x, q, n, stack, pk, corner_normals, node_lo, node_hi, child, span, order):
+    """The exact closest point q (3,) and unit normal n (3,) (corner normals interpolated) on the
+    triangles to the point x, by depth-first descent of the BVH (nearer child first, boxes farther
+    than the best so far skipped; `stack` has room for every node). Returns (triangle, squared
+    distance). `Surface.kernel` holds the arguments after `stack`."""
+    best, bt, bu, bv, bw = np.inf, -1, 0.0, 0.0, 0.0
+    top = 0
+    stack[0] = 0
+    while top >= 0:
+        node = stack[top]
+        top -= 1
+        if _box_d2(x, node_lo[node], node_hi[node]) >= best:
+            continue
+        if child[node, 0] < 0:
+            for j in range(span[node, 0], span[node, 0] + span[node, 1]):
+                t = order[j]
+                u, v, w, d2 = _on_triangle(x, pk[t])
+                if d2 < best:
+                    best, bt, bu, bv, bw = d2, t, u, v, w
+        else:
+            a, b = child[node, 0], child[node, 1]
+            if _box_d2(x, node_lo[a], node_hi[a]) < _box_d2(x, node_lo[b], node_hi[b]):
+                a, b = b, a
+            stack[top + 1], stack[top + 2] = a, b  # the nearer one on top
+            top += 2
+    r = pk[bt]
+    nn = 0.0
+    for k in range(3):
+        q[k] = r[k] + bv * r[3 + k] + bw * r[6 + k]
+        n[k] = bu * corner_normals[bt, 0, k] + bv * corner_normals[bt, 1, k] + bw * corner_normals[bt, 2, k]
+        nn += n[k] * n[k]
+    nn = np.sqrt(nn)
+    for k in range(3):
+        n[k] /= nn
+    return bt, best
+
+
+@numba.njit(cache=True, nogil=True)
+def _bvh_closest(p, pk, corner_normals, node_lo, node_hi, child, span, order):
+    """`closest_one` for every point p (m,3): points, normals, triangles, squared distances."""
+    m = p.shape[0]
+    q_out, n_out = np.zeros((m, 3)), np.zeros((m, 3))
+    d_out, t_out = np.zeros(m), np.zeros(m, np.int64)
+    stack = np.empty(child.shape[0] + 1, np.int64)  # never more entries than nodes
+    for i in range(m):
+        t_out[i], d_out[i] = closest_one(p[i], q_out[i], n_out[i], stack, pk, corner_normals, node_lo, node_hi,
+                                         child, span, order)
+    return q_out, n_out, t_out, d_out
 
 
 # ---- tessellation of MuJoCo geoms -------------------------------------------------------------
