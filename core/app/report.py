@@ -30,6 +30,8 @@ def _table(rows: list[dict]) -> str:
 def _fmt(v) -> str:
     """Floats to 4 significant digits; from 10,000 up as whole numbers with thousands separators
     (3.288e+04 is hard to read in a table)."""
+    if v is None:
+        return "—"
     if isinstance(v, float):
         return f"{v:,.0f}" if abs(v) >= 1e4 and v == v and abs(v) != float("inf") else f"{v:.4g}"
     return str(v)
