@@ -70,9 +70,11 @@ def stage_blender(ctx) -> Section:
         f"{ctx['blend']} opened headless with the add-on: {info['modules']} FPC modules re-generated "
         f"(conformal geodesic wrap on the link meshes), {info['taxels']} taxels on {info['boards']} boards, "
         "each with its frame (z the outward normal) and its Jacobian mapping at the scene's pose.",
-        images=[(info["pictures"][0], "Retractability |J_p^T z| per taxel at the scene's pose (bright: the robot can "
-                                      "pull this taxel back fast; dark: a dead spot)"),
-                (info["pictures"][1], "FPC modules coloured by interface board")],
+        images=[(info["pictures"][0], f"Retractability |J_p^T z| of each of the {info['taxels']:,} taxels at the scene's "
+                                      "pose, rendered headless by the add-on (bright: the robot can pull this taxel "
+                                      "back fast; dark: a dead spot)."),
+                (info["pictures"][1], f"The {info['modules']} FPC modules coloured by interface board, "
+                                      f"{info['boards']} boards (the key counts each board's taxels).")],
         tables=[(rows, "fraction: skinned share of the link's surface; density: taxels per cm² of skin.")])
 
 
@@ -99,8 +101,9 @@ def stage_poke(ctx) -> Section:
     fs = res["force_sweep"]
     budget = f"{len(fs['force'])} pokes" + ("" if ctx["full"] else " at the demo's reduced depths")
     rows = [{"merge": r["merge"], "epsilon": r["epsilon"], "contacts": r["contacts"],
-             "dominant_fraction": r["dominant_fraction"], "others_fraction": str(r["others_fraction"])}
-            for r in res["multicontact"]]
+             "dominant_fraction": r["dominant_fraction"], "others_fraction": ", ".join(f"{x:.3g}" for x in
+                                                                                          r["others_fraction"]),
+             "into_contact_mm": r["into_contact_mm"]} for r in res["multicontact"]]
     forms = [{"form": k, **{c: v[c] for c in ("achieved_median", "achieved_p10", "within_5pct", "drift_median")}}
              for k, v in res["forms"].items()]
     return Section(
@@ -150,7 +153,8 @@ def stage_maze(ctx) -> Section:
                  f"{min(maze.LAST, cfg['episodes'])} episodes, so their totals are not yet those of a trained policy.\n\n"
                  if slow else f"Every method shown reached the goal in at least {maze.LEARNED_AT:.0%} of the last "
                  f"{min(maze.LAST, cfg['episodes'])} episodes.\n\n") + res["claim"]["statement"]
-    budget = f"{cfg['seeds']} seed(s) x {cfg['episodes']} episodes of at most {cfg['max_steps']} macro-actions"
+    budget = (f"{figs.plural(cfg['seeds'], 'seed')} x {figs.plural(cfg['episodes'], 'episode')} of at most "
+              f"{cfg['max_steps']} macro-actions")
     third = ("the -TDM variants against the safe-RL baselines of this run" if grid is None or
              any(b in res["methods"] for b in figs.BASELINES) else
              "the -TDM variants against the safe-RL baselines at the paper's budget, from the committed full grid "
@@ -169,10 +173,11 @@ def stage_tracking(ctx) -> Section:
              "tracking")
     res = json.loads((out / "tracking.json").read_text())
     cfg = res["config"]
-    ticks = list(res["path_contact_ticks"].values())
+    ticks = sorted(res["path_contact_ticks"].values())
+    span = str(ticks[0]) if ticks[0] == ticks[-1] else f"{ticks[0]}-{ticks[-1]}"
     text = (f"Vanilla velocity tracking vs TDM modulation vs 2-step TDM modulation, the TDM re-trained on all "
             f"experience after each episode; contacts from the skin readout of {res['n_taxels']} taxels. The balls "
-            f"sit on the path: the exact desired path itself overlaps a ball in {min(ticks)}-{max(ticks)} of "
+            f"sit on the path: the exact desired path itself overlaps a ball in {span} of "
             f"{int(round(cfg['duration'] / cfg['control_dt']))} ticks, so only leaving the path avoids contact. ")
     if ctx["full"]:
         text += res["claim"]["statement"]
@@ -181,7 +186,7 @@ def stage_tracking(ctx) -> Section:
                  "budget is `skinsafe experiment tracking` (3 seeds x 10 episodes). It can show the first re-trainings "
                  "taking effect (episode 1 is unmodulated for every method); it cannot show episodes 6-10, where the "
                  "paper's claim (2-step TDM near zero contacts, below the TDM) is measured.")
-    budget = f"{len(cfg['seeds'])} seed(s) x {cfg['episodes']} episodes, {res['n_taxels']} taxels"
+    budget = f"{figs.plural(len(cfg['seeds']), 'seed')} x {figs.plural(cfg['episodes'], 'episode')}, {res['n_taxels']:,} taxels"
     return Section("Modulation layer: TDM learning and UR5 tracking (paper Fig. 11)", text,
                    images=[(str(figs.save(figs.tracking_contacts(res), out / "report_contacts.png")),
                             f"Control ticks in contact per episode for each method ({budget}); the TDM is re-trained "

@@ -239,8 +239,9 @@ def paper_results(root: Path) -> str:
     learned = [k for k, v in maze["claim"]["learned"].items() if v]
     ts = {r["method"]: r for r in track["summary"]}
     ep = "episodes 6-10" if track["config"]["episodes"] >= 10 else f"the last of {track['config']['episodes']} episodes"
-    tr = ", ".join(f"{k} {fmt(ts[k]['contacts_ep6_10'])} ± {fmt(ts[k]['contacts_ep6_10_std'])}" for k in ts)
-    err = ", ".join(f"{k} {ts[k]['tracking_error_mm']:.0f} mm" for k in ts)
+    name = {"vanilla": "vanilla", "tdm": "TDM", "tdm2": "2-step TDM"}
+    tr = ", ".join(f"{name.get(k, k)} {ts[k]['contacts_ep6_10']:.1f} ± {ts[k]['contacts_ep6_10_std']:.1f}" for k in ts)
+    err = ", ".join(f"{name.get(k, k)} {ts[k]['tracking_error_mm']:.0f} mm" for k in ts)
     desk_cells = ", ".join(f"{name}: {r['min_clearance_mm']:+.1f} mm ({fmt(r['desk_force_N'])} N on the desk)"
                            for name, r in desk.items())
     peaks = ", ".join(f"{stack} {_peak(collab, stack, 'hand'):.0f} N" for stack in collab["runs"])

@@ -40,14 +40,18 @@ def _smooth(y: np.ndarray, window: int) -> np.ndarray:
     return np.apply_along_axis(lambda r: np.convolve(r, k, mode="valid"), -1, y)
 
 
-def seed_lines(ax, x, per_seed: np.ndarray, color, label: str) -> None:
+def plural(n: int, word: str) -> str:
+    return f"{n} {word}" + ("" if n == 1 else "s")
+
+
+def seed_lines(ax, x, per_seed: np.ndarray, color, label: str, marker: str = "") -> None:
     """Per-seed curves (seeds, T): one thin line per seed below 3 seeds; from 3 on the mean and a
     95% band (t-interval) clipped to the range the seeds span."""
     per_seed = np.atleast_2d(per_seed)
     n = len(per_seed)
     if n < 3:
         for k, y in enumerate(per_seed):
-            (line,) = ax.plot(x, y, color=color, lw=1.2, ls="-" if k == 0 else "--",
+            (line,) = ax.plot(x, y, marker=marker, color=color, lw=1.2, ls="-" if k == 0 else "--",
                               label=f"{label} (seed {k})" if n > 1 else label)
             color = line.get_color()
         return
@@ -55,7 +59,7 @@ def seed_lines(ax, x, per_seed: np.ndarray, color, label: str) -> None:
     t = {3: 4.30, 4: 3.18, 5: 2.78}.get(n, 2.0)  # Student t, 95%, n - 1 degrees of freedom
     half = t * per_seed.std(0, ddof=1) / np.sqrt(n)
     lo, hi = np.maximum(mean - half, per_seed.min(0)), np.minimum(mean + half, per_seed.max(0))
-    (line,) = ax.plot(x, mean, color=color, lw=1.5, label=label)
+    (line,) = ax.plot(x, mean, marker=marker, color=color, lw=1.5, label=label)
     ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2, lw=0)
 
 
@@ -73,7 +77,7 @@ def maze(results: dict, grid: dict | None = None, window: int = 5):
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.2))
     every = list(dict.fromkeys(methods + list((grid or results)["summary"]["methods"])))
     colors = dict(zip(every, plt.rcParams["axes.prop_cycle"].by_key()["color"] * 3))
-    budget = f"{cfg['seeds']} seed{'s' if cfg['seeds'] > 1 else ''} x {cfg['episodes']} episodes"
+    budget = f"{plural(cfg['seeds'], 'seed')} x {plural(cfg['episodes'], 'episode')}"
     for ax, key, ylabel in ((axes[0], "returns", "episode return (points; +100 at the goal)"),
                             (axes[1], "costs", "contact events per episode (count)")):
         for m in methods:
@@ -107,14 +111,18 @@ def maze(results: dict, grid: dict | None = None, window: int = 5):
 def tracking_contacts(res: dict):
     """Contact ticks per episode per method (tracking.json)."""
     plt = _plt()
+    from matplotlib.ticker import MaxNLocator
+
     cfg = res["config"]
     fig, ax = plt.subplots(figsize=(6.5, 4))
     for method, by_seed in res["runs"].items():
         c = np.array([[r["contacts"] for r in rows] for rows in by_seed.values()], float)
-        seed_lines(ax, np.arange(1, c.shape[1] + 1), c, None, LABELS.get(method, method))
+        seed_lines(ax, np.arange(1, c.shape[1] + 1), c, None, LABELS.get(method, method), marker="o")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("episode (number; the TDM is re-trained after each)")
     ax.set_ylabel(f"contact ticks per episode (count of {cfg['control_dt'] * 1e3:.0f} ms ticks)")
-    ax.set_title(f"UR5 tracking among balls (Fig. 11): {len(cfg['seeds'])} seed(s) x {cfg['episodes']} episodes")
+    ax.set_title(f"UR5 tracking among balls (Fig. 11): {plural(len(cfg['seeds']), 'seed')} x "
+                 f"{plural(cfg['episodes'], 'episode')}")
     ax.legend(fontsize=8)
     fig.tight_layout()
     return fig
@@ -172,14 +180,16 @@ def collaboration(res: dict):
     for stack, f in res["force_N"].items():
         a.plot(np.arange(len(f)) * dt, f, label=stack, lw=1)
         pan = res["pan_rad"][stack]
-        p.plot(np.arange(len(pan)) * dt, pan, lw=1, label=f"{stack}: done at {res['runs'][stack]['task_time_s']:.2f} s")
+        done = res["runs"][stack]["task_time_s"]
+        p.plot(np.arange(len(pan)) * dt, pan, lw=1, label=f"{stack}: " + ("not done" if done is None else
+                                                                           f"done at {done:.2f} s"))
     for ax in (a, p):
         ax.axvspan(res["person_in_s"], res["person_out_s"], color="0.9", zorder=0, label="person in reach")
         ax.set_xlabel("time (s)")
     hit = [e["start_s"] for e in res["contacts"]]
     a.set_xlim(min(hit, default=0) - 0.1, max(hit, default=1) + 0.6)
     regions = " + ".join(dict.fromkeys(e["region"] for e in res["contacts"])) or "person"
-    a.set_ylabel(f"normal force on the person, {regions} summed (N)")
+    a.set_ylabel(f"normal force on the person (N)\n{regions} summed")
     a.set_title(f"Contact force ({res['duration_s']:.1f} s delivery)")
     a.legend(fontsize=7)
     p.set_ylabel("pan joint angle (rad)")
