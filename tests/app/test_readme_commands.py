@@ -102,8 +102,9 @@ def clone(tmp_path_factory):
     for f in filter(None, files):
         if (ROOT / f).is_file():
             (dst / f).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(ROOT / f, dst / f)  # times kept: make sees the .venv's stamp as newer
+            shutil.copy2(ROOT / f, dst / f)
     (dst / ".venv").symlink_to(Path(sys.prefix))
+    os.utime(dst / "pyproject.toml", (0, 0))  # older than the venv's stamp: `make` never reinstalls into this venv
     return dst
 
 
