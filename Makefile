@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: test demo bench clean
+.PHONY: test demo bench clean readme-figures
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -18,7 +18,7 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 demo: $(STAMP)
-	$(BIN)/skinsafe demo
+	$(BIN)/skinsafe demo $(DEMO_ARGS)
 
 bench: $(STAMP)
 	for b in jacobians design sensing import retraction modulation safety pfl serial; do $(BIN)/skinsafe bench $$b || exit 1; done
@@ -30,3 +30,7 @@ clean:
 .PHONY: addon
 addon: $(STAMP)
 	$(BIN)/python addon/package.py --out dist
+
+# The README's figures from the committed results files (core/app/readme.py); `make test` checks them.
+readme-figures: $(STAMP)
+	$(BIN)/skinsafe readme

@@ -3,7 +3,8 @@
 Each subcommand lives in its own module, imported only when used (so `skinsafe deploy` never
 loads torch or bpy). A command module exposes `add_arguments(parser)` and `run(args) -> int`.
 A benchmark module exposes `add_arguments(parser)` (optional) and `rows(args) -> list[dict]`;
-`skinsafe bench NAME` prints the rows as a table, or as one JSON list with `--json`.
+`skinsafe bench NAME` prints the rows as a table, or as one JSON list with `--json`; `--save FILE`
+also writes them with the command line and the machine (results/bench/NAME.json: README tables).
 """
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ COMMANDS = {
     "emulate": ("skinsafe.hardware.cli_emulate", "run a board emulator on a pseudo-terminal"),
     "pfl": ("skinsafe.core.app.pfl", "ISO/TS 15066: effective mass and safe approach speed per taxel, at a pose or along a trajectory"),
     "trade": ("skinsafe.core.app.trade", "sweep speed-vs-accuracy knobs (Ray) and plot the Pareto front"),
+    "readme": ("skinsafe.core.app.readme", "fill the README's figures from the results files (make readme-figures)"),
 }
 EXPERIMENTS = {
     "maze": ("skinsafe.core.experiments.maze", "strategy layer: safe RL in the maze (paper Fig. 9)"),
@@ -69,6 +71,19 @@ def print_rows(rows: list[dict], as_json: bool) -> None:
     print("  ".join(k.rjust(w) for k, w in zip(keys, width)))
     for c in cells:
         print("  ".join(v.rjust(w) for v, w in zip(c, width)))
+
+
+def save_rows(path: str, rows: list[dict], command: str) -> None:
+    """A benchmark's rows as a results file: the rows, the command that made them, when and under what load."""
+    import os
+    import platform
+    import time
+
+    from skinsafe.core.skin.files import atomic_write
+
+    meta = {"command": command, "date": time.strftime("%Y-%m-%d"), "cpus": os.cpu_count(),
+            "load_average": [round(x, 1) for x in os.getloadavg()], "machine": platform.machine()}
+    atomic_write(path, json.dumps({**meta, "rows": rows}, indent=1))
 
 
 def _fmt(v) -> str:
@@ -140,6 +155,8 @@ def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench
     p = argparse.ArgumentParser(prog=prog, description=helptext)
     if bench:
         p.add_argument("--json", action="store_true", help="print one JSON list of flat rows")
+        p.add_argument("--save", metavar="FILE", help="also write the rows, the command and the machine's load to "
+                                                      "FILE (results/bench/NAME.json feeds the README's tables)")
     p.set_defaults(command_name=name)  # one module may serve several names
     if hasattr(mod, "add_arguments"):
         mod.add_arguments(p)
@@ -153,7 +170,10 @@ def _run_module(mod, prog: str, helptext: str, argv: list[str], name: str, bench
     warnings.showwarning = lambda msg, cat, *a, **k: print(f"skinsafe {name}: warning: {msg}", file=sys.stderr)
     try:
         if bench:
-            print_rows(mod.rows(args), args.json)
+            rows = mod.rows(args)
+            print_rows(rows, args.json)
+            if args.save:
+                save_rows(args.save, rows, f"skinsafe bench {name} {' '.join(argv)}".strip())
             return 0
         return int(mod.run(args) or 0)
     except (DesignError, FileNotFoundError) as e:

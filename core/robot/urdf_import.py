@@ -103,9 +103,24 @@ def expand(path: Path, roots: dict[str, Path], args: dict | None = None) -> str:
     except DesignError:
         raise
     except Exception as e:  # xacro raises its own exception kinds and XacroException
-        raise DesignError(f"robot file '{path}': xacro failed ({type(e).__name__}: {e}); check the file and "
+        ours = _wrapped_design_error(e)  # our own $(find) refusal, which xacro wraps with its text repeated
+        if ours is not None:
+            raise DesignError(f"robot file '{path}': {ours}") from None
+        said = " ".join(str(e).split())  # one line: xacro's messages span lines
+        raise DesignError(f"robot file '{path}': xacro failed ({type(e).__name__}: {said}); check the file and "
                           "its arguments") from None
     return doc.toxml()
+
+
+def _wrapped_design_error(e: BaseException) -> DesignError | None:
+    """The DesignError inside xacro's exception chain (`XacroException.exc`, causes), if any."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, DesignError):
+            return e
+        seen.add(id(e))
+        e = getattr(e, "exc", None) or e.__cause__ or e.__context__
+    return None
 
 
 def _origin(el) -> tuple[list[float], list[float]]:
