@@ -138,7 +138,7 @@ def fit_to_skin(spec: mujoco.MjSpec, design: SkinDesign | None, tol: float = 1e-
 
 
 _PIECES: dict[str, list] = {}  # content digest -> pieces (scenes of one robot are built many times)
-PIECES_VERSION = 2  # part of every digest: bump it when the way pieces are cut changes
+PIECES_VERSION = 4  # part of every digest: bump it when the way pieces are cut changes
 
 
 def _add_surface_pieces(spec, model, design: SkinDesign | None, tol: float, report: dict) -> set[str]:
@@ -170,7 +170,7 @@ def _add_surface_pieces(spec, model, design: SkinDesign | None, tol: float, repo
             if pieces is None:
                 around = _world_triangles(model, q) if around is None else around
                 pieces = surface_pieces(body_surface(model, name, budget=10 ** 9), taxels, cells,
-                                        around=_in_frame(model, q, b, around, exclude=name), guard_tol=tol)
+                                        around=_in_frame(model, q, b, around, exclude=name), guard_tol=tol / 2)
                 _save_pieces(key, pieces)
             _PIECES[key] = pieces
             if len(_PIECES) > 64:
@@ -270,7 +270,7 @@ def _digest(model, geoms, *values) -> str:
     return h.hexdigest()
 
 
-def _in_cells(c: np.ndarray, taxels: np.ndarray, frames: np.ndarray, pitch: np.ndarray) -> np.ndarray:
+def in_cells(c: np.ndarray, taxels: np.ndarray, frames: np.ndarray, pitch: np.ndarray) -> np.ndarray:
     """(k,) whether each point lies in the cell of its nearest taxel (pitch x pitch, pitch deep)."""
     from scipy.spatial import cKDTree
 
@@ -355,7 +355,9 @@ def surface_pieces(surf: Surface, guard: np.ndarray | None = None, cells: tuple 
     cen = v[t].mean(axis=1)
     guard = np.zeros((0, 3)) if guard is None else np.asarray(guard, float).reshape(-1, 3)
     check = np.vstack([v, np.unique(_triangle_points(v[t], 0.004).round(6), axis=0)])  # inside a triangle too
-    use = ~_in_cells(cen, guard, *cells) if cells is not None and len(guard) else np.ones(len(t), bool)
+    use = np.ones(len(t), bool)
+    if cells is not None and len(guard):  # a triangle wholly in taxel cells is left to the skin's shells
+        use = ~in_cells(v[t].reshape(-1, 3), guard, *cells).reshape(-1, 3).all(axis=1)
     def halves(faces):
         x = cen[faces] - cen[faces].mean(axis=0)
         low = x @ np.linalg.svd(x, full_matrices=False)[2][0] <= 0

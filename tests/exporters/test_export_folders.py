@@ -67,3 +67,20 @@ def test_mjcf_then_urdf_then_mjcf_keeps_every_mesh_on_its_body(ur5e, tmp_path):
         assert main(["export", str(skin), str(out), "--urdf"]) == 0
     assert sorted(p.name for p in out.iterdir()) == sorted(["scene.xml", "meshes", "taxel_map.json", URDF_FILE,
                                                             mesh_dir_of(URDF_FILE)])
+
+
+def test_exported_home_keyframe_holds_the_arm(tmp_path):
+    """The scene's `home` keyframe carries the servo targets: reset to it, the UR5 stays at home
+    (a keyframe without ctrl drove every servo to 0 and the arm swung down at start)."""
+    from skinsafe.core.design.sample import make_sample_design
+    from skinsafe.core.robot.models import build_ur5
+    from skinsafe.exporters.mjcf import export_scene
+
+    robot = build_ur5()
+    scene = export_scene(make_sample_design("ur5", robot=robot, pitch=0.03), robot, tmp_path / "out")
+    model = mujoco.MjModel.from_xml_path(str(scene))
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "home"))
+    for _ in range(500):
+        mujoco.mj_step(model, data)
+    assert np.abs(data.qpos - robot.home).max() < 0.03
