@@ -10,8 +10,8 @@ the surfaces), `design_s` (place the modules), `taxels`, `peak_mb`,
 `taxel_to_surface_mm_worst` (to the link's visual surface as described, not decimated),
 `taxel_to_collision_mm_worst` (to the contact surface of the scene, `collision="skin"`),
 `coverage_min` (the smallest covered fraction of a skinned arm link's area, `coverage_report`),
-`bare_collision_mm_worst` / `bare_collision_mm_p90` (|distance| from points on the robot's
-exposed surface outside the skin, every moving link, to the scene's contact surface),
+`bare_collision_mm_worst` / `bare_collision_mm_p90` (|distance| from points on the exposed
+surface of every moving link without skin to the scene's contact surface),
 `contact_recall` (random pokes 3 mm deep on skinned surfaces that light the nearest taxel),
 `self_contacts_home` (robot-robot contacts at the home pose).
 """
@@ -128,17 +128,17 @@ def self_contacts(model, data) -> int:
 
 
 def bare_points(model, design, q, n: int = BARE_POINTS, seed: int = 0) -> dict[str, np.ndarray]:
-    """Body name -> up to `n` random points (body frame) on each moving link's exposed surface
-    (`exposed_triangles`; the built-ins' primitives where a robot has no visual mesh) outside the
-    skin's taxel cells."""
+    """Body name -> `n` random points (body frame) on the exposed surface (`exposed_triangles`;
+    the built-ins' primitives where a robot has no visual mesh) of each moving link without skin."""
     from skinsafe.core.design.surface import body_surface, surface_bodies
-    from skinsafe.core.sim.skin_collision import exposed_triangles, in_cells
+    from skinsafe.core.sim.skin_collision import exposed_triangles
 
     rng = np.random.default_rng(seed)
     exposed = exposed_triangles(model, q)
-    pitch = {m.id: m.pitch for m in design.modules}
     out = {}
     for name in surface_bodies(model, moving=True):
+        if name in design.bodies:
+            continue
         tri = exposed.get(name)
         if tri is None:
             surf = body_surface(model, name)
@@ -147,14 +147,7 @@ def bare_points(model, design, q, n: int = BARE_POINTS, seed: int = 0) -> dict[s
         if not len(tri) or area.sum() <= 0:
             continue
         k = rng.choice(len(tri), n, p=area / area.sum())
-        pts = np.einsum("kj,kjd->kd", rng.dirichlet([1, 1, 1], n), tri[k])
-        if name in design.bodies:
-            t = design.taxels
-            on = t.body == design.bodies.index(name)
-            if on.any():
-                cells = in_cells(pts, t.positions[on], t.frames[on], np.array([pitch[int(m)] for m in t.module[on]]))
-                pts = pts[~cells]
-        out[name] = pts
+        out[name] = np.einsum("kj,kjd->kd", rng.dirichlet([1, 1, 1], n), tri[k])
     return out
 
 

@@ -1,12 +1,12 @@
-"""A collision model where the surface is, skinned or not (`SceneOptions(collision="skin")`, the default).
+"""A collision model where the surface is (`SceneOptions(collision="skin")`, the default): at the
+exposed surface on links without skin, at the skin on skinned links.
 
 Chosen by measurement:
-1. every link whose visual surface is a mesh and that collides through other shapes (a collision
-   hull, a CAD mesh MuJoCo would collide as its convex hull: 10-50 mm from the real surface over
-   concave parts) collides instead through convex pieces cut from its visual surface
-   (`surface_pieces`: a patch of the surface and its copy up to `PIECE_DEPTH` under it, split
-   until no point of the link's surface and no taxel lies more than `tol` inside any piece);
-   skinned cells are left to the skin's own shells (4);
+1. every link without skin whose visual surface is a mesh and that collides through other shapes
+   (a collision hull, a CAD mesh MuJoCo would collide as its convex hull: 9-50 mm from the real
+   surface over concave parts) collides instead through convex pieces cut from its exposed visual
+   surface (`surface_pieces`: patches of the surface with their corners up to `PIECE_DEPTH` under
+   them, thinned and split until no exposed point lies more than `PIECE_TOL` inside any piece);
 2. every taxel's signed distance to the link's colliding geoms is measured with MuJoCo's own
    `mj_geomDistance` (a point probe; negative inside);
 3. a coarse geom left (one that is not a skin surface itself: an inflated self-collision
@@ -98,7 +98,7 @@ def fit_to_skin(spec: mujoco.MjSpec, design: SkinDesign | None, tol: float = 1e-
     for k, g in enumerate(spec.geoms):  # unnamed geoms (URDF primitives) get names to be edited by
         if not g.name:
             g.name = f"{g.parent.name}_geom{k}"
-    pieced = _add_surface_pieces(spec, spec.compile(), design, tol, report)
+    _add_surface_pieces(spec, spec.compile(), design, report)
     if design is None or not len(design.taxels):
         return report
     model = spec.compile()
@@ -113,9 +113,7 @@ def fit_to_skin(spec: mujoco.MjSpec, design: SkinDesign | None, tol: float = 1e-
         world[on] = t.positions[on] @ data.xmat[bid].reshape(3, 3).T + data.xpos[bid]
     weld_of = {bi: model.body_weldid[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, b)]
                for bi, b in enumerate(design.bodies)}
-    # bodies whose coarse geoms were shrunk or replaced by surface pieces (which leave the skinned
-    # cells out): all their modules get shells
-    needs_shell = {bi for bi, b in enumerate(design.bodies) if b in pieced}
+    needs_shell = set()  # bodies whose coarse geoms were shrunk: all their modules get shells
     # a coarse robot geom (not itself a skin surface: a collision hull, an inflated self-collision
     # capsule) burying a taxel, of its own link or of a neighbour at the home pose, goes under the skin
     visual = {g for g in range(model.ngeom) if model.geom_bodyid[g] and not _collides(model, g)}
@@ -138,39 +136,36 @@ def fit_to_skin(spec: mujoco.MjSpec, design: SkinDesign | None, tol: float = 1e-
 
 
 _PIECES: dict[str, list] = {}  # content digest -> pieces (scenes of one robot are built many times)
-PIECES_VERSION = 4  # part of every digest: bump it when the way pieces are cut changes
+PIECES_VERSION = 5  # part of every digest: bump it when the way pieces are cut changes
 
 
-def _add_surface_pieces(spec, model, design: SkinDesign | None, tol: float, report: dict) -> set[str]:
-    """Every body with a visual mesh that collides through other geoms collides through
-    `surface_pieces` of its visual surface instead (cells under its skin left out); returns the
-    names of those bodies. Pieces are kept by a digest of what they depend on, in this process
+def _add_surface_pieces(spec, model, design: SkinDesign | None, report: dict) -> None:
+    """Every body without skin that has a visual mesh and collides through other geoms collides
+    through `surface_pieces` of its exposed visual surface instead. (Skinned
+    links keep steps 2-4: pieces cut from a decimated surface stood up to a few mm above the taxels
+    beside them, so probes met them before the skin.) Pieces are kept by a digest of what they depend on, in this process
     and on disk (`cache_dir`)."""
     MESH = mujoco.mjtGeom.mjGEOM_MESH
     visual = [g for g in range(model.ngeom) if model.geom_bodyid[g] and model.geom_type[g] == MESH
               and not _collides(model, g)]
+    skinned = set(design.bodies) if design is not None else set()
     todo = [b for b in range(1, model.nbody) if any(model.geom_bodyid[g] == b for g in visual)
+            and model.body(b).name not in skinned
             and any(_collides(model, g) for g in np.flatnonzero(model.geom_bodyid == b))]
     if not todo:
-        return set()
+        return
     q = model.key_qpos[0] if model.nkey else model.qpos0
     robot_key = _digest(model, visual, q, PIECES_VERSION, PIECE_TOL, PIECE_DEPTH, PIECE_BUDGET, PIECE_MIN_SIZE)
     around = None
     for b in todo:
         name = model.body(b).name
-        taxels, cells = np.zeros((0, 3)), None
-        if design is not None and name in design.bodies:
-            on = design.taxels.body == design.bodies.index(name)
-            taxels = design.taxels.positions[on]
-            pitch = {m.id: m.pitch for m in design.modules}
-            cells = (design.taxels.frames[on], np.array([pitch[int(k)] for k in design.taxels.module[on]]))
-        key = _digest(model, [], robot_key, name, taxels, *(cells or ()), tol)
+        key = _digest(model, [], robot_key, name)
         if key not in _PIECES:
             pieces = _load_pieces(key)
             if pieces is None:
                 around = _world_triangles(model, q) if around is None else around
-                pieces = surface_pieces(body_surface(model, name, budget=10 ** 9), taxels, cells,
-                                        around=_in_frame(model, q, b, around, exclude=name), guard_tol=tol / 2)
+                pieces = surface_pieces(body_surface(model, name, budget=10 ** 9),
+                                        around=_in_frame(model, q, b, around, exclude=name))
                 _save_pieces(key, pieces)
             _PIECES[key] = pieces
             if len(_PIECES) > 64:
@@ -186,7 +181,6 @@ def _add_surface_pieces(spec, model, design: SkinDesign | None, tol: float, repo
                 sg = spec.geom(model.geom(g).name)
                 sg.contype, sg.conaffinity, sg.group = 0, 0, 5  # kept for its mass, hidden, no contacts
                 report["disabled"].append(sg.name)
-    return {model.body(b).name for b in todo}
 
 
 def _world_triangles(model, q) -> dict[str, np.ndarray]:
@@ -270,15 +264,6 @@ def _digest(model, geoms, *values) -> str:
     return h.hexdigest()
 
 
-def in_cells(c: np.ndarray, taxels: np.ndarray, frames: np.ndarray, pitch: np.ndarray) -> np.ndarray:
-    """(k,) whether each point lies in the cell of its nearest taxel (pitch x pitch, pitch deep)."""
-    from scipy.spatial import cKDTree
-
-    _, i = cKDTree(taxels).query(c)
-    local = np.einsum("kd,kdj->kj", c - taxels[i], frames[i])
-    return (np.abs(local) <= pitch[i, None] / 2).all(axis=1)
-
-
 def _triangle_points(tri: np.ndarray, spacing: float) -> np.ndarray:
     """Points on every triangle (k,3,3) of a mesh, no farther than `spacing` apart along an edge."""
     edge = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
@@ -329,18 +314,15 @@ def outer_faces(surf: Surface, around: np.ndarray | None = None, pitch: float = 
     return front | back, np.where((front | ~back)[:, None], n, -n)
 
 
-def surface_pieces(surf: Surface, guard: np.ndarray | None = None, cells: tuple | None = None,
-                   tol: float = PIECE_TOL, depth: float = PIECE_DEPTH, budget: int = PIECE_BUDGET,
-                   around: np.ndarray | None = None, min_size: float = PIECE_MIN_SIZE,
-                   guard_tol: float = 1e-3) -> list[np.ndarray]:
+def surface_pieces(surf: Surface, tol: float = PIECE_TOL, depth: float = PIECE_DEPTH, budget: int = PIECE_BUDGET,
+                   around: np.ndarray | None = None, min_size: float = PIECE_MIN_SIZE) -> list[np.ndarray]:
     """Convex pieces (point sets) that make a collision model at the surface. The outer triangles
-    (`outer_faces`, wound outward) are decimated to `budget`; those not in a taxel cell (`cells`:
-    the `guard` taxels' frames and pitches) are cut into patches, each patch with the same corners
-    `depth` under it one piece; a piece that buries an outer point more than `tol` or a `guard`
-    point (taxels) more than `guard_tol` is made thinner (the slab may cross a wall thinner than itself) down to
-    `MIN_PIECE_DEPTH`, then split in two along its longest spread (recursively), until none does
-    or it spans less than `min_size` (a bound on the pieces of fine CAD detail; never past a
-    guard point). A convex link stays one piece: its hull."""
+    (`outer_faces`, wound outward; `around`: the robot's other links) are decimated to `budget`
+    and cut into patches, each patch with the same corners `depth` under it one piece; a piece
+    that buries an outer point more than `tol` is made thinner (the slab may cross a wall thinner
+    than itself) down to `MIN_PIECE_DEPTH`, then split in two along its longest spread
+    (recursively), until none does or it spans less than `min_size` (a bound on the pieces of
+    fine CAD detail). A convex link stays one piece: its hull."""
     import trimesh
 
     from skinsafe.core.robot.meshes import decimate
@@ -353,11 +335,7 @@ def surface_pieces(surf: Surface, guard: np.ndarray | None = None, cells: tuple 
     v, t = np.asarray(small.vertices, float), np.asarray(small.faces, np.int64)
     n = np.asarray(small.face_normals, float)
     cen = v[t].mean(axis=1)
-    guard = np.zeros((0, 3)) if guard is None else np.asarray(guard, float).reshape(-1, 3)
     check = np.vstack([v, np.unique(_triangle_points(v[t], 0.004).round(6), axis=0)])  # inside a triangle too
-    use = np.ones(len(t), bool)
-    if cells is not None and len(guard):  # a triangle wholly in taxel cells is left to the skin's shells
-        use = ~in_cells(v[t].reshape(-1, 3), guard, *cells).reshape(-1, 3).all(axis=1)
     def halves(faces):
         x = cen[faces] - cen[faces].mean(axis=0)
         low = x @ np.linalg.svd(x, full_matrices=False)[2][0] <= 0
@@ -365,7 +343,7 @@ def surface_pieces(surf: Surface, guard: np.ndarray | None = None, cells: tuple 
             low = np.arange(len(faces)) < len(faces) // 2
         return [faces[low], faces[~low]]
 
-    stack = [np.flatnonzero(use)]
+    stack = [np.arange(len(t))]
     for _ in range(3):  # a link is rarely convex: start from 8 patches, not from its hull
         stack = [h for f in stack for h in (halves(f) if len(f) > 1 else [f])]
     stack = [(f, depth) for f in stack]
@@ -376,8 +354,7 @@ def surface_pieces(surf: Surface, guard: np.ndarray | None = None, cells: tuple 
             continue
         corners = v[t[faces]]
         pts = np.unique(np.concatenate([corners, corners - d * n[faces, None, :]]).reshape(-1, 3).round(9), axis=0)
-        if not _buries(pts, guard, guard_tol) and (np.ptp(corners.reshape(-1, 3), axis=0).max() < min_size
-                                                   or not _buries(pts, check, tol)):
+        if np.ptp(corners.reshape(-1, 3), axis=0).max() < min_size or not _buries(pts, check, tol):
             pieces.append(pts)
         elif d > MIN_PIECE_DEPTH:  # thinner first: the slab may cross a wall thinner than itself
             stack.append((faces, d / 2))

@@ -11,6 +11,7 @@ from skinsafe.core.app.cli import main
 from skinsafe.core.bench.robot_import import design_arm
 from skinsafe.core.robot.catalog import description
 from skinsafe.core.robot.models import load_robot
+from skinsafe.core.robot.urdf_import import VISUAL_GROUP
 from skinsafe.core.skin import taxel_map
 from skinsafe.exporters.urdf import URDF_FILE, mesh_dir_of
 
@@ -31,7 +32,7 @@ def _mesh_points(model, visual_only: bool) -> dict[str, np.ndarray]:
     mujoco.mj_kinematics(model, data)
     out: dict[str, list] = {}
     for g in range(model.ngeom):
-        if model.geom_type[g] != MESH or (visual_only and (model.geom_contype[g] or model.geom_conaffinity[g])):
+        if model.geom_type[g] != MESH or (visual_only and model.geom_group[g] != VISUAL_GROUP):
             continue
         m = model.geom_dataid[g]
         v = model.mesh_vert[model.mesh_vertadr[m]:model.mesh_vertadr[m] + model.mesh_vertnum[m]]

@@ -49,11 +49,11 @@ def test_design_sits_on_the_visual_surface(robot_skin):
 
 
 def test_collision_where_the_surface_is_skinned_or_not(robot_skin):
-    """Every moving link's exposed surface, skin or not, within 4 mm of the contact surface (the
-    descriptions' own collision shapes stood 14-47 mm off it), and every taxel within 1 mm."""
+    """Every link without skin collides within 4 mm of its exposed surface (the descriptions' own
+    collision shapes stood 9-50 mm off it), and every taxel is within 1 mm of the contact surface."""
     robot, design, _, scene = robot_skin
     gaps = point_clearance(scene, bare_points(robot.model, design, robot.home, n=200), robot.home)
-    assert len(gaps) >= 6
+    assert len(gaps) >= 4 and not set(gaps) & set(design.bodies)
     worst = {b: float(np.abs(d).max()) for b, d in gaps.items()}
     assert max(worst.values()) < 4e-3, worst
     assert np.abs(taxel_clearance(scene, design, robot.home)).max() <= 1e-3
