@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: test demo bench clean readme-figures
+.PHONY: test demo bench clean readme-figures robots
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -12,15 +12,21 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e ".[test]"
 	touch $(STAMP)
 
-test: $(STAMP)
+# Public robot descriptions not shipped in blend_assets/robots/ (from PyPI; cached): see its README.md
+ROBOTS_STAMP := blend_assets/robots/example-robot-data/FETCHED.json
+robots: $(ROBOTS_STAMP)
+$(ROBOTS_STAMP): blend_assets/robots/fetch.py $(STAMP)
+	$(BIN)/python blend_assets/robots/fetch.py
+
+test: $(STAMP) $(ROBOTS_STAMP)
 	$(BIN)/lint-imports
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
 
-demo: $(STAMP)
+demo: $(STAMP) $(ROBOTS_STAMP)
 	$(BIN)/skinsafe demo $(DEMO_ARGS)
 
-bench: $(STAMP)
+bench: $(STAMP) $(ROBOTS_STAMP)
 	for b in jacobians design sensing import retraction modulation safety pfl serial; do $(BIN)/skinsafe bench $$b || exit 1; done
 
 clean:

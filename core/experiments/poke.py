@@ -1,4 +1,4 @@
-"""`skinsafe poke`: scripted pokes on the UR5 sample skin in MuJoCo, retraction by the
+"""`skinsafe poke`: scripted pokes on the UR5 sample skin (or any robot's map) in MuJoCo, retraction by the
 defensiveness layer, plots and numbers (paper Fig. 8/12), and the multi-contact merge (Fig. 7) and the 3-D vs 6-D forms in kinematics.
 
 The arm (the UR5 sample skin, or the robot of any taxel map) is gravity-compensated under its
@@ -156,11 +156,8 @@ def pick_taxel(design: SkinDesign, robot: Robot, body: str) -> int:
 
 
 def poke_bodies(design: SkinDesign, robot: Robot) -> list[str]:
-    """The links to poke: the UR5's forearm, upper arm and wrist (the paper's Fig. 8/12), else the
+    """The links to poke, decided by the design's data on any robot (never by a link's name): the
     skinned links with at least 4 taxels, best lever first (a link the arm can pull back)."""
-    ur5 = [b for b in ("forearm_link", "upper_arm_link", "wrist_2_link") if b in design.bodies]
-    if ur5:
-        return ur5
     kin = TaxelKinematics(robot.model, design)
     counts = np.bincount(design.taxels.body, minlength=len(design.bodies))
     bodies = [b for b, c in zip(design.bodies, counts) if c >= 4]
@@ -169,8 +166,10 @@ def poke_bodies(design: SkinDesign, robot: Robot) -> list[str]:
     return sorted(bodies, key=lambda b: -best[b])
 
 
-def force_sweep(design, robot, params, depths, body="forearm_link", stiffness: float = PROBE_STIFFNESS) -> dict:
-    """Fig. 8/12: one poke per depth on one taxel; distance achieved vs peak force."""
+def force_sweep(design, robot, params, depths, body: str | None = None, stiffness: float = PROBE_STIFFNESS) -> dict:
+    """Fig. 8/12: one poke per depth on one taxel of `body` (default: the first of `poke_bodies`);
+    distance achieved vs peak force."""
+    body = body or poke_bodies(design, robot)[0]
     i = pick_taxel(design, robot, body)
     out = {"taxel": i, "body": body, "force": [], "distance": [], "desired": [], "curves": []}
     for depth in tqdm(depths, desc="pokes", leave=False):
