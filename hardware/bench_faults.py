@@ -27,6 +27,7 @@ from skinsafe.core.skin.taxel_map import save
 from skinsafe.hardware.board_config import board_configs
 from skinsafe.hardware.client import BoardClient, BoardError
 from skinsafe.hardware.emulator import EmulatorProcess, flash_path
+from skinsafe.hardware.flat_design import flat_design
 
 FAULTS = ["drop=0.002", "flip=0.002", "delay=0.3,delay_p=0.3", "reset_at_chunk=2", "reset_at_chunk=2,resets=-1",
           "malformed=0.05", "firmware=2.0.0", "protocol=2", "max_chunk=16", "drop=0.01"]
@@ -44,7 +45,6 @@ def add_arguments(p) -> None:
 
 
 def storm_round(k: int, n_boards: int, rng: np.random.Generator, tmp: Path, counts: dict) -> None:
-    from skinsafe.hardware.bench_serial import flat_design
     old, new = flat_design(32 * n_boards, n_boards, 3.0), flat_design(32 * n_boards, n_boards, 6.0)
     save(new, tmp / "skin.json")
     olds, news = {c.uid: c.sha256 for c in board_configs(old)}, {c.uid: c.sha256 for c in board_configs(new)}

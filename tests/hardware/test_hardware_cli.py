@@ -12,9 +12,9 @@ import pytest
 
 from skinsafe.core.app.cli import main
 from skinsafe.core.skin.taxel_map import save
-from skinsafe.hardware.bench_serial import flat_design
 from skinsafe.hardware.board_config import board_configs
 from skinsafe.hardware.emulator import flash_path
+from skinsafe.hardware.flat_design import flat_design
 
 SKINSAFE = str(Path(sys.executable).with_name("skinsafe"))
 
