@@ -7,12 +7,8 @@ A benchmark module exposes `add_arguments(parser)` (optional) and `rows(args) ->
 """
 from __future__ import annotations
 
-import argparse
-import importlib
-import json
-import signal
+import signal  # only these two at the top: from main's first line on, Ctrl-C is one line and exit 130
 import sys
-import warnings
 
 COMMANDS = {
     "demo": ("skinsafe.core.app.demo", "run the whole product on the bundled sample scene and write a report"),
@@ -47,6 +43,8 @@ BENCHES = {
 
 
 def _load(module: str, what: str):
+    import importlib
+
     try:
         return importlib.import_module(module)
     except ModuleNotFoundError as e:
@@ -58,6 +56,8 @@ def _load(module: str, what: str):
 def print_rows(rows: list[dict], as_json: bool) -> None:
     """A benchmark's rows as a JSON list or an aligned table."""
     if as_json:
+        import json
+
         print(json.dumps(rows))
         return
     if not rows:
@@ -77,7 +77,9 @@ def _fmt(v) -> str:
     return str(v)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser():
+    import argparse
+
     p = argparse.ArgumentParser(prog="skinsafe", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for name, (_, helptext) in COMMANDS.items():
@@ -135,8 +137,10 @@ def _main(argv: list[str] | None) -> int:
     return 2
 
 
-def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False) -> argparse.Namespace:
+def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False):
     """Parse `argv` with the module's own arguments (the demo uses this to run commands in-process)."""
+    import argparse
+
     p = argparse.ArgumentParser(prog=prog, description=helptext)
     if bench:
         p.add_argument("--json", action="store_true", help="print one JSON list of flat rows")
@@ -147,6 +151,8 @@ def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench
 
 
 def _run_module(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False) -> int:
+    import warnings
+
     from skinsafe.core.skin.model import DesignError  # here: the CLI starts (and takes Ctrl-C) before numpy loads
 
     args = module_args(mod, prog, helptext, argv, name, bench)

@@ -76,7 +76,9 @@ def test_deploy_cli_errors(tmp_path, capsys):
     assert "give --port PORT" in capsys.readouterr().err
     assert main(["deploy", str(tmp_path / "skin.json"), "--port", str(tmp_path / "nope")]) == 1
     out = capsys.readouterr().out
-    assert "nope: no board (link: " in out and "cannot open the serial port" in out and "1 other problems" in out
+    # the map's board gets its line, naming the port and why (issue 26: "1 other problems" and no board named)
+    assert "board 0 'board0' uid 0x5c1a0000: missing [untouched]: not found; 1 of 1 ports gave no board: " in out
+    assert "nope (link: " in out and "cannot open the serial port" in out and "other problems" not in out
     assert main(["deploy", str(tmp_path / "skin.json"), "--all", "--no-system-ports", "--glob", str(tmp_path / "x*")]) == 1
     out = capsys.readouterr().out
     assert "board 0 'board0' uid 0x5c1a0000: missing [untouched]: no serial port to probe" in out
