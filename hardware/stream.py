@@ -296,7 +296,6 @@ class SkinStream:
         live = [s for s in self.boards if not s.lost_link]
         if max_wait > 0 and live:
             select.select([s.client.ser.fileno() for s in live], [], [], max_wait)
-        now = time.monotonic()
         for s in self.boards:
             before = s.stats()
             if not s.lost_link:
@@ -307,7 +306,7 @@ class SkinStream:
                     self.force[s.rows] = np.nan
                     faults.append(StreamFault(s.board_id, "link lost",
                                               f"{self._name(s)}: {s.lost_link.split(': ', 1)[-1]}"))
-                frames += self._take(s, got, now, peak)
+                frames += self._take(s, got, time.monotonic(), peak)  # after the read: every frame was sent by then
             per_board[s.board_id] = st = s.stats()
             if st.replayed > before.replayed:
                 faults.append(StreamFault(s.board_id, "replayed", f"{self._name(s)}: {st.replayed - before.replayed} "
