@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from skinsafe.core.skin.taxel_map import save
 from skinsafe.hardware import bench_stream_faults as streams
-from skinsafe.hardware.bench_stream_faults import HANG_S, SKINSAFE
+from skinsafe.hardware.bench_stream_faults import SKINSAFE
 from skinsafe.hardware.board_config import board_configs
 from skinsafe.hardware.client import BoardClient, BoardError
 from skinsafe.hardware.emulator import EmulatorProcess, flash_path
@@ -92,12 +92,7 @@ def storm_round(k: int, n_boards: int, rng: np.random.Generator, tmp: Path, coun
             else:
                 counts["emulator_kill_max_s"] = max(counts["emulator_kill_max_s"], em.signal(signal.SIGTERM))
                 counts["emulator_kills"] += 1
-        try:
-            out, err = proc.communicate(timeout=HANG_S)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            out, err = proc.communicate()
-            counts["hung_commands"] += 1
+        out, err = streams.finish(proc, counts)
     before = {key: counts.get(key, 0) for key in ANOMALIES}
     counts["tracebacks"] += ("Traceback" in out + err)
     counts["interrupted_deploys"] += interrupt
@@ -110,9 +105,8 @@ def storm_round(k: int, n_boards: int, rng: np.random.Generator, tmp: Path, coun
     for b, f in zip(new.boards, faults):
         counts["board_deploys"] += 1
         line = next((x for x in out.splitlines() if x.startswith(f"board {b.id} '")), None)
-        if "config_len" in f:  # a length no board of its channels holds: refused for it, never read
-            counts["lying_config_len_accepted"] += line is None or "config_len" not in line
         if line is None:
+            counts["lying_config_len_accepted"] += "config_len" in f  # (a run that read on until killed)
             counts["boards_without_report"] += 1
             continue
         status, state = line.split(": ", 1)[1].split(" [")[0], line.split("[")[1].split("]")[0]
@@ -127,6 +121,10 @@ def storm_round(k: int, n_boards: int, rng: np.random.Generator, tmp: Path, coun
         counts["updated_not_in_flash"] += status == "updated" and running != news[b.uid]
         counts["hashless_commits_accepted"] += status == "updated" and "hashless" in f
         counts["dry_run_writes"] += dry and running != first
+        # a length no board of its channels holds: the board is refused for it (or deployed to neither as a
+        # duplicate), never deployed to or read from
+        counts["lying_config_len_accepted"] += "config_len" in f and not dup_port and status in (
+            "updated", "unchanged", "would-update")
         if status == "missing":
             counts["not_found"] += 1
             port = f"board-{b.uid:016x}"

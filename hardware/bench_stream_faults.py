@@ -78,13 +78,18 @@ def run(cmd: list[str], counts: dict, interrupt_after: float | None = None,
             head += line
         time.sleep(interrupt_after)
         proc.send_signal(signal.SIGINT)
+    out, err = finish(proc, counts)
+    return proc.returncode, out, head + err
+
+
+def finish(proc: subprocess.Popen, counts: dict) -> tuple[str, str]:
+    """Wait for a command's output; one still running after HANG_S is killed and counted in hung_commands."""
     try:
-        out, err = proc.communicate(timeout=HANG_S)
+        return proc.communicate(timeout=HANG_S)
     except subprocess.TimeoutExpired:
         proc.kill()
-        out, err = proc.communicate()
         counts["hung_commands"] += 1
-    return proc.returncode, out, head + err
+        return proc.communicate()
 
 
 def stream_round(k: int, rng: np.random.Generator, tmp: Path, counts: dict) -> None:

@@ -97,13 +97,13 @@ class BoardClient:
         """Bytes waiting to be read; BoardError(kind="link") when the link is gone."""
         try:
             return self.ser.in_waiting
-        except (serial.SerialException, OSError, TypeError) as e:  # TypeError: pyserial on a closed port
+        except (serial.SerialException, OSError) as e:
             raise self.link_lost(e) from None
 
     def _read(self) -> list[P.Frame]:
         try:
             data = self.ser.read(self.waiting() or 1)
-        except (serial.SerialException, OSError, TypeError) as e:
+        except (serial.SerialException, OSError) as e:
             raise self.link_lost(e) from None
         self.rx_bytes += len(data)
         frames = []
@@ -140,7 +140,7 @@ class BoardClient:
             frame = P.encode_frame(msg_type, self.seq, self.uid, payload)
             try:
                 self.ser.write(frame)
-            except (serial.SerialException, OSError, TypeError) as e:
+            except (serial.SerialException, OSError) as e:
                 raise self.link_lost(e) from None
             self.tx_bytes += len(frame)
             wire = (len(frame) + self.parser.max_payload + P.OVERHEAD) * BITS_PER_BYTE / self.baud
