@@ -7,8 +7,21 @@ A benchmark module exposes `add_arguments(parser)` (optional) and `rows(args) ->
 """
 from __future__ import annotations
 
-import signal  # only these two at the top: from main's first line on, Ctrl-C is one line and exit 130
 import sys
+
+
+def _interrupted(kind, value, tb, default=sys.excepthook) -> None:
+    """Ctrl-C while this module still loads (before main's handler is in place): one line, no traceback."""
+    if issubclass(kind, KeyboardInterrupt):
+        print("skinsafe: interrupted", file=sys.stderr)
+    else:
+        default(kind, value, tb)
+
+
+if sys.argv and sys.argv[0].endswith("skinsafe"):  # the `skinsafe` command, not a program importing this module
+    sys.excepthook = _interrupted
+
+import signal  # noqa: E402  (after the hook: nothing else loads before main installs its Ctrl-C handler)
 
 COMMANDS = {
     "demo": ("skinsafe.core.app.demo", "run the whole product on the bundled sample scene and write a report"),
