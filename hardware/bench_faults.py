@@ -52,9 +52,11 @@ def add_arguments(p) -> None:
     p.add_argument("--rounds", type=int, default=100,
                    help="fault storm: deploy rounds (and a quarter as many stream rounds); --rounds 8 for a quick run")
     p.add_argument("--boards-per-round", type=int, default=10, help="fault storm: boards of the map per round")
-    p.add_argument("--kills", type=int, default=200, help="fault storm: emulators stopped by a signal and timed")
-    p.add_argument("--early-interrupts", type=int, default=40,
-                   help="fault storm: `skinsafe stream` runs sent Ctrl-C within their first 0.4 s")
+    p.add_argument("--kills", type=int, default=None,
+                   help="fault storm: emulators stopped by a signal and timed (default: 2 per deploy round)")
+    p.add_argument("--early-interrupts", type=int, default=None,
+                   help="fault storm: `skinsafe stream` runs sent Ctrl-C within their first 0.4 s (default: 2 per "
+                        "5 deploy rounds)")
     p.add_argument("--seed", type=int, default=0)
 
 
@@ -168,7 +170,8 @@ def rows(args) -> list[dict]:
         with tempfile.TemporaryDirectory() as tmp:
             streams.stream_round(k, rng, Path(tmp), counts)
     with tempfile.TemporaryDirectory() as tmp:
-        streams.early_interrupts(args.early_interrupts, rng, Path(tmp), counts)
+        early = max(1, args.rounds * 2 // 5) if args.early_interrupts is None else args.early_interrupts
+        streams.early_interrupts(early, rng, Path(tmp), counts)
     with tempfile.TemporaryDirectory() as tmp:
-        kill_loop(args.kills, Path(tmp), counts)
+        kill_loop(2 * args.rounds if args.kills is None else args.kills, Path(tmp), counts)
     return [{"rounds": args.rounds, **{k: counts[k] for k in keys + streams.KEYS}, "seconds": time.monotonic() - t0}]

@@ -3,7 +3,7 @@ a safety runtime must survive, and Ctrl-C while the command starts.
 
 Each round starts one emulator process of 4 boards that stream 32 channels at 200 Hz for 1 s. In a
 stream round every board draws one fault of STREAM_FAULTS (replayed older frames, frames of another
-uid, every stream-start answer lost, the cable pulled after 100 frames, or none); in a refusal round
+uid, both, every stream-start answer lost, the cable pulled after 100 frames, or none); in a refusal round
 one board is already streaming (another host left it so) or runs firmware 2.0.0. A quarter of the
 rounds get Ctrl-C at a random moment of the stream. Then each board is asked whether it still
 streams, and each board's last line is read:
@@ -13,8 +13,10 @@ streams, and each board's last line is read:
 - link_lost_unnamed: pulled cables whose board line does not say "link lost" (a board stopped before its
   100th frame, by Ctrl-C or another board's pulled cable, had not lost it yet);
 - replays_counted_as_lost: boards replaying old frames on an otherwise clean link whose line counts
-  frames lost; replays_unnamed: their lines not naming the replayed frames dropped;
-- foreign_accepted: boards whose link carried another uid's frames, with no line refusing them;
+  frames lost; replays_unnamed: their lines (of boards that sent SURE frames) not naming the replayed
+  frames dropped;
+- foreign_accepted: boards whose link carried another uid's frames (SURE frames or more) with no line
+  refusing them;
 - start_answer_lost_failed: rounds a board whose start answers were lost (it did start) made fail;
 - incompatible_streamed: refusal rounds that did not end with exit 1 naming the board and why;
 - stream_tracebacks, stream_bad_exit_codes, hung_commands (runs killed after HANG_S).
@@ -45,8 +47,9 @@ from skinsafe.hardware.flat_design import flat_design
 
 SKINSAFE = str(Path(sys.executable).with_name("skinsafe"))
 SOURCE = [Path(P.__file__).resolve().parents[1] / d for d in ("core", "hardware", "exporters", "addon")]
-STREAM_FAULTS = ["", "old_frames=0.05", "foreign_frames=0.05", "lost_start_answers=10", "unplug_after=100",
-                 "old_frames=0.02,foreign_frames=0.02"]
+STREAM_FAULTS = ["", "old_frames=0.1", "foreign_frames=0.1", "lost_start_answers=10", "unplug_after=100",
+                 "old_frames=0.1,foreign_frames=0.1"]
+SURE = 100  # frames after which a board with a 10% fault has shown it (but for 0.9^100 = 3e-5)
 REFUSALS = ["streaming=100", "firmware=2.0.0"]
 KEYS = ["stream_runs", "stream_interrupted", "left_streaming", "link_lost_unnamed", "replays_counted_as_lost",
         "replays_unnamed", "foreign_accepted", "start_answer_lost_failed", "incompatible_streamed",
@@ -136,9 +139,9 @@ def stream_round(k: int, rng: np.random.Generator, tmp: Path, counts: dict) -> N
             counts["link_lost_unnamed"] += m is None or "link lost" not in m[2] and int(m[3]) >= 100
         if "old_frames" in f:
             counts["replays_counted_as_lost"] += m is not None and int(m[4]) > 0
-            counts["replays_unnamed"] += m is not None and int(m[3]) > 50 and "replayed" not in text
+            counts["replays_unnamed"] += m is not None and int(m[3]) >= SURE and "replayed" not in text
         if "foreign_frames" in f:
-            counts["foreign_accepted"] += m is not None and int(m[3]) > 50 and "frames from uid" not in text
+            counts["foreign_accepted"] += m is not None and int(m[3]) >= SURE and "frames from uid" not in text
         if "lost_start_answers" in f:
             counts["start_answer_lost_failed"] += m is None or m[2] != "stopped" and "stream-start" in err
         if f in REFUSALS:
