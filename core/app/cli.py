@@ -8,12 +8,21 @@ also writes them with the command line and the machine (results/bench/NAME.json:
 """
 from __future__ import annotations
 
-import argparse
-import importlib
-import json
-import signal
 import sys
-import warnings
+
+
+def _interrupted(kind, value, tb, default=sys.excepthook) -> None:
+    """Ctrl-C while this module still loads (before main's handler is in place): one line, no traceback."""
+    if issubclass(kind, KeyboardInterrupt):
+        print("skinsafe: interrupted", file=sys.stderr)
+    else:
+        default(kind, value, tb)
+
+
+if sys.argv and sys.argv[0].endswith("skinsafe"):  # the `skinsafe` command, not a program importing this module
+    sys.excepthook = _interrupted
+
+import signal  # noqa: E402  (after the hook: nothing else loads before main installs its Ctrl-C handler)
 
 COMMANDS = {
     "demo": ("skinsafe.core.app.demo", "run the whole product on the bundled sample scene and write a report"),
@@ -49,6 +58,8 @@ BENCHES = {
 
 
 def _load(module: str, what: str):
+    import importlib
+
     try:
         return importlib.import_module(module)
     except ModuleNotFoundError as e:
@@ -60,6 +71,8 @@ def _load(module: str, what: str):
 def print_rows(rows: list[dict], as_json: bool) -> None:
     """A benchmark's rows as a JSON list or an aligned table."""
     if as_json:
+        import json
+
         print(json.dumps(rows))
         return
     if not rows:
@@ -92,7 +105,9 @@ def _fmt(v) -> str:
     return str(v)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser():
+    import argparse
+
     p = argparse.ArgumentParser(prog="skinsafe", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for name, (_, helptext) in COMMANDS.items():
@@ -150,8 +165,10 @@ def _main(argv: list[str] | None) -> int:
     return 2
 
 
-def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False) -> argparse.Namespace:
+def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False):
     """Parse `argv` with the module's own arguments (the demo uses this to run commands in-process)."""
+    import argparse
+
     p = argparse.ArgumentParser(prog=prog, description=helptext)
     if bench:
         p.add_argument("--json", action="store_true", help="print one JSON list of flat rows")
@@ -164,6 +181,8 @@ def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench
 
 
 def _run_module(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False) -> int:
+    import warnings
+
     from skinsafe.core.skin.model import DesignError  # here: the CLI starts (and takes Ctrl-C) before numpy loads
 
     args = module_args(mod, prog, helptext, argv, name, bench)

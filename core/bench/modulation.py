@@ -24,7 +24,6 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from skinsafe.core.bench.timing import interleaved_ms, median_ms
 from skinsafe.core.safety.modulation import ModulationLayer, modulate
 from skinsafe.core.safety.potential import (
     DangerPotential,
@@ -38,6 +37,7 @@ from skinsafe.core.safety.potential import (
 )
 from skinsafe.core.safety.stack import PRIOR, SafetyStack, StrategyFilter
 from skinsafe.core.safety.tdm import TactileDangerModel
+from skinsafe.core.timing import interleaved_ms, median_ms
 
 
 def add_arguments(p) -> None:

@@ -15,12 +15,12 @@ from dataclasses import replace
 import mujoco
 import numpy as np
 
-from skinsafe.core.bench.timing import interleaved_ms, median_ms
 from skinsafe.core.design.sample import design_with
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.safety.defensiveness import DefensivenessLayer
 from skinsafe.core.safety.retraction import RetractionParams, dls_pinv, merge_loop, task_jacobians, task_velocities
+from skinsafe.core.timing import interleaved_ms, median_ms
 
 
 class LoopLayer(DefensivenessLayer):

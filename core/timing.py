@@ -1,4 +1,7 @@
-"""Timing for benchmarks: medians of repeated runs in one process (machines here are noisy)."""
+"""Timing for benchmarks: medians of repeated runs in one process (machines here are noisy).
+
+A leaf of the package: numpy and the standard library only, so every core layer and `hardware`
+(whose benchmark times the serial path) may import it (import-linter: the lowest layer)."""
 from __future__ import annotations
 
 import time
@@ -17,6 +20,16 @@ def median_ms(fn: Callable[[], object], repeat: int = 50, warmup: int = 3, min_t
         t0 = time.perf_counter()
         fn()
         times.append(time.perf_counter() - t0)
+    return float(np.median(times) * 1e3)
+
+
+def cpu_median_ms(fn: Callable[[], object], repeat: int) -> float:
+    """Median CPU time of this process for `fn()`, ms: a figure other processes' load skews less than wall time."""
+    times = []
+    for _ in range(repeat):
+        t0 = time.process_time()
+        fn()
+        times.append(time.process_time() - t0)
     return float(np.median(times) * 1e3)
 
 
