@@ -9,6 +9,7 @@ its stdin closing: the signal handler only records the signal, and the wake-up f
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import select
 import signal
@@ -26,6 +27,7 @@ from skinsafe.hardware.emulated_board import BoardSpec, EmulatedBoard, Faults, N
 
 __all__ = ["EmulatorProcess", "add_arguments", "flash_path", "main", "serve"]
 STOP_S = 0.5  # how long the board threads get to finish once the emulator stops
+SWITCH_S = 0.0005  # with --feed: the interpreter's thread switch interval (default 5 ms)
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--board", action="append", default=[], metavar="UID:CHANNELS[:KEY=VALUE,...]",
@@ -160,6 +162,8 @@ def _open_feed(args, design):
         feed.close()
         raise SystemExit(f"--feed {args.feed} holds {feed.n} taxels, the map {design.n_taxels}; feed it from the "
                          "simulation of this map")
+    sys.setswitchinterval(SWITCH_S)  # a simulation's boards stream in real time: no thread waits 5 ms for the GIL
+    gc.freeze()  # ... nor for a collector pass over every object imported so far
     return feed
 
 
