@@ -5,7 +5,7 @@ Each board's port gets a new pseudo-terminal for the host; one thread copies byt
 `arm()` on, the boards' stream is cut into whole frames (`FrameParser`, re-encoded byte for byte) so
 a fault lands between frames. Faults, `at` seconds after `arm()` on one board (default the first):
 - board-unplug: the host's side of the link closes (reads fail, as a pulled USB cable);
-- frame-delay: the board's frames are held back 50 ms, then delivered at once;
+- frame-delay: the board's frames are held back `delay_s` (default 50 ms), then delivered at once;
 - frame-replay: a frame is sent again 20 ms after it first went through (its counter is older);
 - foreign-uid: a copy of a frame with another board's uid;
 - crc-storm: the next 10 frames arrive with one byte of their payload flipped.
@@ -27,7 +27,8 @@ STORM_FRAMES = 10
 
 
 class _Link:
-    def __init__(self, port: str):
+    def __init__(self, port: str, delay_s: float):
+        self.delay_s = delay_s
         self.board = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
         self.master, self.slave = os.openpty()
         tty.setraw(self.slave)
@@ -55,8 +56,8 @@ class _Link:
         kind, start = self.fault or ("", float("inf"))
         if now < start or f.type != P.STREAM_DATA:
             return raw
-        if kind == "frame-delay" and now < start + DELAY_S:
-            self.held.append((start + DELAY_S, raw))
+        if kind == "frame-delay" and now < start + self.delay_s:
+            self.held.append((start + self.delay_s, raw))
             return b""
         if kind == "frame-replay" and self.replay is None:
             self.replay = raw
@@ -97,8 +98,8 @@ class _Link:
 class LinkFaults:
     """Proxies for `ports` (board id -> port) with `faults` [(kind, at, board id or None)]; `.ports` for the host."""
 
-    def __init__(self, ports: dict[int, str], faults: list[tuple[str, float, int | None]]):
-        self.links = {b: _Link(p) for b, p in ports.items()}
+    def __init__(self, ports: dict[int, str], faults: list[tuple[str, float, int | None]], delay_s: float = DELAY_S):
+        self.links = {b: _Link(p, delay_s) for b, p in ports.items()}
         self.ports = {b: link.port for b, link in self.links.items()}
         first = min(ports)
         self.faults = [(kind, at, first if b is None else b) for kind, at, b in faults]

@@ -193,8 +193,10 @@ class SkinSource:
                 x = self.boards[b]
                 force[x.rows] = np.nan
                 if not x.dead:  # a dead link was named once already
+                    corrupt = sum(c > arrived[b] for c in list(x.crc))
                     faults.append(f"board '{x.name}' (uid {x.uid:#x}): silent for {(now - arrived[b]) * 1e3:.1f} ms, "
-                                  f"more than {self.silent_periods:g} frame periods ({limit * 1e3:.1f} ms)")
+                                  f"more than {self.silent_periods:g} frame periods ({limit * 1e3:.1f} ms)"
+                                  + (f"; {corrupt} corrupt frames since its last good one (a CRC storm)" if corrupt else ""))
         return Readings(t, force, seq, ages, faults, lost)
 
     def close(self) -> dict:

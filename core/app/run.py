@@ -75,7 +75,8 @@ def add_arguments(p) -> None:
     sim.add_argument("--taxel-fault", action="append", default=[], metavar="stuck|noisy:TAXEL",
                      help="a faulty sensor in the sim's skin (the pre-flight must find it); repeatable")
     sim.add_argument("--inject", action="append", default=[], metavar="FAULT@SECONDS[:BOARD]",
-                     help="fault injection for tests and `bench runtime --faults`: board-unplug, frame-delay (50 ms), "
+                     help="fault injection for tests and `bench runtime --faults`: board-unplug, frame-delay (50 ms or 3 "
+                          "frame periods, the longer), "
                           "frame-replay, foreign-uid, crc-storm (on the emulated boards' links), sim-freeze, sim-die")
     p.add_argument("--stats", metavar="FILE.json", help="write the run's figures (loop, latency, world, stop) as JSON")
     p.epilog = "exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items())
@@ -230,9 +231,9 @@ def run(args) -> int:
             links = None
             link_faults = [f for f in inject if not f[0].startswith("sim-")]
             if link_faults:
-                from skinsafe.hardware.link_faults import LinkFaults
+                from skinsafe.hardware.link_faults import DELAY_S, LinkFaults
 
-                links = stack.enter_context(LinkFaults(ports, link_faults))
+                links = stack.enter_context(LinkFaults(ports, link_faults, max(DELAY_S, 3.0 / args.rate)))
                 ports = links.ports
             source = SkinSource(design, ports, args.rate, args.noise_fraction, args.max_excluded, baud=args.baud)
             stack.callback(source.close)

@@ -59,6 +59,8 @@ class Runtime:
         self._repeats = 0
         self._reading_seq = None
         self._force = None
+        self._stopped = False
+        self._state = None  # (state, readings) of the last tick
 
     # -- the callback ----------------------------------------------------------------------------
     def control(self, state) -> np.ndarray:
@@ -69,6 +71,7 @@ class Runtime:
         if self._t0 is None:
             self._t0 = self._prev_t = t
             self.command.start(q)
+        self._state = (state, r)
         watchdog, why = self._watch(state, r)
         new = r.seq != self._reading_seq
         if new and not watchdog:
@@ -130,13 +133,18 @@ class Runtime:
 
     def _stop(self, state, r, start: float, kind: str, watchdog: str, reason: str) -> None:
         self.outcome = Outcome(reason, kind, watchdog, float(state.t), start, self.ticks)
+        self._zero(state, r, reason)
+        raise StopRobot(reason)
+
+    def _zero(self, state, r, reason: str) -> None:
+        """The stop's tick for the tap and the record: zero velocity, the stack not ticked."""
+        self._stopped = True
         zero = np.zeros(len(state.q))
         self.tap.publish(Frame(state.t, state.q, self._force, zero, False, 0, (), reason))
         if self.recorder is not None:
             self.recorder.put((time.time_ns(), self.ticks + 1, state.t, 0.0, state.q, state.qd, None,
                                float(r.seq), zero, zero, ("stop",), False, 0, r.board_age_s, r.frames_lost,
                                self.command.age(), 0.0))
-        raise StopRobot(reason)
 
     # -- the run ---------------------------------------------------------------------------------
     def stop_by_operator(self, why: str = "interrupted by the operator (Ctrl-C)") -> None:
@@ -164,6 +172,8 @@ class Runtime:
         reason = self.driver.run(self.control)
         if self.outcome is None:  # the driver stopped on its own (a communication fault, its own limits)
             self.outcome = Outcome(reason, "driver", "robot", float(self._prev_t or 0.0), time.monotonic(), self.ticks)
+        if not self._stopped and self._state is not None:  # the operator's or the driver's stop: zero went out too
+            self._zero(*self._state, self.outcome.reason)
         self.outcome.ticks = self.ticks
         self.outcome.stats = self.timing()
         return self.outcome

@@ -8,7 +8,8 @@ each step the skin's contact forces (`SkinReadout`) go to the shared-memory `For
 the emulated boards stream them over pseudo-terminals: the whole chain (contact -> board firmware
 -> serial -> host -> layers -> driver) runs closed-loop on one machine.
 
-A stop (control returned None, raised, `stop(reason)`, a physics failure) sends zero velocity,
+Before `run` the arm stands still and the feed is refreshed every period (the pre-flight's tare sees
+live sensors). A stop (control returned None, raised, `stop(reason)`, a physics failure) sends zero velocity,
 then the robot's own stop: the servos hold the measured pose until the arm is at rest.
 
 `Contact` puts something in the arm's world to touch:
@@ -22,6 +23,7 @@ touched taxel went into its contact after the onset, and when the measured motio
 """
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -169,6 +171,10 @@ class SimDriver:
             self.taxel_faults.setdefault(kind, []).append(i)
         self._rng = np.random.default_rng(0)
         self._publish()
+        self._moving = False  # until `run`, the arm stands still and its skin keeps streaming (pre-flight, tare)
+        self._idle = threading.Thread(target=self._stand_still, name="sim-idle", daemon=True) if feed is not None else None
+        if self._idle is not None:
+            self._idle.start()
         self._stop: str | None = None
         self._seq = 0
         self._contact_p0 = None
@@ -193,8 +199,16 @@ class SimDriver:
         d = self.data
         return SimState(float(d.time), d.qpos[:self.nq].copy(), d.qvel[:self.nq].copy(), self._seq)
 
+    def _stand_still(self) -> None:
+        while not self._moving and self._stop is None:
+            self._publish()
+            time.sleep(self.period_s)
+
     def run(self, control) -> str:
         """Blocks: control every period until a stop; returns the reason (module docstring)."""
+        self._moving = True
+        if self._idle is not None:
+            self._idle.join()
         reason = ""
         next_t = time.monotonic()
         frozen = None

@@ -21,7 +21,7 @@ import numpy as np
 
 MAGIC = 0x534B494E46454544  # "SKINFEED"
 HEADER_WORDS = 4
-READ_SPIN_S = 0.05  # a reader gives up after this long behind a writer that never finishes (it died mid-write)
+READ_SPIN_S = 1.0  # a reader gives up after this long behind a writer that never finishes (it died mid-write)
 
 
 class FeedError(Exception):
@@ -86,6 +86,7 @@ class ForceFeed:
                 if int(self._seq[0]) == s1:
                     return s1 >> 1, t, out
             deadline = deadline or time.monotonic() + READ_SPIN_S
+            time.sleep(0)  # let a writer that was descheduled mid-write finish
             if time.monotonic() > deadline:
                 raise FeedError(f"force feed '{self.name}': its writer stopped in the middle of a write")
 
