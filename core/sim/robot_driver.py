@@ -171,13 +171,13 @@ class SimDriver:
             self.taxel_faults.setdefault(kind, []).append(i)
         self._rng = np.random.default_rng(0)
         self._publish()
+        self._stop: str | None = None
+        self._seq = 0
+        self._contact_p0 = None
         self._moving = False  # until `run`, the arm stands still and its skin keeps streaming (pre-flight, tare)
         self._idle = threading.Thread(target=self._stand_still, name="sim-idle", daemon=True) if feed is not None else None
         if self._idle is not None:
             self._idle.start()
-        self._stop: str | None = None
-        self._seq = 0
-        self._contact_p0 = None
 
     # -- the contract ------------------------------------------------------------------------
     def limits(self) -> dict[str, np.ndarray]:
@@ -194,6 +194,8 @@ class SimDriver:
 
     def close(self) -> None:
         self.stop("closed")
+        if self._idle is not None:
+            self._idle.join()
 
     def state(self) -> SimState:
         d = self.data

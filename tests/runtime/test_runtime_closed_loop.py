@@ -161,7 +161,8 @@ def test_preflight_names_faulty_taxels_and_refuses_beyond_the_limit(skin, tmp_pa
     assert p.returncode == 0, p.stderr
     assert s["preflight"]["stuck"] == [10] and s["preflight"]["noisy"] == [20] and s["preflight"]["excluded"] == 2
     assert "stuck [10], noisy [20]" in p.stderr
-    p, s, _ = run(skin, tmp_path, "--taxel-fault", "stuck:10", "--max-excluded", "0", seconds=0.3)
+    (tmp_path / "refused").mkdir()
+    p, s, _ = run(skin, tmp_path / "refused", "--taxel-fault", "stuck:10", "--max-excluded", "0", seconds=0.3)
     assert p.returncode == 3 and "pre-flight refused" in p.stderr and "stuck 1" in p.stderr and "[10]" in p.stderr
     assert s is None  # the robot never moved
 
