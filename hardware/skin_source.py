@@ -245,14 +245,19 @@ class SkinSource:
     def _read(self, wait: float) -> list[tuple[int, np.ndarray]]:
         """Wait up to `wait` for data, then read every board: [(board id, forces (F, rows))] of good frames."""
         live = [s for s in self.stream.boards if not self.boards[s.board_id].dead]
+        poll = select.poll()
+        for s in live:
+            poll.register(s.client.ser.fileno(), select.POLLIN | select.POLLHUP | select.POLLERR)
         try:
-            select.select([s.client.ser.fileno() for s in live], [], [], wait)
+            events = dict(poll.poll(wait * 1e3))
         except (OSError, ValueError):
-            pass
+            events = {}
         out = []
         for s in live:
             b = self.boards[s.board_id]
             try:
+                if events.get(s.client.ser.fileno(), 0) & (select.POLLHUP | select.POLLERR):
+                    raise OSError("the port hung up: cable pulled or board powered off")
                 frames = s.client.read_stream(0.0)
             except (BoardError, OSError) as e:
                 b.dead = f"board '{b.name}' (uid {b.uid:#x}): link lost ({e})"

@@ -197,7 +197,9 @@ def _ports(args, design, stack: contextlib.ExitStack, feed) -> dict[int, str]:
     return ports
 
 
-def run(args) -> int:
+def run(args, feed=None, ports=None, on_moving=None) -> int:
+    """The command. In-process callers (the fault bench) may pass an existing `feed` and the `ports` of boards
+    it feeds (already running this map), and `on_moving(runtime)`, called once the robot is handed over."""
     from skinsafe.core.robot.models import load_robot
     from skinsafe.core.runtime.record import Recorder
     from skinsafe.core.skin.force_feed import ForceFeed
@@ -221,13 +223,14 @@ def run(args) -> int:
     rt = _realtime(args.realtime)
     with contextlib.ExitStack() as stack:
         try:
-            feed = stack.enter_context(ForceFeed.create(None, design.n_taxels))
+            if feed is None:
+                feed = stack.enter_context(ForceFeed.create(None, design.n_taxels))
             driver = _driver(args, design, robot, feed, inject)
             stack.callback(driver.close)
             limits = driver.limits()
             command = command_source(args.command, driver.joint_names, limits, args.command_timeout)
             stack.callback(command.close)
-            ports = _ports(args, design, stack, feed)
+            ports = ports or _ports(args, design, stack, feed)
             links = None
             link_faults = [f for f in inject if not f[0].startswith("sim-")]
             if link_faults:
@@ -278,6 +281,8 @@ def run(args) -> int:
         old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         print(f"skinsafe run: {driver.name} robot moving under '{command.spec}' ({driver.period_s * 1e3:g} ms period, "
               f"boards at {args.rate} Hz, {rt}); Ctrl-C stops it", file=sys.stderr, flush=True)
+        if on_moving is not None:
+            on_moving(runtime)
         switch = sys.getswitchinterval()
         sys.setswitchinterval(SWITCH_S)
         gc.freeze()  # no collector pause while the robot moves (what the loop allocates is freed by refcount)

@@ -88,7 +88,7 @@ class SimFaults:
 class WorldStats:
     onset_t: float | None = None  # sim time of the first contact force on the touched obstacle
     peak_N: float = 0.0  # largest contact force between the arm and the obstacle
-    into_contact_m: float = 0.0  # furthest the touched taxel moved along its normal after the onset
+    into_contact_m: float = 0.0  # furthest the touched taxel moved along its normal from the onset to the reaction
     reaction_t: float | None = None  # first time after the onset its measured motion pointed out of the contact
     ticks: int = 0
     overruns: int = 0  # periods whose work took longer than the period
@@ -303,7 +303,8 @@ class SimDriver:
         if s.onset_t is None:
             s.onset_t, self._contact_p0 = float(self.data.time), pos[0].copy()
         s.peak_N = max(s.peak_N, f)
-        s.into_contact_m = max(s.into_contact_m, float((pos[0] - self._contact_p0) @ self.normal))
+        if s.reaction_t is None:  # how far into the contact before the motion turned out of it
+            s.into_contact_m = max(s.into_contact_m, float((pos[0] - self._contact_p0) @ self.normal))
         v_n = float(self.normal @ (J[0, :3] @ self.data.qvel[:self.nq]))
         if s.reaction_t is None and v_n < -RETRACT_SPEED:
             s.reaction_t = float(self.data.time)
