@@ -21,7 +21,7 @@ demo: $(STAMP)
 	$(BIN)/skinsafe demo
 
 bench: $(STAMP)
-	for b in jacobians design sensing import retraction modulation safety pfl serial; do $(BIN)/skinsafe bench $$b || exit 1; done
+	for b in jacobians design sensing import retraction modulation safety pfl serial runtime; do $(BIN)/skinsafe bench $$b || exit 1; done
 
 clean:
 	rm -rf $(VENV) out build *.egg-info

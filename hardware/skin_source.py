@@ -265,6 +265,7 @@ class SkinSource:
                 continue
             now = time.monotonic()
             self._crc_storm(s, b, now)
+            self._refused(s, b)
             if not frames:
                 continue
             frames = self._own(s, b, frames)
@@ -304,6 +305,16 @@ class SkinSource:
                     continue
             prev = c
         return keep
+
+    def _refused(self, s, b: _Board) -> None:
+        """Frames the client or the stream refused themselves (another uid, a counter not ahead), where they count them."""
+        foreign = getattr(s.client, "foreign", None) or {}
+        if foreign:
+            uid = next(iter(foreign))
+            self._fault(f"board '{b.name}' (uid {b.uid:#x}): frames from another uid {uid:#x} on its port")
+        if getattr(s, "replayed", 0):
+            self._fault(f"board '{b.name}' (uid {b.uid:#x}): frame counter went back (a replayed or stale frame, "
+                        "or the board reset)")
 
     def _crc_storm(self, s, b: _Board, now: float) -> None:
         errors = s.client.parser.crc_errors

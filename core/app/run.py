@@ -78,6 +78,9 @@ def add_arguments(p) -> None:
                      help="fault injection for tests and `bench runtime --faults`: board-unplug, frame-delay (50 ms or 3 "
                           "frame periods, the longer), "
                           "frame-replay, foreign-uid, crc-storm (on the emulated boards' links), sim-freeze, sim-die")
+    p.add_argument("--feed", metavar="NAME", help="with --boards emulate: the emulated boards stream this existing "
+                   "shared-memory feed of simulated contacts (e.g. franky-sim's world, `feed NAME`; default: a fresh "
+                   "one the sim driver writes)")
     p.add_argument("--stats", metavar="FILE.json", help="write the run's figures (loop, latency, world, stop) as JSON")
     p.epilog = "exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items())
 
@@ -118,10 +121,14 @@ def _check(args) -> None:
         raise DesignError(f"--tare-frames {args.tare_frames}: give at least 2")
     if not (0 <= args.max_excluded < 1) or not args.noise_fraction > 0:
         raise DesignError("--max-excluded must be in [0, 1) and --noise-fraction positive")
-    if args.robot == "fr3" and args.boards != ["emulate"] and "emulate" in args.boards:
+    if args.boards != ["emulate"] and "emulate" in args.boards:
         raise DesignError("--boards: give 'emulate' alone or serial ports")
     if args.robot == "sim" and args.host:
         raise DesignError("--host is for --robot fr3")
+    sim_only = [o for o, v in (("--contact", args.contact != "none"), ("--taxel-fault", args.taxel_fault),
+                               ("--inject sim-*", any(i.startswith("sim-") for i in args.inject))) if v]
+    if args.robot != "sim" and sim_only:
+        raise DesignError(f"{', '.join(sim_only)}: for --robot sim only")
 
 
 def _taxel_faults(items: list[str]) -> dict[int, str]:
@@ -163,7 +170,9 @@ def _driver(args, design, robot, feed, inject):
                 raise
             raise DesignError("--robot fr3: the FR3 driver (skinsafe.hardware.franka) is not in this installation "
                               "yet; use --robot sim") from None
-        return franka.open_driver(host=args.host, design=design, feed_name=feed.name, map_path=args.map)
+        if not args.host:
+            raise DesignError("--robot fr3 needs --host IP: the robot's (or franky-sim's) address")
+        return franka.FrankaDriver(args.host)
     from skinsafe.core.sim.robot_driver import SimDriver, SimFaults
 
     faults = SimFaults(**{("freeze_at" if k == "sim-freeze" else "die_at"): t for k, t, _ in inject
@@ -202,7 +211,7 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
     it feeds (already running this map), and `on_moving(runtime)`, called once the robot is handed over."""
     from skinsafe.core.robot.models import load_robot
     from skinsafe.core.runtime.record import Recorder
-    from skinsafe.core.skin.force_feed import ForceFeed
+    from skinsafe.core.skin.force_feed import FeedError, ForceFeed
     from skinsafe.core.skin.taxel_map import load
     from skinsafe.hardware.client import BoardError
     from skinsafe.hardware.skin_source import PreflightRefused, SkinSource
@@ -224,7 +233,10 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
     with contextlib.ExitStack() as stack:
         try:
             if feed is None:
-                feed = stack.enter_context(ForceFeed.create(None, design.n_taxels))
+                feed = stack.enter_context(ForceFeed.attach(args.feed) if args.feed else
+                                           ForceFeed.create(None, design.n_taxels))
+                if feed.n != design.n_taxels:
+                    raise DesignError(f"--feed {args.feed} holds {feed.n} taxels, the map {design.n_taxels}")
             driver = _driver(args, design, robot, feed, inject)
             stack.callback(driver.close)
             limits = driver.limits()
@@ -241,7 +253,7 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
             source = SkinSource(design, ports, args.rate, args.noise_fraction, args.max_excluded, baud=args.baud)
             stack.callback(source.close)
             report = source.preflight(map_hash, args.tare_frames)
-        except (DesignError, CommandError) as e:
+        except (DesignError, CommandError, FeedError) as e:
             return fail(2, str(e))
         except (PreflightRefused, BoardError) as e:
             return fail(3, f"pre-flight refused: {e}")

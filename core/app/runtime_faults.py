@@ -149,7 +149,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m skinsafe.core.app.runtime_faults", description=__doc__.split("\n\n")[0])
     p.add_argument("--runs", type=int, default=204)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--rate", type=int, default=100, help="board frames per second")
+    p.add_argument("--rate", type=int, default=50,
+                   help="board frames per second (50: a board is silent after 40 ms; a 50 ms delay still trips it)")
     p.add_argument("--json", action="store_true", help="print the per-run rows as one JSON list")
     args = p.parse_args(argv)
     from skinsafe.core.app.run import _realtime

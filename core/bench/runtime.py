@@ -47,8 +47,11 @@ def add_arguments(p) -> None:
     p.add_argument("--capacity", type=int, default=1024, help="channels per board")
     p.add_argument("--rate", type=int, default=100, help="board frames per second")
     p.add_argument("--repeats", type=int, default=2, help="runs per row")
+    p.add_argument("--period", type=float, default=0.002, help="the sim's control period, s (0.002: the UR e-series' 500 Hz)")
     p.add_argument("--faults", action="store_true", help="the fault storm instead (one row)")
     p.add_argument("--runs", type=int, default=204, help="--faults: runs (one fault each)")
+    p.add_argument("--fault-rate", type=int, default=50, help="--faults: board frames per second (a board is silent "
+                   "after 2 frame periods: 40 ms, so a 50 ms delay trips it and the machine's stalls mostly do not)")
     p.add_argument("--seed", type=int, default=0)
 
 
@@ -112,10 +115,10 @@ def reference(design, robot, traj: Path, period: float = 0.002) -> dict:
     return vars(drv.stats)
 
 
-def _run(map_path: Path, traj: Path, stats: Path, rate: int) -> dict:
+def _run(map_path: Path, traj: Path, stats: Path, rate: int, period: float) -> dict:
     cmd = [sys.executable, "-m", "skinsafe.core.app.cli", "run", str(map_path), "--robot", "sim", "--boards", "emulate",
            "--command", f"trajectory:{traj}", "--contact", CONTACT, "--seconds", str(SECONDS), "--rate", str(rate),
-           "--stats", str(stats)]
+           "--period", str(period), "--stats", str(stats)]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     if not stats.exists():
         raise RuntimeError(f"bench runtime: `skinsafe run` exited {p.returncode} without figures: {p.stderr[-800:]}")
@@ -139,11 +142,11 @@ def rows(args) -> list[dict]:
         for n in args.taxels:
             design = sample_skin(n, args.capacity, robot)
             save(design, tmp / f"skin{n}.json")
-            ref = reference(design, robot, traj)
+            ref = reference(design, robot, traj, args.period)
             runs, stale = [], 0
             for k in range(args.repeats):  # a run a false staleness stop cut short is counted, then run again
                 for attempt in range(RETRIES):
-                    r = _run(tmp / f"skin{n}.json", traj, tmp / f"stats{n}_{k}_{attempt}.json", args.rate)
+                    r = _run(tmp / f"skin{n}.json", traj, tmp / f"stats{n}_{k}_{attempt}.json", args.rate, args.period)
                     stale += r["watchdog"] in STALE
                     if r["watchdog"] not in STALE:
                         break
@@ -152,7 +155,8 @@ def rows(args) -> list[dict]:
             worst = lambda key: float(np.nanmax([r[key] for r in runs]))  # noqa: E731
             out.append({
                 "robot": "ur5", "driver": "sim", "boards": len(design.boards), "taxels": design.n_taxels,
-                "ticks": int(sum(r["ticks"] for r in runs)), "rate_hz": args.rate, "runs": len(runs),
+                "ticks": int(sum(r["ticks"] for r in runs)), "rate_hz": args.rate, "period_ms": args.period * 1e3,
+                "runs": len(runs),
                 "loop_hz_p50": float(np.median([r["loop_hz_p50"] for r in runs])), "period_ms_p99": worst("period_ms_p99"),
                 "latency_ms_p50": float(np.nanmedian([r["latency_ms_p50"] for r in runs])),
                 "latency_ms_p99": worst("latency_ms_p99"), "latency_ms_max": worst("latency_ms_max"),
@@ -172,7 +176,7 @@ def rows(args) -> list[dict]:
 
 def fault_row(args) -> dict:
     cmd = [sys.executable, "-m", "skinsafe.core.app.runtime_faults", "--runs", str(args.runs), "--seed", str(args.seed),
-           "--rate", str(args.rate), "--json"]
+           "--rate", str(args.fault_rate), "--json"]
     p = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, timeout=7200)
     if p.returncode:
         raise RuntimeError(f"bench runtime --faults: the fault storm exited {p.returncode}")
@@ -185,7 +189,7 @@ def fault_row(args) -> dict:
             "records_readable": float(np.mean([r["record_readable"] for r in runs])),
             "named_as_injected": float(np.mean([r["named_as_injected"] for r in runs])),
             "stop_periods_max": float(max((r["stop_periods"] for r in stopped), default=float("nan"))),
-            "rate_hz": args.rate, "seconds": float(sum(r["seconds"] for r in runs)),
+            "rate_hz": args.fault_rate, "seconds": float(sum(r["seconds"] for r in runs)),
             **{f"runs_{k.replace('-', '_')}": sum(r["fault"] == k for r in runs) for k in kinds},
             **{f"other_first_{k.replace('-', '_')}": sum(r["fault"] == k and not r["named_as_injected"] for r in runs)
                for k in kinds}}

@@ -51,7 +51,10 @@ class ForceFeed:
         if n < 1:
             raise ValueError(f"ForceFeed: n = {n}; a feed holds at least one taxel")
         name = name or f"skinsafe-feed-{os.getpid()}-{os.urandom(4).hex()}"
-        shm = shared_memory.SharedMemory(name, create=True, size=8 * (HEADER_WORDS + n))
+        try:
+            shm = shared_memory.SharedMemory(name, create=True, size=8 * (HEADER_WORDS + n))
+        except FileExistsError:
+            raise FeedError(f"force feed '{name}' exists already (another run uses it); choose another name") from None
         return cls(shm, owner=True, n=n)
 
     @classmethod
