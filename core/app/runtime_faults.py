@@ -47,14 +47,16 @@ def _kind(k: int) -> str:
 
 
 def _readable(record: Path) -> bool:
-    from mcap_ros2.reader import read_ros2_messages
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
 
     try:
         last = None
-        for m in read_ros2_messages(str(record), log_time_order=False):
-            last = m
-        return last is not None and last.channel.topic == "/diagnostics" and \
-            last.ros_msg.status[0].name == "skinsafe/watchdog"
+        with open(record, "rb") as f:
+            for _, channel, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+                    log_time_order=False):
+                last = (channel.topic, msg)
+        return last is not None and last[0] == "/diagnostics" and last[1].status[0].name == "skinsafe/watchdog"
     except Exception:
         return False
 

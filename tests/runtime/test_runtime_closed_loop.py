@@ -13,7 +13,8 @@ import time
 
 import numpy as np
 import pytest
-from mcap_ros2.reader import read_ros2_messages
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
 
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.models import build_ur5
@@ -56,7 +57,10 @@ def run(skin, tmp_path, *extra, command="hold", seconds=1.5, when_moving=None):
 
 
 def messages(record):
-    return [(m.channel.topic, m.ros_msg) for m in read_ros2_messages(str(record), log_time_order=False)]
+    """Every message of a record, decoded by mcap-ros2-support (the ROS 2 reader)."""
+    with open(record, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        return [(c.topic, m) for _, c, _, m in reader.iter_decoded_messages(log_time_order=False)]
 
 
 def test_a_poke_is_retracted_and_the_record_replays_exactly(skin, tmp_path):
