@@ -44,7 +44,7 @@ demo: $(STAMP) $(ROBOTS_STAMP)
 	$(BIN)/skinsafe demo $(DEMO_ARGS)
 
 bench: $(STAMP) $(ROBOTS_STAMP)
-	for b in jacobians design sensing import retraction modulation safety pfl serial; do $(BIN)/skinsafe bench $$b || exit 1; done
+	for b in jacobians design sensing import retraction modulation safety pfl serial runtime; do $(BIN)/skinsafe bench $$b || exit 1; done
 
 clean:
 	rm -rf $(VENV) $(NP2) out build *.egg-info

@@ -80,7 +80,7 @@ class EmulatedBoard:
     OVERRUN_S = 0.5  # how long a full link may block a send before the rest of the frame is dropped
 
     def __init__(self, spec: BoardSpec, flash_path: str | Path, baud: int | None = None,
-                 replay: np.ndarray | None = None, encode=None):
+                 replay: np.ndarray | None = None, encode=None, feed=None):
         self.spec, self.flash_path, self.baud = spec, Path(flash_path), baud
         self.master, self.slave = os.openpty()
         tty.setraw(self.slave)
@@ -89,6 +89,7 @@ class EmulatedBoard:
         self.rng = np.random.default_rng(board_seed(spec.faults.seed, spec.uid))
         self.encode = encode or default_sensor().encode
         self.replay = replay
+        self.feed = feed  # () -> (n_channels,) forces in N, e.g. from a simulation's ForceFeed
         self.resets_left = spec.faults.resets
         self.chunks_seen = 0
         self.tx_dropped = 0
@@ -334,8 +335,10 @@ class EmulatedBoard:
 
     # -- streaming ---------------------------------------------------------------------------
     def forces(self, t: float) -> np.ndarray:
-        """Synthetic forces (N): a 12 N press sweeping across the channels once a second, or a replay."""
+        """Synthetic forces (N): a 12 N press sweeping across the channels once a second, a replay, or the feed."""
         n = self.spec.n_channels
+        if self.feed is not None:
+            return self.feed()
         if self.replay is not None:
             return self.replay[self.sample % len(self.replay)]
         c = np.arange(n)

@@ -9,6 +9,7 @@ its stdin closing: the signal handler only records the signal, and the wake-up f
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import select
 import signal
@@ -26,6 +27,7 @@ from skinsafe.hardware.emulated_board import BoardSpec, EmulatedBoard, Faults, N
 
 __all__ = ["EmulatorProcess", "add_arguments", "flash_path", "main", "serve"]
 STOP_S = 0.5  # how long the board threads get to finish once the emulator stops
+SWITCH_S = 0.0005  # with --feed: the interpreter's thread switch interval (default 5 ms)
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--board", action="append", default=[], metavar="UID:CHANNELS[:KEY=VALUE,...]",
@@ -37,6 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--link-dir", help="also create symlinks board-UID -> pty here (for `deploy --all --glob`)")
     p.add_argument("--replay", help=".npy of forces in N to stream instead of the synthetic press: (T, channels), "
                    "or (T, taxels) in the --map's taxel order (e.g. recorded from a MuJoCo simulation)")
+    p.add_argument("--feed", metavar="NAME", help="with --map: stream each board's channels from this shared-memory "
+                   "force feed (core/skin/force_feed.py, written by a simulation) instead of the synthetic press")
     p.add_argument("--firmware", default="1.0.0", help="firmware version to report (fault: a wrong version)")
     p.add_argument("--protocol", type=int, default=P.PROTOCOL_VERSION, help="protocol version to speak")
     p.add_argument("--max-chunk", type=int, default=1024,
@@ -155,6 +159,39 @@ def board_replay(forces: np.ndarray, spec: BoardSpec, board, design) -> np.ndarr
                      f"channels{taxels}")
 
 
+def board_feed(feed, board, design, n_channels: int):
+    """() -> (n_channels,) forces of `board`'s channels, read from the shared-memory `feed` (taxel order)."""
+    rows = channel_rows(design, board)
+    channels = design.taxels.channel[rows].astype(np.intp)
+    out = np.zeros(n_channels)
+
+    def forces() -> np.ndarray:
+        out[channels] = feed.read(rows)[2]
+        return out
+    return forces
+
+
+def _open_feed(args, design):
+    if not args.feed:
+        return None
+    from skinsafe.core.skin.force_feed import FeedError, ForceFeed
+    if design is None:
+        raise SystemExit("--feed needs --map: the feed holds forces in the map's taxel order")
+    if args.replay:
+        raise SystemExit("give --feed or --replay, not both")
+    try:
+        feed = ForceFeed.attach(args.feed)
+    except FeedError as e:
+        raise SystemExit(f"--feed: {e}") from None
+    if feed.n != design.n_taxels:
+        feed.close()
+        raise SystemExit(f"--feed {args.feed} holds {feed.n} taxels, the map {design.n_taxels}; feed it from the "
+                         "simulation of this map")
+    sys.setswitchinterval(SWITCH_S)  # a simulation's boards stream in real time: no thread waits 5 ms for the GIL
+    gc.freeze()  # ... nor for a collector pass over every object imported so far
+    return feed
+
+
 def serve(args, out=sys.stdout) -> int:
     """Start the boards, print `board UID PORT` lines and `ready`, run until SIGTERM/SIGINT (or stdin EOF)."""
     signals: list[int] = []
@@ -165,8 +202,11 @@ def serve(args, out=sys.stdout) -> int:
     old = {s: signal.signal(s, lambda signum, _f: signals.append(signum)) for s in (signal.SIGTERM, signal.SIGINT)}
     specs, design = _specs(args)
     replay = np.load(args.replay) if args.replay else None
+    feed = _open_feed(args, design)
     boards = [EmulatedBoard(s, flash_path(args.flash_dir, s.uid), args.baud,
-                            None if replay is None else board_replay(replay, s, b, design)) for s, b in specs]
+                            None if replay is None else board_replay(replay, s, b, design),
+                            feed=None if feed is None or b is None else board_feed(feed, b, design, s.n_channels))
+              for s, b in specs]
     others = [NotABoard() for _ in range(args.not_a_board)]
     links = []
     if args.link_dir:
@@ -202,6 +242,8 @@ def serve(args, out=sys.stdout) -> int:
     for d, t in zip(boards + others, threads):
         if not t.is_alive():  # a thread still in a fault's delay keeps its fds; the process exit closes them
             d.close()  # (an unplugged board closed its own)
+    if feed is not None and not any(t.is_alive() for t in threads):
+        feed.close()
     signal.set_wakeup_fd(old_fd)
     for s, h in old.items():
         signal.signal(s, h)

@@ -34,6 +34,8 @@ COMMANDS = {
     "deploy": ("skinsafe.hardware.cli_deploy", "push a taxel map to the interface boards over serial and verify it"),
     "stream": ("skinsafe.hardware.cli_stream", "stream readings from the boards, mapped to taxels"),
     "emulate": ("skinsafe.hardware.cli_emulate", "run a board emulator on a pseudo-terminal"),
+    "run": ("skinsafe.core.app.run", "the safety runtime: boards -> the three layers -> a robot (sim or FR3), with watchdogs"),
+    "replay": ("skinsafe.core.app.replay", "re-run the layers on a `run --record` MCAP and compare the commands"),
     "pfl": ("skinsafe.core.app.pfl", "ISO/TS 15066: effective mass and safe approach speed per taxel, at a pose or along a trajectory"),
     "trade": ("skinsafe.core.app.trade", "sweep speed-vs-accuracy knobs (Ray) and plot the Pareto front"),
     "readme": ("skinsafe.core.app.readme", "fill the README's figures from the results files (make readme-figures)"),
@@ -54,6 +56,7 @@ BENCHES = {
     "pfl": ("skinsafe.core.bench.pfl", "the ISO/TS 15066 speed cap tick vs a per-taxel loop"),
     "safety": ("skinsafe.core.bench.safety", "correctness audit: no-push, limits, fail-safe on random contact sets"),
     "serial": ("skinsafe.hardware.bench_serial", "deploy and stream decoding over a pseudo-terminal"),
+    "runtime": ("skinsafe.core.bench.runtime", "skinsafe run closed-loop: loop rate, latency, reaction, faults"),
 }
 
 
@@ -88,6 +91,7 @@ def print_rows(rows: list[dict], as_json: bool) -> None:
 
 def save_rows(path: str, rows: list[dict], command: str) -> None:
     """A benchmark's rows as a results file: the rows, the command that made them, when and under what load."""
+    import json
     import os
     import platform
     import time
