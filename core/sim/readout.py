@@ -100,10 +100,12 @@ class SkinReadout:
         take = active[:, None] & (k < rows[:, None])
         return np.where(take, data.efc_force[np.where(take, adr[:, None] + k, 0)], 0.0).sum(axis=1)
 
-    def read(self, data: mujoco.MjData) -> np.ndarray:
+    def read(self, data: mujoco.MjData, warm: bool = False) -> np.ndarray:
+        """The taxel forces of `data`'s contacts; `warm=True` runs the compiled pass even without contacts,
+        so numba compiles it now (seconds) rather than at a real-time loop's first contact."""
         out = np.zeros(self.n)
         ncon = data.ncon
-        if ncon == 0:
+        if ncon == 0 and not warm:
             self._missed = 0
             return out
         con = data.contact
