@@ -21,6 +21,7 @@ stopped it; its reason is named. numpy and pylibfranka only (never mujoco, torch
 """
 from __future__ import annotations
 
+import sys
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +37,7 @@ QD_MAX = np.array([2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26])
 QDD_MAX = np.full(7, 10.0)
 QDDD_MAX = np.full(7, 5000.0)
 MARGIN = 1e-3  # libfranka's kLimitEps: stay this fraction inside each limit
+SWITCH_S = 1e-4  # Python's thread switch interval while run() runs (see FrankaDriver.run)
 RAMP_MAX_S = 2.0  # a stop's ramp to zero never takes longer (2.62 rad/s at 10 rad/s^2 takes 0.27 s)
 
 
@@ -125,7 +127,21 @@ class FrankaDriver:
             return self._reason
 
     def run(self, control) -> str:
-        """Joint-velocity control at the robot's clock until a stop; returns its reason (one line)."""
+        """Joint-velocity control at the robot's clock until a stop; returns its reason (one line).
+
+        pylibfranka 0.21.3's `readOnce` keeps the interpreter lock while it waits for the robot's state
+        (measured: a thread sleeping 0.5 ms at a time woke 122 times a second beside this loop, 1,857
+        alone), so a reader thread in this process (the boards') would run once per 5 ms switch
+        interval; while it runs, the interval is 0.1 ms, which gives such threads the interpreter once
+        per cycle, between the robot's state and the tick (494 wakes a second)."""
+        previous = sys.getswitchinterval()
+        sys.setswitchinterval(SWITCH_S)
+        try:
+            return self._run(control)
+        finally:
+            sys.setswitchinterval(previous)
+
+    def _run(self, control) -> str:
         pf = self._pf
         errors = (pf.NetworkException, pf.ControlException, pf.CommandException, pf.RealtimeException,
                   pf.InvalidOperationException, pf.FrankaException)

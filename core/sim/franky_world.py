@@ -238,7 +238,8 @@ class FrankyWorld:
         self.obstacle_geom = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, OBSTACLE)
         self.peak_n = 0.0
         self.depth_worst = 0.0
-        self.onset_t = None
+        self.onsets: list[float] = []  # robot times at which the sphere's contact with the robot began
+        self.touching = False
         self.missed_contacts = 0
         self.readout_s: list[float] = []
         self.sim.register_post_step_callback(self._after_step)
@@ -257,14 +258,15 @@ class FrankyWorld:
         self.missed_contacts += self.readout.last_missed
         if forces.size:
             self.peak_n = max(self.peak_n, float(forces.max()))
+        hit = np.zeros(0, bool)
         if self.obstacle_geom >= 0 and data.ncon:
             con = data.contact
-            g = con.geom[: data.ncon]
-            hit = (g == self.obstacle_geom).any(axis=1)
+            hit = (con.geom[: data.ncon] == self.obstacle_geom).any(axis=1)
             if hit.any():
                 self.depth_worst = max(self.depth_worst, float(-con.dist[: data.ncon][hit].min()))
-                if self.onset_t is None:
-                    self.onset_t = t
+        if hit.any() and not self.touching:
+            self.onsets.append(t)
+        self.touching = bool(hit.any())
 
     def run(self, stop: list[int], period: float = 1e-3) -> dict:
         """Step at the robot's 1 kHz until `stop` is non-empty; the stats."""
@@ -284,7 +286,7 @@ class FrankyWorld:
         return {"steps": steps, "wall_s": round(wall, 3), "realtime_factor": round(steps * period / wall, 3),
                 "motion_cycles": rs.cycles, "commands": rs.commands, "missed_cycles": rs.missed,
                 "longest_missed_run": rs.longest_run, "communication_stops": rs.aborts,
-                "onset_t": self.onset_t, "peak_N": round(self.peak_n, 3),
+                "onsets": self.onsets, "peak_N": round(self.peak_n, 3),
                 "into_contact_mm_worst": round(1e3 * self.depth_worst, 3),
                 "contacts_on_bare_surface": self.missed_contacts, "taxels": self.design.n_taxels,
                 "readout_ms_p50": round(float(np.percentile(rd, 50)), 4) if rd.size else None,
