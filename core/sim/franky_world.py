@@ -315,9 +315,9 @@ class WorldProcess:
             raise FileNotFoundError(f"franky-sim's environment is missing ({py}); run `make franky-sim`")
         cmd = [str(py), "-m", "skinsafe.core.sim.franky_world", "serve", str(map_path), "--stats", str(stats_path)]
         if obstacle is not None:
-            cmd += ["--obstacle", ",".join(f"{v:.9g}" for v in obstacle)]
+            cmd.append("--obstacle=" + ",".join(f"{v:.9g}" for v in obstacle))  # "=": values may start with "-"
         if q0 is not None:
-            cmd += ["--q0", ",".join(f"{v:.9g}" for v in q0)]
+            cmd.append("--q0=" + ",".join(f"{v:.9g}" for v in q0))
         self.stats_path = Path(stats_path)
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
         self.host = self.feed = None
