@@ -1,5 +1,5 @@
-"""The boards as the runtime's readings source: pre-flight (map check, tare, taxel health), then a
-reader thread that keeps the newest reading of every taxel and names every link fault.
+"""The boards as the runtime's readings source: the pre-flight (map check, tare, taxel health), then the
+newest reading of every taxel and every link fault named, from a reader in its own process.
 
 Pre-flight, before the robot may move (robot still, nothing touching the skin):
 1. every board's active config must be the one MAP gives it (`SkinStream` refuses naming the board);
@@ -15,28 +15,31 @@ Pre-flight, before the robot may move (robot still, nothing touching the skin):
    - taxels disabled in the map are excluded too. More than `max_excluded` (fraction) excluded -> refused.
    Excluded taxels read NaN; the runtime feeds them to the layers as 0 N (they never trigger).
 
-Running, `newest()` never waits: the reader thread decodes each board's frames (its own counter and
-uid checked first) into the latest force per taxel (tared, clipped at 0). Faults named once each:
-a board silent for more than `silent_periods` frame periods (its taxels read NaN until it speaks
+Running, `newest()` never waits: the boards' reader (hardware/skin_reader.py, its own process at the
+loop's priority) decodes each board's frames (its own counter and uid checked first) into the latest
+force per taxel (tared, clipped at 0) in shared memory. Faults named once each: a board silent for
+more than `silent_periods` frame periods (+ `link_latency`; its taxels read NaN until it speaks
 again), a CRC storm (`crc_storm` failed frames within a second), frames from another uid, a frame
-counter that went back (a replayed or stale frame, or a board reset), the link lost.
+counter that went back (a replayed or stale frame, or a board reset), the link lost; and the reader
+itself not running for as long as a board may be silent, or ended.
 """
 from __future__ import annotations
 
-import select
-import threading
+import os
+import subprocess
+import sys
 import time
-from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
 
 import numpy as np
 
+from skinsafe.core.skin.force_feed import ForceFeed
 from skinsafe.core.skin.model import SkinDesign
 from skinsafe.hardware.client import BoardError
-from skinsafe.hardware.protocol import FrameRun
-from skinsafe.hardware.stream import SkinStream, decode_frames, frame_dtype
 
-HALF_RANGE = 1 << 31
+START_S = 30.0  # the reader's start (its imports) may take this long on a loaded machine, besides the tare
+CLOSE_S = 5.0  # the reader's stop of the boards, and its settling after a silence
 
 
 class PreflightRefused(Exception):
@@ -53,16 +56,6 @@ class Readings:
     frames_lost: int
 
 
-@dataclass
-class _Board:
-    uid: int
-    name: str
-    rows: np.ndarray
-    arrived: float = 0.0
-    crc: deque = field(default_factory=deque)
-    crc_seen: int = 0
-    dead: str = ""  # why the link is gone
-    excluded: np.ndarray | None = None  # of its rows, those the health policy excluded
 
 
 def classify(frames: np.ndarray, threshold: np.ndarray, saturation: float, noise_fraction: float
@@ -81,247 +74,145 @@ def classify(frames: np.ndarray, threshold: np.ndarray, saturation: float, noise
 
 
 class SkinSource:
-    """Readings of a design's boards on `ports` (board id -> port), streamed at `rate_hz`."""
+    """Readings of a design's boards on `ports` (board id -> port), streamed at `rate_hz`; the pre-flight and the
+    reading run in the boards' reader process (module docstring)."""
 
-    def __init__(self, design: SkinDesign, ports: dict[int, str], rate_hz: int = 500, noise_fraction: float = 0.25,
-                 max_excluded: float = 0.02, silent_periods: float = 2.0, crc_storm: int = 5, **client_kw):
+    def __init__(self, design: SkinDesign, ports: dict[int, str], rate_hz: int = 100, noise_fraction: float = 0.25,
+                 max_excluded: float = 0.02, silent_periods: float = 2.0, crc_storm: int = 5,
+                 link_latency: float = 0.0, **client_kw):
         missing = [b.name for b in design.boards if b.id not in ports]
         if missing:
             raise PreflightRefused(f"no port for board(s) {', '.join(missing)} of the map; give every board's port "
                                    "(or --boards emulate)")
-        self.design, self.ports, self.rate_hz, self.client_kw = design, ports, int(rate_hz), client_kw
-        self.noise_fraction, self.max_excluded = noise_fraction, max_excluded
-        self.silent_periods, self.crc_storm = silent_periods, crc_storm
+        self.design, self.ports = design, ports
         self.n_taxels = design.n_taxels
-        self.frame_period_s = 1.0 / self.rate_hz
-        self.stream: SkinStream | None = None
-        self.baseline = np.zeros(self.n_taxels)
+        self.frame_period_s = 1.0 / int(rate_hz)
+        self.silence_s = silent_periods * self.frame_period_s + link_latency  # a board is silent after this long
         self.excluded = ~np.asarray(design.taxels.enabled, bool)
-        self._force = np.full(self.n_taxels, np.nan)
-        self._pub = None
+        self.summary: dict = {}  # the reader's, once closed: frames lost, the link's delays, the silences
+        self._cfg = {"design": design, "ports": ports, "rate_hz": int(rate_hz), "noise_fraction": noise_fraction,
+                     "max_excluded": max_excluded, "silent_periods": silent_periods, "link_latency": link_latency,
+                     "crc_storm": crc_storm, "client_kw": client_kw}
+        self._proc = self._rx = self._tx = self._state = self._beat = None
+        self._uids: list[int] = []
         self._faults: list[str] = []
-        self._named: set[str] = set()
-        self._lock = threading.Lock()
-        self._run = threading.Event()
-        self._thread = None
-        self._seq = 0
+        self._reader_named = False
 
     # -- pre-flight ----------------------------------------------------------------------------
     def preflight(self, map_hash: bytes, tare_frames: int = 100) -> dict:
-        """Check, start and tare the boards; returns the report (refuses with PreflightRefused or BoardError)."""
-        from skinsafe.hardware.board_config import default_sensor
-
+        """Start the reader, which checks, starts and tares the boards; the report (PreflightRefused or BoardError
+        when it refuses)."""
         if tare_frames < 2:
             raise PreflightRefused(f"tare over {tare_frames} frames: give at least 2 (e.g. 100)")
-        self.stream = SkinStream(self.design, self.ports, self.rate_hz, verify=True, **self.client_kw)
-        by_id = {b.id: b for b in self.design.boards}
-        self.boards = {s.board_id: _Board(s.uid, by_id[s.board_id].name, s.rows) for s in self.stream.boards}
-        self.stream.start()
-        for s in self.stream.boards:
-            self.boards[s.board_id].crc_seen = s.client.parser.crc_errors
-        frames = self._tare(tare_frames)
-        th = np.asarray(self.design.taxels.thresholds["force"], float)
-        base, found = classify(frames, th, default_sensor().max_force, self.noise_fraction)
-        names = self.design.taxels.ids
-        report = {"map_hash": map_hash.hex(), "tare_frames": tare_frames,
-                  "boards": {b.name: {"uid": b.uid, "config": "matches the map"} for b in self.boards.values()}}
-        if found["pressed"].any():
-            i = np.flatnonzero(found["pressed"])
-            raise PreflightRefused(f"{len(i)} taxel(s) read at or above their threshold at rest (taxel "
-                                   f"{int(names[i[0]])} on '{self._body(i[0])}': {base[i[0]]:.2f} N): something touches "
-                                   "the skin; clear it and start again")
-        disabled = self.excluded.copy()
-        for k in ("dead", "stuck", "noisy"):
-            report[k] = [int(x) for x in names[found[k] & ~disabled]]
-        self.excluded = disabled | found["dead"] | found["stuck"] | found["noisy"]
-        frac = float(self.excluded[~disabled].mean()) if (~disabled).any() else 0.0
-        report.update(excluded=int(self.excluded.sum()), disabled_in_map=int(disabled.sum()), excluded_fraction=frac)
-        if frac > self.max_excluded:
-            raise PreflightRefused(f"{frac:.1%} of the enabled taxels are dead, stuck or noisy (dead "
-                                   f"{len(report['dead'])}, stuck {len(report['stuck'])}, noisy {len(report['noisy'])}; "
-                                   f"first: {(report['dead'] + report['stuck'] + report['noisy'])[:8]}), more than the "
-                                   f"{self.max_excluded:.1%} allowed: repair the skin or disable them in the map")
-        self.baseline = np.where(self.excluded, 0.0, base)
-        report["baseline_max_N"] = float(self.baseline.max()) if len(self.baseline) else 0.0
-        for b in self.boards.values():
-            b.excluded = self.excluded[b.rows]
-        self._force = np.where(self.excluded, np.nan, np.maximum(frames[-1] - self.baseline, 0.0))
-        self._publish(time.monotonic())
-        self._run.set()  # from here on the reader keeps every link drained
-        self._thread = threading.Thread(target=self._reader, name="skin-reader", daemon=True)
-        self._thread.start()
+        nb = len(self.design.boards)
+        self._state = ForceFeed.create(None, 1 + nb + self.n_taxels)
+        self._beat = ForceFeed.create(None, 1)
+        down_r, down_w = os.pipe()
+        up_r, up_w = os.pipe()
+        try:
+            self._proc = subprocess.Popen([sys.executable, "-m", "skinsafe.hardware.skin_reader", str(down_r), str(up_w)],
+                                          pass_fds=(down_r, up_w), stdin=subprocess.DEVNULL)
+        finally:
+            os.close(down_r)
+            os.close(up_w)
+        self._tx, self._rx = Connection(down_w, readable=False), Connection(up_r, writable=False)
+        try:
+            self._tx.send({**self._cfg, "map_hash": map_hash, "tare_frames": tare_frames, "state": self._state.name,
+                           "beat": self._beat.name})
+        except OSError:
+            pass  # it ended at once: the answer names it
+        msg = self._answer(START_S + max(2.0, 5 * tare_frames * self.frame_period_s))
+        if msg[0] == "refused":
+            raise PreflightRefused(msg[1])
+        if msg[0] == "board-error":
+            raise BoardError(msg[1], kind=msg[2])
+        _, report, self.excluded = msg
+        self._uids = [b.uid for b in self.design.boards if b.id in self.ports]  # the reader's order (SkinStream's)
         return report
 
-    def _body(self, i: int) -> str:
-        return self.design.bodies[int(self.design.taxels.body[i])]
-
-    def _tare(self, n: int) -> np.ndarray:
-        """(n, N) readings: frame k of every board in row k."""
-        out = np.full((n, self.n_taxels), np.nan)
-        got = dict.fromkeys(self.boards, 0)
-        deadline = time.monotonic() + max(2.0, 5 * n * self.frame_period_s)
-        while min(got.values()) < n:
-            if time.monotonic() > deadline:
-                slow = [self.boards[b].name for b, k in got.items() if k < n]
-                raise PreflightRefused(f"board(s) {', '.join(slow)} sent fewer than {n} frames in "
-                                       f"{max(2.0, 5 * n * self.frame_period_s):.1f} s; check their links")
-            for bid, forces in self._read(self.frame_period_s):
-                take = min(n - got[bid], len(forces))
-                out[got[bid]:got[bid] + take, self.boards[bid].rows] = forces[:take]
-                got[bid] += take
-            faults = self._take_faults()
-            if faults:
-                raise PreflightRefused(f"during the tare: {faults[0]}")
-        return out
+    def _answer(self, timeout: float):
+        """The reader's next message; PreflightRefused naming why when it ends or stays silent instead."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self._rx.poll(0.1):
+                try:
+                    return self._rx.recv()
+                except EOFError:
+                    break
+            if self._proc.poll() is not None:
+                break
+        code = self._proc.poll()
+        raise PreflightRefused("the boards' reader " + (f"ended with exit code {code}" if code is not None else
+                                                        f"did not answer within {timeout:.0f} s") +
+                               " before the pre-flight finished; run it again, or check the serial ports")
 
     # -- running -------------------------------------------------------------------------------
     def start(self) -> None:
         """The reader runs from the end of the pre-flight on: nothing to start (faults since then are reported)."""
-        if self._thread is None:
+        if self._state is None or self._proc is None:
             raise RuntimeError("SkinSource.start before preflight: run the pre-flight first")
 
     def newest(self) -> Readings:
-        t, force, seq, arrived, lost = self._pub
+        """The reader's newest readings (from shared memory: never waits), and the faults named since the last call."""
+        seq, t, v = self._state.read()
+        beat = float(self._beat.read()[2][0])
         now = time.monotonic()
-        ages = {self.boards[b].uid: now - a for b, a in arrived.items()}
-        limit = self.silent_periods * self.frame_period_s
-        stale = [b for b, a in arrived.items() if now - a > limit]
+        nb = len(self._uids)
         faults = self._take_faults()
-        if stale:
-            force = force.copy()
-            for b in stale:
-                x = self.boards[b]
-                force[x.rows] = np.nan
-                if not x.dead:  # a dead link was named once already
-                    corrupt = sum(c > arrived[b] for c in list(x.crc))
-                    faults.append(f"board '{x.name}' (uid {x.uid:#x}): silent for {(now - arrived[b]) * 1e3:.1f} ms, "
-                                  f"more than {self.silent_periods:g} frame periods ({limit * 1e3:.1f} ms)"
-                                  + (f"; {corrupt} corrupt frames since its last good one (a CRC storm)" if corrupt else ""))
-        return Readings(t, force, seq, ages, faults, lost)
-
-    def close(self) -> dict:
-        """Stop the reader and the boards; board id -> problem for those whose stop was not confirmed."""
-        self._run.clear()
-        if self._thread is not None:
-            self._thread.join(1.0)
-        problems = {}
-        if self.stream is not None:
-            try:
-                problems = self.stream.stop()
-            except (BoardError, OSError) as e:
-                problems = {-1: str(e)}
-            finally:
-                self.stream.close()
-        return problems
-
-    def frames_lost(self) -> int:
-        return sum(s.stats().lost for s in self.stream.boards) if self.stream is not None else 0
-
-    def _reader(self) -> None:
-        while self._run.is_set():
-            got = self._read(self.frame_period_s)
-            if got:
-                for bid, forces in got:
-                    b = self.boards[bid]
-                    self._force[b.rows] = np.where(b.excluded, np.nan, np.maximum(forces[-1] - self.baseline[b.rows], 0.0))
-                self._publish(max(self.boards[b].arrived for b, _ in got))
-
-    def _publish(self, t: float) -> None:
-        self._seq += 1
-        self._pub = (t, self._force.copy(), self._seq, {b: x.arrived for b, x in self.boards.items()},
-                     self.frames_lost())
-
-    def _fault(self, text: str) -> None:
-        with self._lock:
-            if text not in self._named:
-                self._named.add(text)
-                self._faults.append(text)
+        if now - beat > self.silence_s and not self._reader_named:
+            self._reader_named = True
+            code = self._proc.poll()
+            faults.append(f"the boards' reader ended (exit code {code})" if code is not None else
+                          f"the boards' reader was silent for {(now - beat) * 1e3:.1f} ms, more than a board may be "
+                          f"({self.silence_s * 1e3:.1f} ms): the host is overloaded")
+        ages = {uid: now - a for uid, a in zip(self._uids, v[1:1 + nb])}
+        return Readings(t, v[1 + nb:], seq, ages, faults, int(v[0]))
 
     def _take_faults(self) -> list[str]:
-        with self._lock:
-            out, self._faults = self._faults, []
-        return out
-
-    def _read(self, wait: float) -> list[tuple[int, np.ndarray]]:
-        """Wait up to `wait` for data, then read every board: [(board id, forces (F, rows))] of good frames."""
-        live = [s for s in self.stream.boards if not self.boards[s.board_id].dead]
-        poll = select.poll()
-        for s in live:
-            poll.register(s.client.ser.fileno(), select.POLLIN | select.POLLHUP | select.POLLERR)
         try:
-            events = dict(poll.poll(wait * 1e3))
-        except (OSError, ValueError):
-            events = {}
-        out = []
-        for s in live:
-            b = self.boards[s.board_id]
-            try:
-                if events.get(s.client.ser.fileno(), 0) & (select.POLLHUP | select.POLLERR):
-                    raise OSError("the port hung up: cable pulled or board powered off")
-                frames = s.client.read_stream(0.0)
-            except (BoardError, OSError) as e:
-                b.dead = f"board '{b.name}' (uid {b.uid:#x}): link lost ({e})"
-                self._fault(b.dead)
-                continue
-            now = time.monotonic()
-            self._crc_storm(s, b, now)
-            self._refused(s, b)
-            if not frames:
-                continue
-            frames = self._own(s, b, frames)
-            if frames:
-                samples, forces = decode_frames(frames, s.n_channels, s.channels, self.stream.table)
-                keep = self._in_order(s, b, samples)
-                if keep.any():
-                    s.count(samples[keep])
-                    b.arrived = now
-                    out.append((s.board_id, forces[keep]))
+            while self._rx.poll(0):
+                msg = self._rx.recv()
+                if msg[0] == "fault":
+                    self._faults.append(msg[1])
+        except (EOFError, OSError):
+            pass  # the reader ended: its beat stops, which names it
+        out, self._faults = self._faults, []
         return out
 
-    def _own(self, s, b: _Board, frames: list) -> list:
-        """Frames of this board of the right size; others named (another uid) or counted (wrong size)."""
-        size = frame_dtype(s.n_channels).itemsize
-        good = []
-        for f in frames:
-            if f.uid != b.uid:
-                self._fault(f"board '{b.name}' (uid {b.uid:#x}): frames from another uid {f.uid:#x} on its port")
-            elif (f.payloads.shape[1] if isinstance(f, FrameRun) else len(f.payload)) != size:
-                s.malformed += len(f.seqs) if isinstance(f, FrameRun) else 1
-            else:
-                good.append(f)
-        return good
+    def frames_lost(self) -> int:
+        if "frames_lost" in self.summary:
+            return self.summary["frames_lost"]
+        return int(self._state.read()[2][0]) if self._state is not None else 0
 
-    def _in_order(self, s, b: _Board, samples: np.ndarray) -> np.ndarray:
-        """Mask of frames whose counter moves forward; a counter that goes back is named."""
-        prev = -1 if s.last_sample is None else s.last_sample
-        keep = np.ones(len(samples), bool)
-        for k, c in enumerate(samples.astype(np.int64)):
-            step = (c - prev) & 0xFFFFFFFF
-            if s.last_sample is not None or k:
-                if step == 0 or step >= HALF_RANGE:
-                    keep[k] = False
-                    self._fault(f"board '{b.name}' (uid {b.uid:#x}): frame counter went back from {prev} to {c} "
-                                "(a replayed or stale frame, or the board reset)")
-                    continue
-            prev = c
-        return keep
-
-    def _refused(self, s, b: _Board) -> None:
-        """Frames the client or the stream refused themselves (another uid, a counter not ahead), where they count them."""
-        foreign = getattr(s.client, "foreign", None) or {}
-        if foreign:
-            uid = next(iter(foreign))
-            self._fault(f"board '{b.name}' (uid {b.uid:#x}): frames from another uid {uid:#x} on its port")
-        if getattr(s, "replayed", 0):
-            self._fault(f"board '{b.name}' (uid {b.uid:#x}): frame counter went back (a replayed or stale frame, "
-                        "or the board reset)")
-
-    def _crc_storm(self, s, b: _Board, now: float) -> None:
-        errors = s.client.parser.crc_errors
-        new, b.crc_seen = errors - b.crc_seen, errors
-        b.crc.extend([now] * max(0, new))
-        while b.crc and now - b.crc[0] > 1.0:
-            b.crc.popleft()
-        if len(b.crc) >= self.crc_storm:
-            self._fault(f"board '{b.name}' (uid {b.uid:#x}): CRC storm ({len(b.crc)} corrupt frames within 1 s); "
-                        "check the cable and its shielding")
+    def close(self) -> dict:
+        """Stop the reader and the boards; board id -> problem for those whose stop was not confirmed. The reader's
+        summary (frames lost, the link's delays, what each silence was) is in `summary`."""
+        problems = {}
+        if self._proc is not None:
+            try:
+                self._tx.send("stop")
+                deadline = time.monotonic() + CLOSE_S
+                while time.monotonic() < deadline and self._rx.poll(max(0.0, deadline - time.monotonic())):
+                    msg = self._rx.recv()
+                    if msg[0] == "closed":
+                        self.summary = msg[1]
+                        problems = self.summary.pop("problems")
+                        break
+                    if msg[0] == "fault":
+                        self._faults.append(msg[1])
+            except (EOFError, OSError):
+                pass
+            try:
+                self._proc.wait(CLOSE_S)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait()
+                problems = problems or {-1: "the boards' reader did not stop; the boards may still stream"}
+            for c in (self._tx, self._rx):
+                c.close()
+            self._proc = None
+        for feed in (self._state, self._beat):
+            if feed is not None:
+                feed.close()
+        self._state = self._beat = None
+        return problems

@@ -37,9 +37,10 @@ def frame_dtype(n_channels: int) -> np.dtype:
                      ("counts", "<u2", (n_channels,))])
 
 
-def decode_frames(frames: list, n_channels: int, channels: np.ndarray, table: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Stream frames (Frame or FrameRun) of one board -> (sample counters (F,), forces (F, len(channels)) in N).
+def decode_frames(frames: list, n_channels: int, channels: np.ndarray, table: np.ndarray, stamps: bool = False
+                  ) -> tuple[np.ndarray, ...]:
+    """Stream frames (Frame or FrameRun) of one board -> (sample counters (F,), forces (F, len(channels)) in N)
+    and, with `stamps`, the board's clock at each frame (F,), s.
 
     Frames of the wrong size (a board with another channel count) raise ValueError.
     """
@@ -52,7 +53,7 @@ def decode_frames(frames: list, n_channels: int, channels: np.ndarray, table: np
     counts = rec["counts"]
     if len(channels) != n_channels or (channels != np.arange(n_channels)).any():
         counts = counts[:, channels]
-    return rec["sample"], table[counts]
+    return (rec["sample"], table[counts]) + ((rec["t_us"] * 1e-6,) if stamps else ())
 
 
 def achievable_hz(baud: int, n_channels: int) -> float:

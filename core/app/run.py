@@ -54,6 +54,10 @@ def add_arguments(p) -> None:
     p.add_argument("--record", metavar="FILE.mcap", help="record the run (MCAP, ROS 2 messages); `skinsafe replay` re-runs it")
     p.add_argument("--rate", type=int, default=100, help="frames per second per board (default 100: a board is "
                    "silent after 20 ms)")
+    p.add_argument("--link-latency", type=float, default=0.0, metavar="S",
+                   help="how late the host's serial input may deliver a board's frames before the board is named silent, "
+                        "on top of 2 frame periods (default 0: silent after 2 frame periods); a loaded host's kernel "
+                        "holds serial input for tens to hundreds of ms (README, 'Running a robot')")
     p.add_argument("--realtime", choices=("auto", "off"), default="auto",
                    help="auto: run the loop, the skin reader and the emulated boards at real-time priority "
                         "(SCHED_FIFO 10) where the system allows it, as libfranka does (default)")
@@ -75,8 +79,8 @@ def add_arguments(p) -> None:
     sim.add_argument("--taxel-fault", action="append", default=[], metavar="stuck|noisy:TAXEL",
                      help="a faulty sensor in the sim's skin (the pre-flight must find it); repeatable")
     sim.add_argument("--inject", action="append", default=[], metavar="FAULT@SECONDS[:BOARD]",
-                     help="fault injection for tests and `bench runtime --faults`: board-unplug, frame-delay (50 ms or 3 "
-                          "frame periods, the longer), "
+                     help="fault injection for tests and `bench runtime --faults`: board-unplug, frame-delay (50 ms, or 3 "
+                          "frame periods + --link-latency, the longer), "
                           "frame-replay, foreign-uid, crc-storm (on the emulated boards' links), sim-freeze, sim-die")
     p.add_argument("--feed", metavar="NAME", help="with --boards emulate: the emulated boards stream this existing "
                    "shared-memory feed of simulated contacts (e.g. franky-sim's world, `feed NAME`; default: a fresh "
@@ -117,6 +121,8 @@ def _check(args) -> None:
         raise DesignError(f"--seconds {args.seconds}: give a positive duration")
     if not 1 <= args.rate <= 65535:
         raise DesignError(f"--rate {args.rate}: give frames per second per board, 1..65535")
+    if not (math.isfinite(args.link_latency) and 0 <= args.link_latency <= 10):
+        raise DesignError(f"--link-latency {args.link_latency}: give 0..10 s")
     if args.tare_frames < 2:
         raise DesignError(f"--tare-frames {args.tare_frames}: give at least 2")
     if not (0 <= args.max_excluded < 1) or not args.noise_fraction > 0:
@@ -125,6 +131,9 @@ def _check(args) -> None:
         raise DesignError("--boards: give 'emulate' alone or serial ports")
     if args.robot == "sim" and args.host:
         raise DesignError("--host is for --robot fr3")
+    if args.robot == "fr3" and args.boards == ["emulate"] and not args.feed:
+        raise DesignError("--robot fr3 --boards emulate needs --feed NAME: the force feed of the robot's simulated "
+                          "world (franky_world serve prints it)")
     sim_only = [o for o, v in (("--contact", args.contact != "none"), ("--taxel-fault", args.taxel_fault),
                                ("--inject sim-*", any(i.startswith("sim-") for i in args.inject))) if v]
     if args.robot != "sim" and sim_only:
@@ -172,7 +181,10 @@ def _driver(args, design, robot, feed, inject):
                               "yet; use --robot sim") from None
         if not args.host:
             raise DesignError("--robot fr3 needs --host IP: the robot's (or franky-sim's) address")
-        return franka.FrankaDriver(args.host)
+        try:
+            return franka.FrankaDriver(args.host)
+        except franka.FrankaError as e:
+            raise DesignError(str(e)) from None
     from skinsafe.core.sim.robot_driver import SimDriver, SimFaults
 
     faults = SimFaults(**{("freeze_at" if k == "sim-freeze" else "die_at"): t for k, t, _ in inject
@@ -209,7 +221,7 @@ def _ports(args, design, stack: contextlib.ExitStack, feed) -> dict[int, str]:
 def run(args, feed=None, ports=None, on_moving=None) -> int:
     """The command. In-process callers (the fault bench) may pass an existing `feed` and the `ports` of boards
     it feeds (already running this map), and `on_moving(runtime)`, called once the robot is handed over."""
-    from skinsafe.core.robot.models import load_robot
+    from skinsafe.core.robot.models import load_robot, only_joints
     from skinsafe.core.runtime.record import Recorder
     from skinsafe.core.skin.force_feed import FeedError, ForceFeed
     from skinsafe.core.skin.taxel_map import load
@@ -239,6 +251,7 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
                     raise DesignError(f"--feed {args.feed} holds {feed.n} taxels, the map {design.n_taxels}")
             driver = _driver(args, design, robot, feed, inject)
             stack.callback(driver.close)
+            arm = only_joints(robot, driver.joint_names)  # the joints the driver moves (the FR3: not its fingers)
             limits = driver.limits()
             command = command_source(args.command, driver.joint_names, limits, args.command_timeout)
             stack.callback(command.close)
@@ -248,9 +261,10 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
             if link_faults:
                 from skinsafe.hardware.link_faults import DELAY_S, LinkFaults
 
-                links = stack.enter_context(LinkFaults(ports, link_faults, max(DELAY_S, 3.0 / args.rate)))
+                links = stack.enter_context(LinkFaults(ports, link_faults, max(DELAY_S, 3.0 / args.rate + args.link_latency)))
                 ports = links.ports
-            source = SkinSource(design, ports, args.rate, args.noise_fraction, args.max_excluded, baud=args.baud)
+            source = SkinSource(design, ports, args.rate, args.noise_fraction, args.max_excluded,
+                                link_latency=args.link_latency, baud=args.baud)
             stack.callback(source.close)
             report = source.preflight(map_hash, args.tare_frames)
         except (DesignError, CommandError, FeedError) as e:
@@ -263,11 +277,11 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
               file=sys.stderr)
         params = RetractionParams(alpha=args.alpha)
         try:
-            layers = build_stack(design, robot.model, limits["qd_max"], limits["qdd_max"], driver.period_s, params,
+            layers = build_stack(design, arm.model, limits["qd_max"], limits["qdd_max"], driver.period_s, params,
                                  args.tdm)
         except (ValueError, OSError) as e:
             return fail(2, f"--tdm: {e}")
-        warm_up(layers, robot.home, design.taxels.thresholds["force"], driver.period_s)
+        warm_up(layers, arm.home, design.taxels.thresholds["force"], driver.period_s)
         seconds = args.seconds or (command.duration + 1.0 if isinstance(command, Trajectory) else None)
         recorder = None
         if args.record:
@@ -306,7 +320,8 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
             sys.setswitchinterval(switch)
             for s, h in old.items():
                 signal.signal(s, h)
-        lost = source.frames_lost()
+        source.close()  # the robot has stopped: the boards stop, and the reader says what any silence was
+        lost, skin = source.frames_lost(), source.summary
         rec = recorder.close({"reason": outcome.reason, "kind": outcome.kind, "watchdog": outcome.watchdog,
                               "t": outcome.t, "ns": time.time_ns(), "ticks": outcome.ticks,
                               "dropped": recorder.dropped, "frames_lost": lost}) if recorder else None
@@ -314,6 +329,9 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
     head = {"end": "stopped as planned", "operator": "STOPPED by the operator", "fault": "STOPPED by a watchdog",
             "driver": "STOPPED by the robot"}[outcome.kind]
     print(f"skinsafe run: {head}: {outcome.reason}", file=sys.stderr if outcome.kind != "end" else sys.stdout)
+    for silence in skin.get("silences", []):
+        print(f"skinsafe run: board '{silence['board']}' silent for {silence['silent_ms']} ms: {silence['cause']}",
+              file=sys.stderr)
     print(f"ticks {t['ticks']}, loop {t['loop_hz_p50']:.0f} Hz (period p99 {t['period_ms_p99']:.2f} ms), contact latency "
           f"p50 {t['latency_ms_p50']:.2f} / p99 {t['latency_ms_p99']:.2f} / max {t['latency_ms_max']:.2f} ms over "
           f"{t['latency_samples']} frames, frames lost {lost}"
@@ -321,11 +339,12 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
              if rec else ""))
     if args.stats:
         world = getattr(driver, "stats", None)
+        world = world if isinstance(world, dict) or world is None else vars(world)
         out = {"reason": outcome.reason, "kind": outcome.kind, "watchdog": outcome.watchdog, "t": outcome.t,
                "detected_mono": outcome.detected_mono, "frames_lost": lost, "preflight": report,
                "record": rec, "period_s": driver.period_s, "robot": driver.name, "taxels": design.n_taxels,
-               "boards": len(design.boards), **t,
-               "world": {k: v for k, v in vars(world).items() if k != "extra"} if world is not None else {}}
+               "boards": len(design.boards), **t, "skin": skin,
+               "world": {k: v for k, v in world.items() if k != "extra"} if world is not None else {}}
         atomic_write(Path(args.stats), json.dumps(out, default=_plain))
     if outcome.kind == "operator":
         return 128 + signals.get("first", signal.SIGINT)

@@ -370,3 +370,54 @@ def mesh_ur5(folder: Path, sections: int = 64) -> Robot:
         g.pos, g.quat, g.mass = model.geom_pos[gid].tolist(), model.geom_quat[gid].tolist(), mass
     robot.model = spec.compile()
     return robot
+
+
+def only_joints(robot: Robot, names: list[str]) -> Robot:
+    """The robot with only the joints `names` (in that order of the model) moving: every other joint is
+    removed (its links welded where they are), with the tendons, equalities and actuators that use it;
+    home, velocity and acceleration limits kept for the joints left. The robot itself when those are
+    all its joints. For a controller that drives fewer joints than the description holds (the FR3's
+    seven, without its gripper's fingers)."""
+    m = robot.model
+    jid = {m.joint(j).name: j for j in range(m.njnt)}
+    missing = [n for n in names if n not in jid]
+    if missing:
+        raise DesignError(f"robot '{robot.name}' has no joint(s) {', '.join(missing)}; its joints are "
+                          f"{', '.join(jid)}")
+    drop = {j for n, j in jid.items() if n not in names}
+    if not drop:
+        return robot
+    tendons = {t for t in range(m.ntendon) for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t])
+               if m.wrap_type[w] == mujoco.mjtWrap.mjWRAP_JOINT and m.wrap_objid[w] in drop}
+    eq_joint, eq_tendon = int(mujoco.mjtEq.mjEQ_JOINT), int(mujoco.mjtEq.mjEQ_TENDON)
+    ends = [{int(m.eq_obj1id[e]), int(m.eq_obj2id[e])} for e in range(m.neq)]
+    equalities = [e for e in range(m.neq) if (m.eq_type[e] == eq_joint and ends[e] & drop)
+                  or (m.eq_type[e] == eq_tendon and ends[e] & tendons)]
+    actuators = [a for a in range(m.nu) if (m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT and m.actuator_trnid[a, 0] in drop)
+                 or (m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_TENDON and m.actuator_trnid[a, 0] in tendons)]
+    spec = robot.spec.copy()
+    for kind, ids, objs in ((mujoco.mjtObj.mjOBJ_ACTUATOR, actuators, spec.actuators),
+                            (mujoco.mjtObj.mjOBJ_EQUALITY, equalities, spec.equalities),
+                            (mujoco.mjtObj.mjOBJ_TENDON, sorted(tendons), spec.tendons),
+                            (mujoco.mjtObj.mjOBJ_JOINT, sorted(drop), spec.joints)):
+        for i in sorted(ids, reverse=True):
+            spec.delete(objs[i])
+    for key in list(spec.keys):
+        spec.delete(key)
+    kept = [j for j in range(m.njnt) if j not in drop]
+    qpos = np.concatenate([robot.home[m.jnt_qposadr[j]:m.jnt_qposadr[j] + _width(m, j, "q")] for j in kept])
+    dofs = np.concatenate([np.arange(m.jnt_dofadr[j], m.jnt_dofadr[j] + _width(m, j, "v")) for j in kept])
+    try:
+        _set_home_key(spec, qpos)
+        model = spec.compile()
+    except ValueError as e:
+        raise DesignError(f"robot '{robot.name}' without joints {sorted(m.joint(j).name for j in drop)}: {e}") from None
+    return Robot(robot.name, spec, model, robot.vel_limits[dofs].copy(), robot.acc_limits[dofs].copy(), qpos,
+                 [b for b in robot.arm_bodies if model.body(b).weldid != 0] if robot.arm_bodies else [])
+
+
+def _width(model: mujoco.MjModel, j: int, of: str) -> int:
+    """qpos ("q") or dof ("v") entries of joint j."""
+    free, ball = int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)
+    t = int(model.jnt_type[j])
+    return {free: 7 if of == "q" else 6, ball: 4 if of == "q" else 3}.get(t, 1)

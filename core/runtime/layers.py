@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from skinsafe.core.robot.kinematics import TaxelKinematics
-from skinsafe.core.robot.models import load_robot
+from skinsafe.core.robot.models import load_robot, only_joints
 from skinsafe.core.safety.defensiveness import DefensivenessLayer
 from skinsafe.core.safety.retraction import RetractionParams
 from skinsafe.core.safety.stack import SafetyStack
@@ -66,6 +66,6 @@ def stack_from_config(config: dict, design: SkinDesign) -> SafetyStack:
     if config.get("config_version") != CONFIG_VERSION:
         raise ValueError(f"record configuration version {config.get('config_version')}; this skinsafe reads "
                          f"{CONFIG_VERSION}")
-    robot = load_robot(design.robot, base_dir=Path(config["map"]).parent)
+    robot = only_joints(load_robot(design.robot, base_dir=Path(config["map"]).parent), config["joint_names"])
     return build_stack(design, robot.model, np.array(config["qd_max"]), np.array(config["qdd_max"]), config["period_s"],
                        RetractionParams(**config["retraction"]), config["tdm"])
