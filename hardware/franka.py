@@ -192,7 +192,8 @@ class FrankaDriver:
         for _ in range(int(RAMP_MAX_S / PERIOD_S)):
             done = np.abs(sent).max() <= QDD_MAX.min() * PERIOD_S and np.abs(acc).max() <= QDDD_MAX.min() * PERIOD_S
             try:
-                active.readOnce()
+                rs, _ = active.readOnce()
+                self.stats["rest_qd"] = float(np.abs(rs.dq).max())  # the arm's speed as the ramp ends
                 if done:
                     cmd = pf.JointVelocities([0.0] * 7)
                     cmd.motion_finished = True

@@ -21,6 +21,7 @@ periods of the detection), unnamed, tracebacks, records_readable (fraction), and
 """
 from __future__ import annotations
 
+import argparse
 import json
 import subprocess
 import sys
@@ -40,6 +41,7 @@ CONTACT = "post:joint=0,gap=0.01"
 SECONDS = 3.0
 STALE = ("skin-silent", "robot-state", "command-stale")
 RETRIES = 5
+FR3_SECONDS = 60.0
 
 
 def add_arguments(p) -> None:
@@ -48,6 +50,17 @@ def add_arguments(p) -> None:
     p.add_argument("--rate", type=int, default=100, help="board frames per second")
     p.add_argument("--repeats", type=int, default=2, help="runs per row")
     p.add_argument("--period", type=float, default=0.002, help="the sim's control period, s (0.002: the UR e-series' 500 Hz)")
+    p.add_argument("--robot", choices=("sim", "fr3"), default="sim", help="sim (default): the UR5 sample skin on the "
+                   "sim driver; fr3: franky-sim's FR3 over libfranka, a hand reaching into the arm (`make franky-sim`; "
+                   "give --maps)")
+    p.add_argument("--maps", nargs="+", metavar="MAP", help="--robot fr3: taxel maps designed on franky-sim's FR3 "
+                   "(README, 'The FR3 case'); one row each")
+    p.add_argument("--seconds", type=float, help=f"robot time per run (default {SECONDS:g} s; fr3 {FR3_SECONDS:g} s)")
+    p.add_argument("--link-latency", type=float, default=0.0, metavar="S",
+                   help="`skinsafe run --link-latency`: how late the host's serial input may be before a board counts "
+                        "as silent, on top of 2 frame periods (default 0)")
+    p.add_argument("--realtime", action=argparse.BooleanOptionalAction, default=True,
+                   help="--robot fr3: franky-sim's world at real-time priority where allowed (default)")
     p.add_argument("--faults", action="store_true", help="the fault storm instead (one row)")
     p.add_argument("--runs", type=int, default=204, help="--faults: runs (one fault each)")
     p.add_argument("--fault-rate", type=int, default=50, help="--faults: board frames per second (a board is silent "
@@ -94,7 +107,7 @@ def _contact():
     return Contact("post", joint=0, gap=0.01)
 
 
-def reference(design, robot, traj: Path, period: float = 0.002) -> dict:
+def reference(design, robot, traj: Path, period: float = 0.002, seconds: float = SECONDS) -> dict:
     """The same contact with the stack fed straight from the sim's readout (no boards): its world stats."""
     from skinsafe.core.runtime.commands import Trajectory
     from skinsafe.core.runtime.layers import build_stack
@@ -108,21 +121,28 @@ def reference(design, robot, traj: Path, period: float = 0.002) -> dict:
     src = Trajectory(traj, drv.joint_names, lim)
 
     def control(s):
-        if s.t >= SECONDS:
+        if s.t >= seconds:
             return None
         return stack.tick(s.t, s.q, {"force": drv.forces}, src(s.t, s.q), period, qdot=s.qd)
     drv.run(control)
     return vars(drv.stats)
 
 
-def _run(map_path: Path, traj: Path, stats: Path, rate: int, period: float) -> dict:
-    cmd = [sys.executable, "-m", "skinsafe.core.app.cli", "run", str(map_path), "--robot", "sim", "--boards", "emulate",
-           "--command", f"trajectory:{traj}", "--contact", CONTACT, "--seconds", str(SECONDS), "--rate", str(rate),
-           "--period", str(period), "--stats", str(stats)]
-    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-    if not stats.exists():
-        raise RuntimeError(f"bench runtime: `skinsafe run` exited {p.returncode} without figures: {p.stderr[-800:]}")
-    return json.loads(stats.read_text())
+def _run(args, map_path: Path, command: str, stats: Path, seconds: float, *extra: str) -> tuple[dict, int]:
+    """`skinsafe run` in its own process: its figures, and how many runs a staleness stop (nothing injected: the
+    machine's stalls) cut short before this one (each is run again, up to RETRIES times in all)."""
+    cmd = [sys.executable, "-m", "skinsafe.core.app.cli", "run", str(map_path), "--boards", "emulate", "--command", command,
+           "--seconds", str(seconds), "--rate", str(args.rate), "--link-latency", str(args.link_latency),
+           "--stats", str(stats), *extra]
+    for attempt in range(RETRIES):
+        stats.unlink(missing_ok=True)
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=600 + 20 * seconds)
+        if not stats.exists():
+            raise RuntimeError(f"bench runtime: `skinsafe run` exited {p.returncode} without figures: {p.stderr[-800:]}")
+        r = json.loads(stats.read_text())
+        if r["watchdog"] not in STALE:
+            break
+    return r, attempt
 
 
 def _ms(world: dict, key: str) -> float:
@@ -132,46 +152,109 @@ def _ms(world: dict, key: str) -> float:
 def rows(args) -> list[dict]:
     if args.faults:
         return [fault_row(args)]
+    if args.robot == "fr3":
+        return fr3_rows(args)
     from skinsafe.core.skin.taxel_map import save
 
+    seconds = args.seconds or SECONDS
     robot = build_ur5()
     out = []
     with tempfile.TemporaryDirectory(prefix="skinsafe-bench-runtime-") as tmp:
         tmp = Path(tmp)
-        traj = write_trajectory(tmp / "pan.csv", robot)
+        traj = write_trajectory(tmp / "pan.csv", robot, seconds)
         for n in args.taxels:
             design = sample_skin(n, args.capacity, robot)
             save(design, tmp / f"skin{n}.json")
-            ref = reference(design, robot, traj, args.period)
+            ref = reference(design, robot, traj, args.period, seconds)
             runs, stale = [], 0
-            for k in range(args.repeats):  # a run a false staleness stop cut short is counted, then run again
-                for attempt in range(RETRIES):
-                    r = _run(tmp / f"skin{n}.json", traj, tmp / f"stats{n}_{k}_{attempt}.json", args.rate, args.period)
-                    stale += r["watchdog"] in STALE
-                    if r["watchdog"] not in STALE:
-                        break
+            for k in range(args.repeats):
+                r, cut = _run(args, tmp / f"skin{n}.json", f"trajectory:{traj}", tmp / f"stats{n}_{k}.json", seconds,
+                              "--robot", "sim", "--contact", CONTACT, "--period", str(args.period))
                 runs.append(r)
+                stale += cut
             w = [r["world"] for r in runs]
             worst = lambda key: float(np.nanmax([r[key] for r in runs]))  # noqa: E731
+            peaks = [x["peak_N"] for x in w]
             out.append({
                 "robot": "ur5", "driver": "sim", "boards": len(design.boards), "taxels": design.n_taxels,
                 "ticks": int(sum(r["ticks"] for r in runs)), "rate_hz": args.rate, "period_ms": args.period * 1e3,
-                "runs": len(runs),
+                "link_latency_ms": args.link_latency * 1e3, "runs": len(runs),
                 "loop_hz_p50": float(np.median([r["loop_hz_p50"] for r in runs])), "period_ms_p99": worst("period_ms_p99"),
                 "latency_ms_p50": float(np.nanmedian([r["latency_ms_p50"] for r in runs])),
                 "latency_ms_p99": worst("latency_ms_p99"), "latency_ms_max": worst("latency_ms_max"),
                 "reaction_ms": float(np.nanmax([_ms(x, "reaction_t") for x in w])),
-                "peak_N": float(max(x["peak_N"] for x in w)),
+                "peak_N": float(max(peaks)),
                 "into_contact_mm_worst": float(max(x["into_contact_m"] for x in w)) * 1e3,
                 "stale_stops": stale,
                 "frames_lost": int(sum(r["frames_lost"] for r in runs)),
                 "peak_N_in_process": float(ref["peak_N"]), "reaction_ms_in_process": _ms(ref, "reaction_t"),
                 "into_contact_mm_in_process": float(ref["into_contact_m"]) * 1e3,
-                "peak_vs_in_process": float(max(x["peak_N"] for x in w) / ref["peak_N"]) if ref["peak_N"] else float("nan"),
+                "peak_vs_in_process": float(max(peaks) / ref["peak_N"]) if ref["peak_N"] else float("nan"),
+                "peak_vs_in_process_median": float(np.median(peaks) / ref["peak_N"]) if ref["peak_N"] else float("nan"),
                 "work_ms_p99": worst("work_ms_p99"), "work_ms_max": worst("work_ms_max"),
                 "latency_samples": int(sum(r["latency_samples"] for r in runs)),
+                "frame_delay_ms_max": float(max(r["skin"]["frame_delay_ms_max"] or 0.0 for r in runs)),
                 "stops": ";".join(sorted({r["kind"] + (":" + r["watchdog"] if r["watchdog"] else "") for r in runs}))})
     return out
+
+
+def write_still(path: Path, joints: list[str], q) -> Path:
+    """A trajectory that holds pose q: the arm goes back to it after every retraction."""
+    path.write_text("t," + ",".join(joints) + "\n" + "\n".join(",".join(f"{x:.9g}" for x in (t, *q)) for t in (0.0, 1.0)))
+    return path
+
+
+def fr3_rows(args) -> list[dict]:
+    """One row per map: `skinsafe run --robot fr3` against franky-sim's FR3 (its own process, at real-time priority
+    where allowed, as the robot's controller is) with a hand reaching into the arm every `Hand.period` s; the
+    command holds franky-sim's start pose (the arm goes back after each retraction), for `--seconds` of robot
+    time. The robot's clock is libfranka's (franky-sim's 1 ms steps)."""
+    from skinsafe.core.robot.models import load_robot
+    from skinsafe.core.sim.franky_world import INITIAL_Q, WorldProcess, hand_in_reach
+    from skinsafe.core.skin.taxel_map import load
+
+    if not args.maps:
+        raise ValueError("bench runtime --robot fr3: give --maps (taxel maps designed on franky-sim's FR3; README, "
+                         "'The FR3 case')")
+    seconds = args.seconds or FR3_SECONDS
+    out = []
+    with tempfile.TemporaryDirectory(prefix="skinsafe-bench-fr3-") as tmp:
+        tmp = Path(tmp)
+        for path in map(Path, args.maps):
+            design = load(path)
+            robot = load_robot(design.robot, base_dir=path.parent)
+            still = write_still(tmp / "still.csv", [robot.model.joint(j).name for j in range(7)], INITIAL_Q)
+            hand = hand_in_reach(str(path), INITIAL_Q)
+            with WorldProcess(path, tmp / "world.json", hand=hand, realtime=args.realtime) as world:
+                r, stale = _run(args, path, f"trajectory:{still}", tmp / "stats.json", seconds, "--robot", "fr3",
+                                "--host", world.host, "--feed", world.feed)
+                w = world.stop()
+            out.append(fr3_row(r, w, stale, args))
+    return out
+
+
+def fr3_row(r: dict, w: dict, stale: int, args) -> dict:
+    """A row of the sim rows' keys on the robot's clock, plus the robot's own counters."""
+    react = np.array([(b - a) * 1e3 for a, b in zip(w["onsets"], w["reactions"]) if b is not None])
+    d = r["world"]  # the driver's counters
+
+    def rnd(x, n=3):
+        return None if x is None or not np.isfinite(x) else round(float(x), n)
+    return {"robot": "fr3", "driver": "fr3", "boards": r["boards"], "taxels": r["taxels"], "ticks": r["ticks"],
+            "rate_hz": args.rate, "link_latency_ms": args.link_latency * 1e3,
+            "loop_hz_p50": rnd(r["loop_hz_robot_p50"], 1), "period_ms_p99": rnd(r["period_ms_robot_p99"]),
+            "latency_ms_p50": rnd(r["latency_ms_p50"]), "latency_ms_p99": rnd(r["latency_ms_p99"]),
+            "latency_ms_max": rnd(r["latency_ms_max"]),
+            "reaction_ms": rnd(np.median(react), 1) if len(react) else None,
+            "reaction_ms_worst": rnd(react.max(), 1) if len(react) else None,
+            "contacts": len(w["onsets"]), "contacts_reacted": len(react), "peak_N": w["peak_N"],
+            "into_contact_mm_worst": w["into_contact_mm_worst"], "stale_stops": stale, "frames_lost": r["frames_lost"],
+            "communication_stops": w["communication_stops"], "longest_missed_run": w["longest_missed_run"],
+            "states_skipped": d.get("states_skipped"), "success_rate_min": rnd(d.get("success_rate_min")),
+            "robot_s": rnd(r["robot_s"], 1), "realtime_factor": w["realtime_factor"],
+            "loop_hz_wall_p50": rnd(r["loop_hz_p50"], 1), "period_ms_wall_p99": rnd(r["period_ms_p99"]),
+            "frame_delay_ms_p99": r["skin"].get("frame_delay_ms_p99"), "frame_delay_ms_max": r["skin"].get("frame_delay_ms_max"),
+            "work_ms_p99": rnd(r["work_ms_p99"]), "stop": r["reason"]}
 
 
 def fault_row(args) -> dict:

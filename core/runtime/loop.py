@@ -53,6 +53,7 @@ class Runtime:
         self.outcome: Outcome | None = None
         self.ticks = 0
         self.starts: list[float] = []  # host time each tick began
+        self.clock: list[float] = []  # the robot's clock at each tick
         self.work: list[float] = []  # s each tick took
         self.latency: list[float] = []  # s from a frame holding a contact to its command leaving
         self._t0 = self._prev_t = self._seq = None
@@ -68,6 +69,7 @@ class Runtime:
         self.starts.append(start)
         r = self.source.newest()
         q, qd, t = state.q, state.qd, state.t
+        self.clock.append(t)
         if self._t0 is None:
             self._t0 = self._prev_t = t
             self.command.start(q)
@@ -179,13 +181,19 @@ class Runtime:
         return self.outcome
 
     def timing(self) -> dict:
-        """Loop rate, period jitter, work per tick and contact latency (ms) over the run."""
+        """Loop rate, period jitter (host clock; `_robot`: the robot's clock), work per tick and contact latency
+        (ms) over the run."""
         period = np.diff(self.starts) * 1e3 if len(self.starts) > 1 else np.zeros(1)
+        robot = np.diff(self.clock) * 1e3 if len(self.clock) > 1 else np.zeros(1)
         lat = np.array(self.latency) * 1e3 if self.latency else np.full(1, np.nan)
         work = np.array(self.work) * 1e3 if self.work else np.zeros(1)
         return {"ticks": self.ticks, "loop_hz_p50": float(1e3 / np.median(period)) if period.any() else 0.0,
                 "period_ms_p50": float(np.median(period)), "period_ms_p99": float(np.percentile(period, 99)),
-                "period_ms_max": float(period.max()), "work_ms_p50": float(np.median(work)),
+                "period_ms_max": float(period.max()),
+                "loop_hz_robot_p50": float(1e3 / np.median(robot)) if robot.any() else 0.0,
+                "period_ms_robot_p99": float(np.percentile(robot, 99)), "period_ms_robot_max": float(robot.max()),
+                "robot_s": float(self.clock[-1] - self.clock[0]) if self.clock else 0.0,
+                "work_ms_p50": float(np.median(work)),
                 "work_ms_p99": float(np.percentile(work, 99)), "work_ms_max": float(work.max()),
                 "latency_samples": len(self.latency), "latency_ms_p50": float(np.median(lat)),
                 "latency_ms_p99": float(np.percentile(lat, 99)), "latency_ms_max": float(lat.max())}

@@ -54,6 +54,8 @@ MISSED_LIMIT = 20  # cycles without a command in a row: the FR3 aborts the motio
 SUCCESS_WINDOW = 100  # cycles over which control_command_success_rate is counted
 INITIAL_Q = (0.0, 0.0, 0.0, -1.57, 0.0, 1.57, 0.785)  # franky-sim's DEFAULT_INITIAL_JOINT_POS
 COMM_ERROR = 25  # communication_constraints_violation in the wire's error array (libfranka 0.21 names it so)
+CONTACT_GAP_S = 0.05  # a contact after this long without one is a new contact (an onset)
+RETRACT_SPEED = 1e-3  # m/s out of the obstacle: the touched point's measured motion follows the retraction
 
 
 def franky_assets() -> Path:
@@ -92,6 +94,7 @@ def checked_server_class():
             self.errors = (False,) * 41
             self.reflex = False
             self.motion = 0  # the motion being counted
+            self.motion_cycle = 0  # `cycles` when it began
             self.aborted = 0  # a motion aborted this cycle: its answer follows the state that shows why
             super().__init__(robot, hostnames)
 
@@ -121,7 +124,7 @@ def checked_server_class():
             motion = self.current_motion_id
             if motion:
                 if motion != self.motion:  # a new motion: nothing missed yet
-                    self.motion, self.run, self.reflex = motion, 0, False
+                    self.motion, self.run, self.reflex, self.motion_cycle = motion, 0, False, self.cycles
                     self.window.extend([True] * SUCCESS_WINDOW)
                 self.cycles += 1
                 self.window.append(self.fresh)
@@ -139,6 +142,11 @@ def checked_server_class():
             self.aborts += 1
             self.stop_motion(send_preemption_signal=False)
             self.reset_current_motion_id()
+
+        @property
+        def motion_time(self) -> float | None:
+            """Seconds of robot time since the current motion began (None: no motion)."""
+            return (self.cycles - self.motion_cycle) * 1e-3 if self.current_motion_id else None
 
         @property
         def robot_state(self):
@@ -162,13 +170,7 @@ def obstacle_in_path(map_path: str, qd, q0, lead_s: float = 0.5, radius: float =
     any motion; a ValueError when none of the candidates is clear.
     """
     design = taxel_map.load(map_path)
-    ref = Path(design.robot.path)
-    spec = mujoco.MjSpec.from_file(str(ref if ref.is_absolute() else Path(map_path).parent / ref))
-    body = spec.worldbody.add_body(name=OBSTACLE, mocap=True)
-    body.add_geom(name=OBSTACLE, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[radius, 0, 0])
-    model = spec.compile()
-    data = mujoco.MjData(model)
-    kin, readout = TaxelKinematics(model, design), SkinReadout(model, design)
+    model, data, kin, readout = _scene(map_path, design, radius)
     qd, q0 = np.asarray(qd, float), np.asarray(q0, float)
     q = np.zeros(model.nq)
     qd_full = np.zeros(model.nv)
@@ -196,6 +198,78 @@ def obstacle_in_path(map_path: str, qd, q0, lead_s: float = 0.5, radius: float =
                      "leading taxels); choose another motion or start pose")
 
 
+@dataclasses.dataclass
+class Hand:
+    """A hand (a sphere of `radius`, m) that reaches into the arm again and again: its centre moves along -`normal`
+    through `touch` (where it first touches the skin with the arm at rest), from `gap` outside to `depth` inside
+    at `speed` (m/s), stays `hold` s, goes back, rests `rest` s; on the robot's clock of each motion, the first
+    approach after `start` s. An arm that yields (a retraction) meets it less deep, or not at all."""
+
+    touch: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    radius: float
+    gap: float = 0.03
+    depth: float = 0.02
+    speed: float = 0.1
+    hold: float = 0.2
+    rest: float = 0.8
+    start: float = 0.5
+
+    @property
+    def period(self) -> float:
+        return 2 * (self.gap + self.depth) / self.speed + self.hold + self.rest
+
+    def position(self, t: float | None) -> np.ndarray:
+        """The centre at `t` s into a motion (None, or before `start`: out at `gap`)."""
+        reach, go = self.gap + self.depth, (self.gap + self.depth) / self.speed
+        s = -1.0 if t is None or t < self.start else (t - self.start) % self.period
+        d = 0.0 if s < 0 else s * self.speed if s < go else reach if s < go + self.hold else \
+            max(0.0, reach - (s - go - self.hold) * self.speed)
+        return np.asarray(self.touch) + np.asarray(self.normal) * (self.gap - d)
+
+    def arg(self) -> str:
+        """The `serve --hand=` value."""
+        return ",".join(f"{v:.9g}" for v in (*self.touch, self.radius, *self.normal))
+
+
+def hand_in_reach(map_path: str, q0, radius: float = 0.04, gap: float = 0.03, depth: float = 0.02,
+                  candidates: int = 64) -> Hand:
+    """A `Hand` reaching into the arm at rest at `q0` whose first contact is on skin, from `gap` outside the skin
+    to `depth` inside. Candidates: the taxels facing furthest out from the base's axis (a hand comes from the
+    room), each checked by sweeping the hand along its normal; a ValueError when none is clear."""
+    design = taxel_map.load(map_path)
+    model, data, kin, readout = _scene(map_path, design, radius)
+    q = np.zeros(model.nq)
+    q[:7] = np.asarray(q0, float)
+    pos, frames = (a.copy() for a in kin.poses(q))
+    normal = frames[:, :, 2]
+    reach = np.linalg.norm(pos[:, :2], axis=1)
+    out = np.einsum("ni,ni->n", normal[:, :2], pos[:, :2] / np.maximum(reach, 1e-9)[:, None])
+    geom = model.geom(OBSTACLE).id
+    for i in np.argsort(-out * reach)[:candidates]:
+        touch = pos[i] + radius * normal[i]
+        for k, s in enumerate(np.linspace(gap, -depth, 51)):
+            data.qpos[:] = q
+            data.mocap_pos[0] = touch + s * normal[i]
+            mujoco.mj_forward(model, data)
+            if (data.contact.geom[: data.ncon] == geom).any():
+                if k and readout.read(data).max() > 0 and readout.last_missed == 0:
+                    return Hand(tuple(map(float, touch)), tuple(map(float, normal[i])), radius, gap, depth)
+                break
+    raise ValueError(f"no hand of radius {radius} m reaches skin first at this pose (tried {candidates} outward-facing "
+                     "taxels); give another pose or radius")
+
+
+def _scene(map_path: str, design, radius: float):
+    """The map's robot with a mocap sphere named OBSTACLE: (model, data, TaxelKinematics, SkinReadout)."""
+    ref = Path(design.robot.path)
+    spec = mujoco.MjSpec.from_file(str(ref if ref.is_absolute() else Path(map_path).parent / ref))
+    body = spec.worldbody.add_body(name=OBSTACLE, mocap=True)
+    body.add_geom(name=OBSTACLE, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[radius, 0, 0])
+    model = spec.compile()
+    return model, mujoco.MjData(model), TaxelKinematics(model, design), SkinReadout(model, design)
+
+
 def onboard_design(map_path: str):
     """The taxel map, its body names as franky-sim names them (`robot0_fr3_link1`, ...)."""
     design = taxel_map.load(map_path)
@@ -203,19 +277,23 @@ def onboard_design(map_path: str):
 
 
 class FrankyWorld:
-    """franky-sim's MuJoCo FR3, a sphere obstacle, the skin readout into a force feed, and the stats."""
+    """franky-sim's MuJoCo FR3, a sphere obstacle or a moving hand, the skin readout into a force feed, and the stats."""
 
     def __init__(self, map_path: str, feed_name: str | None, obstacle: tuple[float, float, float, float] | None,
-                 initial_q=None, hostname: str | None = None):
+                 initial_q=None, hostname: str | None = None, hand: Hand | None = None):
         from franky_sim import SimulationServer
         from franky_sim.mujoco_simulator import MujocoSimulator
 
         self.design, design = onboard_design(map_path)
         self.sim = MujocoSimulator()
         self.robot = self.sim.add_robot(initial_q=INITIAL_Q if initial_q is None else initial_q)
+        self.hand = hand
+        if hand is not None:
+            obstacle = (*hand.position(None), hand.radius)
         if obstacle is not None:
             x, y, z, r = obstacle
-            body = ET.SubElement(self.sim.worldbody, "body", name=OBSTACLE, pos=f"{x} {y} {z}")
+            body = ET.SubElement(self.sim.worldbody, "body", name=OBSTACLE, pos=f"{x} {y} {z}",
+                                 **({"mocap": "true"} if hand is not None else {}))
             ET.SubElement(body, "geom", name=OBSTACLE, type="sphere", size=f"{r}", rgba="0.9 0.6 0.5 1")
         server_cls = checked_server_class()
 
@@ -236,12 +314,18 @@ class FrankyWorld:
         self.readout.read(self.sim.data, warm=True)
         self.feed = ForceFeed.create(feed_name, self.design.n_taxels)
         self.obstacle_geom = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, OBSTACLE)
-        self.peak_n = 0.0
+        self.mocap = int(model.body_mocapid[model.geom_bodyid[self.obstacle_geom]]) if hand is not None else -1
+        self.peak_n = 0.0  # the largest taxel force
+        self.contact_n = 0.0  # the largest normal force between the obstacle and the robot (its contacts summed)
         self.depth_worst = 0.0
-        self.onsets: list[float] = []  # robot times at which the sphere's contact with the robot began
-        self.touching = False
+        self.onsets: list[float] = []  # robot times at which a contact of the obstacle with the robot began
+        self.reactions: list[float | None] = []  # per onset: when the touched point first moved away from it
+        self._touch = None  # (body, point in its frame, direction out of the obstacle) of the open contact
+        self.last_touch = -np.inf  # robot time the obstacle last touched the robot
         self.missed_contacts = 0
-        self.readout_s: list[float] = []
+        self.readout_s: deque[float] = deque(maxlen=100_000)
+        self._jac = np.zeros((3, model.nv))
+        self._centre = None  # the obstacle's centre at the last step
         self.sim.register_post_step_callback(self._after_step)
 
     @property
@@ -258,35 +342,68 @@ class FrankyWorld:
         self.missed_contacts += self.readout.last_missed
         if forces.size:
             self.peak_n = max(self.peak_n, float(forces.max()))
-        hit = np.zeros(0, bool)
-        if self.obstacle_geom >= 0 and data.ncon:
-            con = data.contact
-            hit = (con.geom[: data.ncon] == self.obstacle_geom).any(axis=1)
-            if hit.any():
-                self.depth_worst = max(self.depth_worst, float(-con.dist[: data.ncon][hit].min()))
-        if hit.any() and not self.touching:
-            self.onsets.append(t)
-        self.touching = bool(hit.any())
+        if self.mocap >= 0:  # the hand's place at the next step
+            data.mocap_pos[self.mocap] = self.hand.position(self.rs.motion_time)
+        self._contact_stats(data, t)
+
+    def _contact_stats(self, data, t: float) -> None:
+        """Onsets (a contact after CONTACT_GAP_S without), the deepest penetration, the largest contact force, and
+        per onset the robot time the touched point first moved out of the obstacle by itself: faster than
+        RETRACT_SPEED, and faster than the obstacle comes after it (a hand pushing the arm along is no reaction)."""
+        model, con = self.sim.model, data.contact
+        centre = data.geom_xpos[self.obstacle_geom].copy() if self.obstacle_geom >= 0 else np.zeros(3)
+        v_obstacle = (centre - self._centre) / model.opt.timestep if self._centre is not None else np.zeros(3)
+        self._centre = centre
+        hit = np.flatnonzero((con.geom[: data.ncon] == self.obstacle_geom).any(axis=1)) if data.ncon else []
+        if len(hit):
+            self.depth_worst = max(self.depth_worst, float(-con.dist[hit].min()))
+            f, total = np.zeros(6), 0.0
+            for k in hit:
+                mujoco.mj_contactForce(model, data, int(k), f)
+                total += abs(f[0])
+            self.contact_n = max(self.contact_n, total)
+            if not 0 <= t - self.last_touch <= CONTACT_GAP_S:  # (the robot's clock restarts with each connection)
+                k = int(hit[np.argmin(con.dist[hit])])
+                g = int(con.geom[k][0] if con.geom[k][1] == self.obstacle_geom else con.geom[k][1])
+                body, point = int(model.geom_bodyid[g]), con.pos[k].copy()
+                out = (point - centre) / max(np.linalg.norm(point - centre), 1e-9)
+                local = data.xmat[body].reshape(3, 3).T @ (point - data.xpos[body])
+                self.onsets.append(t)
+                self.reactions.append(None)
+                self._touch = (body, local, out)
+            self.last_touch = t
+        if self._touch is not None and self.reactions[-1] is None:
+            body, local, out = self._touch
+            point = data.xpos[body] + data.xmat[body].reshape(3, 3) @ local
+            mujoco.mj_jac(model, data, self._jac, None, point, body)
+            v = self._jac @ data.qvel
+            if float(out @ v) > RETRACT_SPEED and float(out @ (v - v_obstacle)) > RETRACT_SPEED:
+                self.reactions[-1] = t
 
     def run(self, stop: list[int], period: float = 1e-3) -> dict:
-        """Step at the robot's 1 kHz until `stop` is non-empty; the stats."""
+        """Step at the robot's 1 kHz until `stop` is non-empty; the stats. Each cycle starts at its deadline, and
+        never sooner than half a period after the last state went out: a world behind real time still gives the
+        client the time to answer that the robot's cycle gives it (stepping on at once would count cycles as
+        missed that a real FR3 would not)."""
         wall0 = nxt = time.perf_counter()
         steps = 0
         while not stop:
             self.server.run_once(realtime=False)
+            sent = time.perf_counter()
             steps += 1
             nxt += period
-            now = time.perf_counter()
-            if nxt > now:
-                time.sleep(nxt - now)
-            elif now - nxt > period:  # behind by more than a cycle: slow down, never burst
-                nxt = now
+            if sent - nxt > period:  # behind by more than a cycle: slow down, never burst
+                nxt = sent
+            wait = max(nxt, sent + period / 2) - sent
+            if wait > 0:
+                time.sleep(wait)
         wall = time.perf_counter() - wall0
         rs, rd = self.rs, np.asarray(self.readout_s) * 1e3
         return {"steps": steps, "wall_s": round(wall, 3), "realtime_factor": round(steps * period / wall, 3),
                 "motion_cycles": rs.cycles, "commands": rs.commands, "missed_cycles": rs.missed,
                 "longest_missed_run": rs.longest_run, "communication_stops": rs.aborts,
-                "onsets": self.onsets, "peak_N": round(self.peak_n, 3),
+                "onsets": self.onsets, "reactions": self.reactions, "peak_N": round(self.contact_n, 3),
+                "taxel_peak_N": round(self.peak_n, 3),
                 "into_contact_mm_worst": round(1e3 * self.depth_worst, 3),
                 "contacts_on_bare_surface": self.missed_contacts, "taxels": self.design.n_taxels,
                 "readout_ms_p50": round(float(np.percentile(rd, 50)), 4) if rd.size else None,
@@ -309,7 +426,8 @@ class WorldProcess:
     """`serve` in franky-sim's own interpreter as a child process; `.host` and `.feed` once it is ready,
     `.stop()` ends it (SIGINT) and returns its stats."""
 
-    def __init__(self, map_path: str | Path, stats_path: str | Path, obstacle=None, q0=None, timeout: float = 60.0):
+    def __init__(self, map_path: str | Path, stats_path: str | Path, obstacle=None, q0=None, timeout: float = 60.0,
+                 hand: Hand | None = None, realtime: bool = False):
         py = franky_python()
         if not py.exists():
             raise FileNotFoundError(f"franky-sim's environment is missing ({py}); run `make franky-sim`")
@@ -318,6 +436,10 @@ class WorldProcess:
             cmd.append("--obstacle=" + ",".join(f"{v:.9g}" for v in obstacle))  # "=": values may start with "-"
         if q0 is not None:
             cmd.append("--q0=" + ",".join(f"{v:.9g}" for v in q0))
+        if hand is not None:
+            cmd += ["--hand=" + hand.arg(), "--hand-speed", str(hand.speed), "--hand-rest", str(hand.rest)]
+        if realtime:
+            cmd.append("--realtime")
         self.stats_path = Path(stats_path)
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
         self.host = self.feed = None
@@ -372,14 +494,28 @@ def _floats(text: str, n: int, what: str) -> tuple[float, ...]:
     return v
 
 
+def _realtime() -> None:
+    """SCHED_FIFO for this process where the system allows it (else normal priority, silently)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+    except (AttributeError, PermissionError, OSError):
+        pass
+
+
 def serve(args) -> int:
     stop: list[int] = []
     for s in (signal.SIGTERM, signal.SIGINT):
         signal.signal(s, lambda signum, _f: stop.append(signum))
     obstacle = _floats(args.obstacle, 4, "--obstacle") if args.obstacle else None
     q0 = _floats(args.q0, 7, "--q0") if args.q0 else None
+    hand = None
+    if args.hand:
+        v = _floats(args.hand, 7, "--hand")
+        hand = Hand(v[:3], v[4:], v[3], speed=args.hand_speed, rest=args.hand_rest)
+    if args.realtime:
+        _realtime()
     try:
-        world = FrankyWorld(args.map, args.feed, obstacle, q0, args.hostname)
+        world = FrankyWorld(args.map, args.feed, obstacle, q0, args.hostname, hand)
     except (DesignError, OSError) as e:
         print(f"franky_world: error: {e}", file=sys.stderr)
         return 1
@@ -409,10 +545,27 @@ def main(argv=None) -> int:
     s.add_argument("map", help="taxel map designed on the FR3 from `mjcf`")
     s.add_argument("--feed", help="name of the shared-memory force feed to create (default: a unique name)")
     s.add_argument("--obstacle", metavar="X,Y,Z,R", help="a sphere in the world, m")
+    s.add_argument("--hand", metavar="X,Y,Z,R,NX,NY,NZ", help="a hand (sphere) reaching into the arm again and again "
+                   "along -N through X,Y,Z (from `hand MAP`)")
+    s.add_argument("--hand-speed", type=float, default=Hand.speed, help="m/s of the hand")
+    s.add_argument("--hand-rest", type=float, default=Hand.rest, help="s the hand rests out of reach between reaches")
+    s.add_argument("--realtime", action="store_true", help="run at real-time priority (SCHED_FIFO) where allowed, "
+                   "as the robot's own controller does")
     s.add_argument("--q0", metavar="Q1,...,Q7", help="initial joint positions (default franky-sim's)")
     s.add_argument("--hostname", help="loopback address to serve on (default: the first free 127.x.y.z)")
     s.add_argument("--stats", help="write the run's stats (JSON) here at exit")
+    h = sub.add_parser("hand", help="print X,Y,Z,R,NX,NY,NZ of a hand that reaches the arm at rest on skin first")
+    h.add_argument("map")
+    h.add_argument("--q0", metavar="Q1,...,Q7", help="the arm's pose (default franky-sim's initial pose)")
+    h.add_argument("--radius", type=float, default=0.04, help="hand radius, m")
     args = p.parse_args(argv)
+    if args.cmd == "hand":
+        q0 = _floats(args.q0, 7, "--q0") if args.q0 else INITIAL_Q
+        try:
+            print(hand_in_reach(args.map, q0, args.radius).arg())
+        except (DesignError, ValueError) as e:
+            raise SystemExit(f"franky_world hand: error: {e}") from None
+        return 0
     if args.cmd == "mjcf":
         print(write_mjcf(args.out))
         return 0
