@@ -49,7 +49,8 @@ def add_arguments(p) -> None:
     p.add_argument("--capacity", type=int, default=1024, help="channels per board")
     p.add_argument("--rate", type=int, default=100, help="board frames per second")
     p.add_argument("--repeats", type=int, default=2, help="runs per row")
-    p.add_argument("--period", type=float, default=0.002, help="the sim's control period, s (0.002: the UR e-series' 500 Hz)")
+    p.add_argument("--period", type=float, default=0.001, help="the sim's control period, s (default 0.001: a frame "
+                   "waits at most 1 ms for the tick that uses it)")
     p.add_argument("--robot", choices=("sim", "fr3"), default="sim", help="sim (default): the UR5 sample skin on the "
                    "sim driver; fr3: franky-sim's FR3 over libfranka, a hand reaching into the arm (`make franky-sim`; "
                    "give --maps)")
@@ -62,6 +63,9 @@ def add_arguments(p) -> None:
     p.add_argument("--realtime", action=argparse.BooleanOptionalAction, default=True,
                    help="--robot fr3: franky-sim's world at real-time priority where allowed (default)")
     p.add_argument("--faults", action="store_true", help="the fault storm instead (one row)")
+    p.add_argument("--links", action="store_true", help="instead: how late the host's serial input arrives through "
+                   "pseudo-terminals and pipes, waiting with poll and epoll (core/bench/links.py; --seconds each, "
+                   "default 30)")
     p.add_argument("--runs", type=int, default=204, help="--faults: runs (one fault each)")
     p.add_argument("--fault-rate", type=int, default=50, help="--faults: board frames per second (a board is silent "
                    "after 2 frame periods: 40 ms, so a 50 ms delay trips it and the machine's stalls mostly do not)")
@@ -152,6 +156,10 @@ def _ms(world: dict, key: str) -> float:
 def rows(args) -> list[dict]:
     if args.faults:
         return [fault_row(args)]
+    if args.links:
+        from skinsafe.core.bench.links import rows as link_rows
+
+        return link_rows(args.seconds or 30.0)
     if args.robot == "fr3":
         return fr3_rows(args)
     from skinsafe.core.skin.taxel_map import save

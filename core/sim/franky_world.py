@@ -43,6 +43,7 @@ import numpy as np
 
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.sim.readout import SkinReadout
+from skinsafe.core.sim.scene import TIP_MASS, TIP_SOLREF
 from skinsafe.core.skin import taxel_map
 from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.force_feed import ForceFeed
@@ -200,14 +201,16 @@ def obstacle_in_path(map_path: str, qd, q0, lead_s: float = 0.5, radius: float =
 
 @dataclasses.dataclass
 class Hand:
-    """A hand (a sphere of `radius`, m) that reaches into the arm again and again: its centre moves along -`normal`
-    through `touch` (where it first touches the skin with the arm at rest), from `gap` outside to `depth` inside
-    at `speed` (m/s), stays `hold` s, goes back, rests `rest` s; on the robot's clock of each motion, the first
-    approach after `start` s. An arm that yields (a retraction) meets it less deep, or not at all."""
+    """A hand (a sphere of `radius`, m, on a spring of `stiffness`) that reaches into the arm again and again: its
+    holder moves along -`normal` through `touch` (where the hand first touches the skin, the arm at rest), from
+    `gap` outside to `depth` inside at `speed` (m/s), stays `hold` s, goes back, rests `rest` s; on the robot's
+    clock of each motion, the first approach after `start` s. An arm that yields (a retraction) meets it less
+    deep, or not at all."""
 
     touch: tuple[float, float, float]
     normal: tuple[float, float, float]
     radius: float
+    stiffness: float = 20e3  # N/m of the spring it rides on (the sim's contacts'): a hand, not a rigid body
     gap: float = 0.03
     depth: float = 0.02
     speed: float = 0.1
@@ -233,20 +236,22 @@ class Hand:
 
 
 def hand_in_reach(map_path: str, q0, radius: float = 0.04, gap: float = 0.03, depth: float = 0.02,
-                  candidates: int = 64) -> Hand:
+                  candidates: int = 512) -> Hand:
     """A `Hand` reaching into the arm at rest at `q0` whose first contact is on skin, from `gap` outside the skin
-    to `depth` inside. Candidates: the taxels facing furthest out from the base's axis (a hand comes from the
-    room), each checked by sweeping the hand along its normal; a ValueError when none is clear."""
+    to `depth` inside. Candidates: the taxels facing out from the base's axis (a hand comes from the room) that
+    the arm's joints move best along their normal (it can get out of the hand's way), each checked by sweeping
+    the hand along its normal; a ValueError when none is clear."""
     design = taxel_map.load(map_path)
     model, data, kin, readout = _scene(map_path, design, radius)
     q = np.zeros(model.nq)
     q[:7] = np.asarray(q0, float)
-    pos, frames = (a.copy() for a in kin.poses(q))
+    J, pos, frames = (a.copy() for a in kin.jacobians(q))
     normal = frames[:, :, 2]
     reach = np.linalg.norm(pos[:, :2], axis=1)
     out = np.einsum("ni,ni->n", normal[:, :2], pos[:, :2] / np.maximum(reach, 1e-9)[:, None])
+    lever = np.linalg.norm(np.einsum("nij,ni->nj", J[:, :3, :7], normal), axis=1)  # m/s along n per rad/s
     geom = model.geom(OBSTACLE).id
-    for i in np.argsort(-out * reach)[:candidates]:
+    for i in np.argsort(-np.maximum(out, 0) * lever)[:candidates]:
         touch = pos[i] + radius * normal[i]
         for k, s in enumerate(np.linspace(gap, -depth, 51)):
             data.qpos[:] = q
@@ -254,7 +259,7 @@ def hand_in_reach(map_path: str, q0, radius: float = 0.04, gap: float = 0.03, de
             mujoco.mj_forward(model, data)
             if (data.contact.geom[: data.ncon] == geom).any():
                 if k and readout.read(data).max() > 0 and readout.last_missed == 0:
-                    return Hand(tuple(map(float, touch)), tuple(map(float, normal[i])), radius, gap, depth)
+                    return Hand(tuple(map(float, touch)), tuple(map(float, normal[i])), radius, gap=gap, depth=depth)
                 break
     raise ValueError(f"no hand of radius {radius} m reaches skin first at this pose (tried {candidates} outward-facing "
                      "taxels); give another pose or radius")
@@ -288,12 +293,17 @@ class FrankyWorld:
         self.sim = MujocoSimulator()
         self.robot = self.sim.add_robot(initial_q=INITIAL_Q if initial_q is None else initial_q)
         self.hand = hand
-        if hand is not None:
-            obstacle = (*hand.position(None), hand.radius)
-        if obstacle is not None:
+        if hand is not None:  # a mocap holder; the hand rides on a sprung tip along its path (as scene.Obstacle's)
+            x, y, z = hand.position(None)
+            body = ET.SubElement(self.sim.worldbody, "body", name=f"{OBSTACLE}_holder", pos=f"{x} {y} {z}", mocap="true")
+            body = ET.SubElement(body, "body", name=f"{OBSTACLE}_tip", gravcomp="1")
+            ET.SubElement(body, "joint", name=f"{OBSTACLE}_spring", type="slide", axis=" ".join(map(str, hand.normal)),
+                          stiffness=str(hand.stiffness), damping=str(2 * np.sqrt(hand.stiffness * TIP_MASS)))
+            ET.SubElement(body, "geom", name=OBSTACLE, type="sphere", size=f"{hand.radius}", mass=str(TIP_MASS),
+                          priority="1", solref=" ".join(map(str, TIP_SOLREF)), rgba="0.9 0.6 0.5 1")
+        elif obstacle is not None:
             x, y, z, r = obstacle
-            body = ET.SubElement(self.sim.worldbody, "body", name=OBSTACLE, pos=f"{x} {y} {z}",
-                                 **({"mocap": "true"} if hand is not None else {}))
+            body = ET.SubElement(self.sim.worldbody, "body", name=OBSTACLE, pos=f"{x} {y} {z}")
             ET.SubElement(body, "geom", name=OBSTACLE, type="sphere", size=f"{r}", rgba="0.9 0.6 0.5 1")
         server_cls = checked_server_class()
 
@@ -314,7 +324,7 @@ class FrankyWorld:
         self.readout.read(self.sim.data, warm=True)
         self.feed = ForceFeed.create(feed_name, self.design.n_taxels)
         self.obstacle_geom = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, OBSTACLE)
-        self.mocap = int(model.body_mocapid[model.geom_bodyid[self.obstacle_geom]]) if hand is not None else -1
+        self.mocap = int(model.body_mocapid[model.body(f"{OBSTACLE}_holder").id]) if hand is not None else -1
         self.peak_n = 0.0  # the largest taxel force
         self.contact_n = 0.0  # the largest normal force between the obstacle and the robot (its contacts summed)
         self.depth_worst = 0.0
