@@ -85,13 +85,14 @@ def _stop_boards(ports: dict[int, str]) -> None:
 
     for port in ports.values():
         try:
-            with BoardClient(port, timeout=0.1, retries=2) as c:
+            with BoardClient(port, timeout=1.0, retries=4) as c:  # behind a backlog of frames a loaded host passes slowly
                 c.stop_stream()
         except BoardError:
             pass
 
 
-def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out: Path, rate: int) -> dict:
+def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out: Path, rate: int,
+            link_latency: float = 0.0) -> dict:
     """One `skinsafe run` with the fault `kind` at `at` s after the robot starts moving."""
     from skinsafe.core.app import run as run_cmd
     from skinsafe.core.app.cli import module_args
@@ -115,7 +116,8 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
             t.start()
 
     args = module_args(run_cmd, "skinsafe run", "", [str(map_path), "--boards", "emulate", "--command", command,
-                                                     "--rate", str(rate), "--tare-frames", "10", "--seconds", "3",
+                                                     "--rate", str(rate), "--link-latency", str(link_latency),
+                                                     "--tare-frames", "10", "--seconds", "3",
                                                      "--record", str(record), "--stats", str(stats), *extra], "run")
     err, tb = io.StringIO(), ""
     t0 = time.monotonic()
@@ -153,6 +155,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--rate", type=int, default=50,
                    help="board frames per second (50: a board is silent after 40 ms; a 50 ms delay still trips it)")
+    p.add_argument("--link-latency", type=float, default=0.0, metavar="S", help="`skinsafe run --link-latency` (a frame "
+                   "delay is then 3 frame periods + this)")
     p.add_argument("--json", action="store_true", help="print the per-run rows as one JSON list")
     args = p.parse_args(argv)
     from skinsafe.core.app.run import _realtime
@@ -173,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
                 raise SystemExit("runtime faults: deploying the sample map to the emulated boards failed")
             for k in tqdm(range(args.runs), desc="fault runs", file=sys.stderr):
                 rows.append(one_run(k, _kind(k), float(rng.uniform(0.1, 0.8)), tmp / "skin.json", feed, ports,
-                                    robot.home, tmp, args.rate))
+                                    robot.home, tmp, args.rate, args.link_latency))
                 for f in tmp.glob(f"run{k}.*"):
                     f.unlink()
     print(json.dumps(rows) if args.json else "\n".join(map(str, rows)))

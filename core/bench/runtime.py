@@ -267,7 +267,7 @@ def fr3_row(r: dict, w: dict, stale: int, args) -> dict:
 
 def fault_row(args) -> dict:
     cmd = [sys.executable, "-m", "skinsafe.core.app.runtime_faults", "--runs", str(args.runs), "--seed", str(args.seed),
-           "--rate", str(args.fault_rate), "--json"]
+           "--rate", str(args.fault_rate), "--link-latency", str(args.link_latency), "--json"]
     p = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, timeout=7200)
     if p.returncode:
         raise RuntimeError(f"bench runtime --faults: the fault storm exited {p.returncode}")
@@ -280,7 +280,7 @@ def fault_row(args) -> dict:
             "records_readable": float(np.mean([r["record_readable"] for r in runs])),
             "named_as_injected": float(np.mean([r["named_as_injected"] for r in runs])),
             "stop_periods_max": float(max((r["stop_periods"] for r in stopped), default=float("nan"))),
-            "rate_hz": args.fault_rate, "seconds": float(sum(r["seconds"] for r in runs)),
+            "rate_hz": args.fault_rate, "link_latency_ms": args.link_latency * 1e3, "seconds": float(sum(r["seconds"] for r in runs)),
             **{f"runs_{k.replace('-', '_')}": sum(r["fault"] == k for r in runs) for k in kinds},
             **{f"other_first_{k.replace('-', '_')}": sum(r["fault"] == k and not r["named_as_injected"] for r in runs)
                for k in kinds}}
