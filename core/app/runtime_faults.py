@@ -61,18 +61,6 @@ def _readable(record: Path) -> bool:
         return False
 
 
-def _teleop(port: int, home: np.ndarray, stop: threading.Event) -> None:
-    from skinsafe.core.runtime.commands import teleop_datagram
-
-    out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    k = 0
-    while not stop.is_set():
-        out.sendto(teleop_datagram(k, home), ("127.0.0.1", port))
-        k += 1
-        time.sleep(0.01)
-    out.close()
-
-
 def _free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -96,6 +84,7 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
     """One `skinsafe run` with the fault `kind` at `at` s after the robot starts moving."""
     from skinsafe.core.app import run as run_cmd
     from skinsafe.core.app.cli import module_args
+    from skinsafe.core.runtime.leader import stream
 
     record, stats = out / f"run{k}.mcap", out / f"run{k}.json"
     command, extra, stop = "hold", [], threading.Event()
@@ -103,7 +92,8 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
     if kind == "command-silent":
         port = _free_port()
         command = f"teleop:{port}"
-        threading.Thread(target=_teleop, args=(port, home, stop), daemon=True).start()
+        threading.Thread(target=stream, args=(("127.0.0.1", port), np.array([0.0, 1.0]), np.stack([home, home]), stop),
+                         daemon=True).start()
     elif kind != "ctrl-c":
         extra = ["--inject", f"{kind}@{at:.3f}"]
 

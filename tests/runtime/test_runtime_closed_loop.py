@@ -10,7 +10,6 @@ import socket
 import subprocess
 import sys
 import threading
-import time
 
 import numpy as np
 import pytest
@@ -19,7 +18,7 @@ from mcap_ros2.decoder import DecoderFactory
 
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.models import build_ur5
-from skinsafe.core.runtime.commands import teleop_datagram
+from skinsafe.core.runtime.leader import stream
 from skinsafe.core.skin.taxel_map import save
 
 LINK_LATENCY = 0.5  # s: the host's serial input may be this late before a board is named silent
@@ -104,13 +103,8 @@ def test_a_trajectory_into_the_post_is_turned_back(skin, tmp_path):
 
 def _teleop(port: int, stop: threading.Event):
     """Leader-arm datagrams at 100 Hz (the UR5's home pose) until `stop`."""
-    out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    home, k = build_ur5().home, 0
-    while not stop.is_set():
-        out.sendto(teleop_datagram(k, home), ("127.0.0.1", port))
-        k += 1
-        time.sleep(0.01)
-    out.close()
+    home = build_ur5().home
+    stream(("127.0.0.1", port), np.array([0.0, 1.0]), np.stack([home, home]), stop)
 
 
 @pytest.mark.parametrize("inject, reason, kind", [
