@@ -326,15 +326,24 @@ def damping_point(damping: float, quick: bool, where: str | None = None) -> dict
 
 
 def stretching_taxel(kin, design, q) -> int:
-    """The wrist_1 taxel whose retraction direction -z points most outward along the arm (from
-    the shoulder to the wrist): retracting it stretches the arm toward its elbow singularity."""
+    """The taxel whose retraction direction -z points most outward along the arm (from the origin
+    of the skin's most proximal link to the middle of the taxel's own link): retracting it
+    stretches the arm toward its elbow singularity. On the UR5 sample skin, one on wrist_1_link."""
     import mujoco
 
-    on = np.flatnonzero(design.taxels.body == design.bodies.index("wrist_1_link"))
     pos, frames = kin.poses(q)
-    shoulder = kin.data.xpos[mujoco.mj_name2id(kin.model, mujoco.mjtObj.mjOBJ_BODY, "upper_arm_link")]
-    out = pos[on].mean(axis=0) - shoulder
-    return int(on[np.argmax(-frames[on, :, 2] @ (out / np.linalg.norm(out)))])
+    ids = [mujoco.mj_name2id(kin.model, mujoco.mjtObj.mjOBJ_BODY, b) for b in design.bodies]
+    shoulder = kin.data.xpos[min(ids)]  # bodies come in tree order: a parent before its children
+    best, score = 0, -np.inf
+    for bi in range(len(design.bodies)):
+        on = np.flatnonzero(design.taxels.body == bi)
+        if not len(on):
+            continue
+        out = pos[on].mean(axis=0) - shoulder
+        s = -frames[on, :, 2] @ (out / max(np.linalg.norm(out), 1e-12))
+        if s.max() > score:
+            best, score = int(on[np.argmax(s)]), float(s.max())
+    return best
 
 
 def path_error(path: np.ndarray, ref: np.ndarray) -> float:
