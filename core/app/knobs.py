@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from skinsafe.core.app.knob_skins import map_pitch, map_probe_points, probe_bodies, retiled, skin_of
+from skinsafe.core.app.knob_skins import map_pitch, map_probe_points, retiled, skin_of
 
 PROBE_R, PROBE_DEPTH = 0.01, 0.003  # m, density knob probes
 SAMPLE_DT = 0.008  # s between force samples of the timestep knob (every swept timestep divides it)
@@ -69,7 +69,7 @@ def _probe_scene(design, robot, **opts):
     from skinsafe.core.sim.probes import Probes
     from skinsafe.core.sim.scene import SceneOptions, build_scene
 
-    probes = Probes(design, robot, probe_bodies(design))
+    probes = Probes(design, robot)
     model = build_scene(design, robot, probes.obstacles, SceneOptions(**opts)).compile()
     data = mujoco.MjData(model)
     mujoco.mj_resetDataKeyframe(model, data, 0)
