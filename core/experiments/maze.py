@@ -13,8 +13,10 @@ The full protocol (the default; issue 31), the same effort for every method:
 2. evaluation: each chosen configuration on held-out seeds (`--seeds`, default 10-19), reported per
    seed and as means with 95% intervals; the claim (Fig. 9b: the -TDM variants have the fewest total
    contacts) is decided per pair by Welch's interval of the difference (`claim_check`);
-3. ablation on the evaluation seeds: each -TDM extra removed in turn (`TDM_EXTRAS`) and each one that
-   applies given to RRL and SQRL (`BASELINE_EXTRAS`).
+3. ablation: each -TDM extra removed in turn (`TDM_EXTRAS`) and each one that applies given to RRL and
+   SQRL (`BASELINE_EXTRAS`), on the first `--ablation-seeds` evaluation seeds (default 10-14) for the
+   first `ABLATION_EPISODES` (50) episodes, where nearly all -TDM contacts happen, each against the same
+   episodes of its method's evaluation runs (a run's first 50 episodes do not depend on how many follow).
 
 `--demo` and `--quick` are single-stage runs of the default configurations (the demo's reduced run and
 the test suite's smoke run). Writes `maze_results.json` (`summary`, `eval_seeds`, `tuning`, `per_seed`,
@@ -42,7 +44,8 @@ from skinsafe.core.skin.files import atomic_write
 METHODS = ("SAC", "SAC-RP", "SAC-TDM", "AC", "AC-RP", "AC-TDM", "RRL", "CPO", "SQRL")
 TDM_METHODS = ("SAC-TDM", "AC-TDM")
 FULL = dict(seeds=10, episodes=100, max_steps=200)  # the evaluation stage of the full protocol
-PROTOCOL = dict(tuning_seeds=[0, 1], eval_seeds=list(range(10, 20)))
+PROTOCOL = dict(tuning_seeds=[0, 1], eval_seeds=list(range(10, 20)), ablation_seeds=list(range(10, 15)))
+ABLATION_EPISODES = 50
 DEMO = dict(seeds=2, episodes=60, max_steps=200)
 QUICK = dict(seeds=1, episodes=2, max_steps=20)
 PRESETS = {"full": FULL, "demo": DEMO, "quick": QUICK}
@@ -105,6 +108,9 @@ def add_arguments(p) -> None:
                                    "(--demo/--quick: 0-1 / 0)")
     p.add_argument("--tuning-seeds", default="0-1", help="tuning seeds of the full protocol (default %(default)s)")
     p.add_argument("--configs", type=int, help="configurations searched per method (default all: 3); the same for every method")
+    p.add_argument("--ablation-seeds", default="10-14", help="evaluation seeds the ablation runs on (default %(default)s)")
+    p.add_argument("--ablation-episodes", type=int, default=ABLATION_EPISODES,
+                   help="episodes of every ablation run (default %(default)s, at most --episodes)")
     p.add_argument("--no-ablation", action="store_true", help="full protocol without the ablation stage")
     p.add_argument("--episodes", type=int, help="training episodes per run (overrides the preset)")
     p.add_argument("--max-steps", type=int, help="macro-actions per episode (overrides the preset)")
@@ -378,25 +384,34 @@ def ablation_tasks(chosen: dict, methods, cfg, seeds) -> list[tuple[dict, dict]]
     return out
 
 
+def first_episodes(run: dict, n: int) -> dict:
+    """A run cut to its first `n` episodes (training is causal: those episodes are the same in a shorter run)."""
+    return {**run, **{k: run[k][:n] for k in ("returns", "costs", "goals", "steps")}}
+
+
 def ablation_rows(heads_runs, eval_runs: list[dict], chosen: dict) -> list[dict]:
-    """The ablation table: per method its chosen configuration (the evaluation runs), then each variant:
-    mean total contacts and its 95% interval, the difference to the chosen one with Welch's interval."""
+    """The ablation table: per method its chosen configuration (its evaluation runs on the ablation's seeds,
+    cut to the ablation's episodes), then each variant: mean total contacts and its 95% interval, the
+    difference to the chosen one with Welch's interval."""
     groups: dict[str, tuple[dict, list]] = {}
     for head, run in heads_runs:
         groups.setdefault(head["variant"], (head, []))[1].append(run_row(run))
+    seeds = {r["seed"] for _, r in heads_runs}
+    episodes = min((len(r["costs"]) for _, r in heads_runs), default=0)
     rows, base = [], {}
     for m in dict.fromkeys(h["method"] for h, _ in groups.values()):
-        ref = [run_row(r) for r in eval_runs if r["method"] == m]
+        ref = [run_row(first_episodes(r, episodes)) for r in eval_runs if r["method"] == m and r["seed"] in seeds]
         base[m] = [r["total_contacts"] for r in ref]
         mu, ci = mean_ci(base[m])
         rows.append({"method": m, "variant": f"{m} (chosen configuration)", "removed": None, "added": None,
-                     "agent_kw": chosen[m], "total_contacts_mean": mu, "ci95": ci,
-                     "goal_rate_last_mean": float(np.mean([r["goal_rate_last"] for r in ref])), "seeds": len(ref)})
+                     "agent_kw": chosen[m], "total_contacts_mean": mu, "ci95": ci, "episodes": episodes,
+                     "goal_rate_last_mean": float(np.mean([r["goal_rate_last"] for r in ref])), "seeds": len(ref),
+                     "per_seed": [{k: r[k] for k in ("seed", "total_contacts", "goal_rate_last")} for r in ref]})
         for head, rs in (g for g in groups.values() if g[0]["method"] == m):
             x = [r["total_contacts"] for r in rs]
             mu, ci = mean_ci(x)
             d, dci = diff_ci(base[m], x)
-            rows.append({**head, "total_contacts_mean": mu, "ci95": ci,
+            rows.append({**head, "total_contacts_mean": mu, "ci95": ci, "episodes": episodes,
                          "goal_rate_last_mean": float(np.mean([r["goal_rate_last"] for r in rs])),
                          "difference_to_chosen": d, "difference_ci95": dci, "seeds": len(rs),
                          "per_seed": [{k: r[k] for k in ("seed", "total_contacts", "goal_rate_last")} for r in rs]})
@@ -430,7 +445,8 @@ def markdown_table(summary: dict, per_seed: list[dict] | None = None, tuning: di
                 text += (f"| {m} | {json.dumps(c['config']) if c['config'] else 'default'} | {c['total_contacts_mean']:.1f} | "
                          f"{c['goal_rate_last_mean']:.2f} | {'**yes**' if i == rec['chosen_index'] else ''} |\n")
     if ablation:
-        text += ("\nAblation (evaluation seeds): total contacts, mean [95% interval]; difference to the chosen "
+        text += (f"\nAblation (seeds {', '.join(str(p['seed']) for p in ablation[0]['per_seed'])}, the first "
+                 f"{ablation[0]['episodes']} episodes): total contacts, mean [95% interval]; difference to the chosen "
                  "configuration [Welch 95% interval]\n\n| variant | removed / added | total contacts | difference | "
                  "goal rate, last 20 |\n| --- | --- | --- | --- | --- |\n")
         for r in ablation:
@@ -541,7 +557,14 @@ def run(args) -> int:
     else:
         chosen = {m: agent_kw(m, {}, cfg["episodes"], extra) for m in methods}
     eval_tasks = [_task(m, s, cfg, chosen[m]) for s in cfg["eval_seeds"] for m in methods]
-    abl = ablation_tasks(chosen, methods, cfg, cfg["eval_seeds"]) if full and not args.no_ablation else []
+    abl = []
+    if full and not args.no_ablation:
+        abl_seeds = parse_seeds(getattr(args, "ablation_seeds", "10-14"))
+        if not set(abl_seeds) <= set(cfg["eval_seeds"]):
+            raise SystemExit(f"skinsafe experiment maze: --ablation-seeds {abl_seeds} must be evaluation seeds ({cfg['eval_seeds']}): "
+                             "each variant is compared with its method's evaluation runs")
+        n = min(getattr(args, "ablation_episodes", ABLATION_EPISODES), cfg["episodes"])
+        abl = ablation_tasks(chosen, methods, dict(cfg, episodes=n), abl_seeds)
     try:
         done = _run(eval_tasks + [t for _, t in abl], out, args, "maze evaluation" + (" + ablation" if abl else ""))
     finally:

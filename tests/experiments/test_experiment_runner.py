@@ -129,7 +129,8 @@ def test_full_protocol_tunes_evaluates_on_held_out_seeds_and_ablates(tmp_path):
     p = argparse.ArgumentParser()
     maze.add_arguments(p)
     args = p.parse_args(["--out", str(tmp_path), "--methods", "AC-TDM,CPO", "--configs", "2", "--tuning-seeds", "0",
-                         "--seeds", "10-11", "--episodes", "2", "--max-steps", "8", "--workers", "1", "--no-progress"])
+                         "--seeds", "10-11", "--episodes", "2", "--max-steps", "8", "--ablation-seeds", "10-11",
+                         "--ablation-episodes", "1", "--workers", "1", "--no-progress"])
     assert maze.run(args) == 0
     doc = json.loads((tmp_path / "maze_results.json").read_text())
     assert doc["eval_seeds"] == [10, 11]
@@ -147,8 +148,22 @@ def test_full_protocol_tunes_evaluates_on_held_out_seeds_and_ablates(tmp_path):
         assert {"variant", "removed", "total_contacts_mean", "ci95"} <= set(r) and r["ci95"][0] <= r["total_contacts_mean"] <= r["ci95"][1]
     per = [p["total_contacts"] for p in rows["AC-TDM - visit-count shrinkage"]["per_seed"]]
     assert rows["AC-TDM - visit-count shrinkage"]["total_contacts_mean"] == pytest.approx(np.mean(per))
+    # each variant against the same (first) episodes of its method's evaluation runs
+    ref = rows["AC-TDM (chosen configuration)"]
+    assert ref["episodes"] == 1 and [p["total_contacts"] for p in ref["per_seed"]] == [
+        r["costs"][0] for r in doc["runs"] if r["method"] == "AC-TDM"]
     cpo_budget = doc["tuning"]["CPO"]["chosen_agent_kw"]["cost_limit"]
     assert cpo_budget == pytest.approx(68 / 2)  # the maze's wall-facing moves over the run's episodes
     assert "Ablation" in (tmp_path / "maze_contacts.md").read_text()
     with pytest.raises(SystemExit, match="held-out"):
         maze.run(p.parse_args(["--out", str(tmp_path), "--tuning-seeds", "0-1", "--seeds", "1-3"]))
+
+
+@pytest.mark.parametrize("method, kw", [("AC-TDM", None), ("SAC-TDM", None), ("SQRL", {"offline_transitions": 60, "pretrain_steps": 5})])
+def test_a_shorter_run_is_the_start_of_a_longer_one(method, kw):
+    """The ablation compares its shorter runs with the first episodes of the evaluation runs: that needs
+    a run's first episodes not to depend on how many follow."""
+    long, short = (run_one(method, 3, n, 12, kw) for n in (3, 2))
+    for k in ("costs", "returns", "steps", "goals"):
+        assert short[k] == long[k][:2]
+    assert maze.first_episodes(long, 2)["costs"] == short["costs"]
