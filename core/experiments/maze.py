@@ -7,16 +7,21 @@ cached in `--out`/tasks and reused by a restarted run).
 The full protocol (the default; issue 31), the same effort for every method:
 
 1. tuning: every method's `TUNING` configurations (the same number for each, its previous default
-   first) on the tuning seeds (`--tuning-seeds`, default 0-1); the chosen configuration is the one with
-   the lowest mean total contacts among those whose mean goal rate over the last 20 episodes is at
-   least 0.8, else the one with the highest such goal rate (`choose`);
+   first) on the tuning seeds (`--tuning-seeds`, default 0-1) for `TUNING_EPISODES` (50) episodes; the
+   chosen configuration is the one with the lowest mean total contacts among those whose mean goal rate
+   over the last 20 of those episodes is at least 0.8, else the one with the highest such goal rate
+   (`choose`);
 2. evaluation: each chosen configuration on held-out seeds (`--seeds`, default 10-19), reported per
    seed and as means with 95% intervals; the claim (Fig. 9b: the -TDM variants have the fewest total
    contacts) is decided per pair by Welch's interval of the difference (`claim_check`);
 3. ablation: each -TDM extra removed in turn (`TDM_EXTRAS`) and each one that applies given to RRL and
-   SQRL (`BASELINE_EXTRAS`), on the first `--ablation-seeds` evaluation seeds (default 10-14) for the
-   first `ABLATION_EPISODES` (50) episodes, where nearly all -TDM contacts happen, each against the same
-   episodes of its method's evaluation runs (a run's first 50 episodes do not depend on how many follow).
+   SQRL (`BASELINE_EXTRAS`), on evaluation seeds 10-12 (`--ablation-seeds`) for the first
+   `ABLATION_EPISODES` (30) episodes, where nearly all -TDM contacts happen, each against the same
+   episodes of its method's evaluation runs (a run's first episodes do not depend on how many follow).
+
+The budget (issue 31: the full grids within 60 min on 2 cores) is set by the cost of a run: ~3-5 ms of
+CPU per macro-action for the SAC family (one gradient step per step), ~1 ms for AC and CPO; a run that
+never reaches the goal takes all 100 x 200 macro-actions. README "The full grid" has the estimate.
 
 `--demo` and `--quick` are single-stage runs of the default configurations (the demo's reduced run and
 the test suite's smoke run). Writes `maze_results.json` (`summary`, `eval_seeds`, `tuning`, `per_seed`,
@@ -44,8 +49,9 @@ from skinsafe.core.skin.files import atomic_write
 METHODS = ("SAC", "SAC-RP", "SAC-TDM", "AC", "AC-RP", "AC-TDM", "RRL", "CPO", "SQRL")
 TDM_METHODS = ("SAC-TDM", "AC-TDM")
 FULL = dict(seeds=10, episodes=100, max_steps=200)  # the evaluation stage of the full protocol
-PROTOCOL = dict(tuning_seeds=[0, 1], eval_seeds=list(range(10, 20)), ablation_seeds=list(range(10, 15)))
-ABLATION_EPISODES = 50
+PROTOCOL = dict(tuning_seeds=[0, 1], eval_seeds=list(range(10, 20)), ablation_seeds=list(range(10, 13)))
+TUNING_EPISODES = 50
+ABLATION_EPISODES = 30
 DEMO = dict(seeds=2, episodes=60, max_steps=200)
 QUICK = dict(seeds=1, episodes=2, max_steps=20)
 PRESETS = {"full": FULL, "demo": DEMO, "quick": QUICK}
@@ -106,9 +112,11 @@ def add_arguments(p) -> None:
     p.set_defaults(preset="full")
     p.add_argument("--seeds", help="evaluation seeds, a range or a list: 10-19 (full default) or 11,12,13 "
                                    "(--demo/--quick: 0-1 / 0)")
-    p.add_argument("--tuning-seeds", default="0-1", help="tuning seeds of the full protocol (default %(default)s)")
+    p.add_argument("--tuning-seeds", help="tuning seeds of the full protocol (default 0-1)")
+    p.add_argument("--tuning-episodes", type=int, default=TUNING_EPISODES,
+                   help="episodes of every tuning run (default %(default)s, at most --episodes)")
     p.add_argument("--configs", type=int, help="configurations searched per method (default all: 3); the same for every method")
-    p.add_argument("--ablation-seeds", default="10-14", help="evaluation seeds the ablation runs on (default %(default)s)")
+    p.add_argument("--ablation-seeds", help="evaluation seeds the ablation runs on (default 10-12)")
     p.add_argument("--ablation-episodes", type=int, default=ABLATION_EPISODES,
                    help="episodes of every ablation run (default %(default)s, at most --episodes)")
     p.add_argument("--no-ablation", action="store_true", help="full protocol without the ablation stage")
@@ -361,8 +369,8 @@ def tune(methods, cfg, seeds, k, out, args, extra) -> tuple[dict, list[dict]]:
                          "goal_rate_last_mean": float(np.mean([r["goal_rate_last"] for r in rs])),
                          "per_seed": [{k_: r[k_] for k_ in ("seed", "total_contacts", "goal_rate_last")} for r in rs]})
         i = choose(rows)
-        record[m] = {"configs": rows, "tuning_seeds": list(seeds), "chosen": rows[i]["config"], "chosen_index": i,
-                     "chosen_agent_kw": rows[i]["agent_kw"], "criterion": CRITERION}
+        record[m] = {"configs": rows, "tuning_seeds": list(seeds), "episodes": cfg["episodes"], "chosen": rows[i]["config"],
+                     "chosen_index": i, "criterion": CRITERION}
     return record, runs
 
 
@@ -547,19 +555,18 @@ def run(args) -> int:
         k = args.configs or max(len(v) for v in TUNING.values())
         if k < 1:
             raise SystemExit(f"skinsafe experiment maze: --configs must be >= 1, got {k}")
-        tuning_seeds = parse_seeds(getattr(args, "tuning_seeds", "0-1"))
+        tuning_seeds = parse_seeds(getattr(args, "tuning_seeds", None) or PROTOCOL["tuning_seeds"])
         overlap = sorted(set(tuning_seeds) & set(cfg["eval_seeds"]))
         if overlap:
             raise SystemExit(f"skinsafe experiment maze: seeds {overlap} are both tuning and evaluation seeds; "
                              "evaluate on held-out seeds (e.g. --tuning-seeds 0-1 --seeds 10-19)")
-        tuning, stage_runs["tuning"] = tune(methods, cfg, tuning_seeds, k, out, args, extra)
-        chosen = {m: tuning[m]["chosen_agent_kw"] for m in methods}
-    else:
-        chosen = {m: agent_kw(m, {}, cfg["episodes"], extra) for m in methods}
+        n = min(getattr(args, "tuning_episodes", TUNING_EPISODES), cfg["episodes"])
+        tuning, stage_runs["tuning"] = tune(methods, dict(cfg, episodes=n), tuning_seeds, k, out, args, extra)
+    chosen = {m: agent_kw(m, tuning[m]["chosen"] if tuning else {}, cfg["episodes"], extra) for m in methods}
     eval_tasks = [_task(m, s, cfg, chosen[m]) for s in cfg["eval_seeds"] for m in methods]
     abl = []
     if full and not args.no_ablation:
-        abl_seeds = parse_seeds(getattr(args, "ablation_seeds", "10-14"))
+        abl_seeds = parse_seeds(getattr(args, "ablation_seeds", None) or PROTOCOL["ablation_seeds"])
         if not set(abl_seeds) <= set(cfg["eval_seeds"]):
             raise SystemExit(f"skinsafe experiment maze: --ablation-seeds {abl_seeds} must be evaluation seeds ({cfg['eval_seeds']}): "
                              "each variant is compared with its method's evaluation runs")
@@ -572,6 +579,8 @@ def run(args) -> int:
     runs, abl_runs = done[:len(eval_tasks)], done[len(eval_tasks):]
     stage_runs["evaluation"], stage_runs["ablation"] = runs, abl_runs
     summary = summarise(runs, methods)
+    for m in methods:
+        summary["methods"][m]["agent_kw"] = chosen[m]
     summary["config"] = {k: cfg[k] for k in ("seeds", "episodes", "max_steps")}
     summary["wall_seconds"] = time.perf_counter() - t0
     summary["task_seconds"] = float(sum(r["seconds"] for r in runs))

@@ -129,7 +129,7 @@ def test_full_protocol_tunes_evaluates_on_held_out_seeds_and_ablates(tmp_path):
     p = argparse.ArgumentParser()
     maze.add_arguments(p)
     args = p.parse_args(["--out", str(tmp_path), "--methods", "AC-TDM,CPO", "--configs", "2", "--tuning-seeds", "0",
-                         "--seeds", "10-11", "--episodes", "2", "--max-steps", "8", "--ablation-seeds", "10-11",
+                         "--seeds", "10-11", "--episodes", "2", "--tuning-episodes", "1", "--max-steps", "8", "--ablation-seeds", "10-11",
                          "--ablation-episodes", "1", "--workers", "1", "--no-progress"])
     assert maze.run(args) == 0
     doc = json.loads((tmp_path / "maze_results.json").read_text())
@@ -152,8 +152,9 @@ def test_full_protocol_tunes_evaluates_on_held_out_seeds_and_ablates(tmp_path):
     ref = rows["AC-TDM (chosen configuration)"]
     assert ref["episodes"] == 1 and [p["total_contacts"] for p in ref["per_seed"]] == [
         r["costs"][0] for r in doc["runs"] if r["method"] == "AC-TDM"]
-    cpo_budget = doc["tuning"]["CPO"]["chosen_agent_kw"]["cost_limit"]
-    assert cpo_budget == pytest.approx(68 / 2)  # the maze's wall-facing moves over the run's episodes
+    cpo = doc["summary"]["methods"]["CPO"]["agent_kw"]
+    assert cpo == {**doc["tuning"]["CPO"]["chosen"], "cost_limit": pytest.approx(68 / 2)}  # wall-facing moves over the run's episodes
+    assert doc["tuning"]["CPO"]["configs"][0]["agent_kw"]["cost_limit"] == pytest.approx(68 / 1)  # tuning ran 1 episode
     assert "Ablation" in (tmp_path / "maze_contacts.md").read_text()
     with pytest.raises(SystemExit, match="held-out"):
         maze.run(p.parse_args(["--out", str(tmp_path), "--tuning-seeds", "0-1", "--seeds", "1-3"]))
