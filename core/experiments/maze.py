@@ -271,7 +271,9 @@ def claim_check(rows: dict, per_seed: list[dict] | None = None, learned_at: floa
               f"method, {best_other}.")
     else:
         bad = {k: p for k, p in pairs.items() if p["verdict"] != "lower"}
-        s += ("The paper's claim does not hold here: " + "; ".join(
+        reversed_ = any(p["verdict"] == "higher" for p in bad.values())
+        s += (("The paper's claim does not hold here: " if reversed_ else
+               "The paper's claim is not resolved at 95% here (no pair reversed, some intervals contain 0): ") + "; ".join(
             f"{k}: difference {p['difference']:.1f} [{p['ci95'][0]:.1f}, {p['ci95'][1]:.1f}] ({p['verdict']})"
             for k, p in bad.items()) + f". On the means alone it {'holds' if holds_on_means else 'does not hold'}.")
     own = [f"{m} has {100 * (1 - mean[m] / mean[m[:-4]]):.0f}% fewer contacts than {m[:-4]}"
@@ -303,7 +305,8 @@ def claim_check(rows: dict, per_seed: list[dict] | None = None, learned_at: floa
         s += (f" Learning: {', '.join(learned)} reach the goal in >= {learned_at:.0%} of the last {LAST} episodes."
               if not slow else f" Learning: {', '.join(slow)} reach{'es' if len(slow) == 1 else ''} the goal in fewer than "
               f"{learned_at:.0%} of the last {LAST} episodes, so this budget does not show the trained behaviour of the paper.")
-    return {"holds": bool(holds), "holds_on_means": bool(holds_on_means), "holds_among_goal_reaching": holds_r,
+    verdict = "holds" if holds else "does not hold" if any(p["verdict"] == "higher" for p in pairs.values()) else "not resolved"
+    return {"holds": bool(holds), "verdict": verdict, "holds_on_means": bool(holds_on_means), "holds_among_goal_reaching": holds_r,
             "measure": key, "pairs": pairs, "best_tdm": best_tdm, "best_other": best_other,
             "ratio_best_other_to_best_tdm": ratio, "seeds_beaten": beaten, "learned": learned,
             "all_learned": bool(learned) and all(learned.values()), "statement": s}

@@ -396,3 +396,27 @@ def test_the_tdm_extras_can_each_be_removed():
     for agent in (full, bare):
         agent.shield.add(feats(env.place(1, 1, 1))[0], FORWARD, danger)
     assert full.shield.stats()["grad_steps"] == 100 and bare.shield.stats()["fits"] == 0
+
+
+def test_claim_is_decided_on_intervals_over_seeds_and_names_the_seeds_that_break_it():
+    def per_seed(tdm, rrl, rrl_goal=1.0, offline=0.0):
+        return ([{"method": "SAC-TDM", "seed": i, "total_contacts": t, "online_contacts": t, "goal_rate_last": 1.0}
+                 for i, t in enumerate(tdm)]
+                + [{"method": "RRL", "seed": i, "total_contacts": t + offline, "online_contacts": t, "goal_rate_last": rrl_goal}
+                   for i, t in enumerate(rrl)])
+
+    def rows(ps):
+        return {m: {"goal_rate_last_mean": float(np.mean([p["goal_rate_last"] for p in ps if p["method"] == m])),
+                    "seeds": sum(p["method"] == m for p in ps)} for m in ("SAC-TDM", "RRL")}
+
+    ps = per_seed([60, 62, 64, 66], [100, 110, 105, 95])
+    c = experiment_maze.claim_check(rows(ps), ps)
+    assert c["verdict"] == "holds" and c["pairs"]["SAC-TDM vs RRL"]["ci95"][0] > 0 and c["seeds_beaten"] == []
+    ps = per_seed([60, 62, 64, 66], [40, 150, 45, 160])  # RRL lower on two seeds, higher on two: wide interval
+    c = experiment_maze.claim_check(rows(ps), ps)
+    assert c["verdict"] == "not resolved" and not c["holds"] and c["holds_on_means"]
+    assert [(b["seed"], b["total_contacts"]) for b in c["seeds_beaten"]] == [(0, 40), (2, 45)] and "seed 0: 40" in c["statement"]
+    ps = per_seed([60, 62, 64, 66], [30, 31, 29, 30], offline=900)  # online fewer, but the offline phase counts
+    c = experiment_maze.claim_check(rows(ps), ps)
+    online = experiment_maze.claim_check(rows(ps), ps, key="online_contacts")
+    assert c["verdict"] == "holds" and online["verdict"] == "does not hold" and "does not hold" in online["statement"]
