@@ -15,7 +15,7 @@ The full protocol (the default; issue 31), the same effort for every method:
    seed and as means with 95% intervals; the claim (Fig. 9b: the -TDM variants have the fewest total
    contacts) is decided per pair by Welch's interval of the difference (`claim_check`);
 3. ablation: each -TDM extra removed in turn (`TDM_EXTRAS`) and each one that applies given to RRL and
-   SQRL (`BASELINE_EXTRAS`), on evaluation seeds 10-12 (`--ablation-seeds`) for the first
+   SQRL (`BASELINE_EXTRAS`), on the first three evaluation seeds (10-12, `--ablation-seeds`) for the first
    `ABLATION_EPISODES` (30) episodes, where nearly all -TDM contacts happen, each against the same
    episodes of its method's evaluation runs (a run's first episodes do not depend on how many follow).
 
@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -49,7 +50,7 @@ from skinsafe.core.skin.files import atomic_write
 METHODS = ("SAC", "SAC-RP", "SAC-TDM", "AC", "AC-RP", "AC-TDM", "RRL", "CPO", "SQRL")
 TDM_METHODS = ("SAC-TDM", "AC-TDM")
 FULL = dict(seeds=10, episodes=100, max_steps=200)  # the evaluation stage of the full protocol
-PROTOCOL = dict(tuning_seeds=[0, 1], eval_seeds=list(range(10, 20)), ablation_seeds=list(range(10, 13)))
+PROTOCOL = dict(tuning_seeds=[0, 1], eval_seeds=list(range(10, 20)), ablation_seeds=3)  # the first 3 evaluation seeds
 TUNING_EPISODES = 50
 ABLATION_EPISODES = 30
 DEMO = dict(seeds=2, episodes=60, max_steps=200)
@@ -116,7 +117,7 @@ def add_arguments(p) -> None:
     p.add_argument("--tuning-episodes", type=int, default=TUNING_EPISODES,
                    help="episodes of every tuning run (default %(default)s, at most --episodes)")
     p.add_argument("--configs", type=int, help="configurations searched per method (default all: 3); the same for every method")
-    p.add_argument("--ablation-seeds", help="evaluation seeds the ablation runs on (default 10-12)")
+    p.add_argument("--ablation-seeds", help="evaluation seeds the ablation runs on (default the first three: 10-12)")
     p.add_argument("--ablation-episodes", type=int, default=ABLATION_EPISODES,
                    help="episodes of every ablation run (default %(default)s, at most --episodes)")
     p.add_argument("--no-ablation", action="store_true", help="full protocol without the ablation stage")
@@ -351,8 +352,7 @@ def _run(tasks, out, args, desc, keep_ray: bool = False) -> list[dict]:
 
 
 def _stop_ray() -> None:
-    import sys
-
+    """End a Ray this process started (without importing Ray when no stage needed it)."""
     if "ray" in sys.modules and sys.modules["ray"].is_initialized():
         sys.modules["ray"].shutdown()
 
@@ -569,7 +569,8 @@ def run(args) -> int:
     eval_tasks = [_task(m, s, cfg, chosen[m]) for s in cfg["eval_seeds"] for m in methods]
     abl = []
     if full and not args.no_ablation:
-        abl_seeds = parse_seeds(getattr(args, "ablation_seeds", None) or PROTOCOL["ablation_seeds"])
+        named = getattr(args, "ablation_seeds", None)
+        abl_seeds = parse_seeds(named) if named else cfg["eval_seeds"][:PROTOCOL["ablation_seeds"]]
         if not set(abl_seeds) <= set(cfg["eval_seeds"]):
             raise SystemExit(f"skinsafe experiment maze: --ablation-seeds {abl_seeds} must be evaluation seeds ({cfg['eval_seeds']}): "
                              "each variant is compared with its method's evaluation runs")
