@@ -57,6 +57,7 @@ from skinsafe.core.skin.files import atomic_write
 
 METHODS = ("vanilla", "tdm", "tdm2")
 LABEL_SETS = {"binary": "binary", "soft": "distance"}  # result name -> `TrackingConfig.labels`
+RUN_COST = {"tdm2": 60.0, "tdm": 25.0, "vanilla": 1.0}  # CPU s of a 10-episode task (measured): the longest start first
 HELD_OUT = tuple(range(10, 20))  # the full run's seeds: the soft labels and the scene were developed on 0-2
 STATE = MOVING  # s = (pan, lift, elbow, wrist 1) angles, a = their executed velocities
 
@@ -266,7 +267,7 @@ def run_experiment(cfg: TrackingConfig, progress: bool = True, cache: str | Path
                   if m != "vanilla" or name == cfg.label_sets[0]]
     with tempfile.TemporaryDirectory() as tmp:
         out = run_tasks(run_method, tasks, cache or tmp, address=address, workers=workers, progress=progress,
-                        desc="tracking runs", fresh=fresh)
+                        desc="tracking runs", fresh=fresh, cost=lambda t: RUN_COST[t["method"]])
     results = {"config": config, "labels": {}, "balls": {}, "path_contact_ticks": {}}
     for name in cfg.label_sets:
         results["labels"][name] = {"runs": {}, "last": {}, "cpu_seconds": {}}
@@ -295,20 +296,27 @@ def _late(rows: list[dict]) -> float:
 
 
 def summary(results: dict) -> list[dict]:
-    """Per method: contact ticks per episode (mean over seeds, `contacts_per_episode`), of the first and
-    last episode, over all and over episodes 6-10 (mean, std and 95% interval over seeds), tracking error."""
+    """Per method (flat rows, for tables): contact ticks of the first and last episode, over all and over
+    episodes 6-10 (mean, std and 95% interval over seeds), tracking error."""
     out = []
     for method, by_seed in results["runs"].items():
         c = np.array([[r["contacts"] for r in rows] for rows in by_seed.values()], float)  # (seeds, episodes)
         err = np.array([[r["tracking_error"] for r in rows] for rows in by_seed.values()])
         first_zero = [next((r["episode"] for r in rows if r["contacts"] == 0), None) for rows in by_seed.values()]
         late = [_late(rows) for rows in by_seed.values()]
+        lo, hi = mean_ci(late)[1]
         out.append({"method": method, "contacts_first": float(c[:, 0].mean()), "contacts_last": float(c[:, -1].mean()),
                     "contacts_mean": float(c.mean()), "contacts_ep6_10": float(np.mean(late)),
                     "contacts_ep6_10_std": float(np.std(late, ddof=1)) if len(late) > 1 else 0.0,
-                    "contacts_ep6_10_ci95": mean_ci(late)[1], "contacts_per_episode": c.mean(0).tolist(),
+                    "contacts_ep6_10_ci95_low": lo, "contacts_ep6_10_ci95_high": hi,
                     "tracking_error_mm": float(err.mean() * 1e3), "first_zero_episode": first_zero, "seeds": len(late)})
     return out
+
+
+def contacts_per_episode(results: dict) -> dict:
+    """{method: contact ticks per episode, mean over seeds} (Fig. 11e)."""
+    return {m: np.mean([[r["contacts"] for r in rows] for rows in by_seed.values()], axis=0).tolist()
+            for m, by_seed in results["runs"].items()}
 
 
 def per_seed(results: dict) -> list[dict]:
@@ -357,7 +365,7 @@ def markdown_table(table: list[dict], claim: dict, seeds: list[dict] | None = No
         "| method | contact ticks, episode 1 | episodes 6-10: mean [95% interval] (std) over seeds | last episode | "
         "all episodes | tracking error (mm) |", "| --- | --- | --- | --- | --- | --- |"]
     for r in table:
-        lo, hi = r.get("contacts_ep6_10_ci95", [r["contacts_ep6_10"]] * 2)
+        lo, hi = r.get("contacts_ep6_10_ci95_low", r["contacts_ep6_10"]), r.get("contacts_ep6_10_ci95_high", r["contacts_ep6_10"])
         lines.append(f"| {r['method']} | {r['contacts_first']:.1f} | {r['contacts_ep6_10']:.1f} [{lo:.1f}, {hi:.1f}] "
                      f"({r['contacts_ep6_10_std']:.1f}) | {r['contacts_last']:.1f} | {r['contacts_mean']:.1f} | "
                      f"{r['tracking_error_mm']:.0f} |")
@@ -472,7 +480,7 @@ def run(args) -> int:
     md = []
     for name, res in results["labels"].items():
         table, seeds = summary(res), per_seed(res)
-        res.update(summary=table, per_seed=seeds, claim=claim_check(table, seeds))
+        res.update(summary=table, contacts_per_episode=contacts_per_episode(res), per_seed=seeds, claim=claim_check(table, seeds))
         md.append(markdown_table(table, res["claim"], seeds, TITLES[name]))
     primary = results["labels"]["binary" if "binary" in results["labels"] else cfg.label_sets[0]]
     cpu = sum(v for res in results["labels"].values() for by in res["cpu_seconds"].values() for v in by.values())

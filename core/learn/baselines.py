@@ -91,7 +91,7 @@ class _RiskSAC(DiscreteSAC):
                  shrink: bool = False, contact_steps: int = 0, **kw):
         super().__init__(*args, **kw)
         self.risk = SafetyCritic(self.feat_dim, self.n_actions, self.hidden, gamma_safe, lr=self.lr)
-        self.opt.add_param_group({"params": self.risk.q.parameters(), "lr": self.lr})
+        self.opt.param_groups[0]["params"] += list(self.risk.q.parameters())  # same lr: the same fused group
         self.eps_risk, self.pos_fraction = float(eps_risk), float(pos_fraction)
         self.offline_transitions, self.pretrain_steps = int(offline_transitions), int(pretrain_steps)
         self.floor, self.contact_steps = float(floor), int(contact_steps)
