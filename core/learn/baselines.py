@@ -9,7 +9,7 @@ As their reference specifies (recovery-rl's scripts/maze.sh and arg_utils.py; is
 - an offline phase before online training (recovery-rl runs it for Recovery RL and for its SQRL, both
   with a safety critic): `offline_transitions` transitions of random 20-step rollouts from random
   placements (recovery-rl's `transition_function`; 10,000 there, 20% of its 500 x 100-step budget, here
-  `offline_transitions` = 4,000 of 100 x 200), Q_risk pre-trained on them for `pretrain_steps` (10,000
+  `offline_transitions` = 4,000, 25% of the maze's 80 x 200), Q_risk pre-trained on them for `pretrain_steps` (10,000
   there, 2,000 here: 32 passes over the data) and kept in its replay. The offline contacts are reported
   apart from the online ones (`offline_contacts`), as recovery-rl counts them apart;
 - the safety critic's batches hold `pos_fraction` = 30% transitions with a contact;
