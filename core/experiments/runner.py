@@ -1,7 +1,7 @@
 """Experiments as Ray tasks: one task per (method, seed), results cached per task.
 
 `run_tasks(fn, tasks, cache)` runs `fn(**task)` for every task dict as a Ray task (one CPU each).
-Each finished task is written at once to `cache/<method>_s<seed>_<digest>.json` (atomically) together with
+Each finished task is written at once to `cache/<method>_s<seed>[_<digest>].json` (atomically) together with
 the task it ran and a digest of every skinsafe source file loaded where it ran, so a restarted run
 reuses every task whose file holds the same task (the same method, seed and configuration) run by
 the same code, and only runs the rest (a changed default in an agent re-runs its tasks). Ray is local by default (`workers`
@@ -24,11 +24,11 @@ from skinsafe.core.skin.files import atomic_write
 
 
 def task_file(cache: Path, task: dict) -> Path:
-    """`<method>_s<seed>_<digest>.json`: the digest (8 hex digits) of everything else in the task, so runs
-    of other configurations, budgets or variants never share a file."""
-    rest = {k: v for k, v in task.items() if k not in ("method", "seed")}
-    tag = hashlib.sha1(json.dumps(rest, sort_keys=True).encode()).hexdigest()[:8]
-    return Path(cache) / f"{task['method']}_s{task['seed']}_{tag}.json"
+    """`<method>_s<seed>.json`, with a short digest of the run's configuration when it has one (`agent_kw`,
+    `config`), so configurations and variants never share a file (the task itself is checked on reuse)."""
+    conf = {k: task[k] for k in ("agent_kw", "config") if task.get(k)}
+    tag = "_" + hashlib.sha1(json.dumps(conf, sort_keys=True).encode()).hexdigest()[:8] if conf else ""
+    return Path(cache) / f"{task['method']}_s{task['seed']}{tag}.json"
 
 
 def cached(cache: Path, task: dict) -> dict | None:

@@ -7,7 +7,9 @@ action space and `info["cost"]`, `info["taxel_danger"]`): `act(obs) -> action`,
 `observe(obs, action, reward, cost, danger, next_obs, terminated, truncated)`, `end_episode()`,
 and, for the policy filter, `action_probs(features) -> (B, A)`.
 
-Choices that make them learn (issue 16):
+Choices that make them learn (issue 16); each -TDM extra among them can be switched off for the
+ablation of issue 31 (`raw_floor=0`, `unfiltered_entropy=False`, `shrink=False`, `contact_steps=0`;
+`core.experiments.maze.TDM_EXTRAS`):
 
 - The TDM is refitted every `refit_every` environment steps (25 gradient steps, warm started) and after
   every contact event (100, with the new contact in every batch: a uniform batch of thousands of safe

@@ -14,7 +14,7 @@ def test_tasks_run_on_ray_are_cached_and_reused(tmp_path, monkeypatch):
     assert [(r["method"], r["seed"]) for r in first] == [(t["method"], t["seed"]) for t in tasks]
     assert all(len(r["costs"]) == 1 and r["steps"][0] <= 6 for r in first)
     files = sorted(p.name for p in tmp_path.glob("*.json"))
-    assert files == sorted(runner.task_file(tmp_path, t).name for t in tasks) and files[0].startswith("AC_s0_")
+    assert files == ["AC_s0.json", "AC_s1.json", "CPO_s0.json", "CPO_s1.json"]
 
     import ray
 
@@ -57,8 +57,10 @@ def test_agent_overrides_get_their_own_task_file_and_reach_the_agent(tmp_path):
         maze.tdm_overrides(p.parse_args(["--tdm-prior-count", "-1"]))
     plain = {"method": "AC-TDM", "seed": 0, "episodes": 1, "max_steps": 5}
     tuned = dict(plain, agent_kw=kw)
-    names = {runner.task_file(tmp_path, t).name for t in (plain, tuned, dict(plain, agent_kw={"unseen_max": 0.5}), dict(plain, episodes=2))}
-    assert len(names) == 4 and all(n.startswith("AC-TDM_s0_") for n in names)  # configurations and budgets never share a file
+    assert runner.task_file(tmp_path, plain).name == "AC-TDM_s0.json"
+    names = {runner.task_file(tmp_path, t).name for t in (tuned, dict(plain, agent_kw={"unseen_max": 0.5}),
+                                                          dict(plain, config={"labels": "binary"}), dict(plain, config={"labels": "distance"}))}
+    assert len(names) == 4 and all(n.startswith("AC-TDM_s0_") for n in names)  # configurations never share a file
     r = run_one(**tuned)
     assert r["stats"]["tdm"]["fits"] >= 1 and all(f["steps"] in (7, 100) for f in r["tdm_fits"])
 
