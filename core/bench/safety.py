@@ -162,7 +162,7 @@ def stack_for(s: Setup, seed: int):
     torch.manual_seed(seed)
     nv = s.robot.model.nv
     tdm = TactileDangerModel(nv, nv, 64, (32, 32)).eval()
-    return SafetyStack(s.robot.vel_limits, s.layer(), ModulationLayer(DangerPotential(tdm)), StrategyFilter(tdm))
+    return SafetyStack(s.robot.vel_limits, s.layer(), ModulationLayer(DangerPotential(tdm)), StrategyFilter(tdm), dt=DT)
 
 
 def nonfinite_case(s: Setup, stack, rng: np.random.Generator, q, idx, f) -> tuple[bool, bool, bool]:

@@ -72,7 +72,7 @@ class Scene:
         self.control_dt = control_dt
         self.substeps = max(1, int(round(control_dt / self.model.opt.timestep)))
         self.defensiveness = lambda: DefensivenessLayer(self.kin, self.design.taxels.thresholds,
-                                                        self.robot.vel_limits, self.robot.acc_limits)
+                                                        self.robot.vel_limits, self.robot.acc_limits, dt=control_dt)
         self.arm_geoms = [g for g in range(self.model.ngeom)
                           if self.model.body(self.model.geom_bodyid[g]).name in self.design.bodies]
 
@@ -150,7 +150,7 @@ def desk(args) -> dict:
     out = {"gap_m": args.gap, "runs": {}}
     for name, pot in (("no modulation", None), ("TDM modulation", f_pot), ("2-step TDM modulation", w_pot)):
         mod = None if pot is None else ModulationLayer(pot, tangent_gain=args.tangent_gain)
-        stack = SafetyStack(sc.robot.vel_limits, sc.defensiveness(), mod, joints=STATE)
+        stack = SafetyStack(sc.robot.vel_limits, sc.defensiveness(), mod, joints=STATE, dt=sc.control_dt)
         sc.reset(DESK_Q)
         clear, desk_force, trace = [], 0.0, []
         v = np.zeros(6)

@@ -80,7 +80,7 @@ def test_stack_filters_planner_and_teleop_sources():
     targets = np.stack([np.sin(times), np.zeros_like(times)], 1)
     stream = TeleopStream(times, targets, latency=0.1, gain=0.0)
     planner = TrajectorySource(lambda t: (np.array([np.sin(t - 0.1), 0.0]), np.array([np.cos(t - 0.1), 0.0])), gain=0.0)
-    stack = SafetyStack(np.array([1.0, 1.0]))
+    stack = SafetyStack(np.array([1.0, 1.0]), dt=0.01)
     q = np.zeros(2)
     a = stack.run(stream, 0.5, q, None, 0.01)
     b = stack.run(planner, 0.5, q, None, 0.01)
@@ -106,7 +106,8 @@ def test_strategy_filter_slows_down_into_learned_danger():
     assert np.allclose(f(s, np.array([0.05, 0.0])), [0.05, 0.0])  # safe: the command itself
     assert np.allclose(f(s, np.array([1.0, 0.0])), [0.0, 0.0])  # certain danger: stop
     assert np.allclose(f(s, np.array([-1.0, 0.0])), [-1.0, 0.0])  # moving away is safe
-    stack = SafetyStack(np.ones(2), strategy=f, modulation=ModulationLayer(lambda s_, a_: torch.zeros(len(s_)) + 0 * s_.sum(1)))
+    stack = SafetyStack(np.ones(2), strategy=f, modulation=ModulationLayer(lambda s_, a_: torch.zeros(len(s_)) + 0 * s_.sum(1)),
+                        dt=0.01)
     assert np.allclose(stack.tick(0.0, s, None, np.array([1.0, 0.0]), 0.01), 0.0)
 
 

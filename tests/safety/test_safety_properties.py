@@ -105,7 +105,8 @@ def test_single_contact_keeps_eq10(name, body):
 def test_nonfinite_input_fails_safe_and_does_not_latch(name, where, value, at, seed):
     robot, design, kin = ROBOTS[name]
     rng = np.random.default_rng(seed)
-    L = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, RetractionParams(T=0.1))
+    L = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, RetractionParams(T=0.1),
+                           DT)
     idx = rng.choice(design.n_taxels, 2, replace=False)
     nv = robot.model.nv
     plan = rng.uniform(-0.5, 0.5, nv)

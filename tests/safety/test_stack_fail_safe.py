@@ -21,7 +21,7 @@ PLAN = np.array([0.8, -0.6, 0.5, 0.3, -0.2, 0.4])
 
 
 def layer(**kw):
-    return DefensivenessLayer(KIN, DESIGN.taxels.thresholds, ROBOT.vel_limits, ROBOT.acc_limits, **kw)
+    return DefensivenessLayer(KIN, DESIGN.taxels.thresholds, ROBOT.vel_limits, ROBOT.acc_limits, dt=DT, **kw)
 
 
 def tdm():
@@ -42,7 +42,7 @@ def test_bad_tdm_or_potential_sends_the_brake_never_the_plan(where, value):
     model = tdm()
     strategy = StrategyFilter(model)
     mod = ModulationLayer(DangerPotential(model))
-    stack = SafetyStack(ROBOT.vel_limits, layer(), mod if where == "potential" else None, strategy)
+    stack = SafetyStack(ROBOT.vel_limits, layer(), mod if where == "potential" else None, strategy, dt=DT)
     prev = ramp(stack)
     assert np.abs(prev).max() > 0.1
     if where == "tdm":
@@ -57,14 +57,14 @@ def test_bad_tdm_or_potential_sends_the_brake_never_the_plan(where, value):
 def test_strategy_only_stack_with_nan_tdm_stops():
     strategy = StrategyFilter(tdm())
     strategy.fast.log_safety = lambda s, a: np.full(len(a), np.nan)
-    stack = SafetyStack(ROBOT.vel_limits, strategy=strategy)  # no acceleration limit: the brake is a stop
+    stack = SafetyStack(ROBOT.vel_limits, strategy=strategy, dt=DT)  # no acceleration limit: the brake is a stop
     assert np.array_equal(stack.tick(0.0, ROBOT.home, None, PLAN, DT), np.zeros(6))
 
 
 def test_modulated_command_is_acceleration_limited():
     """Modulation after the layers can change the command abruptly: the final limits catch it."""
     model = tdm()
-    stack = SafetyStack(ROBOT.vel_limits, layer(), ModulationLayer(DangerPotential(model)))
+    stack = SafetyStack(ROBOT.vel_limits, layer(), ModulationLayer(DangerPotential(model)), dt=DT)
     prev = np.zeros(6)
     rng = np.random.default_rng(0)
     for k in range(200):
@@ -113,7 +113,7 @@ def test_severity_counts_only_stimuli_over_their_thresholds():
     i = int(np.flatnonzero(DESIGN.taxels.body == 1)[40])
     f, temp = np.zeros(N), np.full(N, 25.0)
     f[i], temp[i] = 2.5, 90.0  # 0.002 m/C * 90 C would outrank 0.05 m/N * 2.5 N
-    L = DefensivenessLayer(KIN, th, ROBOT.vel_limits, ROBOT.acc_limits)
+    L = DefensivenessLayer(KIN, th, ROBOT.vel_limits, ROBOT.acc_limits, dt=DT)
     L.tick(0.0, ROBOT.home, {"force": f, "temperature": temp})
     assert L.desired_distance()[0] == pytest.approx(0.05 * 2.5 / 12)
     temp[i] = 130.0  # over its threshold: it counts, with its own gain
@@ -127,7 +127,7 @@ def test_severity_counts_only_stimuli_over_their_thresholds():
 def test_limits_start_from_the_measured_velocity():
     """The robot lags: it measures 0 while the last command was at speed. The next command may
     differ from the measured velocity by at most acc * dt, not from the last command."""
-    stack = SafetyStack(ROBOT.vel_limits, layer())
+    stack = SafetyStack(ROBOT.vel_limits, layer(), dt=DT)
     last = ramp(stack)
     step = stack.limits.acc * DT
     assert np.abs(last).max() > 4 * step.max()
@@ -141,7 +141,7 @@ def test_limits_start_from_the_measured_velocity():
 
 @pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
 def test_nonfinite_measured_velocity_brakes_and_is_counted(value):
-    stack = SafetyStack(ROBOT.vel_limits, layer())
+    stack = SafetyStack(ROBOT.vel_limits, layer(), dt=DT)
     last = ramp(stack)
     bad = last.copy()
     bad[2] = value
@@ -157,7 +157,7 @@ def test_nonfinite_measured_velocity_brakes_and_is_counted(value):
 def test_measured_motion_into_a_contact_is_flagged():
     """While a taxel retracts, a measured velocity that carries it into its contact raises
     `pushing` (counted); one that carries it out does not."""
-    stack = SafetyStack(ROBOT.vel_limits, layer())
+    stack = SafetyStack(ROBOT.vel_limits, layer(), dt=DT)
     force = np.zeros(N)
     taxel = int(np.argmax(KIN.body_id))
     force[taxel] = 40.0
