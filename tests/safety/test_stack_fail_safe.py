@@ -2,6 +2,8 @@
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.kinematics import TaxelKinematics
@@ -169,3 +171,79 @@ def test_measured_motion_into_a_contact_is_flagged():
     stack.tick(0.004, ROBOT.home, {"force": np.zeros(N)}, np.zeros(6), DT, qdot=-into)
     assert not stack.info.pushing and stack.flags["pushing"] == 1
 
+
+
+# ---- missing readings: a silent board is a fault, never "no contact"
+
+def _silent(kind, force, rng):
+    """Readings with a board gone quiet: none, an empty dict, another stimulus only, the force
+    array without one board's block, or that block NaN (the stream's value before a first frame)."""
+    if kind == "none":
+        return None
+    if kind == "empty":
+        return {}
+    if kind == "other":
+        return {"temperature": np.full(N, 25.0)}
+    board = np.flatnonzero(DESIGN.taxels.board == rng.choice(np.unique(DESIGN.taxels.board)))
+    return {"force": np.delete(force, board)} if kind == "short" else {"force": np.where(np.isin(np.arange(N), board),
+                                                                                            np.nan, force)}
+
+
+def _stack(config):
+    model = tdm()
+    mod = ModulationLayer(DangerPotential(model)) if "modulation" in config else None
+    strategy = StrategyFilter(model) if "strategy" in config else None
+    return SafetyStack(ROBOT.vel_limits, layer(), mod, strategy, dt=DT) if config != "layer" else layer()
+
+
+@settings(max_examples=40, deadline=None)
+@given(config=st.sampled_from(["layer", "retraction", "retraction+modulation", "retraction+strategy+modulation"]),
+       kind=st.sampled_from(["none", "empty", "other", "short", "board_nan"]), touched=st.booleans(),
+       at=st.integers(1, 30), seed=st.integers(0, 1000))
+def test_missing_readings_brake_and_are_counted_in_every_configuration(config, kind, touched, at, seed):
+    """At speed on a plan (and, with `touched`, retracting from a touch at tick 0), one tick's
+    readings lose a board: that tick sends the brake, or the ongoing retraction that keeps every
+    contacted taxel out of its contact, never the plan; the fault is counted; the next tick with
+    readings goes on (nothing latches)."""
+    rng = np.random.default_rng(seed)
+    unit = _stack(config)
+    d = unit if config == "layer" else unit.defensiveness
+    force = np.zeros(N)
+    if touched:
+        force[rng.choice(N, 2, replace=False)] = 30.0
+    prev = np.zeros(6)
+    for k in range(at + 2):
+        r = _silent(kind, force, rng) if k == at else {"force": force if k == 0 else np.zeros(N)}
+        out = unit.tick(k * DT, ROBOT.home, r, PLAN, DT)
+        assert np.all(np.abs(out - prev) <= ROBOT.acc_limits * DT * (1 + 1e-9))
+        if k == at:
+            flag = "nonfinite:readings:force" if kind == "board_nan" else "missing:force"
+            assert unit.flags[flag] == 1 and unit.info.safe == (not d.active)
+            if d.active:  # the retraction goes on: no contacted taxel is moved in, and it is not the plan
+                assert np.all(d.A @ out >= -1e-6) and not np.allclose(out, PLAN)
+            else:
+                assert np.array_equal(out, brake(prev, d.limits))
+        prev = out
+    assert unit.flags["missing"] + unit.flags["nonfinite"] == 1  # the next tick with readings: no fault
+
+
+# ---- dt: never assumed
+
+def test_dt_is_required_and_must_match_the_layer():
+    with pytest.raises(ValueError, match="give dt, the control period"):
+        SafetyStack(ROBOT.vel_limits, layer())
+    with pytest.raises(ValueError, match="dt is 0.01 s but the defensiveness layer was built for 0.002 s"):
+        SafetyStack(ROBOT.vel_limits, layer(), dt=0.01)
+
+
+def test_the_ticks_dt_sets_the_acceleration_step():
+    """A stack built for 10 ms and ticked every 10 ms may change each joint by acc * 10 ms per
+    tick (the collaboration scene's stack assumed 2 ms: a fifth of the robot's acceleration)."""
+    d = DefensivenessLayer(KIN, DESIGN.taxels.thresholds, ROBOT.vel_limits, ROBOT.acc_limits, dt=0.01)
+    stack = SafetyStack(ROBOT.vel_limits, d, dt=0.01)
+    out = stack.tick(0.0, ROBOT.home, {"force": np.zeros(N)}, np.full(6, 3.0), 0.01)
+    assert np.allclose(out, 15.0 * 0.01)
+    out = stack.tick(0.004, ROBOT.home, {"force": np.zeros(N)}, np.full(6, 3.0), 0.004)  # a measured short tick
+    assert np.allclose(out, 15.0 * 0.014)
+    out = stack.tick(0.005, ROBOT.home, {"force": np.zeros(N)}, np.full(6, 3.0), 0.0)  # dt = 0: a bad input
+    assert np.allclose(out, 15.0 * (0.014 - 0.01)) and stack.flags["nonfinite:dt"] == 1  # braked by the nominal period
