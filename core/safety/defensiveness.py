@@ -11,8 +11,8 @@ prioritised QP with the no-push constraints); the limits in `limits.py`.
 
 Viability (`viability.py`): besides the no-push rows at this tick's q, every command must leave
 the arm able to brake, within its acceleration limits, without moving a contacted taxel into its
-contact: the QP's hard rows are the no-push rows `A`, `b` and the viability rows `V`, `c`
-(`rows`).
+contact: the QP's hard rows (`rows`) are the no-push rows `A`, `b` and the viability rows `V`,
+`c`, those that some command within the tick's limits could break.
 
 Fail safe. A tick whose clock, q, planned command or dt is not finite gets the safe command
 (`limits.brake`: every joint slows to zero at its acceleration limit) and a counted flag
@@ -42,7 +42,7 @@ from skinsafe.core.safety.retraction import (
     profile_rate,
     retract_qdot,
 )
-from skinsafe.core.safety.viability import check_joints, viability_rows
+from skinsafe.core.safety.viability import check_joints, hard_rows
 
 MAX_TASKS = 64
 """At most this many of the highest-priority contacts are retraction tasks (a 6- or 7-DoF arm has
@@ -135,7 +135,8 @@ class DefensivenessLayer:
         self.retracted = np.zeros(0)  # distance retracted so far along -z(tau), aligned with `pool`
         nv = self.kin.model.nv
         self.A, self.b = np.zeros((0, nv)), np.zeros(0)  # no-push rows A qd >= b of the pool, this tick
-        self.V, self.c = np.zeros((0, nv)), np.zeros(0)  # viability rows V qd >= c that can bind, this tick
+        self.V, self.c = self.A, self.b  # viability rows V qd >= c that can bind, this tick
+        self.rows = (self.A, self.b)  # the hard rows that can bind this tick: no-push rows, then V, c
         self.last = np.zeros(nv)
         self._t = -np.inf
         self.info = TickInfo()
@@ -144,13 +145,6 @@ class DefensivenessLayer:
     def active(self) -> bool:
         """True while any taxel is retracting."""
         return len(self._state) > 0
-
-    @property
-    def rows(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every hard row of this tick, `[A; V] qd >= [b; c]`: no push now, and a brake that pushes none."""
-        if len(self.V) == 0:
-            return self.A, self.b
-        return np.concatenate([self.A, self.V]), np.concatenate([self.b, self.c])
 
     @property
     def pool(self) -> np.ndarray:
@@ -215,6 +209,7 @@ class DefensivenessLayer:
             self._state, self.priorities, self.retracted = st, np.zeros(0), np.zeros(0)
             self.A, self.b = np.zeros((0, nv)), np.zeros(0)
             self.V, self.c = self.A, self.b
+            self.rows = (self.A, self.b)
             info = TickInfo(nonfinite=tuple(bad), missing=tuple(missing), safe=faulty, clock_reset=clock_reset)
             if faulty:
                 return self._finish(brake(prev, self.limits, dt), info, prev)
@@ -234,12 +229,13 @@ class DefensivenessLayer:
         self._state, self.priorities, self.retracted = st[order], w, done
         info = TickInfo(nonfinite=tuple(bad), missing=tuple(missing), clock_reset=clock_reset, retracting=True)
         if p.merge != "qp":  # the closed-form references, limited as before (uniform scaling)
-            self.V, self.c = np.zeros((0, nv)), np.zeros(0)
+            self.V, self.c = self.A[:0], self.b[:0]
+            self.rows = (self.A, self.b)
             return self._finish(scale_into(self._merged(J[order], -self._state[:, 6:9], speed), prev, self.limits, dt),
                                 info, prev)
         lo, hi = self.limits.box(prev, dt)
-        self.V, self.c = viability_rows(J, order, self._state[:, 6:9], self.A, prev, lo, hi, self.limits.acc, dt)
-        A, b = self.rows
+        A, b, n_push = hard_rows(J, order, self._state, self.A, self.b, prev, lo, hi, self.limits.acc, dt)
+        self.rows, self.V, self.c = (A, b), A[n_push:], b[n_push:]
         A, b = _distinct_rows(A, b) if len(A) > MAX_TASKS else (A, b)
         sol = prioritised(Jt, rt, A, b, lo, hi, self.limits.vel, p.damping, p.sv_threshold, p.rank_tol)
         for name in ("limited", "blocked", "infeasible", "recovery_dropped", "damped", "dominant_residual",

@@ -25,8 +25,9 @@ the measured velocity; the command is within one tick's acceleration of it):
 
 with w_k, c_k, S at v_ref (the tangent, not the secant `a_k(q + S v_ref)`: the secant ignores
 how S c_k grows with the command, and measured over 1,200 random contact sets it let the rows
-fall infeasible 2-3x as often). Rows the whole acceleration box already meets are dropped (they
-cannot bind), so a DAQP level only sees the rows that matter.
+fall infeasible 2-3x as often). Rows the whole acceleration box already meets are dropped, no-push
+rows and viability rows alike (`hard_rows`: they cannot bind, the tick's command lies in the box),
+so a DAQP level only sees the rows that matter.
 
 `Jdot_k(q, v)` comes from the taxel's own 6 x nv Jacobian (hinge and slide joints, dofs numbered
 from the base out as MuJoCo does): column i is `Omega_i x J_i + omega_i x P_i` with
@@ -50,71 +51,84 @@ def check_joints(model: mujoco.MjModel) -> None:
                          "need hinge and slide joints (model the robot's joints as revolute or prismatic)")
 
 
-def viability_rows(J: np.ndarray, order: np.ndarray, z: np.ndarray, A: np.ndarray, v_ref: np.ndarray,
-                   lo: np.ndarray, hi: np.ndarray, acc: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """The viability rows `V qd >= c` (module docstring) of the pool's taxels that can bind.
+def hard_rows(J: np.ndarray, order: np.ndarray, st: np.ndarray, A: np.ndarray, b: np.ndarray, v_ref: np.ndarray,
+              lo: np.ndarray, hi: np.ndarray, acc: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """The hard rows `R qd >= r` of a tick that can bind: the no-push rows `A qd >= b` and the
+    viability rows (module docstring), each kept only where some command in the box [lo, hi]
+    breaks it (the others hold for every command the tick may send). Returns R, r and how many
+    of them (the first ones) are no-push rows.
 
     J (K', 6, nv): the taxels' Jacobians; `order` (K,): the pool's taxels, highest priority first,
-    as rows of J; z (K, 3): their normals when touched; A (K, nv): their no-push rows (same order);
-    `v_ref` the velocity the tick starts from; lo, hi the tick's box; acc the acceleration limits."""
-    return _rows(np.ascontiguousarray(J, dtype=np.float64), np.ascontiguousarray(order, dtype=np.intp),
-                 np.ascontiguousarray(z, dtype=np.float64), np.ascontiguousarray(A, dtype=np.float64),
-                 np.ascontiguousarray(v_ref, dtype=np.float64), lo, hi, np.ascontiguousarray(acc, dtype=np.float64),
-                 float(dt))
+    as rows of J; st (K, 9): the pool's rows in that order (columns 6:9 the normals when touched);
+    A (K, nv), b (K,): their no-push rows (same order); `v_ref` the velocity the tick starts from;
+    acc the acceleration limits. One compiled call, no allocation per taxel."""
+    return _rows(J, order, st, A, b, v_ref, lo, hi, acc, float(dt))
 
 
 @numba.njit(cache=True, nogil=True)
-def _rows(J, order, z, A, v, lo, hi, acc, dt):
+def _low(row, lo, hi):
+    """The least value of `row . qd` over the box."""
+    out = 0.0
+    for j in range(len(row)):
+        out += min(row[j] * lo[j], row[j] * hi[j])
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _rows(J, order, st, A, b, v, lo, hi, acc, dt):
     K, nv = A.shape
-    V, c = np.zeros((K, nv)), np.zeros(K)
+    R, r = np.empty((2 * K, nv)), np.empty(2 * K)
+    m = 0
+    for i in range(K):
+        if _low(A[i], lo, hi) < b[i]:
+            R[m], r[m] = A[i], b[i]
+            m += 1
+    n_push = m
     ratio, js = 0.0, 0
     for j in range(nv):
-        r = abs(v[j]) / (acc[j] * dt)  # 0 where acc is infinite: stops within the tick
-        if r > ratio:
-            ratio, js = r, j
-    N = np.ceil(ratio) + 1.0  # the ticks to stop from a command one tick faster than v_ref
-    S = dt * (N + 1.0) / 2.0
-    if ratio * S == 0.0:
-        return V[:0], c[:0]
-    dS = np.sign(v[js]) / (2.0 * acc[js])  # dS/dv_js
-    m = 0
-    w = np.empty(nv)
+        x = abs(v[j]) / (acc[j] * dt)  # 0 where acc is infinite: stops within the tick
+        if x > ratio:
+            ratio, js = x, j
+    if ratio == 0.0:  # at rest: the brake is this tick's command, the no-push rows cover it
+        return R[:m], r[:m], n_push
+    S = dt * (np.ceil(ratio) + 2.0) / 2.0  # N + 1 ticks: the brake from a command one tick faster than v_ref
+    dS = (1.0 if v[js] > 0 else -1.0) / (2.0 * acc[js])  # dS/dv_js
     for i in range(K):
-        ck = _curvature(J[order[i]], z[i], v, w)
+        ck = _curvature(J[order[i]], st[i, 6], st[i, 7], st[i, 8], v, R[m])  # R[m] = w
         cm = min(ck, 0.0)
-        rhs = S * ck + cm * dS * v[js]
-        low = 0.0  # the row's least value over the box
         for j in range(nv):
-            V[m, j] = A[i, j] + 2.0 * S * w[j]
-        V[m, js] += cm * dS
-        for j in range(nv):
-            low += min(V[m, j] * lo[j], V[m, j] * hi[j])
-        if low < rhs:  # the box holds commands that break it: keep
-            c[m] = rhs
+            R[m, j] = A[i, j] + 2.0 * S * R[m, j]
+        R[m, js] += cm * dS
+        r[m] = S * ck + cm * dS * v[js]
+        if _low(R[m], lo, hi) < r[m]:  # the box holds commands that break it: keep
             m += 1
-    return V[:m], c[:m]
+    return R[:m], r[:m], n_push
 
 
 @numba.njit(cache=True, nogil=True)
-def _curvature(Jk, zk, v, w):
+def _curvature(Jk, z0, z1, z2, v, w):
     """`w = -Jdot(v)^T z` (written into w) and `c = w . v` for one taxel (module docstring)."""
     nv = Jk.shape[1]
-    P = np.zeros(3)
+    p0 = p1 = p2 = 0.0  # P_i = sum_{j>i} v_j J_j, from the full sum down
     for j in range(nv):
-        for r in range(3):
-            P[r] += v[j] * Jk[r, j]
-    Om = np.zeros(3)
+        p0 += v[j] * Jk[0, j]
+        p1 += v[j] * Jk[1, j]
+        p2 += v[j] * Jk[2, j]
+    o0 = o1 = o2 = 0.0  # Omega_i = sum_{j<=i} v_j omega_j
     c = 0.0
     for i in range(nv):
-        for r in range(3):
-            Om[r] += v[i] * Jk[3 + r, i]
-            P[r] -= v[i] * Jk[r, i]
         jx, jy, jz = Jk[0, i], Jk[1, i], Jk[2, i]
         ox, oy, oz = Jk[3, i], Jk[4, i], Jk[5, i]
-        dx = Om[1] * jz - Om[2] * jy + oy * P[2] - oz * P[1]
-        dy = Om[2] * jx - Om[0] * jz + oz * P[0] - ox * P[2]
-        dz = Om[0] * jy - Om[1] * jx + ox * P[1] - oy * P[0]
-        w[i] = -(dx * zk[0] + dy * zk[1] + dz * zk[2])
+        o0 += v[i] * ox
+        o1 += v[i] * oy
+        o2 += v[i] * oz
+        p0 -= v[i] * jx
+        p1 -= v[i] * jy
+        p2 -= v[i] * jz
+        dx = o1 * jz - o2 * jy + oy * p2 - oz * p1
+        dy = o2 * jx - o0 * jz + oz * p0 - ox * p2
+        dz = o0 * jy - o1 * jx + ox * p1 - oy * p0
+        w[i] = -(dx * z0 + dy * z1 + dz * z2)
         c += w[i] * v[i]
     return c
 
@@ -125,5 +139,5 @@ def curvature(J: np.ndarray, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, 
     J, z, v = (np.ascontiguousarray(x, dtype=np.float64) for x in (J, z, v))
     W, c = np.zeros((len(J), J.shape[2])), np.zeros(len(J))
     for k in range(len(J)):
-        c[k] = _curvature(J[k], z[k], v, W[k])
+        c[k] = _curvature(J[k], z[k, 0], z[k, 1], z[k, 2], v, W[k])
     return W, c

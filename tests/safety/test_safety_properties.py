@@ -226,7 +226,7 @@ into its contact; with them 22 ticks are flagged, by less than a micrometre of p
 @pytest.mark.parametrize("viable", [True, False])
 def test_turning_contacts_are_braked_for_in_time(viable, monkeypatch):
     if not viable:
-        monkeypatch.setattr(defensiveness, "viability_rows", lambda J, order, z, A, *a: (A[:0], np.zeros(0)))
+        monkeypatch.setattr(defensiveness, "hard_rows", lambda J, order, st, A, b, *a: (A, b, len(A)))  # no-push rows only
     q, idx, force = CASE
     worst, infeasible = 0.0, 0
     for L, _, _, into in retract_full("ur5", q.copy(), np.array(idx), np.array(force)):
