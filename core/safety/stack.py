@@ -13,15 +13,20 @@ A command source is anything callable as `source(t, q) -> qdot_planned (nv,)`: a
    first, and the strategy filter only on ticks without a retraction, whose plan is used);
 3. modulation (III-B): whatever comes out - plan or retraction - is modulated by the danger
    potential (`ModulationLayer`; a retraction leaving danger keeps its speed, one heading into
-   danger, e.g. toward a desk, is slowed). With a strategy filter over the same TDM, both share
-   one evaluator (`FastPotential`): scoring the candidates is one forward pass over the TDM's
-   head that keeps its sigmoids, and the modulation of the chosen one needs only the backward
-   pass (the planned command unlimited until step 4); a retraction's modulation is one fused
-   pass;
+   danger, e.g. toward a desk, is slowed). With the modulation's `stop` level, a retraction never
+   carries the arm into an obstacle the potential knows: while the potential's rise along the
+   brake from this command (`S n.v`, S the braking horizon of `viability.braking_horizon`) would
+   pass `stop - f`, the retraction is scaled down as a whole (direction kept), so the arm stops
+   before the potential reaches `stop` rather than sliding along a level set. With a strategy
+   filter over the same TDM, both share one evaluator (`FastPotential`): scoring the candidates
+   is one forward pass over the TDM's head that keeps its sigmoids, and the modulation of the
+   chosen one needs only the backward pass (the planned command unlimited until step 4); a
+   retraction's modulation is one fused pass;
 4. limits (`limits.final_command`) on the final command: velocity and acceleration limits from
-   the last command sent; while taxels are retracting, also their no-push constraints (the
-   modulated command is projected, so modulation can never push a contacted taxel into its
-   contact and the acceleration limit never makes one move into it).
+   the last command sent; while taxels are retracting, also their no-push and viability rows
+   (the modulated command is projected, so modulation can never push a contacted taxel into its
+   contact, the acceleration limit never makes one move into it, and the arm can always brake
+   without pushing one: `viability.py`).
 
 Measured velocity: `tick(..., qdot=measured)` takes the robot's measured joint velocity, distinct
 from the planned command: the acceleration limits (and the brake) then start from it rather than
@@ -52,6 +57,7 @@ import numpy as np
 from skinsafe.core.safety.defensiveness import TickInfo
 from skinsafe.core.safety.limits import JointLimits, brake, final_command, finite
 from skinsafe.core.safety.modulation import ModulationLayer
+from skinsafe.core.safety.viability import braking_horizon
 
 CommandSource = Callable[[float, np.ndarray], np.ndarray]
 
@@ -249,6 +255,8 @@ class SafetyStack:
                     return self._send(brake(prev, self.limits, dt), TickInfo(nonfinite=info.nonfinite, safe=True))
             else:
                 v = w
+                if retracting and self.modulation.stop is not None:
+                    v = self._stop_short(v, prev, f, dt)
         if self.pfl is not None:
             v = self.pfl(q, v)
         A, b = d.rows if retracting else (None, None)
@@ -257,6 +265,14 @@ class SafetyStack:
         if qdot is not None and retracting:  # the robot is moving a contacted taxel into its contact now
             info.pushing = bool(np.any(d.A @ qdot < -1e-9))
         return self._send(proj.v, info)
+
+    def _stop_short(self, v: np.ndarray, prev: np.ndarray, f: float, dt: float) -> np.ndarray:
+        """The retraction `v`, scaled down as a whole so that the potential's rise along the brake
+        from it, `S n.v`, stays within `stop - f` (module docstring, step 3)."""
+        rise = float(np.asarray(self.modulation.normal, dtype=float).reshape(-1) @ v[self.joints])
+        room = max(self.modulation.stop - float(f), 0.0)
+        S = braking_horizon(prev, self.limits.acc, dt)
+        return v * (room / (rise * S)) if rise * S > room else v
 
     def _send(self, v: np.ndarray, info: TickInfo) -> np.ndarray:
         flags = [f"nonfinite:{n}" for n in info.nonfinite] + (["nonfinite"] if info.nonfinite else [])

@@ -65,6 +65,27 @@ def hard_rows(J: np.ndarray, order: np.ndarray, st: np.ndarray, A: np.ndarray, b
     return _rows(J, order, st, A, b, v_ref, lo, hi, acc, float(dt))
 
 
+def braking_horizon(v_ref: np.ndarray, acc: np.ndarray, dt: float) -> float:
+    """S: how far (in seconds of motion at the command's speed) the arm travels along the command
+    while it brakes in proportion from a command one tick faster than `v_ref` (module docstring);
+    `dt` where it is at rest."""
+    S, _ = _horizon(np.asarray(v_ref, dtype=np.float64), np.asarray(acc, dtype=np.float64), float(dt))
+    return S if S > 0 else float(dt)
+
+
+@numba.njit(cache=True, nogil=True)
+def _horizon(v, acc, dt):
+    """(S, the joint that needs longest to stop); S = 0 at rest."""
+    ratio, js = 0.0, 0
+    for j in range(len(v)):
+        x = abs(v[j]) / (acc[j] * dt)  # 0 where acc is infinite: stops within the tick
+        if x > ratio:
+            ratio, js = x, j
+    if ratio == 0.0:
+        return 0.0, js
+    return dt * (np.ceil(ratio) + 2.0) / 2.0, js  # N + 1 ticks: from a command one tick faster than v_ref
+
+
 @numba.njit(cache=True, nogil=True)
 def _low(row, lo, hi):
     """The least value of `row . qd` over the box."""
@@ -84,14 +105,9 @@ def _rows(J, order, st, A, b, v, lo, hi, acc, dt):
             R[m], r[m] = A[i], b[i]
             m += 1
     n_push = m
-    ratio, js = 0.0, 0
-    for j in range(nv):
-        x = abs(v[j]) / (acc[j] * dt)  # 0 where acc is infinite: stops within the tick
-        if x > ratio:
-            ratio, js = x, j
-    if ratio == 0.0:  # at rest: the brake is this tick's command, the no-push rows cover it
+    S, js = _horizon(v, acc, dt)
+    if S == 0.0:  # at rest: the brake is this tick's command, the no-push rows cover it
         return R[:m], r[:m], n_push
-    S = dt * (np.ceil(ratio) + 2.0) / 2.0  # N + 1 ticks: the brake from a command one tick faster than v_ref
     dS = (1.0 if v[js] > 0 else -1.0) / (2.0 * acc[js])  # dS/dv_js
     for i in range(K):
         ck = _curvature(J[order[i]], st[i, 6], st[i, 7], st[i, 8], v, R[m])  # R[m] = w

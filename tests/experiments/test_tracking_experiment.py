@@ -135,11 +135,15 @@ def test_scenes_run_and_report(tmp_path, scene):
     from skinsafe.core.experiments import scenes as es
 
     args = argparse.Namespace(command_name=scene, out=str(tmp_path), pitch=0.02, duration=1.0 if scene == "desk" else 2.0,
-                              gap=0.1, samples=600, steps=300, tangent_gain=0.0, seed=0, no_progress=True)
+                              gap=0.1, samples=600, steps=300, tangent_gain=0.0, seed=0, no_progress=True, touch=300.0,
+                              forces=[300.0], margin=0.02)
     assert es.run(args) == 0
     res = json.loads((tmp_path / f"{scene}.json").read_text())
     assert (tmp_path / f"{scene}.png").read_bytes()[:4] == b"\x89PNG"
     if scene == "desk":
-        r = res["runs"]["no modulation"]
-        assert r["min_clearance_mm"] < 5  # the retraction reaches the desk without modulation
-        assert min(res["runs"][k]["min_clearance_mm"] for k in res["runs"]) >= -20
+        assert (tmp_path / "desk_sweep.png").read_bytes()[:4] == b"\x89PNG"
+        worst = {r["stack"]: r["min_clearance_mm"] for r in res["sweep_worst"]}
+        assert worst["no modulation"] < 0  # a 300 N touch: the retraction hits the desk without modulation
+        assert worst["TDM modulation, no stop"] < worst["TDM modulation"]  # the stop level keeps it off the desk
+        assert worst["TDM modulation"] > 0 and worst["2-step TDM modulation"] > 0
+        assert all(abs(r["touch_N"] - 300) < 30 for r in res["sweep"])  # the probe presses with the force asked

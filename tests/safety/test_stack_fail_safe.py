@@ -247,3 +247,60 @@ def test_the_ticks_dt_sets_the_acceleration_step():
     assert np.allclose(out, 15.0 * 0.014)
     out = stack.tick(0.005, ROBOT.home, {"force": np.zeros(N)}, np.full(6, 3.0), 0.0)  # dt = 0: a bad input
     assert np.allclose(out, 15.0 * (0.014 - 0.01)) and stack.flags["nonfinite:dt"] == 1  # braked by the nominal period
+
+
+# ---- a retraction stops short of the obstacles the potential knows (ModulationLayer.stop)
+
+class Ramp(torch.nn.Module):
+    """f = sigmoid(g . s + c): danger rises along g (an obstacle the potential knows on that side)."""
+
+    def __init__(self, g, c):
+        super().__init__()
+        self.g, self.c = torch.tensor(g, dtype=torch.float32), float(c)
+
+    def forward(self, s, a):
+        return torch.sigmoid(s @ self.g + self.c)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), stop=st.sampled_from([0.3, 0.6, 0.9]), f=st.floats(0.0, 1.0))
+def test_stop_short_keeps_the_brake_within_the_stop_level(seed, stop, f):
+    """The retraction v is scaled (direction kept, never sped up) so that the potential's rise along
+    the brake from it, S n.v, stays within stop - f; it passes untouched where it already does."""
+    from skinsafe.core.safety.viability import braking_horizon
+
+    rng = np.random.default_rng(seed)
+    stack = SafetyStack(ROBOT.vel_limits, layer(), ModulationLayer(Ramp(np.ones(6), 0.0), stop=stop), dt=DT)
+    stack.modulation.normal = rng.normal(size=(1, 6)) * 10 ** rng.uniform(-2, 2)
+    v, prev = rng.uniform(-3, 3, 6), rng.uniform(-3, 3, 6)
+    out = stack._stop_short(v, prev, f, DT)
+    rise = lambda x: float(stack.modulation.normal[0] @ x)  # noqa: E731
+    S, room = braking_horizon(prev, stack.limits.acc, DT), max(stop - f, 0.0)
+    lam = out @ v / (v @ v)
+    assert np.allclose(out, lam * v) and 0 <= lam <= 1
+    assert rise(out) * S <= room + 1e-12
+    assert lam == 1 or rise(v) * S > room
+
+
+def test_a_retraction_into_the_known_danger_is_slowed():
+    """A steep potential that rises along the retraction, 0.01 below the stop level 0.3: the stack with
+    the stop level retracts slower than the same stack without it (None)."""
+    touch = np.zeros(N)
+    touch[np.random.default_rng(0).choice(N, 2, replace=False)] = 40.0
+    probe = layer()
+    probe.tick(0.0, ROBOT.home, {"force": touch})
+    g = probe.tick(0.1, ROBOT.home, {"force": np.zeros(N)})  # the retraction's direction: danger rises along it
+    g *= 100 / np.linalg.norm(g)
+    c = np.log(0.29 / 0.71) - g @ ROBOT.home  # f(home) = 0.29
+    speed = {}
+    for level in (0.3, None):
+        stack = SafetyStack(ROBOT.vel_limits, layer(), ModulationLayer(Ramp(g, c), tangent_gain=0.0, stop=level), dt=DT)
+        for k in range(100):
+            out = stack.tick(k * DT, ROBOT.home, {"force": touch if k == 0 else np.zeros(N)}, PLAN, DT)
+        speed[level] = np.linalg.norm(out)
+    assert speed[0.3] < 0.8 * speed[None]
+
+
+def test_stop_level_is_validated():
+    with pytest.raises(ValueError, match="'stop' is 1.5"):
+        ModulationLayer(Ramp(np.ones(6), 0.0), stop=1.5)
