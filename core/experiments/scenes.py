@@ -157,11 +157,11 @@ def desk(args) -> dict:
                  Obstacle("probe", "sphere", (PROBE_R,), pos=tuple(park), mocap=True, spring=PROBE_K)]
     sc = Scene(obstacles, args.pitch)
     desk_geom, probe_geom = sc.model.geom("desk").id, sc.model.geom("probe").id
-    pots, stops = _learn_desk(sc, desk_geom, args)
+    pots, stops, by_clearance = _learn_desk(sc, desk_geom, args)
     forces = sorted(set(args.forces) | {args.touch})
     depth = _press_depths(sc, park, probe_geom, forces)
-    out = {"gap_m": args.gap, "touch_N": args.touch, "stop_levels": stops, "margin_m": args.margin, "runs": {},
-           "sweep": []}
+    out = {"gap_m": args.gap, "touch_N": args.touch, "stop_levels": stops, "margin_m": args.margin,
+           "potential_by_clearance": by_clearance, "runs": {}, "sweep": []}
     stacks = [(name, pot, stops[name]) for name, pot in zip(DESK_STACKS, (None,) + pots)]
     stacks += [(name + UNSTOPPED, pot, None) for name, pot in zip(DESK_STACKS[1:], pots)]
     bar = tqdm(total=len(forces) * len(stacks), desc="desk touches", disable=args.no_progress, leave=False)
@@ -259,7 +259,8 @@ def _learn_desk(sc: Scene, desk_geom: int, args):
     ramp of the distance to the desk as the skin knows it. The 2-step potential w is distilled from
     it (eq. 8). Each potential's stop level (`ModulationLayer.stop`) is its median over the samples
     whose skin-known distance to the desk is `args.margin` (within half of it either way): the
-    danger at which the potential knows the desk that close. Returns ((f, w), stops by stack)."""
+    danger at which the potential knows the desk that close. Returns ((f, w), stops by stack, the
+    potentials' medians over the samples per band of their true clearance: a report, not an input)."""
     from scipy.spatial import cKDTree
 
     from skinsafe.core.learn.tdm_training import FitConfig, TDMTrainer
@@ -269,7 +270,7 @@ def _learn_desk(sc: Scene, desk_geom: int, args):
     S = DESK_Q[STATE] + rng.uniform(-1, 1, (n, len(STATE))) * np.array([0.15, 0.35, 0.35, 0.35])
     A = rng.uniform(-1, 1, (n, len(STATE)))
     D = np.zeros((n, sc.design.n_taxels), np.float32)
-    P = np.zeros((n, sc.design.n_taxels, 3))
+    P, clear = np.zeros((n, sc.design.n_taxels, 3)), np.zeros(n)
     m, d = sc.model, sc.data
     for i in tqdm(range(n), desc="desk contacts", disable=args.no_progress, leave=False):
         q = DESK_Q.copy()
@@ -280,6 +281,7 @@ def _learn_desk(sc: Scene, desk_geom: int, args):
         mujoco.mj_forward(m, d)
         D[i] = sc.readout.read(d) > 0  # static contact: any penetration of the desk, at the taxels nearest to it
         P[i] = sc.kin.poses(q)[0]
+        clear[i] = sc.clearance(desk_geom)  # for the report only (`potential_by_clearance`), not for learning
     known = cKDTree(np.unique(np.round(P[D > 0], 2), axis=0))  # the desk as the skin touched it (1 cm voxels)
     dist = known.query(P.reshape(-1, 3))[0].reshape(n, -1)
     near = np.argmin(dist, axis=1)
@@ -299,11 +301,17 @@ def _learn_desk(sc: Scene, desk_geom: int, args):
                            NStepConfig(2, 0.9, 8), state_noise=0.03, epochs=40, seed=args.seed)
     w_pot = net.eval()
     band = np.abs(closest - args.margin) <= args.margin / 2
-    stops = {"no modulation": None}
+    stops, by_clearance = {"no modulation": None}, []
+    edges = (-np.inf, 0.0, 0.005, 0.01, 0.02, 0.04, 0.08, np.inf)
     for name, pot in (("TDM modulation", f_pot), ("2-step TDM modulation", w_pot)):
-        level = potential_and_normal(pot, S[band], A[band])[0]
-        stops[name] = float(np.median(level)) if len(level) else None
-    return (f_pot, w_pot), stops
+        level = potential_and_normal(pot, S, A)[0]
+        stops[name] = float(np.median(level[band])) if band.any() else None
+        for lo, hi in zip(edges[:-1], edges[1:]):  # how the potential grows toward the desk
+            sel = (clear >= lo) & (clear < hi)
+            band_mm = [round(x * 1e3, 1) if np.isfinite(x) else None for x in (lo, hi)]
+            by_clearance.append({"stack": name, "clearance_mm": band_mm, "samples": int(sel.sum()),
+                                 "median": round(float(np.median(level[sel])), 3) if sel.any() else None})
+    return (f_pot, w_pot), stops, by_clearance
 
 
 # ------------------------------------------------------------------------------------- command
