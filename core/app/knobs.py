@@ -302,8 +302,8 @@ def damping_point(damping: float, quick: bool, where: str | None = None) -> dict
     q[2] = ELBOW
     i = stretching_taxel(kin, design, q)
     params = RetractionParams(damping=float(damping))
-    layer = DefensivenessLayer(kin, design.taxels.thresholds, 1e6, 1e9, params)
     dt = 0.002
+    layer = DefensivenessLayer(kin, design.taxels.thresholds, 1e6, 1e9, params, dt)
     force = np.zeros(design.n_taxels)
     force[i] = 20.0
     zero = np.zeros_like(force)

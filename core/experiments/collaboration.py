@@ -129,7 +129,7 @@ def run_scene(args) -> dict:
         defens = sc.defensiveness() if stack != "none" else None
         mod = ModulationLayer(pot, tangent_gain=0.0) if stack.startswith("full") else None
         cap = PFLCap(sc.kin, regions, factor=args.pfl_factor) if stack == "full+pfl" else None
-        return SafetyStack(sc.robot.vel_limits, defens, mod, joints=STATE, pfl=cap)
+        return SafetyStack(sc.robot.vel_limits, defens, mod, joints=STATE, pfl=cap, dt=sc.control_dt)
 
     def episode(stack: str, person: bool):
         st = make(stack)

@@ -131,7 +131,7 @@ def test_stack_filters_planner_and_teleop_sources():
     targets = np.stack([np.sin(times), np.zeros_like(times)], 1)
     stream = TeleopStream(times, targets, latency=0.1, gain=0.0)
     planner = TrajectorySource(lambda t: (np.array([np.sin(t - 0.1), 0.0]), np.array([np.cos(t - 0.1), 0.0])), gain=0.0)
-    stack = SafetyStack(np.array([1.0, 1.0]))
+    stack = SafetyStack(np.array([1.0, 1.0]), dt=0.01)
     q = np.zeros(2)
     a = stack.run(stream, 0.5, q, None, 0.01)
     b = stack.run(planner, 0.5, q, None, 0.01)
@@ -157,7 +157,8 @@ def test_strategy_filter_slows_down_into_learned_danger():
     assert np.allclose(f(s, np.array([0.05, 0.0])), [0.05, 0.0])  # safe: the command itself
     assert np.allclose(f(s, np.array([1.0, 0.0])), [0.0, 0.0])  # certain danger: stop
     assert np.allclose(f(s, np.array([-1.0, 0.0])), [-1.0, 0.0])  # moving away is safe
-    stack = SafetyStack(np.ones(2), strategy=f, modulation=ModulationLayer(lambda s_, a_: torch.zeros(len(s_)) + 0 * s_.sum(1)))
+    stack = SafetyStack(np.ones(2), strategy=f, modulation=ModulationLayer(lambda s_, a_: torch.zeros(len(s_)) + 0 * s_.sum(1)),
+                        dt=0.01)
     assert np.allclose(stack.tick(0.0, s, None, np.array([1.0, 0.0]), 0.01), 0.0)
 
 
@@ -185,11 +186,15 @@ def test_scenes_run_and_report(tmp_path, scene):
     from skinsafe.core.experiments import scenes as es
 
     args = argparse.Namespace(command_name=scene, out=str(tmp_path), pitch=0.02, duration=1.0 if scene == "desk" else 2.0,
-                              gap=0.1, samples=600, steps=300, tangent_gain=0.0, seed=0, no_progress=True)
+                              gap=0.1, samples=600, steps=300, tangent_gain=0.0, seed=0, no_progress=True, touch=300.0,
+                              forces=[300.0], margin=0.02)
     assert es.run(args) == 0
     res = json.loads((tmp_path / f"{scene}.json").read_text())
     assert (tmp_path / f"{scene}.png").read_bytes()[:4] == b"\x89PNG"
     if scene == "desk":
-        r = res["runs"]["no modulation"]
-        assert r["min_clearance_mm"] < 5  # the retraction reaches the desk without modulation
-        assert min(res["runs"][k]["min_clearance_mm"] for k in res["runs"]) >= -20
+        assert (tmp_path / "desk_sweep.png").read_bytes()[:4] == b"\x89PNG"
+        worst = {r["stack"]: r["min_clearance_mm"] for r in res["sweep_worst"]}
+        assert worst["no modulation"] < 0  # a 300 N touch: the retraction hits the desk without modulation
+        assert worst["TDM modulation, no stop"] < worst["TDM modulation"]  # the stop level keeps it off the desk
+        assert worst["TDM modulation"] > 0 and worst["2-step TDM modulation"] > 0
+        assert all(abs(r["touch_N"] - 300) < 30 for r in res["sweep"])  # the probe presses with the force asked
