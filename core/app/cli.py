@@ -25,6 +25,7 @@ COMMANDS = {
     "stream": ("skinsafe.hardware.cli_stream", "stream readings from the boards, mapped to taxels"),
     "emulate": ("skinsafe.hardware.cli_emulate", "run a board emulator on a pseudo-terminal"),
     "run": ("skinsafe.core.app.run", "the safety runtime: boards -> the three layers -> a robot (sim or FR3), with watchdogs"),
+    "view": ("skinsafe.core.app.view", "see a run live (`run --view` stream) or a record in the browser"),
     "replay": ("skinsafe.core.app.replay", "re-run the layers on a `run --record` MCAP and compare the commands"),
     "pfl": ("skinsafe.core.app.pfl", "ISO/TS 15066: effective mass and safe approach speed per taxel, at a pose or along a trajectory"),
     "trade": ("skinsafe.core.app.trade", "sweep speed-vs-accuracy knobs (Ray) and plot the Pareto front"),
