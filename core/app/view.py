@@ -78,7 +78,9 @@ class Recording:
         self.peak = np.where(self.force_at >= 0, peak[np.maximum(self.force_at, 0)], 0.0)
 
     def index(self, t: float) -> int:
-        return int(np.clip(np.searchsorted(self.t, t, side="right") - 1, 0, len(self.t) - 1))
+        """The tick nearest to time t."""
+        i = int(np.clip(np.searchsorted(self.t, t), 1, max(1, len(self.t) - 1)))
+        return i - 1 if len(self.t) < 2 or t - self.t[i - 1] <= self.t[i] - t else i
 
     def frame(self, i: int) -> tuple[dict, np.ndarray]:
         """Tick i in the view stream's frame format (header, forces)."""
@@ -151,7 +153,7 @@ def serve_live(args, stop: threading.Event) -> int:
     design, robot = _load_design(h["map"], args.map)
     if design.n_taxels != h["n_taxels"]:
         raise StreamError(f"the stream has {h['n_taxels']} taxels, the map {design.n_taxels}; give the run's map with --map")
-    page = Page(design, robot.model, args.host, args.port, args.vmax, "skinsafe live", h["boards"])
+    page = Page(design, robot.model, args.host, args.port, args.vmax, "skinsafe live", h["boards"], q0=robot.home)
     print(f"skinsafe view: live from {args.source} ({h['n_taxels']} taxels) at {page.url}", flush=True)
     try:
         while not stop.is_set() and not client.closed:
@@ -188,7 +190,7 @@ def serve_record(args, stop: threading.Event) -> int:
     step = float(cfg.get("period_s") or np.median(np.diff(rec.t)) if len(rec.t) > 1 else 0.01)
     page = Page(design, robot.model, args.host, args.port, args.vmax, f"skinsafe {Path(args.source).name}",
                 {b.uid: b.name for b in design.boards}, (float(rec.t[0]), float(rec.t[-1]), step), on_time,
-                rec.next_contact, cfg.get("obstacles", ()))
+                rec.next_contact, cfg.get("obstacles", ()), rec.q[0])
     page.plot_series(rec.t, rec.retracting, rec.speed_factor, rec.potential)
     on_time(rec.t[0])
     pub = None
@@ -209,7 +211,7 @@ def serve_record(args, stop: threading.Event) -> int:
                 t = float(page.slider.value) + (now - last)
                 if t >= rec.t[-1]:
                     t, page.playing = float(rec.t[-1]), False
-                page.slider.value = round(t, 4)  # its update callback draws the tick
+                page.goto(t)
             last = now
     finally:
         if pub is not None:

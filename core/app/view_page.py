@@ -30,7 +30,16 @@ NO_DATA = np.array([150, 150, 150], np.uint8)
 ROBOT_RGB = (185, 188, 195)
 ARROW_RGB = (0, 200, 220)
 ARROW_M = 0.06  # length of a retracting taxel's arrow, m
-HISTORY_S = 10.0  # seconds of layer states on the live plot
+HISTORY_S = 10.0
+VIEW_DIR = np.array([0.55, -0.7, 0.45])  # the page's first view: from the front right, above
+FOV = np.radians(75.0)  # vertical field of view (viser's)
+
+
+def camera(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(eye, look-at) of the page's first view: along VIEW_DIR, far enough to see all `points` (the skin)."""
+    at = (points.min(0) + points.max(0)) / 2
+    radius = float(np.linalg.norm(points.max(0) - points.min(0))) / 2
+    return at + VIEW_DIR / np.linalg.norm(VIEW_DIR) * 2.0 * radius, at  # seconds of layer states on the live plot
 
 
 def colours(force: np.ndarray, vmax: float) -> np.ndarray:
@@ -65,19 +74,20 @@ class Page:
 
     def __init__(self, design, model: mujoco.MjModel, host: str = "127.0.0.1", port: int = 8080,
                  vmax: float | None = None, title: str = "skinsafe", boards: dict | None = None,
-                 timeline: tuple | None = None, on_time=None, on_next_contact=None, obstacles=()):
+                 timeline: tuple | None = None, on_time=None, on_next_contact=None, obstacles=(), q0=None):
         self.design, self.model = design, model
         self.kin = TaxelKinematics(model, design)
         self.data = self.kin.data
         th = design.taxels.thresholds.get("force", np.array([1.0]))
         self.threshold = float(np.max(th)) if len(th) else 1.0
         self.vmax = float(vmax or 2 * self.threshold)
-        self.boards = boards or {}
+        self.boards = {str(k): v for k, v in (boards or {}).items()}
         self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
         self.url = f"http://{host}:{self.server.get_port()}"
         sc = self.server.scene
         sc.set_up_direction("+z")
         sc.add_grid("/ground", width=2.0, height=2.0, cell_size=0.1, position=(0.0, 0.0, 0.0))
+        self.point_size = float(np.clip(1.3 * self._pitch(), 0.003, 0.025))
         self.bodies = {}  # body id -> frame handle
         self.clouds = {}  # body id -> (point cloud handle, taxel indices)
         t = design.taxels
@@ -99,7 +109,7 @@ class Page:
                 lifted = t.positions[taxels] + 0.0015 * t.frames[taxels, :, 2]
                 pc = sc.add_point_cloud(f"/robot/{name}/taxels", lifted.astype(np.float32),
                                         colors=colours(np.zeros(len(taxels)), self.vmax),
-                                        point_size=float(np.clip(self._pitch(), 0.003, 0.02)),
+                                        point_size=self.point_size,
                                         point_shape="circle", precision="float32")
                 self.clouds[b] = (pc, taxels, None)
         for i, ob in enumerate(obstacles):
@@ -110,9 +120,8 @@ class Page:
         self._lock = threading.Lock()
         self._history = deque()  # (t, retracting, speed factor, potential) of the live stream
         self._shown_t = None
-        centre = np.array([0.0, 0.0, 0.4])
-        self.server.initial_camera.position = (1.3, -1.3, 1.1)
-        self.server.initial_camera.look_at = tuple(centre)
+        eye, at = camera(self.kin.poses(q0 if q0 is not None else self.data.qpos.copy())[0])
+        self.server.initial_camera.position, self.server.initial_camera.look_at = tuple(eye), tuple(at)
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
         self._gui(timeline, on_time, on_next_contact)
 
@@ -126,7 +135,7 @@ class Page:
         gui.configure_theme(control_width="large")
         self.status = gui.add_markdown("**waiting for the first tick**")
         gui.add_html(scale_html(self.vmax, self.threshold))
-        self.slider = None
+        self.slider, self.on_time = None, on_time
         if timeline is not None:
             t0, t1, step = timeline
             with gui.add_folder("Timeline"):
@@ -150,7 +159,7 @@ class Page:
                         self.playing = False
                         t = on_next_contact(float(self.slider.value))
                         if t is not None:
-                            self.slider.value = round(t, 4)
+                            self.goto(t)
         with gui.add_folder("Layers"):
             self.layers = gui.add_markdown("")
             self.plot = gui.add_uplot(data=(np.zeros(1), np.zeros(1), np.ones(1), np.zeros(1)),
@@ -159,9 +168,15 @@ class Page:
                                               viser.uplot.Series(label="speed factor", stroke="blue", width=2),
                                               viser.uplot.Series(label="danger potential f", stroke="orange",
                                                                  width=2)),
-                                      title="layers over time", aspect=2.0)
+                                      scales={"x": viser.uplot.Scale(time=False, auto=True)},
+                                      title="layers over time (t, s)", aspect=2.0)
         with gui.add_folder("Boards"):
             self.board_md = gui.add_markdown("")
+
+    def goto(self, t: float) -> None:
+        """Move the timeline to `t` and draw that tick (a value set here does not call the slider's callback)."""
+        self.slider.value = round(t, 4)
+        self.on_time(float(self.slider.value))
 
     def plot_series(self, t, retracting, factor, potential) -> None:
         """The layers' states over time (a whole record, or the live history)."""
@@ -199,7 +214,8 @@ class Page:
         v = np.einsum("kij,j->ki", J[:, :3], np.asarray(h["command"], float))
         speed = np.linalg.norm(v, axis=1, keepdims=True)
         d = np.where(speed > 1e-6, v / np.maximum(speed, 1e-12), -frames[:, :, 2])  # at rest: along -n
-        pts = np.stack([pos, pos + ARROW_M * d], 1).astype(np.float32)
+        tip = pos - 1.5 * self.point_size * d  # outside the skin, pointing at the taxel (which stays in sight)
+        pts = np.stack([tip - ARROW_M * d, tip], 1).astype(np.float32)
         if self.arrows is not None:
             self.arrows.remove()
         self.arrows = self.server.scene.add_arrows("/contacts", pts, colors=ARROW_RGB, shaft_radius=0.003,
@@ -223,7 +239,7 @@ class Page:
             f"**speed factor** {h.get('speed_factor', 1.0):.3f} (|command| / |planned|)",
             f"**danger potential f** {h.get('potential', 0.0):.3f} (strategy/modulation TDM; 0 without --tdm)",
             f"**flags** {html.escape(flags)}",
-            f"**watchdog** " + (f"STOPPED: {html.escape(stop)}" if stop else "ok"),
+            "**watchdog** " + (f"STOPPED: {html.escape(stop)}" if stop else "ok"),
             "**command** " + " ".join(f"{v:+.3f}" for v in h.get("command") or []) + " rad/s"])
         ages = h.get("board_age_ms") or {}
         rows = ["| board | uid | last frame | |", "| --- | --- | ---: | --- |"]
