@@ -230,7 +230,7 @@ def _view(args, stack: contextlib.ExitStack, tap, design, driver, map_path: Path
     if not args.view_port:
         return
     page = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", "view", where, "--port", str(args.view_port)],
-                            stdout=subprocess.PIPE, text=True, preexec_fn=lambda: os.nice(10))
+                            stdout=subprocess.PIPE, text=True, preexec_fn=_background)
     stack.callback(_end, page)
     line = "-"
     while line and not line.startswith("skinsafe view:"):  # the page says where it is once it serves
@@ -238,6 +238,14 @@ def _view(args, stack: contextlib.ExitStack, tap, design, driver, map_path: Path
     if not line:
         raise ValueError(f"the view page did not start (exit {page.wait()})")
     print(f"skinsafe run: the view page at {line.split(' at ')[-1].strip()}", file=sys.stderr)
+
+
+def _background() -> None:
+    """In the page's process before it starts: the normal scheduler (not the run's real-time one, which a
+    child inherits: a page at SCHED_FIFO starved the emulated boards, stopped as silent) at nice 10."""
+    if hasattr(os, "sched_setscheduler"):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    os.nice(10)
 
 
 def _end(proc) -> None:

@@ -3,8 +3,11 @@
 tick advances), and records the run; `skinsafe view` of that record: the timeline scrubs, "next contact"
 jumps to the poke, the layer panel shows the retraction naming the taxel, and that taxel's pixels in a
 screenshot turn hot (projected with the page's camera) where they were cold before the poke.
-Boards at 10 Hz (silent after 200 ms): the shared machine stalls pseudo-terminals, more so with a browser."""
+Boards at 10 Hz (silent after 200 ms) and the browser at nice 19: the shared machine stalls pseudo-terminals,
+more so with a browser drawing WebGL in software (at normal priority a board was stopped as silent)."""
+import re
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -23,6 +26,7 @@ ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background
         "--disable-component-update", "--disable-sync"]
 W, H = 1200, 800
 SCREENSHOT = Path(__file__).resolve().parents[2] / "results" / "view" / "view_poke.png"
+POKE_S = 2.0  # robot seconds
 pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no chromium: `apt-get install -y chromium` (.ci/run does)")
 
 
@@ -61,6 +65,13 @@ def url_of(proc) -> str:
     raise AssertionError(f"the view did not start: {proc.stderr.read()[-2000:]}")
 
 
+def live_t(page, timeout_s=60) -> float:
+    """The robot time the live page shows (its status line `t = ... s`)."""
+    text = page.get_by_text("t = ").first
+    text.wait_for(timeout=timeout_s * 1000)
+    return float(re.search(r"t = ([0-9.]+) s", text.inner_text()).group(1))
+
+
 def settle(page, timeout_s=60):
     """Wait until the 3D canvas has drawn the skin (dark-blue taxels), not only the panel."""
     import io
@@ -76,11 +87,16 @@ def settle(page, timeout_s=60):
 
 
 @pytest.fixture(scope="module")
-def browser():
+def browser(tmp_path_factory):
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        # the browser at the lowest priority, as `run --view` starts its page process (nice 10): on this shared
+        # 2-core machine software WebGL otherwise starves the emulated boards' pseudo-terminals (a board silent)
+        nice = tmp_path_factory.mktemp("chromium") / "chromium"
+        nice.write_text(f'#!/bin/sh\nexec nice -n 19 "{CHROMIUM}" "$@"\n')
+        nice.chmod(0o755)
+        b = p.chromium.launch(executable_path=str(nice), args=ARGS)
         yield b
         b.close()
 
@@ -96,8 +112,9 @@ def test_run_view_live_then_the_record_scrubs_to_the_poke_and_the_taxel_turns_ho
     facing = np.einsum("ki,ki->k", frames[:, :, 2], (eye - pos) / np.linalg.norm(eye - pos, axis=1, keepdims=True))
     taxel = int(np.argmax(facing))
     record = tmp_path / "poke.mcap"
+    # runs until Ctrl-C: the live phase takes as long as this machine needs to draw the page, no longer
     run = cli("run", skin, "--boards", "emulate", "--command", "hold", "--rate", 10, "--tare-frames", 10,
-              "--contact", f"poke:at=4.0,taxel={taxel}", "--seconds", 8.0, "--record", record, "--view",
+              "--contact", f"poke:at={POKE_S},taxel={taxel}", "--seconds", 120, "--record", record, "--view",
               "--view-port", 8391, "--view-stream", "127.0.0.1:0")
     try:
         page = browser.new_page(viewport={"width": W, "height": H})
@@ -105,15 +122,18 @@ def test_run_view_live_then_the_record_scrubs_to_the_poke_and_the_taxel_turns_ho
             if "the view page at" in line:
                 page.goto(line.rsplit(" at ", 1)[1].strip())
                 break
-        page.get_by_text("t = ").first.wait_for(timeout=60000)
-        t1 = page.get_by_text("t = ").first.inner_text()
-        page.wait_for_timeout(1500)
-        t2 = page.get_by_text("t = ").first.inner_text()
-        assert t1 != t2, "the live view did not advance"
-        out, err = run.communicate(timeout=90)
-    finally:
-        run.kill() if run.poll() is None else None
-    assert run.returncode == 0, err[-2000:]
+        seen = [live_t(page)]
+        while seen[-1] <= max(seen[0], POKE_S + 1.0):  # the live tick advances with the robot, past the poke
+            assert run.poll() is None, run.stderr.read()[-2000:]
+            page.wait_for_timeout(500)
+            seen.append(live_t(page))
+        assert seen == sorted(seen), seen
+        run.send_signal(signal.SIGINT)
+        out, err = run.communicate(timeout=60)
+    except Exception as e:
+        run.kill()
+        raise AssertionError(f"the live phase failed ({e}); the run said: {run.communicate()[1][-2000:]}") from e
+    assert run.returncode == 130 and "STOPPED by the operator" in err, err[-2000:]
     page.close()
 
     view = cli("view", record, "--port", 8392, "--seconds", 120)
@@ -130,10 +150,14 @@ def test_run_view_live_then_the_record_scrubs_to_the_poke_and_the_taxel_turns_ho
         page.get_by_text("retraction: ACTIVE").wait_for(timeout=60000)
         body = page.inner_text("body")
         assert f"first {taxel})" in body or f"on taxel {taxel}" in body, body[:600]
-        page.wait_for_timeout(3000)  # the colours follow the panel
-        hot = page.screenshot(path=str(SCREENSHOT))
         assert hot_near(cold, xy) == 0
+        for _ in range(60):  # the colours follow the panel
+            hot = page.screenshot()
+            if hot_near(hot, xy) >= 4:
+                break
+            page.wait_for_timeout(500)
         assert hot_near(hot, xy) >= 4, f"taxel {taxel} at pixel {xy} is not hot"
+        SCREENSHOT.write_bytes(hot)
         # scrub back to the start: the retraction and the heat are gone again
         page.get_by_role("slider").first.focus()
         page.keyboard.press("Home")
