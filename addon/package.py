@@ -21,7 +21,9 @@ ROOT = HERE.parent
 # Runtime dependencies of skinsafe.core that Blender's Python lacks (Blender ships numpy; mujoco 4 keeps
 # its compiled library in mujoco-core; its viewer packages are not needed). trimesh, pycollada and xacro
 # (with their own dependencies) read robots from their ROS descriptions: meshes, Collada, xacro.
-DEPS = ["mujoco", "mujoco-core", "scipy", "tqdm", "trimesh", "pycollada", "python-dateutil", "six", "xacro", "PyYAML"]
+# mcap, mcap-ros2-support and lz4 read a run's record for the live link (addon/live.py).
+DEPS = ["mujoco", "mujoco-core", "scipy", "tqdm", "trimesh", "pycollada", "python-dateutil", "six", "xacro", "PyYAML",
+        "mcap", "mcap-ros2-support", "lz4"]
 PLATFORM = ["--platform", "manylinux_2_28_x86_64", "--platform", "manylinux2014_x86_64",
             "--python-version", "3.11", "--only-binary=:all:"]
 

@@ -47,6 +47,7 @@ BENCHES = {
     "safety": ("skinsafe.core.bench.safety", "correctness audit: no-push, limits, fail-safe on random contact sets"),
     "serial": ("skinsafe.hardware.bench_serial", "deploy and stream decoding over a pseudo-terminal"),
     "runtime": ("skinsafe.core.bench.runtime", "skinsafe run closed-loop: loop rate, latency, reaction, faults"),
+    "viewers": ("skinsafe.core.app.view_bench", "the live view in headless Chromium: viser vs Rerun at 16,384 taxels"),
 }
 
 

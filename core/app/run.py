@@ -229,7 +229,8 @@ def _view(args, stack: contextlib.ExitStack, tap, design, driver, map_path: Path
     print(f"skinsafe run: view stream at {where} (Blender: Skin > Live > Attach)", file=sys.stderr)
     if not args.view_port:
         return
-    page = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", "view", where, "--port", str(args.view_port)],
+    page = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", "view", where, "--port", str(args.view_port),
+                             "--until-ended"],
                             stdout=subprocess.PIPE, text=True, preexec_fn=_background)
     stack.callback(_end, page)
     line = "-"

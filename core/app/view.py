@@ -15,13 +15,15 @@ from pathlib import Path
 
 import numpy as np
 
-from skinsafe.core.runtime.replay import ReplayError, read_record
-from skinsafe.core.runtime.tap import Frame, Tap
+from skinsafe.core.runtime.recording import Recording
+from skinsafe.core.runtime.replay import ReplayError
+from skinsafe.core.runtime.tap import Tap
 from skinsafe.core.runtime.view_stream import DEFAULT_PORT, StreamError, ViewClient, ViewPublisher, hello
 
 
 def add_arguments(p) -> None:
-    p.add_argument("source", help="HOST:PORT of a live view stream (`skinsafe run --view`), or a record FILE.mcap")
+    p.add_argument("source", nargs="?", help="HOST:PORT of a live view stream (`skinsafe run --view`), or a record "
+                   "FILE.mcap")
     p.add_argument("--host", default="127.0.0.1", help="address the page is served on (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8080, help="the page's port (default 8080)")
     p.add_argument("--fps", type=float, default=20.0, help="page updates per second at most (live; default 20)")
@@ -30,98 +32,15 @@ def add_arguments(p) -> None:
     p.add_argument("--publish", metavar="[HOST:]PORT", help="record: also publish it as a view stream (for Blender), "
                    "following the timeline")
     p.add_argument("--seconds", type=float, help="serve this long, then exit (default: until Ctrl-C)")
-
-
-class Recording:
-    """A record's ticks as arrays (time on the robot's clock) and the view-stream frame of any tick."""
-
-    def __init__(self, path: str | Path):
-        self.config, messages = read_record(path, diagnostics=True)
-        t, q, cmd, planned, force_at, layers, diag = [], [], [], [], [], [], []
-        forces, cur = [], {}
-        for topic, msg in messages:
-            if topic == "/joint_states":
-                cur["q"] = np.asarray(msg.position, float)
-            elif topic == "/skinsafe/command":
-                cur["command"] = np.asarray(msg.velocity, float)
-            elif topic == "/skinsafe/planned":
-                cur["planned"] = np.asarray(msg.velocity, float)
-            elif topic == "/skinsafe/taxels":
-                forces.append(msg.astype(np.float32))
-            elif topic == "/skinsafe/layers":
-                cur["layers"] = msg
-            elif topic == "/skinsafe/tick":
-                t.append(msg[0])
-                q.append(cur.get("q"))
-                cmd.append(cur.get("command"))
-                planned.append(cur.get("planned"))
-                force_at.append(len(forces) - 1)
-                layers.append(cur.pop("layers", None))
-            elif topic == "/diagnostics":
-                diag.append((t[-1] if t else 0.0, _diagnostics(msg)))
-        if not t or q[0] is None:
-            raise ReplayError(f"{path}: no tick recorded (the robot never moved)")
-        self.t = np.asarray(t)
-        self.q, self.command = np.array(q), np.array(cmd)
-        self.planned = planned
-        self.forces = np.array(forces) if forces else np.zeros((1, 0), np.float32)
-        self.force_at = np.asarray(force_at)
-        none = np.array([0.0, 1.0, 0.0, 0.0])
-        self.layers = [x if x is not None else none for x in layers]
-        self.potential = np.array([x[0] for x in self.layers])
-        self.speed_factor = np.array([x[1] for x in self.layers])
-        self.retracting = np.array([x[2] for x in self.layers])
-        self.diag_t = np.array([d[0] for d in diag])
-        self.diag = [d[1] for d in diag]
-        self.stop = next((d["skinsafe/watchdog"]["message"] for _, d in diag[::-1] if "skinsafe/watchdog" in d), "")
-        peak = np.array([np.nanmax(f) if f.size else 0.0 for f in self.forces])
-        self.peak = np.where(self.force_at >= 0, peak[np.maximum(self.force_at, 0)], 0.0)
-
-    def index(self, t: float) -> int:
-        """The tick nearest to time t."""
-        i = int(np.clip(np.searchsorted(self.t, t), 1, max(1, len(self.t) - 1)))
-        return i - 1 if len(self.t) < 2 or t - self.t[i - 1] <= self.t[i] - t else i
-
-    def frame(self, i: int) -> tuple[dict, np.ndarray]:
-        """Tick i in the view stream's frame format (header, forces)."""
-        k = self.force_at[i]
-        force = self.forces[k].astype(float) if k >= 0 else np.full(self.forces.shape[1], np.nan)
-        lay = self.layers[i]
-        d = self.diag[max(0, int(np.searchsorted(self.diag_t, self.t[i], side="right")) - 1)] if self.diag else {}
-        layers = d.get("skinsafe/layers", {}).get("values", {})
-        skin = d.get("skinsafe/skin", {}).get("values", {})
-        ages = {k.split()[1]: float(v) for k, v in skin.items() if k.startswith("board ")}
-        last = i == len(self.t) - 1
-        h = {"kind": "frame", "seq": i + 1, "t": float(self.t[i]), "q": self.q[i].tolist(),
-             "command": self.command[i].tolist(), "planned": None if self.planned[i] is None else self.planned[i].tolist(),
-             "retracting": bool(lay[2]), "pool": [int(x) for x in lay[4:]], "potential": float(lay[0]),
-             "speed_factor": float(lay[1]), "flags": [f for f in layers.get("flags", "").split(",") if f],
-             "stop": self.stop if last else "", "board_age_ms": {str(int(u, 16)): a for u, a in ages.items()},
-             "frames_lost": int(skin.get("frames_lost", 0))}
-        return h, force
-
-    def next_contact(self, t: float) -> float | None:
-        """The time of the largest reading of the next retraction after `t` (None: no more)."""
-        i = self.index(t)
-        on = np.flatnonzero((self.retracting[i + 1:] > 0) & (self.retracting[i:-1] == 0)) + i + 1 if i + 1 < len(
-            self.t) else np.zeros(0, int)
-        if not len(on):
-            return None
-        start = int(on[0])
-        end = start + int(np.argmax(self.retracting[start:] == 0)) if (self.retracting[start:] == 0).any() else len(self.t)
-        return float(self.t[start + int(np.argmax(self.peak[start:end]))])
-
-    def tap_frame(self, i: int) -> Frame:
-        """Tick i as the runtime's tap frame (for `--publish`)."""
-        h, force = self.frame(i)
-        return Frame(h["t"], self.q[i], force, self.command[i], h["retracting"], len(h["pool"]), tuple(h["flags"]),
-                     h["stop"], self.planned[i], np.array(h["pool"]), h["potential"], h["speed_factor"],
-                     {int(k): v / 1e3 for k, v in h["board_age_ms"].items()}, h["frames_lost"])
-
-
-def _diagnostics(msg) -> dict:
-    return {s.name: {"level": int(s.level), "message": s.message, "values": {kv.key: kv.value for kv in s.values}}
-            for s in msg.status}
+    g = p.add_argument_group("an experiment's episode (run again into a record, then viewed)")
+    g.add_argument("--tracking", metavar="RESULT.json", help="a `skinsafe experiment tracking` result (tracking.json)")
+    g.add_argument("--method", default="vanilla", help="--tracking: vanilla | tdm | tdm2 (default vanilla)")
+    g.add_argument("--seed", type=int, default=0, help="--tracking: the seed (default 0)")
+    g.add_argument("--episode", type=int, default=0, help="--tracking: the episode (default 0)")
+    g.add_argument("--record", metavar="FILE.mcap", help="--tracking: where to write the record (default: beside "
+                   "RESULT.json); `skinsafe view FILE.mcap` opens it again")
+    p.add_argument("--until-ended", action="store_true", help="live: exit when the stream ends (as the page "
+                   "`run --view` starts does, so it never outlives its run)")
 
 
 def _load_design(map_path: str, override: str | None):
@@ -163,7 +82,8 @@ def serve_live(args, stop: threading.Event) -> int:
             stop.wait(1.0 / args.fps)
         if client.closed:
             print("skinsafe view: the stream ended (the run stopped)", file=sys.stderr)
-            stop.wait()  # the page keeps the last tick until Ctrl-C / --seconds
+            if not args.until_ended:
+                stop.wait()  # the page keeps the last tick until Ctrl-C / --seconds
     finally:
         client.close()
         page.close()
@@ -220,6 +140,19 @@ def serve_record(args, stop: threading.Event) -> int:
     return 0
 
 
+def _tracking_record(args) -> str:
+    from skinsafe.core.app.experiment_view import record_tracking
+
+    out = Path(args.record or Path(args.tracking).with_name(f"tracking_{args.method}_s{args.seed}_e{args.episode}.mcap"))
+    print(f"skinsafe view: running {args.method} seed {args.seed} episode {args.episode} of {args.tracking} again "
+          f"into {out}", flush=True)
+    r = record_tracking(args.tracking, out, args.method, args.seed, args.episode)
+    same = "as" if r["contacts"] == r["contacts_in_result"] else "NOT as"
+    print(f"skinsafe view: {r['ticks']} ticks, {r['contacts']} contact ticks ({same} in the result: "
+          f"{r['contacts_in_result']})", flush=True)
+    return str(out)
+
+
 def run(args) -> int:
     stop = threading.Event()
     if args.seconds is not None:
@@ -227,6 +160,10 @@ def run(args) -> int:
         timer.daemon = True
         timer.start()
     try:
+        if args.tracking:
+            args.source = _tracking_record(args)
+        if not args.source:
+            raise ValueError("give HOST:PORT, a record FILE.mcap, or --tracking RESULT.json")
         if args.source.endswith(".mcap"):
             return serve_record(args, stop)
         return serve_live(args, stop)

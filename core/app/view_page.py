@@ -22,11 +22,8 @@ import viser
 
 from skinsafe.core.design.surface import body_surface
 from skinsafe.core.robot.kinematics import TaxelKinematics
+from skinsafe.core.runtime.view_scale import COLOURS, STOPS, colours, default_vmax
 
-# colour scale stops: fraction of vmax -> sRGB (0-255); threshold sits at 0.5 with the default vmax
-STOPS = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
-COLOURS = np.array([[30, 50, 110], [60, 80, 200], [220, 40, 30], [255, 140, 0], [255, 240, 90]], float)
-NO_DATA = np.array([150, 150, 150], np.uint8)
 ROBOT_RGB = (185, 188, 195)
 ARROW_RGB = (0, 200, 220)
 ARROW_M = 0.06  # length of a retracting taxel's arrow, m
@@ -42,13 +39,10 @@ def camera(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return at + VIEW_DIR / np.linalg.norm(VIEW_DIR) * 2.0 * radius, at  # seconds of layer states on the live plot
 
 
-def colours(force: np.ndarray, vmax: float) -> np.ndarray:
-    """(N, 3) uint8 colours of forces (N) on the scale; NaN grey."""
-    f = np.asarray(force, float)
-    x = np.clip(np.nan_to_num(f, nan=0.0) / vmax, 0.0, 1.0)
-    rgb = np.stack([np.interp(x, STOPS, COLOURS[:, c]) for c in range(3)], 1).astype(np.uint8)
-    rgb[~np.isfinite(f)] = NO_DATA
-    return rgb
+def point_size(design) -> float:
+    """A taxel's point size on the page, m: 1.3 times the modules' median pitch (1 cm without one)."""
+    pitches = [m.pitch for m in design.modules if getattr(m, "pitch", 0)]
+    return float(np.clip(1.3 * (np.median(pitches) if pitches else 0.01), 0.003, 0.025))
 
 
 def scale_html(vmax: float, threshold: float) -> str:
@@ -78,16 +72,15 @@ class Page:
         self.design, self.model = design, model
         self.kin = TaxelKinematics(model, design)
         self.data = self.kin.data
-        th = design.taxels.thresholds.get("force", np.array([1.0]))
-        self.threshold = float(np.max(th)) if len(th) else 1.0
-        self.vmax = float(vmax or 2 * self.threshold)
+        top = default_vmax(design.taxels.thresholds.get("force", ()))
+        self.threshold, self.vmax = top / 2, float(vmax or top)
         self.boards = {str(k): v for k, v in (boards or {}).items()}
         self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
         self.url = f"http://{host}:{self.server.get_port()}"
         sc = self.server.scene
         sc.set_up_direction("+z")
         sc.add_grid("/ground", width=2.0, height=2.0, cell_size=0.1, position=(0.0, 0.0, 0.0))
-        self.point_size = float(np.clip(1.3 * self._pitch(), 0.003, 0.025))
+        self.point_size = point_size(design)
         self.bodies = {}  # body id -> frame handle
         self.clouds = {}  # body id -> (point cloud handle, taxel indices)
         t = design.taxels
@@ -124,10 +117,6 @@ class Page:
         self.server.initial_camera.position, self.server.initial_camera.look_at = tuple(eye), tuple(at)
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
         self._gui(timeline, on_time, on_next_contact)
-
-    def _pitch(self) -> float:
-        pitches = [m.pitch for m in self.design.modules if getattr(m, "pitch", 0)]
-        return float(np.median(pitches)) if pitches else 0.01
 
     # -- the panel -------------------------------------------------------------------------------
     def _gui(self, timeline, on_time, on_next_contact) -> None:

@@ -159,10 +159,11 @@ class Recorder:
         self.thread = threading.Thread(target=self._work, name="recorder", daemon=True)
         self.thread.start()
 
-    def put(self, item: tuple) -> None:
-        """Enqueue one tick (see `_tick`); dropped and counted when the writer is behind."""
+    def put(self, item: tuple, wait: bool = False) -> None:
+        """Enqueue one tick (see `_tick`); dropped and counted when the writer is behind, unless `wait` (a
+        writer with no loop to keep: core/runtime/sim_record.py)."""
         try:
-            self.q.put_nowait(item)
+            self.q.put(item, block=wait)
         except queue.Full:
             self.dropped += 1
 

@@ -71,6 +71,9 @@ def replay(path: str | Path, stack_from_config, map_path: str | Path | None = No
     from skinsafe.core.skin.taxel_map import load
 
     config, messages = read_record(path)
+    if config.get("source") == "experiment":
+        raise ReplayError(f"{path}: a record of the {config.get('experiment') or 'an'} experiment: its controller is "
+                          "not the runtime's stack, so there is nothing to replay; see it with `skinsafe view`")
     mp = Path(map_path or config["map"])
     try:
         digest = hashlib.sha256(mp.read_bytes()).hexdigest()

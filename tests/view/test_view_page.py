@@ -131,8 +131,8 @@ def test_run_view_live_then_the_record_scrubs_to_the_poke_and_the_taxel_turns_ho
         run.send_signal(signal.SIGINT)
         out, err = run.communicate(timeout=60)
     except Exception as e:
-        run.kill()
-        raise AssertionError(f"the live phase failed ({e}); the run said: {run.communicate()[1][-2000:]}") from e
+        run.send_signal(signal.SIGINT)  # the run ends its page process (SIGKILL would leave it behind)
+        raise AssertionError(f"the live phase failed ({e}); the run said: {run.communicate(timeout=60)[1][-2000:]}") from e
     assert run.returncode == 130 and "STOPPED by the operator" in err, err[-2000:]
     page.close()
 
