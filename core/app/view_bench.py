@@ -16,10 +16,12 @@ the viewer's server threads), load_average (the machine's, shared).
 """
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import re
 import shutil
+import sys
 import threading
 import time
 from importlib.metadata import PackageNotFoundError, version
@@ -99,7 +101,8 @@ class Source:
 def _viser(design, robot, port: int):
     from skinsafe.core.app.view_page import Page
 
-    page = Page(design, robot.model, "127.0.0.1", port, title="skinsafe bench", q0=robot.home)
+    with contextlib.redirect_stdout(sys.stderr):  # viser's banner: not into --json
+        page = Page(design, robot.model, "127.0.0.1", port, title="skinsafe bench", q0=robot.home)
     base = {"kind": "frame", "command": [0.0] * robot.model.nv, "planned": None, "retracting": False, "pool": [],
             "potential": 0.0, "speed_factor": 1.0, "flags": [], "stop": "", "board_age_ms": {}, "frames_lost": 0}
 

@@ -56,6 +56,9 @@ class Recording:
         self.stop = next((d["skinsafe/watchdog"]["message"] for _, d in diag[::-1] if "skinsafe/watchdog" in d), "")
         peak = np.array([np.nanmax(f) if f.size else 0.0 for f in self.forces])
         self.peak = np.where(self.force_at >= 0, peak[np.maximum(self.force_at, 0)], 0.0)
+        # a contact: a retraction (a run), or a taxel over the threshold (an experiment: no retraction layer)
+        self.active = (self.peak > self.config["threshold_N"] if self.config.get("source") == "experiment"
+                       else self.retracting > 0).astype(float)
 
     def index(self, t: float) -> int:
         """The tick nearest to time t."""
@@ -81,14 +84,14 @@ class Recording:
         return h, force
 
     def next_contact(self, t: float) -> float | None:
-        """The time of the largest reading of the next retraction after `t` (None: no more)."""
+        """The time of the largest reading of the next contact (`active`) after `t` (None: no more)."""
         i = self.index(t)
-        on = np.flatnonzero((self.retracting[i + 1:] > 0) & (self.retracting[i:-1] == 0)) + i + 1 if i + 1 < len(
+        on = np.flatnonzero((self.active[i + 1:] > 0) & (self.active[i:-1] == 0)) + i + 1 if i + 1 < len(
             self.t) else np.zeros(0, int)
         if not len(on):
             return None
         start = int(on[0])
-        end = start + int(np.argmax(self.retracting[start:] == 0)) if (self.retracting[start:] == 0).any() else len(self.t)
+        end = start + int(np.argmax(self.active[start:] == 0)) if (self.active[start:] == 0).any() else len(self.t)
         return float(self.t[start + int(np.argmax(self.peak[start:end]))])
 
     def tap_frame(self, i: int) -> Frame:

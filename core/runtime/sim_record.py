@@ -28,7 +28,8 @@ class SimRecord:
         self.map = save(design, self.path.with_suffix(".skin.json")).resolve()
         config = {"source": "experiment", "experiment": experiment, "map": str(self.map),
                   "map_sha256": hashlib.sha256(self.map.read_bytes()).hexdigest(), "joint_names": list(joint_names),
-                  "period_s": float(period_s), "obstacles": list(obstacles), **(meta or {})}
+                  "period_s": float(period_s), "obstacles": list(obstacles),
+                  "threshold_N": float(np.max(design.taxels.thresholds.get("force", [np.inf]))), **(meta or {})}
         self.rec = Recorder(self.path, list(joint_names), config)
         self.n = design.n_taxels
         self.t0_ns, self.ticks, self.prev = time.time_ns(), 0, None
