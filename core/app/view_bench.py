@@ -115,8 +115,7 @@ def _rerun(design, robot, port: int):
     import mujoco
     import rerun as rr
 
-    from skinsafe.core.app.view_page import point_size
-    from skinsafe.core.design.surface import body_surface
+    from skinsafe.core.app.view_page import point_size, skin_bodies
     from skinsafe.core.robot.kinematics import TaxelKinematics
     from skinsafe.core.runtime.view_scale import colours, default_vmax
 
@@ -128,15 +127,7 @@ def _rerun(design, robot, port: int):
     rr.serve_web_viewer(web_port=port + 2, open_browser=False, connect_to=grpc)
     bodies, clouds = [], {}
     t = design.taxels
-    for b in range(1, m.nbody):
-        name = m.body(b).name
-        idx = np.flatnonzero(kin.body_id == b)
-        try:
-            surf = body_surface(m, name)
-        except ValueError:
-            surf = None
-        if surf is None and not len(idx):
-            continue
+    for b, name, surf, idx in skin_bodies(m, kin):
         bodies.append(b)
         if surf is not None:
             rec.log(f"robot/{name}/mesh", rr.Mesh3D(vertex_positions=surf.vertices, triangle_indices=surf.triangles,

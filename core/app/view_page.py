@@ -39,6 +39,19 @@ def camera(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return at + VIEW_DIR / np.linalg.norm(VIEW_DIR) * 2.0 * radius, at  # seconds of layer states on the live plot
 
 
+def skin_bodies(model: mujoco.MjModel, kin: TaxelKinematics):
+    """(body id, name, visual surface or None, its taxels) of every body with a surface or taxels."""
+    for b in range(1, model.nbody):
+        name = model.body(b).name
+        taxels = np.flatnonzero(kin.body_id == b)
+        try:
+            surf = body_surface(model, name)
+        except ValueError:
+            surf = None
+        if surf is not None or len(taxels):
+            yield b, name, surf, taxels
+
+
 def point_size(design) -> float:
     """A taxel's point size on the page, m: 1.3 times the modules' median pitch (1 cm without one)."""
     pitches = [m.pitch for m in design.modules if getattr(m, "pitch", 0)]
@@ -84,15 +97,7 @@ class Page:
         self.bodies = {}  # body id -> frame handle
         self.clouds = {}  # body id -> (point cloud handle, taxel indices)
         t = design.taxels
-        for b in range(1, model.nbody):
-            name = model.body(b).name
-            taxels = np.flatnonzero(self.kin.body_id == b)
-            try:
-                surf = body_surface(model, name)
-            except ValueError:
-                surf = None
-            if surf is None and not len(taxels):
-                continue
+        for b, name, surf, taxels in skin_bodies(model, self.kin):
             frame = sc.add_frame(f"/robot/{name}", show_axes=False)
             self.bodies[b] = frame
             if surf is not None:
