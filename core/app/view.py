@@ -1,10 +1,12 @@
 """`skinsafe view SOURCE`: the live view in a browser (viser), of a running `skinsafe run --view` or a record.
 
 SOURCE is `HOST:PORT` (a view stream: `skinsafe run --view` publishes one, core/runtime/view_stream.py) or
-`FILE.mcap` (a `run --record` record, or an experiment's: core/runtime/sim_record.py). The page (core/app/
-view_page.py) runs in this process, apart from the control loop: a live view takes the newest tick at
-`--fps` and drops the rest; a record gets a timeline (slider, play, next contact). `--publish [HOST:]PORT`
-also replays a record as a view stream, so Blender's add-on can attach to it as to a live run.
+`FILE.mcap` (a `run --record` record, or an experiment's: core/runtime/sim_record.py; read by core/runtime/
+recording.py). `--tracking RESULT.json` runs an episode of the tracking experiment again into a record
+first (core/app/experiment_view.py). The page (core/app/view_page.py) runs in this process, apart from the
+control loop: a live view takes the newest tick at `--fps` and drops the rest; a record gets a timeline
+(slider, play, next contact). `--publish [HOST:]PORT` also replays a record as a view stream, following
+the timeline (Blender's add-on attaches to it as to a live run, or opens the record itself).
 """
 from __future__ import annotations
 

@@ -20,7 +20,6 @@ import contextlib
 import io
 import os
 import re
-import shutil
 import sys
 import threading
 import time
@@ -28,8 +27,8 @@ from importlib.metadata import PackageNotFoundError, version
 
 import numpy as np
 
-CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync"]
+from skinsafe.core.bench.browser import CHROMIUM_ARGS, chromium
+
 W, H = 1200, 800
 DRAWN, COOL = 5000, 2000  # yellow pixels: the skin drawn all yellow / none of it yellow (the scale bar has ~600)
 FATAL = re.compile(r"Failed to start|has crashed|panicked|WebGL.*(not supported|unavailable)", re.I)
@@ -37,11 +36,6 @@ WEBGPU_ARGS = ["--enable-unsafe-webgpu", "--enable-features=Vulkan", "--use-webg
 # counts the frames the page draws: distinct requestAnimationFrame timestamps
 COUNT_FRAMES = """(() => { const raf = window.requestAnimationFrame.bind(window); window.__frames = 0; let last = -1;
   window.requestAnimationFrame = (cb) => raf((t) => { if (t !== last) { last = t; window.__frames++; } cb(t); }); })();"""
-
-
-def chromium() -> str | None:
-    """Debian's chromium (never a browser download), or None."""
-    return shutil.which("chromium") or shutil.which("chromium-browser")
 
 
 def add_arguments(p) -> None:

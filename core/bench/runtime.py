@@ -138,24 +138,25 @@ def _run(map_path: Path, traj: Path, stats: Path, rate: int, period: float, view
 
 def _with_browser(cmd: list[str]) -> subprocess.CompletedProcess:
     """`cmd` (a `run --view`) with a headless Chromium (Debian's, nice 19) on its page from before the robot moves."""
-    import shutil
-
+    from playwright.sync_api import Error as PlaywrightError
     from playwright.sync_api import sync_playwright
 
-    exe = shutil.which("chromium")
+    from skinsafe.core.bench.browser import CHROMIUM_ARGS, chromium, niced
+
+    exe = chromium()
     if exe is None:
         raise RuntimeError("bench runtime --view browser: no chromium (`apt-get install -y chromium`)")
     with tempfile.TemporaryDirectory() as tmp, sync_playwright() as pw:
-        nice = Path(tmp) / "chromium"
-        nice.write_text(f'#!/bin/sh\nexec nice -n 19 "{exe}" "$@"\n')
-        nice.chmod(0o755)
-        browser = pw.chromium.launch(executable_path=str(nice), args=["--headless=new", "--no-sandbox", "--disable-gpu"])
+        browser = pw.chromium.launch(executable_path=niced(tmp, exe), args=CHROMIUM_ARGS)
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         err = []
         for line in proc.stderr:
             err.append(line)
             if "the view page at" in line:
-                browser.new_page().goto(line.rsplit(" at ", 1)[1].strip())
+                try:
+                    browser.new_page().goto(line.rsplit(" at ", 1)[1].strip())
+                except PlaywrightError:  # the run already stopped (a false staleness stop) and its page with it
+                    pass
                 break
         out, rest = proc.communicate(timeout=600)
         browser.close()

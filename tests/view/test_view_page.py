@@ -6,7 +6,6 @@ screenshot turn hot (projected with the page's camera) where they were cold befo
 Boards at 10 Hz (silent after 200 ms) and the browser at nice 19: the shared machine stalls pseudo-terminals,
 more so with a browser drawing WebGL in software (at normal priority a board was stopped as silent)."""
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -16,14 +15,13 @@ import numpy as np
 import pytest
 
 from skinsafe.core.app.view_page import FOV, camera
+from skinsafe.core.bench.browser import CHROMIUM_ARGS, chromium, niced
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.skin.taxel_map import save
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-        "--disable-component-update", "--disable-sync"]
+CHROMIUM = chromium()
 W, H = 1200, 800
 SCREENSHOT = Path(__file__).resolve().parents[2] / "results" / "view" / "view_poke.png"
 POKE_S = 2.0  # robot seconds
@@ -93,10 +91,7 @@ def browser(tmp_path_factory):
     with sync_playwright() as p:
         # the browser at the lowest priority, as `run --view` starts its page process (nice 10): on this shared
         # 2-core machine software WebGL otherwise starves the emulated boards' pseudo-terminals (a board silent)
-        nice = tmp_path_factory.mktemp("chromium") / "chromium"
-        nice.write_text(f'#!/bin/sh\nexec nice -n 19 "{CHROMIUM}" "$@"\n')
-        nice.chmod(0o755)
-        b = p.chromium.launch(executable_path=str(nice), args=ARGS)
+        b = p.chromium.launch(executable_path=niced(tmp_path_factory.mktemp("chromium"), CHROMIUM), args=CHROMIUM_ARGS)
         yield b
         b.close()
 
