@@ -49,6 +49,7 @@ class _Link:
             self.ids, self.joint_names = self.client.ids, list(self.client.hello["joint_names"])
         self.last = None  # the header last applied
         self.wall = None  # a playing record: the wall clock of the last step
+        self.faces = None  # (the design revision, `_faces` of it)
 
     def close(self) -> None:
         if self.client is not None:
@@ -79,8 +80,9 @@ def _linear(rgb: np.ndarray) -> np.ndarray:
     return srgb_to_linear(rgb / 255.0)
 
 
-def colour(scene, force: np.ndarray, ids: np.ndarray, vmax: float | None = None) -> int:
-    """Write forces (N, in the order of taxel `ids`) to every module's `live` attribute; the modules changed."""
+def colour(scene, force: np.ndarray, ids: np.ndarray, vmax: float | None = None, faces=None) -> int:
+    """Write forces (N, in the order of taxel `ids`) to every module's `live` attribute (`faces`: `_faces(scene,
+    ids)`, if known); the modules changed."""
     from skinsafe.addon.blender_to_core import design_of
 
     design = design_of(scene)
@@ -88,7 +90,7 @@ def colour(scene, force: np.ndarray, ids: np.ndarray, vmax: float | None = None)
     rgba = np.ones((len(force) + 1, 4), np.float32)  # the last row: no reading (a taxel the source lacks)
     rgba[:, :3] = _linear(colours(np.append(np.asarray(force, float), np.nan), top))
     changed = 0
-    for obj, idx in _faces(scene, ids):
+    for obj, idx in faces if faces is not None else _faces(scene, ids):
         c = np.repeat(rgba[idx], 6, axis=0)  # six corners per taxel hexagon
         me = obj.data
         attr = me.color_attributes.get(ATTR) or me.color_attributes.new(ATTR, "FLOAT_COLOR", "CORNER")
@@ -171,7 +173,10 @@ def show_time(scene, t: float) -> bool:
 def _apply(scene, h: dict, force: np.ndarray) -> None:
     lv = bpy.context.window_manager.skinsafe_live
     _pose(scene, h["q"], _link.joint_names)
-    colour(scene, force, _link.ids, lv.vmax or None)
+    rev = scene.skinsafe.design_rev
+    if _link.faces is None or _link.faces[0] != rev:  # the design changed: match its taxels again
+        _link.faces = (rev, _faces(scene, _link.ids))
+    colour(scene, force, _link.ids, lv.vmax or None, _link.faces[1])
     _link.last = h
     f = np.nan_to_num(force)
     top = int(np.argmax(f)) if len(f) else -1
