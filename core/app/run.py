@@ -372,11 +372,14 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
     head = {"end": "stopped as planned", "operator": "STOPPED by the operator", "fault": "STOPPED by a watchdog",
             "driver": "STOPPED by the robot"}[outcome.kind]
     print(f"skinsafe run: {head}: {outcome.reason}", file=sys.stderr if outcome.kind != "end" else sys.stdout)
-    print(f"ticks {t['ticks']}, loop {t['loop_hz_p50']:.0f} Hz (period p99 {t['period_ms_p99']:.2f} ms), contact latency "
-          f"p50 {t['latency_ms_p50']:.2f} / p99 {t['latency_ms_p99']:.2f} / max {t['latency_ms_max']:.2f} ms over "
-          f"{t['latency_samples']} frames, frames lost {lost}"
-          + (f"; record {rec.get('path', rec.get('error'))}: {rec['written']} messages, {rec['dropped']} ticks dropped"
-             if rec else ""))
+    if not t:  # stopped before the robot moved: no loop figures
+        print("the robot never moved" + (f"; record {rec.get('path', rec.get('error'))}" if rec else ""))
+    else:
+        print(f"ticks {t['ticks']}, loop {t['loop_hz_p50']:.0f} Hz (period p99 {t['period_ms_p99']:.2f} ms), contact latency "
+              f"p50 {t['latency_ms_p50']:.2f} / p99 {t['latency_ms_p99']:.2f} / max {t['latency_ms_max']:.2f} ms over "
+              f"{t['latency_samples']} frames, frames lost {lost}"
+              + (f"; record {rec.get('path', rec.get('error'))}: {rec['written']} messages, {rec['dropped']} ticks dropped"
+                 if rec else ""))
     if args.stats:
         world = getattr(driver, "stats", None)
         out = {"reason": outcome.reason, "kind": outcome.kind, "watchdog": outcome.watchdog, "t": outcome.t,

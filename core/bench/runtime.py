@@ -13,8 +13,12 @@ into it. Per row, over `--repeats` runs (worst case where it says so):
   into the post after the onset; `peak_N_in_process` is the same contact with the stack fed straight
   from the sim's readout (no boards, no serial; same code, `SimDriver(realtime=False)`);
 - stale_stops: runs a staleness watchdog (silent board, robot state, command) stopped with nothing
-  injected (the shared machine's stalls); such a run is run again (up to RETRIES times) and the row's
-  figures are those of the runs that went to the end; frames_lost: frames sent that never arrived.
+  injected (the shared machine's stalls), or a board was silent before the robot moved; such a run is run
+  again (up to RETRIES times) and the row's figures are those of the runs that went to the end;
+  frames_lost: frames sent that never arrived.
+`--view off page browser`: a row per mode (key `view`), the modes' runs alternating so they share the
+machine's load: without the live view, with `run --view` (its stream and page process), and with a headless
+Chromium on the page too; per_run_* list each run's loop figures (the spread).
 `--faults`: the fault storm (core/app/runtime_faults.py) in its own process, one row: runs, faults
 (runs the fault stopped), stopped_within_2_periods (fraction: zero velocity sent within 2 control
 periods of the detection), unnamed, tracebacks, records_readable (fraction), and named_as_injected.
@@ -187,8 +191,8 @@ def rows(args) -> list[dict]:
                     for attempt in range(RETRIES):
                         r = _run(tmp / f"skin{n}.json", traj, tmp / f"stats{n}_{v}_{k}_{attempt}.json", args.rate,
                                  args.period, v)
-                        stale[v] += r["watchdog"] in STALE
-                        if r["watchdog"] not in STALE:
+                        stale[v] += r["watchdog"] in STALE or not r.get("ticks")  # silent before moving too
+                        if r["watchdog"] not in STALE and r.get("ticks"):
                             break
                     runs[v].append(r)
             for v in args.view:
