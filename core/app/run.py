@@ -222,7 +222,7 @@ def _view(args, stack: contextlib.ExitStack, tap, design, driver, map_path: Path
 
     host, _, port = args.view_stream.rpartition(":")
     msg = hello(design.n_taxels, design.taxels.ids, driver.joint_names, {b.uid: b.name for b in design.boards},
-                str(map_path.resolve()), map_hash.hex(), driver.period_s)
+                str(map_path.resolve()), map_hash.hex(), driver.period_s, board_period_s=1.0 / args.rate)
     pub = ViewPublisher(tap.latest, msg, host or "127.0.0.1", int(port))
     stack.callback(pub.close)
     where = f"{pub.address[0]}:{pub.address[1]}"
@@ -324,6 +324,7 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
         recorder = None
         if args.record:
             config = run_config(map_path, driver, limits, params, source.excluded, command.spec, args.tdm)
+            config["board_period_s"] = 1.0 / args.rate  # for the view's board health
             try:
                 recorder = Recorder(args.record, driver.joint_names, config)
             except OSError as e:

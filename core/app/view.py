@@ -74,7 +74,8 @@ def serve_live(args, stop: threading.Event) -> int:
     design, robot = _load_design(h["map"], args.map)
     if design.n_taxels != h["n_taxels"]:
         raise StreamError(f"the stream has {h['n_taxels']} taxels, the map {design.n_taxels}; give the run's map with --map")
-    page = Page(design, robot.model, args.host, args.port, args.vmax, "skinsafe live", h["boards"], q0=robot.home)
+    page = Page(design, robot.model, args.host, args.port, args.vmax, "skinsafe live", h["boards"], q0=robot.home,
+                board_period_s=h.get("board_period_s", 0.0))
     print(f"skinsafe view: live from {args.source} ({h['n_taxels']} taxels) at {page.url}", flush=True)
     try:
         while not stop.is_set() and not client.closed:
@@ -112,7 +113,7 @@ def serve_record(args, stop: threading.Event) -> int:
     step = float(cfg.get("period_s") or np.median(np.diff(rec.t)) if len(rec.t) > 1 else 0.01)
     page = Page(design, robot.model, args.host, args.port, args.vmax, f"skinsafe {Path(args.source).name}",
                 {b.uid: b.name for b in design.boards}, (float(rec.t[0]), float(rec.t[-1]), step), on_time,
-                rec.next_contact, cfg.get("obstacles", ()), rec.q[0])
+                rec.next_contact, cfg.get("obstacles", ()), rec.q[0], cfg.get("board_period_s", 0.0))
     page.plot_series(rec.t, rec.retracting, rec.speed_factor, rec.potential)
     on_time(rec.t[0])
     pub = None
@@ -120,7 +121,8 @@ def serve_record(args, stop: threading.Event) -> int:
         host, port = _endpoint(args.publish)
         pub = ViewPublisher(tap.latest, hello(design.n_taxels, design.taxels.ids, cfg["joint_names"],
                                               {b.uid: b.name for b in design.boards}, cfg["map"],
-                                              cfg.get("map_sha256", ""), cfg.get("period_s", 0.0), "record"),
+                                              cfg.get("map_sha256", ""), cfg.get("period_s", 0.0), "record",
+                                              cfg.get("board_period_s", 0.0)),
                             host, port)
         print(f"skinsafe view: publishing the record's timeline at {pub.address[0]}:{pub.address[1]}", flush=True)
     print(f"skinsafe view: {args.source}: {len(rec.t)} ticks, {rec.t[-1] - rec.t[0]:.2f} s, {design.n_taxels} taxels "

@@ -81,13 +81,15 @@ class Page:
 
     def __init__(self, design, model: mujoco.MjModel, host: str = "127.0.0.1", port: int = 8080,
                  vmax: float | None = None, title: str = "skinsafe", boards: dict | None = None,
-                 timeline: tuple | None = None, on_time=None, on_next_contact=None, obstacles=(), q0=None):
+                 timeline: tuple | None = None, on_time=None, on_next_contact=None, obstacles=(), q0=None,
+                 board_period_s: float = 0.0):
         self.design, self.model = design, model
         self.kin = TaxelKinematics(model, design)
         self.data = self.kin.data
         top = default_vmax(design.taxels.thresholds.get("force", ()))
         self.threshold, self.vmax = top / 2, float(vmax or top)
         self.boards = {str(k): v for k, v in (boards or {}).items()}
+        self.late_ms = 2e3 * board_period_s  # a board's frame older than this: the silence watchdog's limit
         self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
         self.url = f"http://{host}:{self.server.get_port()}"
         sc = self.server.scene
@@ -239,9 +241,12 @@ class Page:
         rows = ["| board | uid | last frame | |", "| --- | --- | ---: | --- |"]
         for uid, age in sorted(ages.items(), key=lambda kv: int(kv[0])):
             name = self.boards.get(str(uid), "")
-            rows.append(f"| {html.escape(name)} | {int(uid):#x} | {age:.1f} ms | {'ok' if age < 25 else 'LATE'} |")
+            rows.append(f"| {html.escape(name)} | {int(uid):#x} | {age:.1f} ms | {self._health(age)} |")
         rows.append(f"\nframes lost: {h.get('frames_lost', 0)}")
         self.board_md.content = "\n".join(rows) if ages else "no board data (simulation record)"
+
+    def _health(self, age_ms: float) -> str:
+        return "" if not self.late_ms else "ok" if age_ms <= self.late_ms else "LATE"
 
     def _live_history(self, h: dict) -> None:
         hist = self._history

@@ -11,7 +11,7 @@ Wire format (every message; little-endian):
 
 - the first message on a connection, header `{"kind": "hello", "n_taxels": N, "joint_names": [...],
   "boards": {"<uid>": "<name>"}, "map": path, "map_sha256": hex, "period_s": s, "source": "run" | "record"
-  | "experiment"}`, blob: the N taxel ids (int64) in the map's order;
+  | "experiment", "board_period_s": s between a board's frames (0: unknown)}`, blob: the N taxel ids (int64) in the map's order;
 - then one per published tick, header `{"kind": "frame", "seq": k, "t": robot clock s, "q": [...],
   "command": [...], "planned": [...] | null, "retracting": bool, "pool": [taxel index, ...] (highest
   priority first), "potential": f, "speed_factor": |command| / |planned|, "flags": [...], "stop": reason
@@ -53,10 +53,11 @@ def _floats(x) -> list | None:
 
 
 def hello(n_taxels: int, ids, joint_names, boards: dict, map_path: str = "", map_sha256: str = "",
-          period_s: float = 0.0, source: str = "run") -> bytes:
+          period_s: float = 0.0, source: str = "run", board_period_s: float = 0.0) -> bytes:
     return encode({"kind": "hello", "n_taxels": int(n_taxels), "joint_names": list(joint_names),
                    "boards": {str(k): str(v) for k, v in boards.items()}, "map": str(map_path),
-                   "map_sha256": map_sha256, "period_s": float(period_s), "source": source},
+                   "map_sha256": map_sha256, "period_s": float(period_s), "source": source,
+                   "board_period_s": float(board_period_s)},
                   np.ascontiguousarray(ids, "<i8").tobytes())
 
 
