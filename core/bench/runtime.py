@@ -13,8 +13,12 @@ into it. Per row, over `--repeats` runs (worst case where it says so):
   into the post after the onset; `peak_N_in_process` is the same contact with the stack fed straight
   from the sim's readout (no boards, no serial; same code, `SimDriver(realtime=False)`);
 - stale_stops: runs a staleness watchdog (silent board, robot state, command) stopped with nothing
-  injected (the shared machine's stalls); such a run is run again (up to RETRIES times) and the row's
-  figures are those of the runs that went to the end; frames_lost: frames sent that never arrived.
+  injected (the shared machine's stalls), or a board was silent before the robot moved; such a run is run
+  again (up to RETRIES times) and the row's figures are those of the runs that went to the end;
+  frames_lost: frames sent that never arrived.
+`--view off page browser`: a row per mode (key `view`), the modes' runs alternating so they share the
+machine's load: without the live view, with `run --view` (its stream and page process), and with a headless
+Chromium on the page too; per_run_* list each run's loop figures (the spread).
 `--faults`: the fault storm (core/app/runtime_faults.py) in its own process, one row: runs, faults
 (runs the fault stopped), stopped_within_2_periods (fraction: zero velocity sent within 2 control
 periods of the detection), unnamed, tracebacks, records_readable (fraction), and named_as_injected.
@@ -40,6 +44,7 @@ CONTACT = "post:joint=0,gap=0.01"
 SECONDS = 3.0
 STALE = ("skin-silent", "robot-state", "command-stale")
 RETRIES = 5
+VIEW_PORT = 8480
 
 
 def add_arguments(p) -> None:
@@ -53,6 +58,9 @@ def add_arguments(p) -> None:
     p.add_argument("--fault-rate", type=int, default=50, help="--faults: board frames per second (a board is silent "
                    "after 2 frame periods: 40 ms, so a 50 ms delay trips it and the machine's stalls mostly do not)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--view", nargs="+", default=["off"], choices=("off", "page", "browser"),
+                   help="rows without the live view (off), with `run --view` (page: the stream and its page process), "
+                   "and also with a headless Chromium showing the page (browser); the runs alternate between them")
 
 
 def sample_skin(n: int, capacity: int, robot=None) -> SkinDesign:
@@ -115,14 +123,48 @@ def reference(design, robot, traj: Path, period: float = 0.002) -> dict:
     return vars(drv.stats)
 
 
-def _run(map_path: Path, traj: Path, stats: Path, rate: int, period: float) -> dict:
+def _run(map_path: Path, traj: Path, stats: Path, rate: int, period: float, view: str = "off") -> dict:
+    """One `skinsafe run`; `view`: "page" with `--view` (the stream and its page process), "browser" also with a
+    headless Chromium (nice 19) showing the page while the robot moves."""
     cmd = [sys.executable, "-m", "skinsafe.core.app.cli", "run", str(map_path), "--robot", "sim", "--boards", "emulate",
            "--command", f"trajectory:{traj}", "--contact", CONTACT, "--seconds", str(SECONDS), "--rate", str(rate),
            "--period", str(period), "--stats", str(stats)]
-    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    if view != "off":
+        cmd += ["--view", "--view-port", str(VIEW_PORT), "--view-stream", "127.0.0.1:0"]
+    if view == "browser":
+        p = _with_browser(cmd)
+    else:
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     if not stats.exists():
         raise RuntimeError(f"bench runtime: `skinsafe run` exited {p.returncode} without figures: {p.stderr[-800:]}")
     return json.loads(stats.read_text())
+
+
+def _with_browser(cmd: list[str]) -> subprocess.CompletedProcess:
+    """`cmd` (a `run --view`) with a headless Chromium (Debian's, nice 19) on its page from before the robot moves."""
+    from playwright.sync_api import Error as PlaywrightError
+    from playwright.sync_api import sync_playwright
+
+    from skinsafe.core.bench.browser import CHROMIUM_ARGS, chromium, niced
+
+    exe = chromium()
+    if exe is None:
+        raise RuntimeError("bench runtime --view browser: no chromium (`apt-get install -y chromium`)")
+    with tempfile.TemporaryDirectory() as tmp, sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=niced(tmp, exe), args=CHROMIUM_ARGS)
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        err = []
+        for line in proc.stderr:
+            err.append(line)
+            if "the view page at" in line:
+                try:
+                    browser.new_page().goto(line.rsplit(" at ", 1)[1].strip())
+                except PlaywrightError:  # the run already stopped (a false staleness stop) and its page with it
+                    pass
+                break
+        out, rest = proc.communicate(timeout=600)
+        browser.close()
+    return subprocess.CompletedProcess(cmd, proc.returncode, out, "".join(err) + rest)
 
 
 def _ms(world: dict, key: str) -> float:
@@ -143,35 +185,45 @@ def rows(args) -> list[dict]:
             design = sample_skin(n, args.capacity, robot)
             save(design, tmp / f"skin{n}.json")
             ref = reference(design, robot, traj, args.period)
-            runs, stale = [], 0
+            runs, stale = {v: [] for v in args.view}, {v: 0 for v in args.view}
             for k in range(args.repeats):  # a run a false staleness stop cut short is counted, then run again
-                for attempt in range(RETRIES):
-                    r = _run(tmp / f"skin{n}.json", traj, tmp / f"stats{n}_{k}_{attempt}.json", args.rate, args.period)
-                    stale += r["watchdog"] in STALE
-                    if r["watchdog"] not in STALE:
-                        break
-                runs.append(r)
-            w = [r["world"] for r in runs]
-            worst = lambda key: float(np.nanmax([r[key] for r in runs]))  # noqa: E731
-            out.append({
-                "robot": "ur5", "driver": "sim", "boards": len(design.boards), "taxels": design.n_taxels,
-                "ticks": int(sum(r["ticks"] for r in runs)), "rate_hz": args.rate, "period_ms": args.period * 1e3,
-                "runs": len(runs),
-                "loop_hz_p50": float(np.median([r["loop_hz_p50"] for r in runs])), "period_ms_p99": worst("period_ms_p99"),
-                "latency_ms_p50": float(np.nanmedian([r["latency_ms_p50"] for r in runs])),
-                "latency_ms_p99": worst("latency_ms_p99"), "latency_ms_max": worst("latency_ms_max"),
-                "reaction_ms": float(np.nanmax([_ms(x, "reaction_t") for x in w])),
-                "peak_N": float(max(x["peak_N"] for x in w)),
-                "into_contact_mm_worst": float(max(x["into_contact_m"] for x in w)) * 1e3,
-                "stale_stops": stale,
-                "frames_lost": int(sum(r["frames_lost"] for r in runs)),
-                "peak_N_in_process": float(ref["peak_N"]), "reaction_ms_in_process": _ms(ref, "reaction_t"),
-                "into_contact_mm_in_process": float(ref["into_contact_m"]) * 1e3,
-                "peak_vs_in_process": float(max(x["peak_N"] for x in w) / ref["peak_N"]) if ref["peak_N"] else float("nan"),
-                "work_ms_p99": worst("work_ms_p99"), "work_ms_max": worst("work_ms_max"),
-                "latency_samples": int(sum(r["latency_samples"] for r in runs)),
-                "stops": ";".join(sorted({r["kind"] + (":" + r["watchdog"] if r["watchdog"] else "") for r in runs}))})
+                for v in args.view:  # alternating: the modes share the machine's load
+                    for attempt in range(RETRIES):
+                        r = _run(tmp / f"skin{n}.json", traj, tmp / f"stats{n}_{v}_{k}_{attempt}.json", args.rate,
+                                 args.period, v)
+                        stale[v] += r["watchdog"] in STALE or not r.get("ticks")  # silent before moving too
+                        if r["watchdog"] not in STALE and r.get("ticks"):
+                            break
+                    runs[v].append(r)
+            for v in args.view:
+                out.append(_row(design, runs[v], stale[v], ref, args) | ({"view": v} if args.view != ["off"] else {}))
     return out
+
+
+def _row(design, runs: list[dict], stale: int, ref: dict, args) -> dict:
+    w = [r["world"] for r in runs]
+    worst = lambda key: float(np.nanmax([r[key] for r in runs]))  # noqa: E731
+    return {
+        "robot": "ur5", "driver": "sim", "boards": len(design.boards), "taxels": design.n_taxels,
+        "ticks": int(sum(r["ticks"] for r in runs)), "rate_hz": args.rate, "period_ms": args.period * 1e3,
+        "runs": len(runs),
+        "loop_hz_p50": float(np.median([r["loop_hz_p50"] for r in runs])), "period_ms_p99": worst("period_ms_p99"),
+        "latency_ms_p50": float(np.nanmedian([r["latency_ms_p50"] for r in runs])),
+        "latency_ms_p99": worst("latency_ms_p99"), "latency_ms_max": worst("latency_ms_max"),
+        "reaction_ms": float(np.nanmax([_ms(x, "reaction_t") for x in w])),
+        "peak_N": float(max(x["peak_N"] for x in w)),
+        "into_contact_mm_worst": float(max(x["into_contact_m"] for x in w)) * 1e3,
+        "stale_stops": stale,
+        "frames_lost": int(sum(r["frames_lost"] for r in runs)),
+        "peak_N_in_process": float(ref["peak_N"]), "reaction_ms_in_process": _ms(ref, "reaction_t"),
+        "into_contact_mm_in_process": float(ref["into_contact_m"]) * 1e3,
+        "peak_vs_in_process": float(max(x["peak_N"] for x in w) / ref["peak_N"]) if ref["peak_N"] else float("nan"),
+        "work_ms_p99": worst("work_ms_p99"), "work_ms_max": worst("work_ms_max"),
+        "latency_samples": int(sum(r["latency_samples"] for r in runs)),
+        "stops": ";".join(sorted({r["kind"] + (":" + r["watchdog"] if r["watchdog"] else "") for r in runs})),
+        "per_run_loop_hz_p50": [round(r["loop_hz_p50"], 3) for r in runs],
+        "per_run_period_ms_p99": [round(r["period_ms_p99"], 4) for r in runs],
+        "per_run_latency_ms_p99": [round(r["latency_ms_p99"], 4) for r in runs]}
 
 
 def fault_row(args) -> dict:
