@@ -147,7 +147,8 @@ def stage_maze(ctx) -> Section:
                 f"`skinsafe experiment maze` ({maze.FULL['seeds']} seeds x {maze.FULL['episodes']} episodes, all nine). "
                 "What this run can show: the -TDM variants' contact events stopping within the first episodes (cost "
                 "curves) and whether each method finds the goal at this budget. What it cannot show: the nine-way "
-                "ranking of Fig. 9b over 5 seeds (the full grid's result is in the README and results/maze/). ")
+                f"ranking of Fig. 9b over {maze.FULL['seeds']} held-out seeds (the full grid's result is in the README and "
+                "results/maze/). ")
         slow = [m for m, v in res["methods"].items() if v["goal_rate_last_mean"] < maze.LEARNED_AT]
         text += (f"Here {', '.join(slow)} reached the goal in fewer than {maze.LEARNED_AT:.0%} of the last "
                  f"{min(maze.LAST, cfg['episodes'])} episodes, so their totals are not yet those of a trained policy.\n\n"
@@ -183,7 +184,7 @@ def stage_tracking(ctx) -> Section:
         text += res["claim"]["statement"]
     else:
         text += (f"Reduced budget: {len(cfg['seeds'])} seed x {cfg['episodes']} episodes on a coarser skin; the paper's "
-                 "budget is `skinsafe experiment tracking` (3 seeds x 10 episodes). It can show the first re-trainings "
+                 "budget is `skinsafe experiment tracking` (10 held-out seeds x 10 episodes). It can show the first re-trainings "
                  "taking effect (episode 1 is unmodulated for every method); it cannot show episodes 6-10, where the "
                  "paper's claim (2-step TDM near zero contacts, below the TDM) is measured.")
     budget = f"{figs.plural(len(cfg['seeds']), 'seed')} x {figs.plural(cfg['episodes'], 'episode')}, {res['n_taxels']:,} taxels"
