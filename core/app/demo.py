@@ -178,7 +178,7 @@ def stage_scenes(ctx) -> Section:
     sections = []
     for name in ("desk", "collaboration"):
         out = ctx["out"] / name
-        _command("skinsafe.core.experiments.scenes", ["--out", str(out)], name)
+        _command(cli.EXPERIMENTS[name][0], ["--out", str(out)], name)
         sections.append((name, out))
     images, tables = [], []
     for name, out in sections:
