@@ -175,7 +175,7 @@ def layout(scenario: str, kin, cfg: dict) -> Layout:
         parts = [Part("lower_arm", "capsule", (0.035, 0.12), pos=tuple(hand + out * 0.2 + [0, 0, 0.035 - FIST]),
                       quat=_capsule_quat(out)),
                  Part("hand", "sphere", (FIST,), pos=tuple(hand))]
-        hold = cfg["stay"] + cfg["finish"]
+        hold = cfg["stay"] + 2.0  # long enough for a robot slowed near the table to reach the hand
 
         def desired(t):  # down in T, hold, up in T
             s1, d1 = _smooth(t, T)
@@ -556,7 +556,7 @@ def learn_person(sc, lay: Layout, cfg: dict):
     from skinsafe.core.safety.potential import DangerPotential
 
     key = (lay.scenario, sc.design.n_taxels, float(np.sum(sc.design.taxels.positions)),
-           json.dumps({k: cfg[k] for k in ("seed", "samples", "steps", "presence", "duration", "stay", "finish",
+           json.dumps({k: cfg[k] for k in ("seed", "samples", "steps", "presence", "duration",
                                            "person_speed")}, sort_keys=True))
     if key in _POTENTIALS:
         return _POTENTIALS[key]
@@ -592,6 +592,8 @@ def cell(method: str, seed: int, scenario: str, damping_ratio: float, attachment
     torch.set_num_threads(1)
     single_thread_blas()
     cfg = dict(config, seed=seed)
+    if not detail:  # no task time: the run ends soon after the last contact can happen
+        cfg["finish"] = 0.3
     design = load(skin)
     sc = None
     out = {"scenario": scenario, "damping_ratio": damping_ratio, "attachment_N_m": attachment_N_m, "dt_ms": dt_ms,
@@ -643,14 +645,14 @@ def run_experiment(args) -> dict:
     cfg["seed"] = args.seed
     skin = out_dir / "collaboration_skin.json"
     if args.redesign or not skin.exists():
-        save(collaboration_skin(cfg, progress=not args.no_progress)[0], skin)
+        save(collaboration_skin(cfg, args.cover_rounds, progress=not args.no_progress)[0], skin)
     design = load(skin)
-    tasks = [_task(s, NOMINAL, list(STACKS), cfg, skin, args.seed, detail=True) for s in SCENARIOS]
+    tasks = [_task(s, NOMINAL, list(args.stacks), cfg, skin, args.seed, detail=True) for s in SCENARIOS]
     if args.sweep:
         for s in SCENARIOS:
-            for z in SWEEP["damping_ratio"]:
-                for k in SWEEP["attachment_N_m"]:
-                    for dt in SWEEP["dt_ms"]:
+            for z in args.sweep_damping:
+                for k in args.sweep_attach:
+                    for dt in args.sweep_dt:
                         tasks.append(_task(s, {"damping_ratio": z, "attachment_N_m": k, "dt_ms": dt},
                                            list(args.sweep_stacks), cfg, skin, args.seed))
     results = run_tasks(cell, tasks, out_dir / "tasks", address=args.address, workers=args.workers,
@@ -735,7 +737,15 @@ def add_arguments(p) -> None:
                    help="PFL cap as a fraction of v_max (margin for the servos and the sampling)")
     p.add_argument("--sweep", action=argparse.BooleanOptionalAction, default=True,
                    help="run the robustness sweep (--no-sweep: the nominal runs only)")
+    p.add_argument("--stacks", nargs="+", default=list(STACKS), choices=STACKS, help="the stacks of the nominal runs")
     p.add_argument("--sweep-stacks", nargs="+", default=["none", "full+pfl"], choices=STACKS)
+    p.add_argument("--sweep-damping", type=float, nargs="+", default=list(SWEEP["damping_ratio"]),
+                   help="contact damping ratios of the sweep")
+    p.add_argument("--sweep-attach", type=float, nargs="+", default=list(SWEEP["attachment_N_m"]),
+                   help="the person's attachment stiffnesses of the sweep (N/m)")
+    p.add_argument("--sweep-dt", type=float, nargs="+", default=list(SWEEP["dt_ms"]), help="physics timesteps of the sweep (ms)")
+    p.add_argument("--cover-rounds", type=int, default=3,
+                   help="rounds of simulating the scenarios and covering where the person is met")
     p.add_argument("--redesign", action="store_true", help="place the skin's person modules again")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="local Ray CPUs (default %(default)s)")
     p.add_argument("--address", default=None, help="join this Ray cluster instead of starting a local Ray")
@@ -758,10 +768,16 @@ def check_args(args) -> None:
               ("--push", args.push, args.push > 0, "a force > 0 (N)"),
               ("--samples", args.samples, args.samples >= 10, "at least 10 static samples"),
               ("--steps", args.steps, args.steps >= 1, "at least 1 training step"),
-              ("--workers", args.workers, args.workers >= 1, "at least 1"))
+              ("--workers", args.workers, args.workers >= 1, "at least 1"),
+              ("--cover-rounds", args.cover_rounds, args.cover_rounds >= 0, "0 or more rounds"))
     for name, value, ok, want in checks:
         if not (np.isfinite(value) and ok):
             raise SystemExit(f"{name} is {value}; give {want}")
+    for name, values, lo, hi in (("--sweep-damping", args.sweep_damping, 0, 2), ("--sweep-attach", args.sweep_attach, 1, 1e5),
+                                 ("--sweep-dt", args.sweep_dt, 0.05, 10)):
+        for v in values:
+            if not (np.isfinite(v) and lo <= v <= hi):
+                raise SystemExit(f"{name} has {v}; give values in [{lo:g}, {hi:g}]")
     for r in args.pfl_regions or ():
         if r not in REGIONS:
             raise SystemExit(f"--pfl-regions: '{r}' is unknown; use one of {', '.join(REGIONS)}")

@@ -28,7 +28,8 @@ the body model in `skinsafe.core.sim.body_regions` (the person in a scene reads 
   is scaled as a whole (direction kept, so a planned path stays the path); a non-finite joint
   state, command or mass gives a stop and a counted flag. Where the person is known
   (`observe(Person)`, body parts as capsules with their velocities), a taxel is capped only by the
-  parts within `reach` in front of it, and by the relative velocity: the taxel's normal speed
+  parts within `reach` in front of it (its normal within 45 degrees of the part: a taxel facing
+  elsewhere is not where the part would be met), and by the relative velocity: the taxel's normal speed
   minus the part's along the same normal, `a_i . qdot - n_i . v_part <= v_max`. A region with no
   transient contact allowed (skull, face: `v_max = 0`) is avoided, not frozen at: a taxel may
   approach it at `avoid_gain (d - keep_out)`, d its distance, and must back away inside
@@ -47,6 +48,8 @@ import numpy as np
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.safety import qp
 from skinsafe.core.sim.body_regions import REGIONS, Region, region
+
+FACING = np.cos(np.pi / 4)  # a part constrains a taxel whose normal points within 45 degrees of it
 
 __all__ = ["REGIONS", "Region", "region", "v_max", "NormalRows", "inverse_effective_mass",
            "effective_mass", "taxel_speed_limits", "Person", "PFLCap"]
@@ -344,8 +347,8 @@ def _bounds(wrench, slot, H, gv, Rb, Xb, lpos, lnrm, area, reg, factor, fixtures
                 front += (cp - p[r]) * n[r]
                 vpn += n[r] * parts[k, 8 + r]
             dist = np.sqrt(d2) - parts[k, 7]
-            if dist > opts[2] or front < -parts[k, 7]:
-                continue  # out of reach, or behind the taxel
+            if dist > opts[2] or front < FACING * np.sqrt(d2):
+                continue  # out of reach, or not in front of the taxel (it cannot be where the part is met)
             lim = _limit(reg, int(parts[k, 0]), factor, inv, area[i], c, dist, opts)
             vm = min(vm, lim)
             bd = min(bd, lim + vpn)
