@@ -19,6 +19,7 @@ from skinsafe.core.safety.tdm import TactileDangerModel, train_tdm
 
 JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint")
 STATE = np.arange(4)  # modulated joints: pan, lift, elbow, wrist 1
+TORQUE_NM = (150.0, 150.0, 150.0, 28.0, 28.0, 28.0)  # UR5 joint torque limits (datasheet: size 3 and size 1 joints)
 
 
 class PersonTrace:
@@ -45,7 +46,7 @@ class PersonTrace:
 class Scene:
     """UR5 + a skin (`design`, default the sample skin at `pitch`) + obstacles (+ a person whose
     parts also collide with the `fixtures`, geom names), stepped at `control_dt` (physics at
-    `timestep`, default the robot model's)."""
+    `timestep`, default the robot model's); the servos within the UR5's joint torques."""
 
     def __init__(self, obstacles, pitch: float = 0.01, control_dt: float = 0.01, human=None, design=None,
                  timestep: float | None = None, fixtures=()):
@@ -73,6 +74,8 @@ class Scene:
         self.qadr = np.array([self.model.jnt_qposadr[self.model.joint(j).id] for j in JOINTS])
         self.dadr = np.array([self.model.jnt_dofadr[self.model.joint(j).id] for j in JOINTS])
         self.act = np.array([self.model.actuator(f"{j}_pos").id for j in JOINTS])
+        self.model.actuator_forcelimited[self.act] = 1  # a blocked servo pushes with the motors' torque, no more
+        self.model.actuator_forcerange[self.act] = np.c_[-np.array(TORQUE_NM), TORQUE_NM]
         self.control_dt = control_dt
         self.substeps = max(1, int(round(control_dt / self.model.opt.timestep)))
         self.arm_geoms = [g for g in range(self.model.ngeom)

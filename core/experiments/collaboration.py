@@ -213,11 +213,11 @@ def layout(scenario: str, kin, cfg: dict) -> Layout:
         return Layout(scenario, parts, targets, lambda t: _delivery(t, T), home, sample,
                       t_end=t_out + REACH_S + cfg["finish"], plan_end=T, goal=_delivery(T, T)[0],
                       regions=("lower_arm", "hand"))
-    # person: the hand comes at the still wrist from the side the delivery sweeps toward
-    start = spot - side * 0.3
-    hand0 = start
-    arm0 = start + out * 0.17
-    parts = [Part("lower_arm", "capsule", (0.035, 0.12), pos=tuple(arm0), quat=quat),
+    # person: the hand comes at the still wrist from the side the delivery sweeps toward, the lower
+    # arm behind it along the reach
+    hand0 = spot - side * 0.3
+    arm0 = hand0 - side * 0.17
+    parts = [Part("lower_arm", "capsule", (0.035, 0.12), pos=tuple(arm0), quat=_capsule_quat(side)),
              Part("hand", "sphere", (0.045,), pos=tuple(hand0))]
     speed, t0, hold = cfg["person_speed"], 0.2, 0.3
     dist = 0.3  # to the wrist's centre: the person means to reach through it
@@ -227,7 +227,7 @@ def layout(scenario: str, kin, cfg: dict) -> Layout:
         s = _reach(t, t0, dist, speed) - _reach(t, t_back, dist, speed)
         return [p + side * s for p in (arm0, hand0)]
 
-    present = [arm0 + side * (dist - 0.09), hand0 + side * (dist - 0.09)]
+    present = [arm0 + side * (dist - 0.09), hand0 + side * (dist - 0.09)]  # the hand against the wrist
     return Layout(scenario, parts, targets, lambda t: (q, np.zeros(6)), present,
                   lambda rng, n: q + np.c_[rng.normal(0, 0.05, (n, 4)), np.zeros((n, 2))],
                   t_end=t_back + dist / speed + 0.5, plan_end=0.0, goal=None, regions=("lower_arm", "hand"))
@@ -299,7 +299,7 @@ def episode(sc, lay: Layout, stack: str, pot, cfg: dict, person: bool = True) ->
             cap.observe(person_now(sc) if person else None)
         force = sc.step(v)
         pan.append(float(sc.q[0]))
-        v = st.run(source, t, sc.q, {"force": force}, sc.control_dt)
+        v = st.run(source, t, sc.q, {"force": force}, sc.control_dt, qdot=sc.qdot)  # the measured velocity
         d = st.defensiveness
         acted.append(((d is not None and d.active), cap is not None and cap.last_mode != "free",
                       st.modulation is not None and st.last_f >= MODULATED))
@@ -679,7 +679,7 @@ def summarise(nominal: list, sweep: list, design, cfg: dict) -> dict:
             ev = res["events"]
             out["runs"][f"{r['scenario']}/{stack}"] = {
                 "events": len(ev), "within": all(e["within"] for e in ev), "sensed": all(e["sensed"] for e in ev),
-                "peak_N": max((e["peak_N"] for e in ev), default=0.0),
+                "peak_N": max((max(e["peak_N"], e["quasi_static_N"]) for e in ev), default=0.0),
                 "worst_ratio": max((e["ratio"] for e in ev), default=0.0),
                 "task_time_s": res["task_time_s"], "no_person_task_time_s": res.get("no_person_task_time_s"),
                 "force_N": res["force_N"], "pan_rad": res["pan_rad"]}
@@ -691,7 +691,7 @@ def summarise(nominal: list, sweep: list, design, cfg: dict) -> dict:
             row = {"scenario": r["scenario"], "stack": stack, "damping_ratio": r["damping_ratio"],
                    "attachment_N_m": r["attachment_N_m"], "dt_ms": r["dt_ms"],
                    "worst_ratio": worst["ratio"] if worst else 0.0,
-                   "peak_N": max((e["peak_N"] for e in ev), default=0.0),
+                   "peak_N": max((max(e["peak_N"], e["quasi_static_N"]) for e in ev), default=0.0),
                    "peak_pressure_N_cm2": max((e["peak_pressure_N_cm2"] for e in ev), default=0.0),
                    "kind": worst["kind"] if worst else None, "events": len(ev),
                    "sensed": all(e["sensed"] for e in ev)}

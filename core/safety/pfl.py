@@ -33,7 +33,9 @@ the body model in `skinsafe.core.sim.body_regions` (the person in a scene reads 
   minus the part's along the same normal, `a_i . qdot - n_i . v_part <= v_max`. A region with no
   transient contact allowed (skull, face: `v_max = 0`) is avoided, not frozen at: a taxel may
   approach it at `avoid_gain (d - keep_out)`, d its distance, and must back away inside
-  `keep_out`. When any bound is negative (a part closing in faster than allowed, or inside the
+  `keep_out`. A taxel touching a part (within `TOUCHING`) may not approach it at all: pressing on
+  is a push, not the impact v_max is made for (it may follow a part that moves away, and must give
+  way to one pressed onto it). When any bound is negative (a part closing in faster than allowed, or inside the
   keep-out) scaling cannot meet it: the command is the nearest one that does (a small QP,
   DAQP), i.e. the robot retreats.
 """
@@ -50,6 +52,7 @@ from skinsafe.core.safety import qp
 from skinsafe.core.sim.body_regions import REGIONS, Region, region
 
 FACING = np.cos(np.pi / 4)  # a part constrains a taxel whose normal points within 45 degrees of it
+TOUCHING = 0.002  # m: a taxel this close to a part touches it: no approach at all (a push, not an impact)
 
 __all__ = ["REGIONS", "Region", "region", "v_max", "NormalRows", "inverse_effective_mass",
            "effective_mass", "taxel_speed_limits", "Person", "PFLCap"]
@@ -349,7 +352,7 @@ def _bounds(wrench, slot, H, gv, Rb, Xb, lpos, lnrm, area, reg, factor, fixtures
             dist = np.sqrt(d2) - parts[k, 7]
             if dist > opts[2] or front < FACING * np.sqrt(d2):
                 continue  # out of reach, or not in front of the taxel (it cannot be where the part is met)
-            lim = _limit(reg, int(parts[k, 0]), factor, inv, area[i], c, dist, opts)
+            lim = 0.0 if dist <= TOUCHING else _limit(reg, int(parts[k, 0]), factor, inv, area[i], c, dist, opts)
             vm = min(vm, lim)
             bd = min(bd, lim + vpn)
         vmax[i], bound[i] = vm, bd

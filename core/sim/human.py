@@ -106,9 +106,10 @@ class Human:
         return [Obstacle(p.name, p.kind, tuple(p.size), pos=tuple(p.pos), quat=tuple(p.quat), rgba=tuple(p.rgba),
                          free=True, mass=r.mass_kg) for p, r in zip(self.parts, self.regions)]
 
-    def _solref(self, k: float, inv_mass: float) -> list[float]:
-        """(-stiffness, -damping) of a spring k (N/m) on a contact of inverse effective mass A."""
-        return [-k * inv_mass, -2.0 * self.contact_damping * np.sqrt(k * inv_mass)]
+    def _solref(self, k: float, inv_mass: float, share: int = 1) -> list[float]:
+        """(-stiffness, -damping) of a spring k (N/m) on a contact of inverse effective mass A, one
+        of `share` contacts in parallel (each k/share and c/share)."""
+        return [-k * inv_mass / share, -2.0 * self.contact_damping * np.sqrt(k * inv_mass) / share]
 
     def attach(self, spec: mujoco.MjSpec, robot_geoms, fixtures=()) -> None:
         """Make each part's joints and force-limited actuators (toward the intended pose) and its
@@ -164,6 +165,7 @@ class Human:
         self.robot_pairs = [(i, k, g) for i, k, g, f in pairs if not f]
         self.fixture_geoms = np.array(sorted(fixture), dtype=int)
         self.inv_mass = np.zeros(model.npair)  # A of each robot pair at its last update
+        self.points = np.ones(len(self.parts), int)  # robot contact points per part at the last step (>= 1)
         self._normal = {}
 
     def move(self, part: int, pos, quat=None) -> None:
@@ -177,8 +179,24 @@ class Human:
             self.target[part, 3:] = rel.as_euler("XYZ")
 
     def drive(self, data: mujoco.MjData) -> None:
-        """The person's muscles for one physics step: per part a damped spring toward its target,
-        the force (and the torque) saturated in magnitude at `push_N` (`push_N * ROT_ARM`)."""
+        """Before a physics step: the springs shared among the contacts the step will have (module
+        docstring), and the person's muscles: per part a damped spring toward its target, the force
+        (and the torque) saturated in magnitude at `push_N` (`push_N * ROT_ARM`)."""
+        m = self.model
+        mujoco.mj_kinematics(m, data)
+        mujoco.mj_collision(m, data)
+        points = np.zeros(len(self.parts), int)
+        for i in range(data.ncon):
+            g1, g2 = data.contact.geom[i]
+            for g, other in ((g1, g2), (g2, g1)):
+                k = np.flatnonzero(self.geom == g)
+                if len(k) and other not in self.fixture_geoms and other not in self.geom:
+                    points[k[0]] += 1
+        points = np.maximum(points, 1)
+        changed = np.flatnonzero(points != self.points)
+        if len(changed):
+            self.points = points
+            self._set_springs(set(changed.tolist()))
         for k, dof in enumerate(self.dof):
             s = self.slide[k]
             err = self.target[k] - data.qpos[s:s + 6]
@@ -229,8 +247,12 @@ class Human:
             a = (n @ jr - n @ jh)[None]
             mujoco.mj_solveM(m, d, x, a)
             self.inv_mass[i] = float(a[0] @ x[0])
-            if self.inv_mass[i] > 0:
-                self.model.pair_solref[i] = self._solref(self.regions[k].k_N_per_m, self.inv_mass[i])
+        self._set_springs(range(len(self.parts)))
+
+    def _set_springs(self, parts) -> None:
+        for i, k, _ in self.robot_pairs:
+            if k in parts and self.inv_mass[i] > 0:
+                self.model.pair_solref[i] = self._solref(self.regions[k].k_N_per_m, self.inv_mass[i], self.points[k])
 
     def state(self, data: mujoco.MjData) -> PartState:
         """What each part feels now (`PartState`, from `mj_contactForce`)."""
