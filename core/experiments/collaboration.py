@@ -175,7 +175,7 @@ def layout(scenario: str, kin, cfg: dict) -> Layout:
         parts = [Part("lower_arm", "capsule", (0.035, 0.12), pos=tuple(hand + out * 0.2 + [0, 0, 0.035 - FIST]),
                       quat=_capsule_quat(out)),
                  Part("hand", "sphere", (FIST,), pos=tuple(hand))]
-        hold = cfg["stay"] + 2.0  # long enough for a robot slowed near the table to reach the hand
+        hold = cfg["stay"] + 4.0  # long enough for a robot slowed near the table to reach the hand
 
         def desired(t):  # down in T, hold, up in T
             s1, d1 = _smooth(t, T)

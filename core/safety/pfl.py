@@ -33,9 +33,9 @@ the body model in `skinsafe.core.sim.body_regions` (the person in a scene reads 
   minus the part's along the same normal, `a_i . qdot - n_i . v_part <= v_max`. A region with no
   transient contact allowed (skull, face: `v_max = 0`) is avoided, not frozen at: a taxel may
   approach it at `avoid_gain (d - keep_out)`, d its distance, and must back away inside
-  `keep_out`. A taxel touching a part (within `TOUCHING`) may not approach it at all: pressing on
-  is a push, not the impact v_max is made for (it may follow a part that moves away, and must give
-  way to one pressed onto it). When any bound is negative (a part closing in faster than allowed, or inside the
+  `keep_out`. A taxel touching a part (within `TOUCHING`) gives way: it separates from the part at
+  `give_way` m/s, relative (pressing on is a push, not the impact v_max is made for; a part the
+  person presses onto the robot is yielded to, not resisted). When any bound is negative (a part closing in faster than allowed, or inside the
   keep-out) scaling cannot meet it: the command is the nearest one that does (a small QP,
   DAQP), i.e. the robot retreats.
 """
@@ -52,7 +52,7 @@ from skinsafe.core.safety import qp
 from skinsafe.core.sim.body_regions import REGIONS, Region, region
 
 FACING = np.cos(np.pi / 4)  # a part constrains a taxel whose normal points within 45 degrees of it
-TOUCHING = 0.002  # m: a taxel this close to a part touches it: no approach at all (a push, not an impact)
+TOUCHING = 0.0  # m: a taxel this close to a part (inside it: in contact) gives way (a push, not an impact)
 
 __all__ = ["REGIONS", "Region", "region", "v_max", "NormalRows", "inverse_effective_mass",
            "effective_mass", "taxel_speed_limits", "Person", "PFLCap"]
@@ -160,7 +160,7 @@ class PFLCap:
 
     def __init__(self, kin: TaxelKinematics, regions=("hand",), factor: float = 1.0, area=None, fixtures=(),
                  clamp_gap: float = 0.12, stop_s: float = 0.02, reach: float = 0.3, keep_out: float = 0.1,
-                 avoid_gain: float = 2.0):
+                 avoid_gain: float = 2.0, give_way: float = 0.2):
         self.kin = kin
         names = (regions,) if isinstance(regions, str) else tuple(regions)
         if not names:
@@ -169,7 +169,7 @@ class PFLCap:
         if not (np.isfinite(factor) and 0 < factor <= 1):
             raise ValueError(f"PFLCap: factor is {factor}; give a margin in (0, 1] (1 = the ISO limit)")
         for name, value in (("clamp_gap", clamp_gap), ("stop_s", stop_s), ("reach", reach), ("keep_out", keep_out),
-                            ("avoid_gain", avoid_gain)):
+                            ("avoid_gain", avoid_gain), ("give_way", give_way)):
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"PFLCap: {name} is {value}; give a finite number >= 0")
         self.regions, self.factor = names, float(factor)
@@ -182,7 +182,7 @@ class PFLCap:
         self.area = np.ascontiguousarray(area)
         fx = np.array([np.r_[np.asarray(o, float), np.asarray(u, float) / np.linalg.norm(u)] for o, u in fixtures])
         self._fixtures = fx.reshape(-1, 6)
-        self._opts = np.array([clamp_gap, stop_s, reach, keep_out, avoid_gain])
+        self._opts = np.array([clamp_gap, stop_s, reach, keep_out, avoid_gain, give_way])
         self.wrench = normal_wrenches(kin)
         self.local_normal = np.ascontiguousarray(kin.local_frames[:, :, 2])
         self.bodies = np.unique(kin.body_id)
@@ -352,7 +352,7 @@ def _bounds(wrench, slot, H, gv, Rb, Xb, lpos, lnrm, area, reg, factor, fixtures
             dist = np.sqrt(d2) - parts[k, 7]
             if dist > opts[2] or front < FACING * np.sqrt(d2):
                 continue  # out of reach, or not in front of the taxel (it cannot be where the part is met)
-            lim = 0.0 if dist <= TOUCHING else _limit(reg, int(parts[k, 0]), factor, inv, area[i], c, dist, opts)
+            lim = -opts[5] if dist <= TOUCHING else _limit(reg, int(parts[k, 0]), factor, inv, area[i], c, dist, opts)
             vm = min(vm, lim)
             bd = min(bd, lim + vpn)
         vmax[i], bound[i] = vm, bd

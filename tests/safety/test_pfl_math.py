@@ -188,7 +188,7 @@ def _reference_bounds(kin, q, regions, factor, area, plane, gap, stop_s, parts=(
             dist = np.linalg.norm(pos[i] - c) - rad
             if dist > 0.3 or (c - pos[i]) @ n < np.cos(np.pi / 4) * np.linalg.norm(c - pos[i]):
                 continue
-            out[i] = min(out[i], (0.0 if dist <= 0.002 else limit(reg, dist)) + n @ vel)
+            out[i] = min(out[i], (-0.2 if dist <= 0.0 else limit(reg, dist)) + n @ vel)
     return out, frames
 
 
