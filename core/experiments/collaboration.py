@@ -307,8 +307,11 @@ def episode(sc, lay: Layout, stack: str, pot, cfg: dict, person: bool = True) ->
             done = t
             if not person:
                 break
+    import mujoco
+
     return {"trace": sc.trace.arrays(), "acted": np.array(acted, bool).reshape(-1, 3), "pan": np.array(pan),
-            "done": done, "cap_retreats": cap.retreats if cap is not None else 0}
+            "done": done, "cap_retreats": cap.retreats if cap is not None else 0,
+            "unstable": int(sc.data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number)}  # MuJoCo reset a blow-up
 
 
 # ------------------------------------------------------------------------------------ contacts
@@ -607,7 +610,8 @@ def cell(method: str, seed: int, scenario: str, damping_ratio: float, attachment
         run = episode(sc, lay, stack, pot, cfg)
         names = [sc.model.body(b).name for b in range(sc.model.nbody)]
         events = contact_events(run["trace"], [p.region for p in lay.parts], sc.control_dt, run["acted"], names)
-        res = {"events": events, "task_time_s": run["done"], "cap_retreats": run["cap_retreats"]}
+        res = {"events": events, "task_time_s": run["done"], "cap_retreats": run["cap_retreats"],
+               "unstable": run["unstable"]}
         if detail:
             tr = run["trace"]
             every = max(1, int(round(1e-3 / (dt_ms / 1e3))))  # the force trace at 1 ms
@@ -694,7 +698,7 @@ def summarise(nominal: list, sweep: list, design, cfg: dict) -> dict:
                    "peak_N": max((max(e["peak_N"], e["quasi_static_N"]) for e in ev), default=0.0),
                    "peak_pressure_N_cm2": max((e["peak_pressure_N_cm2"] for e in ev), default=0.0),
                    "kind": worst["kind"] if worst else None, "events": len(ev),
-                   "sensed": all(e["sensed"] for e in ev)}
+                   "sensed": all(e["sensed"] for e in ev), "unstable": res.get("unstable", 0)}
             key = (r["scenario"], r["damping_ratio"], r["attachment_N_m"], r["dt_ms"])
             if stack == "none":
                 none_peak[key] = row["peak_N"]
@@ -706,6 +710,11 @@ def summarise(nominal: list, sweep: list, design, cfg: dict) -> dict:
         if not e["sensed"]:
             out["findings"].append(f"{e['scenario']}/{e['stack']}: {e['region']} contact at {e['start_s']} s on "
                                    f"{e['robot_link']} was not sensed (bare surface {e['bare_ms']} ms)")
+    for r in nominal + sweep:
+        for stack, res in r["stacks"].items():
+            if res.get("unstable"):
+                out["findings"].append(f"{r['scenario']}/{stack} zeta {r['damping_ratio']} attach {r['attachment_N_m']} "
+                                       f"dt {r['dt_ms']} ms: the simulation blew up and MuJoCo reset it")
     for row in out["sweep"]:
         if row["stack"] == "full+pfl" and row["scenario"] in ROBOT_DRIVEN and row["worst_ratio"] > 1:
             out["findings"].append(f"sweep {row['scenario']} zeta {row['damping_ratio']} attach {row['attachment_N_m']} "
@@ -792,6 +801,7 @@ def run(args) -> int:
     res = run_experiment(args)
     res["seconds"] = time.perf_counter() - t0
     atomic_write(out_dir / "collaboration.json", json.dumps(res, indent=1))
+    atomic_write(out_dir / "collaboration.md", tables(res))
     _save_plot(res, out_dir / "collaboration.png")
     for k, r in res["runs"].items():
         print(f"{k}: events={r['events']} within={r['within']} sensed={r['sensed']} peak_N={r['peak_N']:.0f} "
@@ -802,8 +812,46 @@ def run(args) -> int:
                   f"dt={row['dt_ms']}ms: worst_ratio={row['worst_ratio']:.2f} peak_vs_none={row['peak_vs_none']}")
     for f in res["findings"]:
         print("finding:", f)
-    print(f"wrote {out_dir / 'collaboration.json'} and {out_dir / 'collaboration.png'}")
+    print(f"wrote {out_dir / 'collaboration.json'}, collaboration.md and collaboration.png")
     return 0
+
+
+def tables(res: dict) -> str:
+    """The result as Markdown (the README's tables): the nominal runs per scenario and stack, and
+    the sweep's worst ratio per cell (`none` / `full+pfl`), with the person-driven cells' full+pfl
+    peak over the `none` run's."""
+    lines = ["| scenario | stack | contacts | worst ratio (kind, region) | peak N | peak N/cm^2 | sensed (latest, ms) "
+             "| layers that acted | task s (no person) |", "| --- | --- | ---: | --- | ---: | ---: | --- | --- | ---: |"]
+    for key, r in res["runs"].items():
+        scenario, stack = key.split("/")
+        ev = [e for e in res["contacts"] if e["scenario"] == scenario and e["stack"] == stack]
+        worst = max(ev, key=lambda e: e["ratio"], default=None)
+        late = max((e["sensed_ms"] or 0 for e in ev), default=0)
+        acted = sorted({a for e in ev for a in e["acted"].split("+")} - {"none"}) or ["none"]
+        task = "-" if r["task_time_s"] is None else f"{r['task_time_s']:.2f}"
+        if r["no_person_task_time_s"] is not None:
+            task += f" ({r['no_person_task_time_s']:.2f})"
+        lines.append(f"| {scenario} | {stack} | {len(ev)} | "
+                     + (f"{worst['ratio']:.2f} ({worst['kind']}, {worst['region']})" if worst else "-")
+                     + f" | {r['peak_N']:.0f} | {max((e['peak_pressure_N_cm2'] for e in ev), default=0):.0f} | "
+                     + ("all" if r["sensed"] else "**not all**") + f" ({late:.1f}) | {'+'.join(acted)} | {task} |")
+    rows = res["sweep"]
+    cells = sorted({(r["damping_ratio"], r["attachment_N_m"]) for r in rows})
+    if cells:
+        lines += ["", "| scenario | dt ms | " + " | ".join(f"zeta {z:g}, {k:g} N/m" for z, k in cells) + " |",
+                  "| --- | ---: | " + " | ".join("---:" for _ in cells) + " |"]
+        for scenario in SCENARIOS:
+            for dt in sorted({r["dt_ms"] for r in rows}, reverse=True):
+                out = []
+                for z, k in cells:
+                    by = {r["stack"]: r for r in rows if (r["scenario"], r["dt_ms"], r["damping_ratio"],
+                                                          r["attachment_N_m"]) == (scenario, dt, z, k)}
+                    txt = " / ".join(f"{by[s]['worst_ratio']:.2f}" for s in ("none", "full+pfl") if s in by)
+                    if scenario not in ROBOT_DRIVEN and by.get("full+pfl", {}).get("peak_vs_none") is not None:
+                        txt += f" (x{by['full+pfl']['peak_vs_none']:.2f})"
+                    out.append(txt or "-")
+                lines.append(f"| {scenario} | {dt:g} | " + " | ".join(out) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def _save_plot(res: dict, path: Path) -> None:

@@ -13,22 +13,25 @@ Contact with a region uses its spring constant k (N/m) through MuJoCo's direct (
 form on explicit contact pairs between the part and every robot collision geom. With solref
 `(-S, -B)` MuJoCo's soft contact moves in constraint space as `r'' = (1 - d) a0 - S r - B r'` (d the
 impedance, a0 the acceleration the other forces give; measured: a free impact peaks at
-`v sqrt(k / A)` for `S = k A` at any d, a steady push F sinks `(1 - d) F / k`). Near d = 1 a
-sustained push (a servo pressing, a clamp) would meet a contact 1/(1-d) times stiffer than k, so
-the impedance is small (`CONTACT_D`, 1% of the other forces lost) and `S = k A`,
-`B = 2 zeta sqrt(k A)`, with `A = a^T M^-1 a` the contact's inverse effective mass (`a` the
-normal's Jacobian row, robot side minus the part's): force `k r + c r'` whether struck or pressed.
+`v sqrt(k / A)` for `S = k A` at any d, a steady push F sinks `(1 - d) F / k`). At MuJoCo's usual
+d = 0.9-0.99 a sustained push (a servo pressing, a clamp) would meet a contact 10-100 times stiffer
+than k; a small d makes the contact an explicit spring that a servo pressing a 0.6 kg hand drives
+unstable at a 2 ms step (measured: d = 0.01 and 0.1 blew up, 0.2 in one of two presses). So
+`CONTACT_D` = 0.3 (a steady press meets k / 0.7), `S = k A`, `B = 2 zeta sqrt(k A)`, with
+`A = a^T M^-1 a` the contact's inverse effective mass (`a` the normal's Jacobian row, robot side
+minus the part's): the impact is the region's k exactly, a press within 1.43 k.
 This needs the elliptic friction cone (`attach` sets it): with the pyramidal one a small impedance
-multiplies the normal force (measured: a 274 N impact gave 1,016 N). `update` computes A for every robot-part
+multiplies the normal force (measured at d = 0.01: a 274 N impact gave 1,016 N). `update` computes A for every robot-part
 pair at their closest points from the model itself (`mj_jac`, `mj_solveM`) each control tick: the
 spring is the region's k at any robot pose, whatever robot link meets it (not one robot mass for
 every region).
 
 Fixtures (`attach(..., fixtures=...)`, e.g. the table a hand rests on) collide with the parts too.
-A part pressed against a fixture by the robot (`state`: `trapped`) is compressed by the robot's
-contact alone, k being the region's clamping stiffness: the fixture's contact has a high impedance
-(`FIXTURE_D`), rigid under a steady press, and the region's k in an impact (a stiffer one would
-need a shorter timestep: the part between two springs rings at `sqrt((k_1 + k_2) / m_H)`).
+A part pressed against a fixture by the robot (`state`: `trapped`) is compressed between two
+contacts; the fixture's (`FIXTURE_D` 0.5, `FIXTURE_RATIO` 2: 2k in an impact, a steady press sinks
+F / 4k) in series with the robot's (0.7 F / k) give 0.95 F / k, the region's clamping stiffness k
+(a stiffer fixture would need a shorter timestep: the part between two springs rings at
+`sqrt((k_1 + k_2) / m_H)`).
 """
 from __future__ import annotations
 
@@ -42,8 +45,9 @@ from skinsafe.core.sim.body_regions import Region, region
 from skinsafe.core.sim.scene import Obstacle
 from skinsafe.core.skin.model import DesignError
 
-CONTACT_D = 0.01  # contact impedance (solimp dmin = dmax): small, so the spring is the reference's (module doc)
-FIXTURE_D = 0.99  # a fixture's impedance: rigid under a steady press
+CONTACT_D = 0.3  # contact impedance (solimp dmin = dmax): the spring mostly the reference's (module doc)
+FIXTURE_D = 0.5  # a fixture's impedance
+FIXTURE_RATIO = 2.0  # a fixture's spring in an impact, in the region's k
 ROT_ARM = 0.1  # m: the rotational attachment is the translational one at this lever arm
 NEAR = 0.25  # m: pairs farther apart than this keep their last spring (no contact can form within a tick)
 OPPOSED = -0.5  # cosine below which two pushes on a part oppose (trapped or pinched)
@@ -137,7 +141,7 @@ class Human:
             for g in fixtures:  # fixed: the part's own mass
                 spec.add_pair(geomname1=g, geomname2=p.name, condim=3, friction=friction,
                               solimp=[FIXTURE_D, FIXTURE_D, 0.001, 0.5, 2.0],
-                              solref=self._solref(reg.k_N_per_m, 1 / reg.mass_kg))
+                              solref=self._solref(FIXTURE_RATIO * reg.k_N_per_m, 1 / reg.mass_kg))
         for i, a in enumerate(names):
             for b in names[i + 1:]:
                 spec.add_exclude(bodyname1=a, bodyname2=b)

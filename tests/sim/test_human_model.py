@@ -91,8 +91,8 @@ def test_a_pinned_part_is_pushed_no_harder_than_the_muscles_can(ur5, push):
 
 def test_clamped_part_is_trapped_and_compressed_by_its_region_spring(ur5):
     """A hand (a fist) on a table pressed from above by a weight: `trapped`, the weight borne through
-    the hand and the robot-side contact compressed by F / k (k the hand's 75 N/mm: MuJoCo's default
-    impedance would make a steady press 100x stiffer than k)."""
+    the hand, compressed in all (both contacts) by F / k, k the hand's 75 N/mm (MuJoCo's usual
+    impedance would make a steady press 10-100x stiffer than k)."""
     m = 8.0
     human = Human([Part("hand", "sphere", (0.02,), pos=(1.0, 1.0, 0.02))])
     table = Obstacle("fixture", "box", (0.3, 0.3, 0.02), pos=(1.0, 1.0, -0.02))
@@ -102,9 +102,8 @@ def test_clamped_part_is_trapped_and_compressed_by_its_region_spring(ur5):
     st_ = human.state(data)
     assert st_.trapped[0] and not st_.pinched[0] and st_.fixture_N[0] > 0.8 * m * 9.81
     assert 0.8 * m * 9.81 < f[-100:].mean() < 1.05 * m * 9.81
-    w = model.geom("weight").id
-    depth = -min(data.contact[i].dist for i in range(data.ncon) if w in data.contact[i].geom)
-    assert np.isclose(depth, f[-1] / REGIONS["hand"].k_N_per_m, rtol=0.25), (depth, f[-1])
+    depth = -sum(data.contact[i].dist for i in range(data.ncon) if human.geom[0] in data.contact[i].geom)
+    assert np.isclose(depth, f[-1] / REGIONS["hand"].k_N_per_m, rtol=0.15), (depth, f[-1])
 
 
 def test_only_the_asked_regions_and_clear_errors(ur5):
