@@ -647,8 +647,10 @@ def run_experiment(args) -> dict:
     out_dir = Path(args.out or "results/collaboration")
     cfg = config(args)
     cfg["seed"] = args.seed
-    skin = out_dir / "collaboration_skin.json"
-    if args.redesign or not skin.exists():
+    skin = Path(args.skin) if args.skin else out_dir / "collaboration_skin.json"
+    if args.skin and not skin.is_file():
+        raise SystemExit(f"--skin: '{skin}' is not a file; give a taxel map (or leave --skin out to design one)")
+    if not args.skin and (args.redesign or not skin.exists()):
         save(collaboration_skin(cfg, args.cover_rounds, progress=not args.no_progress)[0], skin)
     design = load(skin)
     tasks = [_task(s, NOMINAL, list(args.stacks), cfg, skin, args.seed, detail=True) for s in SCENARIOS]
@@ -756,6 +758,8 @@ def add_arguments(p) -> None:
     p.add_argument("--cover-rounds", type=int, default=3,
                    help="rounds of simulating the scenarios and covering where the person is met")
     p.add_argument("--redesign", action="store_true", help="place the skin's person modules again")
+    p.add_argument("--skin", default=None,
+                   help="a taxel map to run on as it is (default: OUT/collaboration_skin.json, designed when missing)")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="local Ray CPUs (default %(default)s)")
     p.add_argument("--address", default=None, help="join this Ray cluster instead of starting a local Ray")
     p.add_argument("--fresh", action="store_true", help="re-run every cell instead of reusing finished ones")

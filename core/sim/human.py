@@ -5,7 +5,10 @@ effective mass (Table A.3), held up by gravity compensation, on three slide join
 and three hinges, and moved by the person's muscles (`drive`, every physics step): a spring of
 `attach_N_per_m` (N/m; damping ratio `attach_damping`, light: ISO's m_H is a free mass on the time
 scale of an impact) toward the pose the person intends (`move`), its force limited in magnitude to
-`push_N` (its torque to `push_N` at `ROT_ARM`). A push from the robot moves the part and the person
+`push_N`; the rotations alike at the part's radius of gyration r_g = sqrt(I/m) (stiffness
+`attach_N_per_m r_g^2`, torque up to `push_N r_g`: the same frequency as the translation, which an
+explicit damper keeps stable; a lever of 0.1 m on a 2 cm fist went unstable at a 2 ms step and
+flung it into the robot). A push from the robot moves the part and the person
 pulls back, but never harder than a person can: a part pinned by the robot sees at most the
 robot's push plus `push_N`, not an unbounded spring.
 
@@ -48,7 +51,6 @@ from skinsafe.core.skin.model import DesignError
 CONTACT_D = 0.3  # contact impedance (solimp dmin = dmax): the spring mostly the reference's (module doc)
 FIXTURE_D = 0.5  # a fixture's impedance
 FIXTURE_RATIO = 2.0  # a fixture's spring in an impact, in the region's k
-ROT_ARM = 0.1  # m: the rotational attachment is the translational one at this lever arm
 NEAR = 0.25  # m: pairs farther apart than this keep their last spring (no contact can form within a tick)
 OPPOSED = -0.5  # cosine below which two pushes on a part oppose (trapped or pinched)
 
@@ -152,10 +154,11 @@ class Human:
         sets). Every part is meant to be at its initial pose until `move`."""
         self.model = model
         self.target = np.zeros((len(self.parts), 6))  # slide and hinge positions the person means
-        k_rot = self.attach_k * ROT_ARM ** 2
         m = np.array([r.mass_kg for r in self.regions])[:, None]
-        self._kp = np.c_[np.full((len(m), 3), self.attach_k), np.full((len(m), 3), k_rot)]
-        self._kv = 2.0 * self.attach_damping * np.sqrt(self._kp * np.c_[np.repeat(m, 3, 1), np.repeat(m, 3, 1) * ROT_ARM ** 2])
+        inertia = np.array([model.body_inertia[model.body(p.name).id] for p in self.parts])  # (P, 3) principal
+        self._gyration = np.sqrt(inertia.mean(axis=1) / m[:, 0])  # (P,) m
+        self._kp = np.c_[np.full((len(m), 3), self.attach_k), self.attach_k * inertia / m]
+        self._kv = 2.0 * self.attach_damping * np.sqrt(self._kp * np.c_[np.repeat(m, 3, 1), inertia])
         self.geom = np.array([model.geom(p.name).id for p in self.parts])
         self.body = np.array([model.body(p.name).id for p in self.parts])
         self.slide = np.array([model.jnt_qposadr[model.joint(f"{p.name}_x").id] for p in self.parts])
@@ -185,7 +188,7 @@ class Human:
     def drive(self, data: mujoco.MjData) -> None:
         """Before a physics step: the springs shared among the contacts the step will have (module
         docstring), and the person's muscles: per part a damped spring toward its target, the force
-        (and the torque) saturated in magnitude at `push_N` (`push_N * ROT_ARM`)."""
+        (and the torque) saturated in magnitude at `push_N` (`push_N` at the radius of gyration)."""
         m = self.model
         mujoco.mj_kinematics(m, data)
         mujoco.mj_collision(m, data)
@@ -205,7 +208,7 @@ class Human:
             s = self.slide[k]
             err = self.target[k] - data.qpos[s:s + 6]
             u = self._kp[k] * err - self._kv[k] * data.qvel[dof:dof + 6]
-            for part, limit in ((u[:3], self.push_N), (u[3:], self.push_N * ROT_ARM)):
+            for part, limit in ((u[:3], self.push_N), (u[3:], self.push_N * self._gyration[k])):
                 norm = np.linalg.norm(part)
                 if norm > limit:
                     part *= limit / norm
