@@ -6,6 +6,7 @@ from mathutils import Matrix
 
 from skinsafe.core.design.surface import Surface
 from skinsafe.core.robot.models import load_robot  # noqa: F401 (operators refuse files early)
+from skinsafe.core.robot.urdf_import import parse_xacro_args
 from skinsafe.core.skin import taxel_map
 from skinsafe.core.skin.model import DesignError, Module, RobotRef
 
@@ -24,7 +25,7 @@ def robot_ref(scene) -> RobotRef | None:
     if not s.robot_kind:
         return None
     dirs = tuple(d for d in s.robot_package_dirs.split(";") if d)
-    return RobotRef(s.robot_kind, s.robot_name, s.robot_path or None, dirs)
+    return RobotRef(s.robot_kind, s.robot_name, s.robot_path or None, dirs, parse_xacro_args(s.robot_xacro_args))
 
 
 def robot_for(scene):
@@ -32,7 +33,7 @@ def robot_for(scene):
     ref = robot_ref(scene)
     if ref is None:
         raise DesignError("scene: no robot imported; import one first (skinsafe panel > Robot)")
-    key = (ref.kind, ref.name, ref.path, ref.package_dirs)
+    key = (ref.kind, ref.name, ref.path, ref.package_dirs, tuple(sorted(ref.xacro_args.items())))
     if key not in _robots:
         _robots[key] = load_robot(ref)
     return _robots[key]

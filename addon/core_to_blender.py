@@ -63,6 +63,7 @@ def build_robot(scene, ref) -> bpy.types.Object:
         bpy.data.collections.remove(old)
     s.robot_kind, s.robot_name, s.robot_path = ref.kind, ref.name, ref.path or ""
     s.robot_package_dirs = ";".join(ref.package_dirs)
+    s.robot_xacro_args = ";".join(f"{k}:={v}" for k, v in ref.xacro_args.items())
     robot = robot_for(scene)
     m = robot.model
     coll = bpy.data.collections.new(COLLECTION)

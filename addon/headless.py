@@ -35,9 +35,9 @@ def _world_points(objs) -> np.ndarray:
 
 
 class _CellTiles:
-    """For a picture only: each taxel hexagon grown to fill its cell (corners at half the module
-    pitch, so neighbours tile without overlap) and lifted `lift` m off the link, so the skin reads
-    as coloured tiles that never z-fight with the surface. `restore()` puts the meshes back."""
+    """For a picture only: each taxel hexagon grown to its cell's width (corners at half the module
+    pitch, so neighbours never overlap) and lifted `lift` m off the link, so the skin reads as
+    coloured hexagonal dots that never z-fight with the surface. `restore()` puts the meshes back."""
 
     def __init__(self, modules, pitch: dict, lift: float = 0.0015):
         self.saved = []
@@ -132,7 +132,7 @@ def render(scene, path: Path, color: str = "heat", size: int = 1000, view=(0.6, 
     """A Workbench picture of the whole robot and its skin (orthographic, fitted to every vertex).
 
     color "heat": the modules' heat-map colour attribute; "board": a colour per interface board.
-    The taxels are drawn as tiles filling their cells, lifted off the link (see `_CellTiles`).
+    The taxels are drawn as hexagonal dots as wide as their cells, lifted off the link (see `_CellTiles`).
     """
     robot_objs = [o for o in scene.objects if o.type == "MESH" and not o.skinsafe_module.is_module
                   and o.visible_get() and not o.hide_render]

@@ -11,6 +11,7 @@ from skinsafe.addon import blender_to_core as b2c
 from skinsafe.addon import core_to_blender as c2b
 from skinsafe.addon import designer
 from skinsafe.core.design.coverage import format_report
+from skinsafe.core.robot.urdf_import import parse_xacro_args
 from skinsafe.core.skin import taxel_map
 from skinsafe.core.skin.model import DesignError, RobotRef
 
@@ -49,6 +50,8 @@ class SKINSAFE_OT_import_robot(bpy.types.Operator, ImportHelper):
     filter_glob: StringProperty(default="*.urdf;*.xacro;*.xml;*.mjcf", options={"HIDDEN"})
     package_dirs: StringProperty(name="ROS package folders", default="",
                                  description="folders holding the ROS packages the file names (package://, $(find)), ';'-separated")
+    xacro_args: StringProperty(name="xacro arguments", default="",
+                               description="NAME:=VALUE arguments for a xacro file, ';'-separated (e.g. ur_type:=ur5e;name:=ur5e)")
 
     def invoke(self, context, event):
         if self.source == "FILE":
@@ -62,7 +65,7 @@ class SKINSAFE_OT_import_robot(bpy.types.Operator, ImportHelper):
                 path = Path(bpy.path.abspath(self.filepath))
                 kind = "mjcf" if path.suffix.lower() in (".xml", ".mjcf") else "urdf"
                 dirs = tuple(str(Path(bpy.path.abspath(d))) for d in self.package_dirs.split(";") if d)
-                ref = RobotRef(kind, path.name.split(".")[0], str(path), dirs)
+                ref = RobotRef(kind, path.name.split(".")[0], str(path), dirs, parse_xacro_args(self.xacro_args))
                 b2c.load_robot(ref)  # one validation (joints, every mesh by link and file) before touching the scene
             else:
                 ref = RobotRef("builtin", self.source)

@@ -1,5 +1,5 @@
 """Build the Blender extension zip: the add-on files, a skinsafe wheel built from this checkout
-and (unless --no-deps) the wheels of its runtime dependencies that Blender does not ship.
+and (unless --no-deps) the wheels of what the add-on's import path loads that Blender lacks.
 
     python addon/package.py [--out dist] [--no-deps]
 
@@ -18,12 +18,20 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-# Runtime dependencies of skinsafe.core that Blender's Python lacks (Blender ships numpy; mujoco 4 keeps
-# its compiled library in mujoco-core; its viewer packages are not needed). trimesh, pycollada and xacro
-# (with their own dependencies) read robots from their ROS descriptions: meshes, Collada, xacro.
-DEPS = ["mujoco", "mujoco-core", "scipy", "tqdm", "trimesh", "pycollada", "python-dateutil", "six", "xacro", "PyYAML"]
-PLATFORM = ["--platform", "manylinux_2_28_x86_64", "--platform", "manylinux2014_x86_64",
-            "--python-version", "3.11", "--only-binary=:all:"]
+# What the add-on's import path loads beyond Blender's Python (which ships numpy and requests), as
+# measured by tests/addon/test_clean_install.py in a virtual environment holding only bpy: MuJoCo
+# (mujoco-core holds its compiled library; its viewers are never imported) and scipy for robots,
+# surfaces and placement; trimesh, pycollada (with python-dateutil, six), xacro and PyYAML read
+# ROS descriptions; pymeshlab decimates CAD meshes above the per-link triangle budget; numba and
+# llvmlite for the body surfaces' closest-point kernels (core/design/surface_kernels.py, loaded by the
+# first surface, never at enable) and the PFL heat map; mcap, mcap-ros2-support and lz4 read a run's
+# record for the live link (addon/live.py, on attach).
+DEPS = ["mujoco", "mujoco-core", "scipy", "trimesh", "pycollada", "python-dateutil", "six", "xacro", "PyYAML",
+        "pymeshlab", "numba", "llvmlite", "mcap", "mcap-ros2-support", "lz4"]
+# The platform the manifest names (`platforms = ["linux-x64"]`: glibc 2.35+, pymeshlab's floor; pip
+# does not widen a --platform to older manylinux tags itself) and Blender 4.2-5.0's Python (3.11).
+PLATFORM = [a for glibc in range(35, 16, -1) for a in ("--platform", f"manylinux_2_{glibc}_x86_64")] + [
+    "--platform", "manylinux2014_x86_64", "--python-version", "3.11", "--implementation", "cp", "--only-binary=:all:"]
 
 
 def blender_ext() -> Path:
@@ -37,6 +45,7 @@ def blender_ext() -> Path:
 
 
 def build(out: Path, with_deps: bool = True) -> Path:
+    out = out.resolve()  # the builder runs in the staging folder
     stage = ROOT / "build" / "addon" / "skinsafe"
     shutil.rmtree(stage, ignore_errors=True)
     wheels = stage / "wheels"

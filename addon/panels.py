@@ -39,6 +39,7 @@ class SKINSAFE_PT_modules(_Panel, bpy.types.Panel):
         if t.template == "curve":
             col.prop(t, "outline")
         col.operator("skinsafe.place_module", text="Place at 3D Cursor")
+        col.operator("skinsafe.cover_link", text="Cover Active Link")
         col.prop(s, "auto_regenerate")
         col.operator("skinsafe.regenerate")
         act = context.active_object

@@ -10,7 +10,7 @@ from bpy.props import EnumProperty
 from skinsafe.addon import blender_to_core as b2c
 from skinsafe.addon import core_to_blender as c2b
 from skinsafe.core.robot.kinematics import TaxelKinematics
-from skinsafe.core.safety.pfl import REGIONS, taxel_speed_limits
+from skinsafe.core.sim.body_regions import REGIONS
 from skinsafe.core.skin.model import DesignError
 
 ATTRIBUTE = "pfl_vmax"
@@ -23,6 +23,8 @@ def map_vmax(scene, region: str) -> np.ndarray:
     design = b2c.design_of(scene)
     if design is None or not design.n_taxels:
         raise DesignError("skin: no modules placed yet; place a module first (skinsafe panel > Modules)")
+    from skinsafe.core.safety.pfl import taxel_speed_limits  # imports numba: loaded by this map only
+
     kin = TaxelKinematics(b2c.robot_for(scene).model, design)
     values = taxel_speed_limits(kin, [region], b2c.pose(scene))[region]
     rgba = c2b.heat_colors(values)

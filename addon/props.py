@@ -56,6 +56,7 @@ class SkinsafeScene(bpy.types.PropertyGroup):
     robot_name: StringProperty(default="")
     robot_path: StringProperty(default="", subtype="FILE_PATH")
     robot_package_dirs: StringProperty(default="", description="ROS package folders for package:// and $(find), ';'-separated")
+    robot_xacro_args: StringProperty(default="", description="the robot file's xacro arguments, NAME:=VALUE ';'-separated")
     joints: CollectionProperty(type=SkinsafeJoint)
     new_module: PointerProperty(type=SkinsafeTemplate)
     board_capacity: IntProperty(name="Board channels", default=256, min=1, max=65536)

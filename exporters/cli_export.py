@@ -1,5 +1,5 @@
 """`skinsafe export MAP OUT_DIR`: a taxel map to a MuJoCo scene folder (scene.xml, meshes/, taxel_map.json),
-with `--urdf` also robot_skin.urdf (robot tree, taxel links, tactile sensors) for ROS."""
+with `--urdf` also robot_skin.urdf and its own robot_skin_meshes/ (robot tree, taxel links, tactile sensors) for ROS."""
 from __future__ import annotations
 
 import sys
@@ -8,10 +8,9 @@ from pathlib import Path
 from skinsafe.core.robot.models import load_robot
 from skinsafe.core.sim.scene import COLLISION_MODES, Obstacle, SceneOptions
 from skinsafe.core.skin import taxel_map
-from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.model import DesignError
 from skinsafe.exporters.mjcf import export_scene
-from skinsafe.exporters.urdf import URDF_FILE, build_urdf, write_meshes
+from skinsafe.exporters.urdf import URDF_FILE, build_urdf, mesh_dir_of, write_urdf
 
 
 def add_arguments(p) -> None:
@@ -42,11 +41,11 @@ def run(args) -> int:
                                 prune_contacts=not args.no_prune, timestep=args.timestep)
         obstacles = [Obstacle("probe", "sphere", (args.probe,), pos=(0, 0, -1), mocap=True)] if args.probe else []
         meshes: dict = {}
-        urdf = build_urdf(design, robot, meshes=meshes) if args.urdf else None  # check it before writing anything
+        # checked before anything is written; its meshes go in a folder of its own, never the scene's
+        urdf = build_urdf(design, robot, meshes=meshes, mesh_dir=mesh_dir_of(URDF_FILE)) if args.urdf else None
         scene = export_scene(design, robot, args.out_dir, obstacles, options)
         if urdf is not None:
-            write_meshes(args.out_dir, meshes)
-            atomic_write(Path(args.out_dir) / URDF_FILE, urdf)
+            write_urdf(Path(args.out_dir) / URDF_FILE, urdf, meshes)
     except (DesignError, ValueError) as e:
         print(f"skinsafe export: {e}", file=sys.stderr)
         return 1

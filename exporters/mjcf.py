@@ -1,7 +1,8 @@
 """Write a skin design's MuJoCo scene (`skinsafe.core.sim.scene.build_scene`) to files.
 
 `export_scene` writes `scene.xml`, its meshes under `meshes/` and the taxel map `taxel_map.json`
-into one folder, all or nothing.
+into one folder, all or nothing. `meshes/` is the scene's own: another export into the same folder
+(the URDF's `robot_skin_meshes/`) never writes there, and a new scene replaces it whole.
 """
 from __future__ import annotations
 
@@ -80,7 +81,7 @@ def _move_into(stage: Path, out_dir: Path) -> None:
         os.replace(stage, out_dir)
         stage.mkdir()  # so the caller's cleanup has something to remove
         return
-    if (out_dir / MESH_DIR).exists() and (stage / MESH_DIR).exists():
+    if (out_dir / MESH_DIR).exists():  # the scene's own folder: other exports keep theirs elsewhere
         shutil.rmtree(out_dir / MESH_DIR)
     for p in stage.iterdir():
         os.replace(p, out_dir / p.name)

@@ -6,8 +6,10 @@ Layout of the written file (`export_urdf`):
   `<inertial>` (body_mass, principal body_inertia at body_ipos/body_iquat). The robot's visual
   geoms become `<visual>`, its colliding geoms `<collision>` (both only for a robot with no
   visual geometry, like the built-ins): sphere, box and cylinder as such, a capsule as the
-  cylinder of its straight part, meshes as `meshes/<mesh>.stl` written beside the URDF (the
-  robot's own meshes, DAE visuals included); plane and other geoms are left out. The world body becomes a link "world" only when the tree needs it (several root
+  cylinder of its straight part, meshes as `<urdf stem>_meshes/<mesh>.stl` beside the URDF (the
+  robot's own meshes as MuJoCo compiled them, DAE visuals included, in a folder this URDF owns:
+  the MJCF scene's `meshes/` in the same export folder is never touched); plane and other geoms
+  are left out. The world body becomes a link "world" only when the tree needs it (several root
   bodies, a root away from the origin, or a root with a joint); its geoms (table, floor) are
   left out.
 * One `<joint>` per body to its parent body, origin = body_pos/body_quat as xyz/rpy: a limited
@@ -37,6 +39,8 @@ Layout of the written file (`export_urdf`):
 """
 from __future__ import annotations
 
+import os
+import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -48,7 +52,6 @@ from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.model import SkinDesign
 
 URDF_FILE = "robot_skin.urdf"
-MESH_DIR = "meshes"
 DEFAULT_EFFORT = 100.0  # N m (or N) where the model gives no actuator force range
 TAXEL_THICKNESS = 0.001  # m, thickness of the taxel marker box in the tactile sensor
 _JOINT_TYPES = {int(mujoco.mjtJoint.mjJNT_HINGE): "revolute", int(mujoco.mjtJoint.mjJNT_SLIDE): "prismatic",
@@ -145,8 +148,13 @@ def _needs_world(model: mujoco.MjModel) -> bool:
     return bool(model.body_jntnum[b] or np.any(model.body_pos[b] != 0) or np.any(model.body_quat[b] != [1, 0, 0, 0]))
 
 
-def _mesh_geometry(model: mujoco.MjModel, g: int, meshes: dict) -> ET.Element:
-    """A mesh geom as `meshes/<mesh>.stl` (the robot's own mesh as MuJoCo holds it, in the geom
+def mesh_dir_of(path: str | Path) -> str:
+    """The folder a URDF's meshes go in, beside it and its own: `<stem>_meshes`."""
+    return f"{Path(path).stem}_meshes"
+
+
+def _mesh_geometry(model: mujoco.MjModel, g: int, meshes: dict, mesh_dir: str) -> ET.Element:
+    """A mesh geom as `<mesh_dir>/<mesh>.stl` (the robot's own mesh as MuJoCo holds it, in the geom
     frame); its vertices and faces are collected in `meshes` for the caller to write."""
     m = int(model.geom_dataid[g])
     name = model.mesh(m).name or f"mesh{m}"
@@ -154,11 +162,11 @@ def _mesh_geometry(model: mujoco.MjModel, g: int, meshes: dict) -> ET.Element:
         v0, nv, f0, nf = model.mesh_vertadr[m], model.mesh_vertnum[m], model.mesh_faceadr[m], model.mesh_facenum[m]
         meshes[name] = (model.mesh_vert[v0:v0 + nv].astype(float), model.mesh_face[f0:f0 + nf].astype(np.int64))
     geo = ET.Element("geometry")
-    ET.SubElement(geo, "mesh", filename=f"{MESH_DIR}/{name}.stl")
+    ET.SubElement(geo, "mesh", filename=f"{mesh_dir}/{name}.stl")
     return geo
 
 
-def _robot_elements(root: ET.Element, robot: Robot, meshes: dict | None = None) -> None:
+def _robot_elements(root: ET.Element, robot: Robot, meshes: dict | None, mesh_dir: str) -> None:
     model = robot.model
     world = _needs_world(model)
     has_visual = any(model.geom_bodyid[g] and not (model.geom_contype[g] or model.geom_conaffinity[g])
@@ -189,7 +197,7 @@ def _robot_elements(root: ET.Element, robot: Robot, meshes: dict | None = None) 
             for tag, el_name in tags:
                 el = ET.SubElement(link, tag, name=el_name)
                 _origin(el, model.geom_pos[g], _quat_rpy(model.geom_quat[g]))
-                el.append(_mesh_geometry(model, g, meshes) if mesh else _geometry(model, g))
+                el.append(_mesh_geometry(model, g, meshes, mesh_dir) if mesh else _geometry(model, g))
         parent = int(model.body_parentid[b])
         if parent == 0 and not world:
             continue  # the single root link
@@ -258,10 +266,10 @@ def _taxel_elements(root: ET.Element, design: SkinDesign, update_rate: float) ->
 
 
 def build_urdf(design: SkinDesign, robot: Robot, update_rate: float = 100.0, name: str | None = None,
-               meshes: dict | None = None) -> str:
+               meshes: dict | None = None, mesh_dir: str = mesh_dir_of(URDF_FILE)) -> str:
     """The URDF text (see the module docstring); ValueError (naming the body/taxel and the fix) on
-    bad input. With a `meshes` dict, mesh geoms are kept (as `meshes/<name>.stl`, their vertices
-    and faces put in the dict for the caller to write); without, they are left out."""
+    bad input. With a `meshes` dict, mesh geoms are kept (as `<mesh_dir>/<name>.stl`, their vertices
+    and faces put in the dict for `write_urdf`); without, they are left out."""
     if not update_rate > 0:
         raise ValueError(f"urdf export: update_rate {update_rate} Hz must be positive")
     design.validate("urdf export", robot.body_names)  # DesignError (a ValueError) names the body/taxel at fault
@@ -269,25 +277,43 @@ def build_urdf(design: SkinDesign, robot: Robot, update_rate: float = 100.0, nam
     root = ET.Element("robot", name=name or f"{robot.name}_skin")
     mj = ET.SubElement(root, "mujoco")
     ET.SubElement(mj, "compiler", fusestatic="false", discardvisual="false", strippath="false")
-    _robot_elements(root, robot, meshes)
+    _robot_elements(root, robot, meshes, mesh_dir)
     _taxel_elements(root, design, update_rate)
     ET.indent(root, space="  ")
     return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 
 
-def write_meshes(folder: str | Path, meshes: dict) -> None:
-    """The collected meshes as binary STL files in `folder/meshes/` (each written atomically)."""
+def write_urdf(path: str | Path, text: str, meshes: dict) -> Path:
+    """The URDF at `path` and its meshes as binary STL in `mesh_dir_of(path)` beside it: the mesh
+    folder is written whole in a temporary folder and swapped in (a stale mesh of an earlier
+    export never survives), then the URDF is written atomically."""
     import trimesh
 
-    for mesh_name, (v, f) in meshes.items():
-        data = trimesh.Trimesh(v, f, process=False).export(file_type="stl")
-        atomic_write(Path(folder) / MESH_DIR / f"{mesh_name}.stl", data)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    dest = path.parent / mesh_dir_of(path)
+    with tempfile.TemporaryDirectory(prefix=f".{dest.name}.", dir=path.parent) as tmp:
+        stage = Path(tmp) / "new"
+        stage.mkdir()
+        for mesh_name, (v, f) in meshes.items():
+            trimesh.Trimesh(v, f, process=False).export(str(stage / f"{mesh_name}.stl"), file_type="stl")
+        if dest.exists():
+            os.replace(dest, Path(tmp) / "old")
+        if meshes:
+            os.chmod(stage, 0o777 & ~_umask())
+            os.replace(stage, dest)
+    return atomic_write(path, text)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def export_urdf(design: SkinDesign, robot: Robot, path: str | Path, update_rate: float = 100.0) -> Path:
-    """Write the design's URDF (robot tree with its own meshes, taxel links, tactile sensors)
-    atomically to `path`, the meshes beside it in `meshes/`."""
+    """Write the design's URDF (robot tree with its own meshes, taxel links, tactile sensors) to
+    `path`, the meshes beside it in its own `mesh_dir_of(path)` (`write_urdf`)."""
     meshes: dict = {}
-    text = build_urdf(design, robot, update_rate, meshes=meshes)
-    write_meshes(Path(path).parent, meshes)
-    return atomic_write(path, text)
+    text = build_urdf(design, robot, update_rate, meshes=meshes, mesh_dir=mesh_dir_of(path))
+    return write_urdf(path, text, meshes)

@@ -3,16 +3,26 @@
 Each subcommand lives in its own module, imported only when used (so `skinsafe deploy` never
 loads torch or bpy). A command module exposes `add_arguments(parser)` and `run(args) -> int`.
 A benchmark module exposes `add_arguments(parser)` (optional) and `rows(args) -> list[dict]`;
-`skinsafe bench NAME` prints the rows as a table, or as one JSON list with `--json`.
+`skinsafe bench NAME` prints the rows as a table, or as one JSON list with `--json`; `--save FILE`
+also writes them with the command line and the machine (results/bench/NAME.json: README tables).
 """
 from __future__ import annotations
 
-import argparse
-import importlib
-import json
-import signal
 import sys
-import warnings
+
+
+def _interrupted(kind, value, tb, default=sys.excepthook) -> None:
+    """Ctrl-C while this module still loads (before main's handler is in place): one line, no traceback."""
+    if issubclass(kind, KeyboardInterrupt):
+        print("skinsafe: interrupted", file=sys.stderr)
+    else:
+        default(kind, value, tb)
+
+
+if sys.argv and sys.argv[0].endswith("skinsafe"):  # the `skinsafe` command, not a program importing this module
+    sys.excepthook = _interrupted
+
+import signal  # noqa: E402  (after the hook: nothing else loads before main installs its Ctrl-C handler)
 
 COMMANDS = {
     "demo": ("skinsafe.core.app.demo", "run the whole product on the bundled sample scene and write a report"),
@@ -24,8 +34,12 @@ COMMANDS = {
     "deploy": ("skinsafe.hardware.cli_deploy", "push a taxel map to the interface boards over serial and verify it"),
     "stream": ("skinsafe.hardware.cli_stream", "stream readings from the boards, mapped to taxels"),
     "emulate": ("skinsafe.hardware.cli_emulate", "run a board emulator on a pseudo-terminal"),
+    "run": ("skinsafe.core.app.run", "the safety runtime: boards -> the three layers -> a robot (sim or FR3), with watchdogs"),
+    "view": ("skinsafe.core.app.view", "see a run live (`run --view` stream) or a record in the browser"),
+    "replay": ("skinsafe.core.app.replay", "re-run the layers on a `run --record` MCAP and compare the commands"),
     "pfl": ("skinsafe.core.app.pfl", "ISO/TS 15066: effective mass and safe approach speed per taxel, at a pose or along a trajectory"),
     "trade": ("skinsafe.core.app.trade", "sweep speed-vs-accuracy knobs (Ray) and plot the Pareto front"),
+    "readme": ("skinsafe.core.app.readme", "fill the README's figures from the results files (make readme-figures)"),
 }
 EXPERIMENTS = {
     "maze": ("skinsafe.core.experiments.maze", "strategy layer: safe RL in the maze (paper Fig. 9)"),
@@ -43,10 +57,14 @@ BENCHES = {
     "pfl": ("skinsafe.core.bench.pfl", "the ISO/TS 15066 speed cap tick vs a per-taxel loop"),
     "safety": ("skinsafe.core.bench.safety", "correctness audit: no-push, limits, fail-safe on random contact sets"),
     "serial": ("skinsafe.hardware.bench_serial", "deploy and stream decoding over a pseudo-terminal"),
+    "runtime": ("skinsafe.core.bench.runtime", "skinsafe run closed-loop: loop rate, latency, reaction, faults"),
+    "viewers": ("skinsafe.core.app.view_bench", "the live view in headless Chromium: viser vs Rerun at 16,384 taxels"),
 }
 
 
 def _load(module: str, what: str):
+    import importlib
+
     try:
         return importlib.import_module(module)
     except ModuleNotFoundError as e:
@@ -58,6 +76,8 @@ def _load(module: str, what: str):
 def print_rows(rows: list[dict], as_json: bool) -> None:
     """A benchmark's rows as a JSON list or an aligned table."""
     if as_json:
+        import json
+
         print(json.dumps(rows))
         return
     if not rows:
@@ -71,13 +91,29 @@ def print_rows(rows: list[dict], as_json: bool) -> None:
         print("  ".join(v.rjust(w) for v, w in zip(c, width)))
 
 
+def save_rows(path: str, rows: list[dict], command: str) -> None:
+    """A benchmark's rows as a results file: the rows, the command that made them, when and under what load."""
+    import json
+    import os
+    import platform
+    import time
+
+    from skinsafe.core.skin.files import atomic_write
+
+    meta = {"command": command, "date": time.strftime("%Y-%m-%d"), "cpus": os.cpu_count(),
+            "load_average": [round(x, 1) for x in os.getloadavg()], "machine": platform.machine()}
+    atomic_write(path, json.dumps({**meta, "rows": rows}, indent=1))
+
+
 def _fmt(v) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
     return str(v)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser():
+    import argparse
+
     p = argparse.ArgumentParser(prog="skinsafe", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for name, (_, helptext) in COMMANDS.items():
@@ -135,11 +171,15 @@ def _main(argv: list[str] | None) -> int:
     return 2
 
 
-def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False) -> argparse.Namespace:
+def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False):
     """Parse `argv` with the module's own arguments (the demo uses this to run commands in-process)."""
+    import argparse
+
     p = argparse.ArgumentParser(prog=prog, description=helptext)
     if bench:
         p.add_argument("--json", action="store_true", help="print one JSON list of flat rows")
+        p.add_argument("--save", metavar="FILE", help="also write the rows, the command and the machine's load to "
+                                                      "FILE (results/bench/NAME.json feeds the README's tables)")
     p.set_defaults(command_name=name)  # one module may serve several names
     if hasattr(mod, "add_arguments"):
         mod.add_arguments(p)
@@ -147,13 +187,18 @@ def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench
 
 
 def _run_module(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False) -> int:
+    import warnings
+
     from skinsafe.core.skin.model import DesignError  # here: the CLI starts (and takes Ctrl-C) before numpy loads
 
     args = module_args(mod, prog, helptext, argv, name, bench)
     warnings.showwarning = lambda msg, cat, *a, **k: print(f"skinsafe {name}: warning: {msg}", file=sys.stderr)
     try:
         if bench:
-            print_rows(mod.rows(args), args.json)
+            rows = mod.rows(args)
+            print_rows(rows, args.json)
+            if args.save:
+                save_rows(args.save, rows, f"skinsafe bench {name} {' '.join(argv)}".strip())
             return 0
         return int(mod.run(args) or 0)
     except (DesignError, FileNotFoundError) as e:

@@ -21,6 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from skinsafe.core.app import cli
+from skinsafe.core.app import report_figures as figs
 from skinsafe.core.app.report import Section, write_report
 from skinsafe.core.design.coverage import coverage_report
 from skinsafe.core.robot.models import build_ur5
@@ -35,6 +36,8 @@ def add_arguments(p) -> None:
     p.add_argument("--blend", default=str(SAMPLE_BLEND), help="the skin scene to open")
     p.add_argument("--full", action="store_true", help="full-length experiments (tens of minutes) instead of the reduced ones")
     p.add_argument("--skip", default="", help="comma-separated stages to skip: " + ",".join(STAGES))
+    p.add_argument("--timing", help="also write the wall time, each stage's seconds and the machine's load to this "
+                                    "JSON file (results/demo/demo_timing.json feeds the README)")
 
 
 def _command(module: str, argv: list[str], name: str, bench: bool = False):
@@ -67,9 +70,11 @@ def stage_blender(ctx) -> Section:
         f"{ctx['blend']} opened headless with the add-on: {info['modules']} FPC modules re-generated "
         f"(conformal geodesic wrap on the link meshes), {info['taxels']} taxels on {info['boards']} boards, "
         "each with its frame (z the outward normal) and its Jacobian mapping at the scene's pose.",
-        images=[(info["pictures"][0], "Retractability |J_p^T z| per taxel at the scene's pose (bright: the robot can "
-                                      "pull this taxel back fast; dark: a dead spot)"),
-                (info["pictures"][1], "FPC modules coloured by interface board")],
+        images=[(info["pictures"][0], f"Retractability |J_p^T z| of each of the {info['taxels']:,} taxels at the scene's "
+                                      "pose, rendered headless by the add-on (bright: the robot can pull this taxel "
+                                      "back fast; dark: a dead spot)."),
+                (info["pictures"][1], f"The {info['modules']} FPC modules coloured by interface board, "
+                                      f"{info['boards']} boards (the key counts each board's taxels).")],
         tables=[(rows, "fraction: skinned share of the link's surface; density: taxels per cm² of skin.")])
 
 
@@ -94,9 +99,11 @@ def stage_poke(ctx) -> Section:
     _command("skinsafe.core.experiments.poke", argv, "poke")
     res = json.loads((out / "poke_results.json").read_text())
     fs = res["force_sweep"]
+    budget = f"{len(fs['force'])} pokes" + ("" if ctx["full"] else " at the demo's reduced depths")
     rows = [{"merge": r["merge"], "epsilon": r["epsilon"], "contacts": r["contacts"],
-             "dominant_fraction": r["dominant_fraction"], "others_fraction": str(r["others_fraction"])}
-            for r in res["multicontact"]]
+             "dominant_fraction": r["dominant_fraction"], "others_fraction": ", ".join(f"{x:.3g}" for x in
+                                                                                          r["others_fraction"]),
+             "into_contact_mm": r["into_contact_mm"]} for r in res["multicontact"]]
     forms = [{"form": k, **{c: v[c] for c in ("achieved_median", "achieved_p10", "within_5pct", "drift_median")}}
              for k, v in res["forms"].items()]
     return Section(
@@ -104,7 +111,14 @@ def stage_poke(ctx) -> Section:
         f"Pokes of increasing force on taxel {fs['taxel']} ({fs['body']}) in MuJoCo: retraction distance = "
         f"{fs['slope'] * 100:.4f} cm/N x force (alpha/12 = {res['params']['alpha'] / 12 * 100:.4f}), R² = {fs['r2']:.5f}: "
         "heavier touch, further retraction, linearly, as the paper shows qualitatively.",
-        images=[(str(p), p.stem.replace("_", " ")) for p in sorted(out.glob("*.png"))],
+        images=[(str(figs.save(figs.poke_force(res), out / "report_force.png")),
+                 f"Retraction distance against the peak force of each poke ({budget}) with the least-squares line "
+                 "and eq. 10's alpha/12: heavier touch, further retraction."),
+                (str(out / "poke_displacement.png"), f"The poked taxel's displacement along -z over time for each poke "
+                                                      f"({budget}), solid, against eq. 10's quartic profile, dotted."),
+                (str(figs.save(figs.poke_multicontact(res), out / "report_fig7.png")),
+                 "Fig. 7: with 2 and 3 taxels touched at once, the share of its own eq. 10 distance each achieves "
+                 "(1 = as if alone), for the prioritised QP and the closed-form merges (one retraction each).")],
         tables=[(rows, "Multi-contact merge: fraction of each taxel's own eq. 10 distance achieved; the dominant "
                        "(highest-priority) taxel first."),
                 (forms, "6-D (paper, zero rotation) vs 3-D (position only) task: achieved/commanded -z distance.")])
@@ -119,7 +133,10 @@ def stage_maze(ctx) -> Section:
     out = ctx["out"] / "maze"
     argv = ["--out", str(out), "--no-progress"] + ([] if ctx["full"] else ["--demo", "--methods", DEMO_MAZE_METHODS])
     _command("skinsafe.core.experiments.maze", argv, "maze")
-    res = json.loads((out / "maze_results.json").read_text())["summary"]
+    results = json.loads((out / "maze_results.json").read_text())
+    res = results["summary"]
+    grid_file = REPO / "results" / "maze" / "maze_results.json"
+    grid = json.loads(grid_file.read_text()) if grid_file.is_file() else None
     rows = [{"method": m, **{k: v[k] for k in ("total_contacts_mean", "total_contacts_std", "goal_rate_mean",
                                                  "goal_rate_last_mean", "mean_steps")}} for m, v in res["methods"].items()]
     cfg = res["config"]
@@ -136,8 +153,16 @@ def stage_maze(ctx) -> Section:
                  f"{min(maze.LAST, cfg['episodes'])} episodes, so their totals are not yet those of a trained policy.\n\n"
                  if slow else f"Every method shown reached the goal in at least {maze.LEARNED_AT:.0%} of the last "
                  f"{min(maze.LAST, cfg['episodes'])} episodes.\n\n") + res["claim"]["statement"]
+    budget = (f"{figs.plural(cfg['seeds'], 'seed')} x {figs.plural(cfg['episodes'], 'episode')} of at most "
+              f"{cfg['max_steps']} macro-actions")
+    third = ("the -TDM variants against the safe-RL baselines of this run" if grid is None or
+             any(b in res["methods"] for b in figs.BASELINES) else
+             "the -TDM variants against the safe-RL baselines at the paper's budget, from the committed full grid "
+             "(results/maze, which this demo does not re-run)")
     return Section("Strategy layer: the maze (paper Fig. 9)", text,
-                   images=[(str(out / "maze_curves.png"), "Return and contact-event (cost) curves per method")],
+                   images=[(str(figs.save(figs.maze(results, grid), out / "report_maze.png")),
+                            f"Left and middle: each method's episode return and contact events per episode in this run "
+                            f"({budget}; moving average over 5 episodes). Right: contact events so far, {third}.")],
                    tables=[(rows, "total_contacts: contact events over all training episodes (lower is safer); "
                                   "goal_rate_last: share of the last 20 episodes that reached the goal.")])
 
@@ -148,10 +173,11 @@ def stage_tracking(ctx) -> Section:
              "tracking")
     res = json.loads((out / "tracking.json").read_text())
     cfg = res["config"]
-    ticks = list(res["path_contact_ticks"].values())
+    ticks = sorted(res["path_contact_ticks"].values())
+    span = str(ticks[0]) if ticks[0] == ticks[-1] else f"{ticks[0]}-{ticks[-1]}"
     text = (f"Vanilla velocity tracking vs TDM modulation vs 2-step TDM modulation, the TDM re-trained on all "
             f"experience after each episode; contacts from the skin readout of {res['n_taxels']} taxels. The balls "
-            f"sit on the path: the exact desired path itself overlaps a ball in {min(ticks)}-{max(ticks)} of "
+            f"sit on the path: the exact desired path itself overlaps a ball in {span} of "
             f"{int(round(cfg['duration'] / cfg['control_dt']))} ticks, so only leaving the path avoids contact. ")
     if ctx["full"]:
         text += res["claim"]["statement"]
@@ -160,10 +186,34 @@ def stage_tracking(ctx) -> Section:
                  "budget is `skinsafe experiment tracking` (3 seeds x 10 episodes). It can show the first re-trainings "
                  "taking effect (episode 1 is unmodulated for every method); it cannot show episodes 6-10, where the "
                  "paper's claim (2-step TDM near zero contacts, below the TDM) is measured.")
+    budget = f"{figs.plural(len(cfg['seeds']), 'seed')} x {figs.plural(cfg['episodes'], 'episode')}, {res['n_taxels']:,} taxels"
     return Section("Modulation layer: TDM learning and UR5 tracking (paper Fig. 11)", text,
-                   images=[(str(p), p.stem.replace("_", " ")) for p in sorted(out.glob("*.png"))],
-                   tables=[(res["summary"], "contacts: control ticks with a taxel over its threshold per episode (mean "
-                                            "over seeds); tracking_error_mm: mean end-effector deviation from the path.")])
+                   images=[(str(figs.save(figs.tracking_contacts(res), out / "report_contacts.png")),
+                            f"Control ticks in contact per episode for each method ({budget}); the TDM is re-trained "
+                            "on all experience after each episode, episode 1 is unmodulated for every method."),
+                           (str(figs.save(figs.tracking_paths(res), out / "report_paths.png")),
+                            f"The last episode's end-effector path per method ({budget}): desired path dashed, the balls "
+                            "orange, where the skin touched them green.")],
+                   tables=[(tracking_rows(res), "contacts: control ticks with a taxel over its threshold per episode "
+                                                "(mean over seeds); tracking_error_mm: mean end-effector deviation "
+                                                "from the path; first_zero_episode: the first episode without "
+                                                "contact, per seed.")])
+
+
+def tracking_rows(res: dict) -> list[dict]:
+    """The summary rows with only the columns this run measured: episodes 6-10 (the paper's
+    window) only when the run had 10 episodes."""
+    n = res["config"]["episodes"]
+    rows = []
+    for r in res["summary"]:
+        row = {"method": r["method"], "contacts_first": r["contacts_first"], f"contacts_last (episode {n})":
+               r["contacts_last"], f"contacts_mean (episodes 1-{n})": r["contacts_mean"]}
+        if n >= 10:
+            row |= {"contacts_ep6_10": r["contacts_ep6_10"], "contacts_ep6_10_std": r["contacts_ep6_10_std"]}
+        row["tracking_error_mm"] = r["tracking_error_mm"]
+        row["first_zero_episode"] = ", ".join("never" if e is None else str(e) for e in r["first_zero_episode"])
+        rows.append(row)
+    return rows
 
 
 MEANING = {
@@ -176,20 +226,27 @@ MEANING = {
 
 
 def stage_scenes(ctx) -> Section:
-    sections = []
+    images, tables = [], []
     skin = Path(__file__).resolve().parents[2] / "results" / "collaboration" / "collaboration_skin.json"
     reduced = {"collaboration": ["--no-sweep", "--stacks", "none", "full+pfl", "--samples", "600", "--steps", "300",
                                  "--workers", "1"] + (["--skin", str(skin)] if skin.is_file() else ["--cover-rounds", "1"])}
     for name in ("desk", "collaboration"):
         out = ctx["out"] / name
         _command(cli.EXPERIMENTS[name][0], ["--out", str(out)] + reduced.get(name, []), name)
-        sections.append((name, out))
-    images, tables = [], []
-    for name, out in sections:
-        images += [(str(p), f"{name}: {p.stem.replace('_', ' ')}") for p in sorted(out.glob("*.png"))]
-        runs = json.loads((out / f"{name}.json").read_text())["runs"]
+        res = json.loads((out / f"{name}.json").read_text())
+        if name == "desk":
+            images.append((str(figs.save(figs.desk(res), out / "report_desk.png")),
+                           "Fig. 14: the arm's clearance to the desk over time after a touch on top of the forearm "
+                           "(0.1-0.2 s) triggers a retraction toward the desk, without modulation and with the TDM and "
+                           "2-step TDM modulation (one run each, the sample skin)."))
+        else:
+            images.append((str(figs.save(figs.collaboration(res), out / "report_collaboration.png")),
+                           "Fig. 15 as an ISO/TS 15066 test: the force on the person per scenario (delivery: the robot "
+                           "strikes a hand; clamp: it presses a fist on the table; person: the hand pushed into the "
+                           "still robot) and stack, and each contact's worst ratio to its force and pressure limits "
+                           "(the nominal cell only, reduced TDM; the sweep is left out)."))
         tables.append(([{"run": run, **{k: v for k, v in r.items() if not isinstance(v, (list, dict))}}
-                        for run, r in runs.items()], MEANING[name]))
+                        for run, r in res["runs"].items()], MEANING[name]))
     return Section("Layers together: desk and collaboration scenes (paper Fig. 14, 15)",
                    "A touch on top of the arm triggers retraction toward a desk, modulation stops it before the desk; "
                    "a person reaches into a delivery: each stack's contact forces against the ISO/TS 15066 limits.",
@@ -232,7 +289,9 @@ def stage_trade(ctx) -> Section:
     keep = ("knob", "value", "ms", "unit", "speedup_vs_reference", "error", "error_metric", "pareto")
     return Section("Speed vs accuracy (skinsafe trade)",
                    "Each knob swept against its most accurate setting (error 0, speedup 1), one Ray task per point.",
-                   images=[(str(out / "trade.png"), "Speed vs error per knob; filled: Pareto-optimal")],
+                   images=[(str(out / "trade.png"), f"Each knob's settings as speed-up against error, both relative to "
+                                                     f"the knob's most accurate setting; filled: Pareto-optimal "
+                                                     f"({'full' if ctx['full'] else 'quick'} sweep, {len(rows)} points).")],
                    tables=[([{k: r.get(k) for k in keep} for r in rows], "error_metric names the accuracy measure.")])
 
 
@@ -268,6 +327,14 @@ BENCH_KEYS = {  # the columns a reader needs first (the JSON rows carry the rest
 }
 
 
+def safety_row(r: dict) -> dict:
+    """An audit row with its missing ratio said in words: the dominant ratio is measured only on
+    ticks where nothing binds the dominant contact, and with many contacts a few cases have none."""
+    if r.get("dominant_ratio_min") is None:
+        r = {**r, "dominant_ratio_min": f"not measured: no tick left the dominant contact free in {r['cases']} cases"}
+    return r
+
+
 def stage_bench(ctx) -> Section:
     tables = []
     for name, argv in tqdm(BENCH_ARGS.items(), desc="benchmarks", leave=False):
@@ -275,6 +342,8 @@ def stage_bench(ctx) -> Section:
         rows = _command(module, argv, name, bench=True)
         if name in BENCH_KEYS:
             rows = [{k: r[k] for k in BENCH_KEYS[name] if k in r} for r in rows]
+        if name == "safety":
+            rows = [safety_row(r) for r in rows]
         tables.append((rows, f"skinsafe bench {name} {' '.join(argv)} — {BENCH_MEANING[name]}"))
     return Section("Benchmarks (reduced sizes; `make bench` for the full ones)",
                    "Medians of repeated runs in one process; ratios against a simple reference in the same run.",
@@ -303,7 +372,7 @@ def run(args) -> int:
         robot = build_ur5()
         design = make_sample_design("ur5", robot=robot)
         ctx.update(design=design, robot=robot, map=str(save(design, out / "sample_skin.json")))
-    sections, failed = [], []
+    sections, failed, seconds = [], [], {}
     t0 = time.perf_counter()
     bar = tqdm([s for s in STAGES if s not in skip], desc="demo")
     for name in bar:
@@ -311,7 +380,8 @@ def run(args) -> int:
         t = time.perf_counter()
         try:
             sec = STAGES[name](ctx)
-            sec.text += f"\n\n(stage '{name}' took {time.perf_counter() - t:.0f} s)"
+            seconds[name] = round(time.perf_counter() - t, 1)
+            sec.text += f"\n\n(stage '{name}' took {seconds[name]:.0f} s)"
         except Exception as e:  # noqa: BLE001 — a failed stage is reported, the others still run
             if name == "blender":  # everything after needs the design
                 raise
@@ -321,5 +391,21 @@ def run(args) -> int:
     path = write_report(out / "report.html", "skinsafe demo report",
                         f"The sample UR5 skin end to end ({'full' if args.full else 'reduced'} configuration, "
                         f"{time.perf_counter() - t0:.0f} s).", sections)
+    if args.timing:
+        write_timing(args.timing, time.perf_counter() - t0, seconds, failed, args)
     print(f"wrote {path}" + (f"; failed stages: {', '.join(failed)}" if failed else ""))
     return 1 if failed else 0
+
+
+def write_timing(path: str, wall: float, seconds: dict, failed: list[str], args) -> None:
+    """The run's wall time and each stage's, with the machine's size and load (its 1, 5 and 15
+    minute load averages at the end: the demo shares the machine with whatever else runs)."""
+    import os
+    import platform
+
+    from skinsafe.core.skin.files import atomic_write
+
+    atomic_write(path, json.dumps({
+        "wall_s": round(wall, 1), "stages": seconds, "failed": failed, "skipped": args.skip, "full": args.full,
+        "cpus": os.cpu_count(), "load_average": [round(x, 1) for x in os.getloadavg()], "machine": platform.machine(),
+        "date": time.strftime("%Y-%m-%d")}, indent=1))

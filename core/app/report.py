@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import base64
 import html
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,9 +31,18 @@ def _table(rows: list[dict]) -> str:
 def _fmt(v) -> str:
     """Floats to 4 significant digits; from 10,000 up as whole numbers with thousands separators
     (3.288e+04 is hard to read in a table)."""
+    if v is None:
+        return "—"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
     if isinstance(v, float):
         return f"{v:,.0f}" if abs(v) >= 1e4 and v == v and abs(v) != float("inf") else f"{v:.4g}"
     return str(v)
+
+
+def _code(text: str) -> str:
+    """`commands` in a paragraph as inline code."""
+    return re.sub(r"`([^`]+)`", r"<code>\1</code>", text)
 
 
 def _image(path: str, caption: str) -> str:
@@ -60,7 +70,7 @@ def write_report(path: str | Path, title: str, intro: str, sections: list[Sectio
              f"<style>{CSS}</style></head><body><h1>{html.escape(title)}</h1><p>{html.escape(intro)}</p>"]
     for s in sections:
         parts.append(f"<h2>{html.escape(s.title)}</h2>")
-        parts += [f"<p>{html.escape(p)}</p>" for p in s.text.split("\n\n") if p.strip()]
+        parts += [f"<p>{_code(html.escape(p))}</p>" for p in s.text.split("\n\n") if p.strip()]
         parts += [_image(p, c) for p, c in s.images]
         for rows, meaning in s.tables:
             parts.append(_table(rows))

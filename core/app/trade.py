@@ -158,8 +158,12 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot(rows: list[dict], path: Path) -> Path:
-    """One panel per knob: error against speedup (or peak joint speed), Pareto points filled."""
+def plot(rows: list[dict], path: Path, title: str = "Speed vs accuracy: each knob against its most accurate setting"
+         ) -> Path:
+    """One panel per knob: error against speedup (or peak joint speed), Pareto points filled;
+    long labels wrapped and the picture cropped to what is drawn, so nothing is cut off."""
+    import textwrap
+
     import matplotlib
 
     matplotlib.use("Agg")
@@ -169,7 +173,7 @@ def plot(rows: list[dict], path: Path) -> Path:
     knobs = list(dict.fromkeys(r["knob"] for r in rows))
     cols = min(3, len(knobs))
     nrows = int(np.ceil(len(knobs) / cols))
-    fig, axes = plt.subplots(nrows, cols, figsize=(5 * cols, 4 * nrows), squeeze=False)
+    fig, axes = plt.subplots(nrows, cols, figsize=(5.2 * cols, 4.2 * nrows), squeeze=False)
     for ax, name in zip(axes.ravel(), knobs):
         mine = [r for r in rows if r["knob"] == name]
         peak = KNOBS[name].cost == "peak_qdot"
@@ -184,16 +188,18 @@ def plot(rows: list[dict], path: Path) -> Path:
         if x.max() / x.min() > 5:
             ax.set_xscale("log")
             ax.xaxis.set_major_formatter(ScalarFormatter())
-        ax.set_xlabel("peak joint speed asked [rad/s] (lower is safer)" if peak else
-                      f"speedup vs reference ({mine[0]['unit']})")
-        ax.set_ylabel(mine[0]["error_metric"], fontsize=8)
+        ax.margins(x=0.15, y=0.12)  # room for the point labels inside the panel
+        ax.set_xlabel("peak joint speed asked (rad/s; lower is safer)" if peak else
+                      f"speedup vs reference (x, per {mine[0]['unit']})")
+        ax.set_ylabel("\n".join(textwrap.wrap(f"error: {mine[0]['error_metric']}", 42)), fontsize=8)
         ax.set_title(f"{name} (reference {mine[0]['value']})")
         ax.legend(fontsize=7)
     for ax in axes.ravel()[len(knobs):]:
         ax.axis("off")
+    fig.suptitle(title)
     fig.tight_layout()
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
+    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
     plt.close(fig)
     return atomic_write(path, buf.getvalue())
 

@@ -6,7 +6,9 @@ tops of the upper arm, forearm and wrist and sliding along them (1 Hz, +-2 cm), 
 beside the robot. Rows (one per setting):
 
 - `sweep="taxels"`: `n_taxels`, `readout` ("vectorised" | "touch" | "tactile"), `steps_per_s`
-  (physics plus readout), `overhead_vs_bare` (readout time / physics step of the skinned scene),
+  (physics plus readout), `overhead_vs_bare` (readout time / physics step of the skinned scene;
+  the vectorised readout timed as a control loop runs it, `SkinReadout.update` into its own array;
+  `read_copy_us` / `overhead_copy_vs_bare`: `read`, a new array per step, O(N) more),
   `overhead_vs_skinless` (skinned step + readout over the same scene with no skin, minus 1),
   `force_err`, `lit_recall` (against the touch sensors of the same simulation), `missed`.
   Accuracy against one ground truth (`Probes.truth`: the taxel cells each probe's contact patch
@@ -35,11 +37,11 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
-from skinsafe.core.bench.timing import interleaved_ms, median_ms
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.models import build_ur5, mesh_ur5
 from skinsafe.core.sim.probes import BASE_PITCH, Probes, design_for, probe_scene
 from skinsafe.core.sim.readout import SkinReadout, TactileReadout, TouchReadout
+from skinsafe.core.timing import interleaved_ms, median_ms
 
 
 def _medians(fns: dict[str, Callable[[], object]], repeat: int) -> dict[str, float]:
@@ -83,7 +85,8 @@ def taxel_rows(sizes, steps: int, tactile_points=TACTILE_POINTS) -> list[dict]:
         readers = {k: SkinReadout(mb, design, kernel=k) for k in ("linear", "nearest")}
         t_ms = _medians({"skinless": _stepper(m0, d0, probes), "bare": _stepper(mb, db, probes),
                               "sites": _stepper(msites, dsites, probes), "touch": _stepper(mt, dt, probes),
-                              **{k: (lambda r=r: r.read(db)) for k, r in readers.items()}}, repeat=max(steps // 5, 10) * 7)
+                              **{k: (lambda r=r: r.update(db)) for k, r in readers.items()},
+                              "copy": lambda: readers["nearest"].read(db)}, repeat=max(steps // 5, 10) * 7)
         skinless, bare, sites, touch_step = t_ms["skinless"], t_ms["bare"], t_ms["sites"], t_ms["touch"]
         read_ms = {k: t_ms[k] for k in readers}
         agree = _agreement(mt, dt, design, probes, steps)
@@ -109,6 +112,7 @@ def taxel_rows(sizes, steps: int, tactile_points=TACTILE_POINTS) -> list[dict]:
             ref = _equal_accuracy(tactile, truth[kernel]["truth_lit_f1"])
             rows.append(dict(common, readout="vectorised", kernel=kernel, steps_per_s=1e3 / (bare + read_ms[kernel]),
                              read_us=read_ms[kernel] * 1e3, overhead_vs_bare=read_ms[kernel] / bare,
+                             read_copy_us=t_ms["copy"] * 1e3, overhead_copy_vs_bare=t_ms["copy"] / bare,
                              speedup_vs_touch=(touch_step - bare) / read_ms[kernel],
                              overhead_vs_skinless=(bare + read_ms[kernel]) / skinless - 1,
                              speedup_vs_tactile=(ref["tactile_step_us"] / 1e3 - skinless) / added,

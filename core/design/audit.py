@@ -1,7 +1,8 @@
 """Geometric audit of a skin design on its robot (what `skinsafe check` refuses), on the surfaces
 the design was built on (`cached_surfaces`): taxels off their link's surface, module outlines
 overhanging it, placement anchors far from it, and taxels buried inside another link at every
-sampled pose (they can never be touched)."""
+sampled pose (they can never be touched). `enclosed` finds points on internal faces of a link's
+own mesh; the designers never place skin there."""
 from __future__ import annotations
 
 import mujoco
@@ -12,6 +13,7 @@ from skinsafe.core.design.surface import cached_surfaces, surface_bodies
 from skinsafe.core.skin.model import SkinDesign
 
 SURFACE_TOL = 0.002  # m
+BURIED_TOL = 1e-4  # m: a taxel deeper than this inside another link is buried (coincident faces pass)
 
 
 def sample_poses(model: mujoco.MjModel, home: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
@@ -61,7 +63,8 @@ def audit(design: SkinDesign, model: mujoco.MjModel, home: np.ndarray, poses: in
     buried = buried_taxels(design, model, home, poses)
     if buried.any():
         i = int(np.argmax(buried))
-        problems.append(f"{int(buried.sum())} taxels are buried inside another link at all {poses} sampled poses "
+        problems.append(f"{int(buried.sum())} taxels are buried more than {BURIED_TOL * 1e3:.1f} mm inside another link "
+                        f"at all {poses} sampled poses "
                         f"(first: taxel {int(t.ids[i])} on '{design.bodies[t.body[i]]}', module {int(t.module[i])}); "
                         "they can never be touched: move those modules away from the joint")
     return problems
@@ -72,50 +75,105 @@ def outline_overhang(surface, positions, frames, half, min_bend) -> np.ndarray:
     half-side `half` may show when bent at `min_bend` (0: the cell lies on the surface)."""
     half, min_bend = np.broadcast_to(half, len(positions)), np.broadcast_to(min_bend, len(positions))
     sag = 2 * half ** 2 / np.maximum(min_bend, 1e-3)
-    worst = np.zeros(len(positions))
-    for sx in (-1, 1):
-        for sy in (-1, 1):
-            c = positions + (sx * half)[:, None] * frames[:, :, 0] + (sy * half)[:, None] * frames[:, :, 1]
-            # the nearest tree point bounds the distance from above, the tree's reach from below:
-            # exact closest points only where the bounds straddle the tolerance
-            upper = surface._tree.query(c)[0]
-            d = upper.copy()
-            unsure = (upper - surface._reach < sag + SURFACE_TOL) & (upper > sag)
-            if unsure.any():
-                d[unsure] = surface.closest(c[unsure])[3]
-            worst = np.maximum(worst, d - sag)
-    return worst
+    corners = np.concatenate([positions + (sx * half)[:, None] * frames[:, :, 0] + (sy * half)[:, None] * frames[:, :, 1]
+                              for sx in (-1, 1) for sy in (-1, 1)])
+    return np.maximum((surface.closest(corners)[3].reshape(4, -1) - sag).max(axis=0), 0.0)
 
 
 def buried_taxels(design: SkinDesign, model: mujoco.MjModel, home: np.ndarray, poses: int = 16,
-                  depth: float = 1e-3) -> np.ndarray:
+                  depth: float = BURIED_TOL) -> np.ndarray:
     """(N,) True where a taxel lies more than `depth` inside another link's surface at every pose."""
     t = design.taxels
     surfaces = cached_surfaces(model, surface_bodies(model))
     body_id = np.array([model.body(b).id for b in design.bodies])[t.body] if len(t) else np.zeros(0, int)
-    weld = model.body_weldid
     data = mujoco.MjData(model)
     always = np.ones(len(t), bool)
     for q in sample_poses(model, home, poses):
         data.qpos[:] = q
         mujoco.mj_kinematics(model, data)
         world = np.einsum("nij,nj->ni", data.xmat[body_id].reshape(-1, 3, 3), t.positions) + data.xpos[body_id]
-        now = np.zeros(len(t), bool)
-        for name, surf in surfaces.items():
-            b = model.body(name).id
-            cand = np.flatnonzero(always & ~now & (weld[body_id] != weld[b]))
-            if not len(cand):
-                continue
-            R, x = data.xmat[b].reshape(3, 3), data.xpos[b]
-            local = (world[cand] - x) @ R
-            lo, hi = surf.vertices.min(axis=0), surf.vertices.max(axis=0)
-            near = cand[((local > lo) & (local < hi)).all(axis=1)]
-            if not len(near):
-                continue
-            local = (world[near] - x) @ R
-            qp, n, _, d = surf.closest(local)
-            now[near] |= (np.sum((local - qp) * n, axis=1) < -depth) & (d < 0.05)
-        always &= now
+        always &= buried_points(model, data, surfaces, world, body_id, depth, always)
         if not always.any():
             break
     return always
+
+
+def _cones(n: np.ndarray) -> np.ndarray:
+    """(N, 13, 3): each unit normal n, then six directions 45 degrees off it and six grazing ones
+    80 degrees off it, evenly around."""
+    t = np.cross(n, np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    b = np.cross(n, t)
+    a = np.linspace(0, 2 * np.pi, 6, endpoint=False)[None, :, None]
+    around = np.cos(a) * t[:, None] + np.sin(a) * b[:, None]
+    tilt = np.radians([45.0, 80.0])
+    return np.concatenate([n[:, None]] + [np.cos(e) * n[:, None] + np.sin(e) * around for e in tilt], axis=1)
+
+
+def enclosed(model: mujoco.MjModel, data: mujoco.MjData, body: str, world: np.ndarray, normals: np.ndarray,
+             lift: float = 1e-3) -> np.ndarray:
+    """(N,) True where no ray from `lift` above a surface point of `body` (world frame, pose of
+    `data`), along its normal or 45 or 80 degrees off it, leaves the body's own skin geoms: the
+    point is on an internal face of the link's mesh (CAD visuals often carry them) or at the bottom
+    of a pocket; either way no skin there can be touched."""
+    from skinsafe.core.design.surface import skin_geoms
+
+    geoms = skin_geoms(model, model.body(body).id)
+    mesh = int(mujoco.mjtGeom.mjGEOM_MESH)
+
+    def hits(p, v) -> bool:
+        for g in geoms:
+            if int(model.geom_type[g]) == mesh:
+                d = mujoco.mj_rayMesh(model, data, g, p, v)
+            else:
+                d = mujoco.mju_rayGeom(data.geom_xpos[g], data.geom_xmat[g], model.geom_size[g], p, v,
+                                       int(model.geom_type[g]))
+            if d >= 0:
+                return True
+        return False
+
+    out = np.zeros(len(world), bool)
+    starts, cones = world + lift * normals, _cones(normals)
+    for i in range(len(world)):
+        out[i] = all(hits(starts[i], v) for v in cones[i])
+    return out
+
+
+def enclosed_taxels(design: SkinDesign, model: mujoco.MjModel, home: np.ndarray) -> np.ndarray:
+    """(N,) True where a taxel is `enclosed` by its own link (pose-independent; computed at home)."""
+    t = design.taxels
+    data = mujoco.MjData(model)
+    data.qpos[:] = home
+    mujoco.mj_kinematics(model, data)
+    out = np.zeros(len(t), bool)
+    for bi, body in enumerate(design.bodies):
+        on = np.flatnonzero(t.body == bi)
+        b = model.body(body).id
+        R, x = data.xmat[b].reshape(3, 3), data.xpos[b]
+        out[on] = enclosed(model, data, body, t.positions[on] @ R.T + x, t.frames[on, :, 2] @ R.T)
+    return out
+
+
+def buried_points(model: mujoco.MjModel, data: mujoco.MjData, surfaces: dict, world: np.ndarray,
+                  body_id: np.ndarray, depth: float = BURIED_TOL, only: np.ndarray | None = None) -> np.ndarray:
+    """(N,) True where a point (world frame, riding on body `body_id`) lies more than `depth` inside
+    the surface of a body of `surfaces` not welded to its own, in the pose of `data` (kinematics
+    done); only the points `only` are tested."""
+    weld = model.body_weldid
+    body_id = np.broadcast_to(body_id, (len(world),))
+    now = np.zeros(len(world), bool)
+    todo = np.ones(len(world), bool) if only is None else only.copy()
+    for name, surf in surfaces.items():
+        b = model.body(name).id
+        cand = np.flatnonzero(todo & ~now & (weld[body_id] != weld[b]))
+        if not len(cand):
+            continue
+        R, x = data.xmat[b].reshape(3, 3), data.xpos[b]
+        local = (world[cand] - x) @ R
+        inside_box = ((local > surf.lo) & (local < surf.hi)).all(axis=1)
+        near, local = cand[inside_box], local[inside_box]
+        if not len(near):
+            continue
+        qp, n, _, d = surf.closest(local)
+        now[near] |= (np.sum((local - qp) * n, axis=1) < -depth) & (d < 0.05)
+    return now

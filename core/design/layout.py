@@ -38,16 +38,8 @@ def _has_ring(model, body: str) -> bool:
 
 def surface_layout(surface: Surface, module: Module, seed: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
     """Anchors and row directions (body frame) spread over a surface at the module's span."""
-    tri = surface.vertices[surface.triangles]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     span = max(module.rows, module.cols) * module.pitch + 2 * clearance(module)
-    rng = np.random.default_rng(seed)
-    n = int(min(20000, max(200, 20 * area.sum() / span ** 2)))
-    k = rng.choice(len(tri), n, p=area / area.sum())
-    r = rng.random((n, 2))
-    flip = r.sum(axis=1) > 1
-    r[flip] = 1 - r[flip]
-    pts = tri[k, 0] + r[:, :1] * (tri[k, 1] - tri[k, 0]) + r[:, 1:] * (tri[k, 2] - tri[k, 0])
+    pts = surface.random_points(int(min(20000, max(200, 20 * surface.area / span ** 2))), seed)
     centred = surface.vertices - surface.vertices.mean(axis=0)
     axis = np.linalg.svd(centred, full_matrices=False)[2][0]
     # farthest-point sampling down to the span
@@ -88,12 +80,12 @@ def tile_body(surface: Surface, model, template: Module, body: str, first_id: in
 def without_buried(design, model, home, poses: int = 1):
     """The design minus the modules with a taxel buried inside another link at every one of
     `poses` sampled poses (`audit.buried_taxels`; the default, 1, is the home pose: no skin where
-    the robot covers itself at home, a superset of what `check` refuses). Returns (design,
-    dropped module ids)."""
-    from skinsafe.core.design.audit import buried_taxels
+    the robot covers itself at home, a superset of what `check` refuses) or enclosed by its own
+    link's mesh (`audit.enclosed_taxels`). Returns (design, dropped module ids)."""
+    from skinsafe.core.design.audit import buried_taxels, enclosed_taxels
     from skinsafe.core.design.placement import build_design, placed_from_design
 
-    buried = buried_taxels(design, model, home, poses)
+    buried = buried_taxels(design, model, home, poses) | enclosed_taxels(design, model, home)
     bad = {int(m) for m in np.unique(design.taxels.module[buried])}
     if not bad:
         return design, []

@@ -102,35 +102,16 @@ def _fmt(p) -> str:
     return "(" + ", ".join(f"{c:.4f}" for c in p) + ") m"
 
 
-def _tangent(t, n):
-    t = t - np.sum(t * n, axis=-1, keepdims=True) * n
-    return t / np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-300)
-
-
 def _march(surface: Surface, p, n, t, carry, hs: np.ndarray):
     """Walk points p (m,3) with normals n along tangents t in steps of surface lengths hs,
     carrying the tangent `carry` (m,3) along. Each step goes h' along the tangent and back onto
     the surface, h' stretched by the curvature seen on the previous step (tan(kh)/k) so the arc,
     not the chord, is h. Returns per-step arrays (steps+1, m, ...) and each walker's first failing
     step (-1 for none)."""
-    P, N, C = [p], [n], [carry]
-    fail = np.full(len(p), -1)
-    kappa = np.zeros(len(p))
-    for k, h in enumerate(hs, start=1):
-        kh = np.minimum(kappa * h, 1.0)
-        reach = np.where(kh > 1e-9, h * np.tan(kh) / np.maximum(kh, 1e-300), h)
-        q, n2, _, _ = surface.closest(p + reach[:, None] * t)
-        chord = np.linalg.norm(q - p, axis=1)
-        fail[(chord < 0.5 * h) & (fail < 0)] = k
-        theta = np.arccos(np.clip(np.sum(n * n2, axis=1), -1.0, 1.0))
-        half = np.maximum(theta / 2, 1e-12)
-        arc = chord * half / np.sin(half)
-        kappa = np.where(arc > 0, theta / np.maximum(arc, 1e-300), 0.0)
-        t = _tangent(t, n2)
-        carry = _tangent(carry, n2)
-        p, n = q, n2
-        P.append(p), N.append(n), C.append(carry)
-    return np.stack(P), np.stack(N), np.stack(C), fail
+    f = lambda a: np.ascontiguousarray(a, dtype=float)  # noqa: E731
+    from skinsafe.core.design.surface_kernels import march
+
+    return march(f(p), f(n), f(t), f(carry), f(hs), *surface.kernel)
 
 
 def place_module(surface: Surface, module: Module, anchor, direction, method: str = "geodesic",

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import mujoco
 import numpy as np
-from scipy.spatial import cKDTree
 
 from skinsafe.core.skin.model import DesignError
 
@@ -23,7 +22,7 @@ G = mujoco.mjtGeom
 
 @dataclass
 class Surface:
-    """A triangle mesh with per-corner normals and a centroid k-d tree for closest-point queries."""
+    """A triangle mesh with per-corner normals and a bounding-volume hierarchy for closest-point queries."""
 
     vertices: np.ndarray  # (V, 3) float64
     triangles: np.ndarray  # (T, 3) int64, counter-clockwise seen from outside
@@ -42,36 +41,12 @@ class Surface:
         inv = lambda e: 1.0 / np.maximum(np.sum(e * e, axis=1, keepdims=True), 1e-300)  # noqa: E731
         self._pack = np.ascontiguousarray(np.concatenate(
             [a, ab, ac, bc, n * inv(n), inv(ab), inv(ac), inv(bc)], axis=1))
-        # The k-d tree holds points on every triangle (a barycentric grid, `m` steps per edge) so that
-        # each triangle point lies within `_reach` of one of its tree points: a few long slivers of a
-        # CAD mesh then do not widen every query (as one centroid per triangle would).
-        edge = np.sqrt(np.maximum(np.maximum(_dot(ab, ab), _dot(ac, ac)), _dot(bc, bc)))
-        self._reach = float(max(2.0 * np.median(edge), 1e-9))
-        m = np.clip(np.ceil(edge / self._reach), 1, 64).astype(np.int64)
-        pts, owner = [tri.mean(axis=1)], [np.arange(len(tri))]
-        for k in np.unique(m[m > 1]):
-            sel = np.flatnonzero(m == k)
-            i, j = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
-            keep = (i + j) <= k
-            u, w = i[keep] / k, j[keep] / k
-            pts.append((a[sel, None] + u[None, :, None] * ab[sel, None] + w[None, :, None] * ac[sel, None]).reshape(-1, 3))
-            owner.append(np.repeat(sel, len(u)))
-        self._owner = np.concatenate(owner)
-        self._tree = cKDTree(np.concatenate(pts))
-        self._reach = float(max(self._reach, (edge / m).max()))
-        self._k = int(min(8, len(self._owner)))
+        # a bounding-volume hierarchy over the triangles: exact closest points, O(log T) each
+        from skinsafe.core.design.surface_kernels import build_bvh
 
-    def _nearest(self, p, index, k):
-        """Best of the k nearest-centroid triangles; also which `index` entries may miss a closer one."""
-        dc, cand = self._tree.query(p, k=k)
-        dc, cand = dc.reshape(len(p), -1), self._owner[cand.reshape(len(p), -1)]
-        q, w, d2 = closest_on_packed(p[:, None, :], self._pack[cand])
-        best = np.argmin(d2, axis=1)
-        rows = np.arange(len(p))
-        d2 = d2[rows, best]
-        # Any triangle left out has all its tree points beyond dc[:, -1], so no point of it nearer than that - reach.
-        unsure = (np.sqrt(d2) + self._reach > dc[:, -1]) & (k < len(self._owner))
-        return q[rows, best], w[rows, best], d2, cand[rows, best], index[unsure]
+        bvh = build_bvh(np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c), tri.mean(axis=1))
+        self.kernel = (self._pack, self.corner_normals, *bvh)  # what compiled queries take (`closest_one`)
+        self.lo, self.hi = self.vertices.min(axis=0), self.vertices.max(axis=0)  # bounding box
 
     @classmethod
     def from_mesh(cls, vertices, triangles, corner_normals=None, name: str = "surface",
@@ -99,6 +74,16 @@ class Surface:
         n = np.cross(self._b - self._a, self._c - self._a)
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
+    def random_points(self, n: int, seed: int = 0) -> np.ndarray:
+        """`n` points uniformly distributed over the surface's area."""
+        area = 0.5 * np.linalg.norm(np.cross(self._b - self._a, self._c - self._a), axis=1)
+        rng = np.random.default_rng(seed)
+        k = rng.choice(len(area), n, p=area / area.sum())
+        r = rng.random((n, 2))
+        flip = r.sum(axis=1) > 1
+        r[flip] = 1 - r[flip]
+        return self._a[k] + r[:, :1] * (self._b[k] - self._a[k]) + r[:, 1:] * (self._c[k] - self._a[k])
+
     @property
     def area(self) -> float:
         return float(0.5 * np.linalg.norm(np.cross(self._b - self._a, self._c - self._a), axis=1).sum())
@@ -106,19 +91,10 @@ class Surface:
     def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Closest surface points (m,3), interpolated unit normals (m,3), triangle index (m,) and
         distance (m,) for query points (m,3)."""
-        p = np.asarray(points, dtype=float).reshape(-1, 3)
-        q, bary, d2, tri, unsure = self._nearest(p, np.arange(len(p)), self._k)
-        if len(unsure):  # a triangle beyond the k nearest centroids may be closer: look wider
-            q2, b2, dd2, t2, still = self._nearest(p[unsure], unsure, min(6 * self._k, len(self._owner)))
-            q[unsure], bary[unsure], d2[unsure], tri[unsure] = q2, b2, dd2, t2
-            for i in still:  # exhaustive within d + reach (rare: huge triangles)
-                ball = np.unique(self._owner[self._tree.query_ball_point(p[i], np.sqrt(d2[i]) + self._reach)])
-                qi, wi, di = closest_on_packed(p[i][None, :], self._pack[ball])
-                j = int(np.argmin(di))
-                if di[j] < d2[i]:
-                    q[i], bary[i], d2[i], tri[i] = qi[j], wi[j], di[j], ball[j]
-        n = np.einsum("mk,mkj->mj", bary, self.corner_normals[tri])
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        p = np.ascontiguousarray(np.asarray(points, dtype=float).reshape(-1, 3))
+        from skinsafe.core.design.surface_kernels import bvh_closest
+
+        q, n, tri, d2 = bvh_closest(p, *self.kernel)
         return q, n, tri, np.sqrt(d2)
 
 
@@ -141,42 +117,6 @@ def _smooth_corner_normals(t: np.ndarray, fn: np.ndarray, cos_crease: float) -> 
     np.add.at(out, a[keep], fn[fb[keep]])
     out /= np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
     return out.reshape(-1, 3, 3)
-
-
-def _dot(u, v):
-    return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1] + u[..., 2] * v[..., 2]
-
-
-def _cross(u, v):
-    return np.stack([u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1], u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2],
-                     u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]], axis=-1)
-
-
-def closest_on_packed(p, pk):
-    """Closest points on packed triangles pk (..., 19) to points p (broadcast ..., 3): points,
-    barycentric weights (..., 3) and squared distances."""
-    a, ab, ac, bc, n_over = pk[..., 0:3], pk[..., 3:6], pk[..., 6:9], pk[..., 9:12], pk[..., 12:15]
-    ap = p - a
-    v = _dot(_cross(ap, ac), n_over)
-    w = _dot(_cross(ab, ap), n_over)
-    u = 1.0 - v - w
-    best_q = a + v[..., None] * ab + w[..., None] * ac
-    best_w = np.stack([u, v, w], axis=-1)
-    inside = (u >= 0) & (v >= 0) & (w >= 0)
-    best_d = np.where(inside, _dot(p - best_q, p - best_q), np.inf)
-    b = a + ab
-    for i, (s, se, inv) in enumerate(((a, ab, pk[..., 15]), (b, bc, pk[..., 17]), (a + ac, -ac, pk[..., 16]))):
-        t = np.clip(_dot(p - s, se) * inv, 0.0, 1.0)
-        q = s + t[..., None] * se
-        d = _dot(p - q, p - q)
-        better = d < best_d
-        best_d = np.where(better, d, best_d)
-        best_q = np.where(better[..., None], q, best_q)
-        wt = np.zeros(t.shape + (3,))
-        wt[..., i] = 1.0 - t
-        wt[..., (i + 1) % 3] = t
-        best_w = np.where(better[..., None], wt, best_w)
-    return best_q, best_w, best_d
 
 
 # ---- tessellation of MuJoCo geoms -------------------------------------------------------------

@@ -46,10 +46,11 @@ class PersonTrace:
 class Scene:
     """UR5 + a skin (`design`, default the sample skin at `pitch`) + obstacles (+ a person whose
     parts also collide with the `fixtures`, geom names), stepped at `control_dt` (physics at
-    `timestep`, default the robot model's); the servos within the UR5's joint torques."""
+    `timestep`, default the robot model's); the servos within `torque_limits` (N m per joint, default
+    the UR5's; None: unlimited)."""
 
     def __init__(self, obstacles, pitch: float = 0.01, control_dt: float = 0.01, human=None, design=None,
-                 timestep: float | None = None, fixtures=()):
+                 timestep: float | None = None, fixtures=(), torque_limits=TORQUE_NM):
         from skinsafe.core.design.sample import make_sample_design
         from skinsafe.core.robot.kinematics import TaxelKinematics, body_ids
         from skinsafe.core.robot.models import build_ur5
@@ -74,8 +75,9 @@ class Scene:
         self.qadr = np.array([self.model.jnt_qposadr[self.model.joint(j).id] for j in JOINTS])
         self.dadr = np.array([self.model.jnt_dofadr[self.model.joint(j).id] for j in JOINTS])
         self.act = np.array([self.model.actuator(f"{j}_pos").id for j in JOINTS])
-        self.model.actuator_forcelimited[self.act] = 1  # a blocked servo pushes with the motors' torque, no more
-        self.model.actuator_forcerange[self.act] = np.c_[-np.array(TORQUE_NM), TORQUE_NM]
+        if torque_limits is not None:  # a blocked servo pushes with the motors' torque, no more
+            self.model.actuator_forcelimited[self.act] = 1
+            self.model.actuator_forcerange[self.act] = np.c_[-np.array(torque_limits), torque_limits]
         self.control_dt = control_dt
         self.substeps = max(1, int(round(control_dt / self.model.opt.timestep)))
         self.arm_geoms = [g for g in range(self.model.ngeom)

@@ -614,13 +614,18 @@ def cell(method: str, seed: int, scenario: str, damping_ratio: float, attachment
                "unstable": run["unstable"]}
         if detail:
             tr = run["trace"]
-            every = max(1, int(round(1e-3 / (dt_ms / 1e3))))  # the force trace at 1 ms
+            every = _every(dt_ms)  # the force trace at 1 ms, or at the step where it is coarser
             res["force_N"] = tr["force_N"].sum(axis=1)[::every].round(2).tolist() if len(tr["time_s"]) else []
             res["pan_rad"] = run["pan"].round(4).tolist()
             res["no_person_task_time_s"] = episode(sc, lay, stack, pot, cfg, person=False)["done"] \
                 if lay.goal is not None else None
         out["stacks"][stack] = res
     return out
+
+
+def _every(dt_ms: float) -> int:
+    """Physics steps per sample of the detail cells' force trace (about 1 ms)."""
+    return max(1, int(round(1.0 / dt_ms)))
 
 
 def _ur5():
@@ -821,9 +826,14 @@ def run(args) -> int:
 
 
 def tables(res: dict) -> str:
-    """The result as Markdown (the README's tables): the nominal runs per scenario and stack, and
-    the sweep's worst ratio per cell (`none` / `full+pfl`), with the person-driven cells' full+pfl
-    peak over the `none` run's."""
+    """The result as Markdown (collaboration.md): `nominal_table` and `sweep_table`."""
+    sweep = sweep_table(res)
+    return nominal_table(res) + ("\n\n" + sweep if sweep else "") + "\n"
+
+
+def nominal_table(res: dict) -> str:
+    """The nominal runs per scenario and stack: contacts, the worst ratio and its contact, peaks,
+    sensing, the layers that acted, task times."""
     lines = ["| scenario | stack | contacts | worst ratio (kind, region) | peak N | peak N/cm^2 | sensed (latest, ms) "
              "| layers that acted | task s (no person) |", "| --- | --- | ---: | --- | ---: | ---: | --- | --- | ---: |"]
     for key, r in res["runs"].items():
@@ -839,11 +849,17 @@ def tables(res: dict) -> str:
                      + (f"{worst['ratio']:.2f} ({worst['kind']}, {worst['region']})" if worst else "-")
                      + f" | {r['peak_N']:.0f} | {max((e['peak_pressure_N_cm2'] for e in ev), default=0):.0f} | "
                      + ("all" if r["sensed"] else "**not all**") + f" ({late:.1f}) | {'+'.join(acted)} | {task} |")
-    rows = res["sweep"]
+    return "\n".join(lines)
+
+
+def sweep_table(res: dict) -> str:
+    """The sweep's worst ratio per cell (`none` / `full+pfl`), with the person-driven cells'
+    full+pfl peak over the `none` run's; empty without a sweep."""
+    rows, lines = res["sweep"], []
     cells = sorted({(r["damping_ratio"], r["attachment_N_m"]) for r in rows})
     if cells:
-        lines += ["", "| scenario | dt ms | " + " | ".join(f"zeta {z:g}, {k:g} N/m" for z, k in cells) + " |",
-                  "| --- | ---: | " + " | ".join("---:" for _ in cells) + " |"]
+        lines = ["| scenario | dt ms | " + " | ".join(f"zeta {z:g}, {k:g} N/m" for z, k in cells) + " |",
+                 "| --- | ---: | " + " | ".join("---:" for _ in cells) + " |"]
         for scenario in SCENARIOS:
             for dt in sorted({r["dt_ms"] for r in rows}, reverse=True):
                 out = []
@@ -855,7 +871,7 @@ def tables(res: dict) -> str:
                         txt += f" (x{by['full+pfl']['peak_vs_none']:.2f})"
                     out.append(txt or "-")
                 lines.append(f"| {scenario} | {dt:g} | " + " | ".join(out) + " |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines)
 
 
 def _save_plot(res: dict, path: Path) -> None:
@@ -879,16 +895,18 @@ def plot(res: dict):
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(2, 3, figsize=(15, 7.5))
+    dt_ms = res["nominal"]["dt_ms"]
+    period = _every(dt_ms) * dt_ms / 1e3  # s per sample of the force traces
     for ax, scenario in zip(axes[0], SCENARIOS):
         hit = [e["start_s"] for e in res["contacts"] if e["scenario"] == scenario]
         for stack in STACKS:
             f = res["runs"].get(f"{scenario}/{stack}", {}).get("force_N", [])
-            ax.plot(np.arange(len(f)) * 1e-3, f, label=stack, lw=1)
+            ax.plot(np.arange(len(f)) * period, f, label=stack, lw=1)
         if hit:
             ax.set_xlim(min(hit) - 0.1, max(hit) + 0.6)
         ax.set_title(f"{scenario}: force on the person")
         ax.set_xlabel("time (s)")
-        ax.set_ylabel("N")
+        ax.set_ylabel("normal force on the person (N)")
         ax.legend(fontsize=7)
     ax = axes[1, 0]
     rows = res["contacts"]
@@ -897,7 +915,8 @@ def plot(res: dict):
     ax.set_xticks(range(len(rows)), [f"{e['scenario'][:5]}/{e['stack']}\n{e['region']}" for e in rows], fontsize=5,
                   rotation=90)
     ax.axhline(1, color="k", lw=0.8)
-    ax.set_ylabel("peak / ISO/TS 15066 limit (force or pressure)")
+    ax.set_ylabel("peak / ISO/TS 15066 limit (ratio, force or pressure)")
+    ax.set_xlabel("contact (scenario/stack, region)")
     ax.set_title("nominal contacts")
     ax = axes[1, 1]
     for k, scenario in enumerate(SCENARIOS):
@@ -906,15 +925,16 @@ def plot(res: dict):
             ax.scatter(np.arange(len(rows)) + 0.25 * k, [r["worst_ratio"] for r in rows], marker=marker, s=14,
                        label=f"{scenario} {stack}")
     ax.axhline(1, color="k", lw=0.8)
-    ax.set_xlabel("sweep cell (damping x attachment x timestep)")
-    ax.set_ylabel("worst ratio")
+    ax.set_xlabel("sweep cell (number: damping x attachment x timestep)")
+    ax.set_ylabel("worst peak / limit (ratio)")
     ax.set_title("robustness sweep")
     ax.legend(fontsize=6)
     ax = axes[1, 2]
     rows = [r for r in res["sweep"] if r["scenario"] == "person" and r["stack"] != "none"]
     ax.bar(range(len(rows)), [r["peak_vs_none"] or 0 for r in rows], color="tab:blue")
     ax.axhline(1, color="k", lw=0.8)
-    ax.set_ylabel("peak with full+pfl / without safety")
+    ax.set_xlabel("sweep cell (number: damping x attachment x timestep)")
+    ax.set_ylabel("peak with full+pfl / without safety (ratio)")
     ax.set_title("person moving into the still robot")
     fig.tight_layout()
     return fig

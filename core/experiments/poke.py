@@ -1,4 +1,4 @@
-"""`skinsafe poke`: scripted pokes on the UR5 sample skin in MuJoCo, retraction by the
+"""`skinsafe poke`: scripted pokes on the UR5 sample skin (or any robot's map) in MuJoCo, retraction by the
 defensiveness layer, plots and numbers (paper Fig. 8/12), and the multi-contact merge (Fig. 7) and the 3-D vs 6-D forms in kinematics.
 
 The arm (the UR5 sample skin, or the robot of any taxel map) is gravity-compensated under its
@@ -91,7 +91,7 @@ def simulate(design: SkinDesign, robot: Robot, pokes: list[Poke], params: Retrac
     mujoco.mj_forward(model, data)
     kin = TaxelKinematics(robot.model, design)  # its own data: kinematics at the measured q
     readout = SkinReadout(model, design, kernel="nearest")
-    layer = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, params)
+    layer = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, params, DT)
     target = robot.home.copy()
     steps = int(round(duration / DT))
     T, Q, F = np.zeros(steps), np.zeros((steps, nq)), np.zeros((steps, len(pokes)))
@@ -156,11 +156,8 @@ def pick_taxel(design: SkinDesign, robot: Robot, body: str) -> int:
 
 
 def poke_bodies(design: SkinDesign, robot: Robot) -> list[str]:
-    """The links to poke: the UR5's forearm, upper arm and wrist (the paper's Fig. 8/12), else the
+    """The links to poke, decided by the design's data on any robot (never by a link's name): the
     skinned links with at least 4 taxels, best lever first (a link the arm can pull back)."""
-    ur5 = [b for b in ("forearm_link", "upper_arm_link", "wrist_2_link") if b in design.bodies]
-    if ur5:
-        return ur5
     kin = TaxelKinematics(robot.model, design)
     counts = np.bincount(design.taxels.body, minlength=len(design.bodies))
     bodies = [b for b, c in zip(design.bodies, counts) if c >= 4]
@@ -169,8 +166,10 @@ def poke_bodies(design: SkinDesign, robot: Robot) -> list[str]:
     return sorted(bodies, key=lambda b: -best[b])
 
 
-def force_sweep(design, robot, params, depths, body="forearm_link", stiffness: float = PROBE_STIFFNESS) -> dict:
-    """Fig. 8/12: one poke per depth on one taxel; distance achieved vs peak force."""
+def force_sweep(design, robot, params, depths, body: str | None = None, stiffness: float = PROBE_STIFFNESS) -> dict:
+    """Fig. 8/12: one poke per depth on one taxel of `body` (default: the first of `poke_bodies`);
+    distance achieved vs peak force."""
+    body = body or poke_bodies(design, robot)[0]
     i = pick_taxel(design, robot, body)
     out = {"taxel": i, "body": body, "force": [], "distance": [], "desired": [], "curves": []}
     for depth in tqdm(depths, desc="pokes", leave=False):
@@ -229,7 +228,7 @@ def multicontact(design, robot, params, bodies, forces, epsilons) -> list[dict]:
     for merge_kind in MERGES:
         for eps in epsilons if merge_kind != "qp" else epsilons[-1:]:
             p = replace(params, epsilon=eps, merge=merge_kind)
-            layer = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, p)
+            layer = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, p, DT)
             q, worst = retract_kinematic(kin, layer, robot.home, f, p.T + 2 * DT, watch=np.asarray(taxels))
             along = np.einsum("ki,ki->k", p0 - kin.poses(q)[0][taxels], fr[:, :, 2])
             frac = along / (np.minimum(p.alpha * np.asarray(forces), 12 * p.max_distance) / 12)
@@ -247,7 +246,7 @@ def compare_forms(design, robot, params, stride: int = 25, force: float = 40.0) 
     out = {}
     for form in ("3d", "6d"):
         p = replace(params, form=form)
-        layer = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, p)
+        layer = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, p, DT)
         ratio, drift = [], []
         for i in tqdm(range(0, design.n_taxels, stride), desc=f"forms ({form})", leave=False):
             layer.reset()

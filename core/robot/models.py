@@ -81,6 +81,28 @@ def _add_position_actuators(spec: mujoco.MjSpec, joints: list[str], kp: list[flo
         act.set_to_position(kp=k, dampratio=1.0)
 
 
+def home_ctrl(model: mujoco.MjModel, q: np.ndarray) -> np.ndarray:
+    """(nu,) the controls that hold configuration q: each joint position servo's target is its
+    joint's position (other actuators 0), so a model reset to its `home` keyframe stays there."""
+    ctrl = np.zeros(model.nu)
+    for a in range(model.nu):
+        servo = model.actuator_biasprm[a, 1] == -model.actuator_gainprm[a, 0] != 0
+        if model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT and servo:
+            ctrl[a] = q[model.jnt_qposadr[model.actuator_trnid[a, 0]]]
+    return ctrl
+
+
+def _set_home_key(spec: mujoco.MjSpec, q: np.ndarray) -> None:
+    """The `home` keyframe (the first key, added if there is none) with q and the servo targets
+    that hold it (a key without ctrl resets every servo to target 0: the arm swings at start)."""
+    model = spec.compile()
+    ctrl = home_ctrl(model, q)
+    if not spec.keys:
+        spec.add_key(name="home", qpos=np.asarray(q, float).tolist(), ctrl=ctrl.tolist())
+    elif not np.any(model.key_ctrl[0]):
+        spec.keys[0].ctrl = ctrl.tolist()
+
+
 def _exclude_near_links(spec: mujoco.MjSpec, bodies: list[str], reach: int = 2) -> None:
     """No contacts between links at most `reach` apart in the chain (their shapes meet at joints)."""
     for i, a in enumerate(bodies):
@@ -142,7 +164,7 @@ def build_ur5() -> Robot:
     parent.add_site(name="flange", pos=pos, quat=quat)
     _add_position_actuators(spec, UR5_JOINTS, [3000, 3000, 1500, 300, 300, 300])
     _exclude_near_links(spec, ["base_link"] + UR5_BODIES)
-    spec.add_key(name="home", qpos=UR5_HOME.tolist())
+    _set_home_key(spec, UR5_HOME)
     model = spec.compile()
     return Robot("ur5", spec, model, vel_limits=np.full(6, np.pi), acc_limits=np.full(6, 15.0),
                  home=UR5_HOME.copy(), arm_bodies=["base_link"] + UR5_BODIES)
@@ -182,7 +204,7 @@ def build_panda() -> Robot:
     flange.add_site(name="flange")
     _add_position_actuators(spec, joints, [2000, 2000, 2000, 1500, 500, 300, 200])
     _exclude_near_links(spec, ["link0"] + bodies + ["link8"])
-    spec.add_key(name="home", qpos=PANDA_HOME.tolist())
+    _set_home_key(spec, PANDA_HOME)
     model = spec.compile()
     return Robot("panda", spec, model, vel_limits=np.array(PANDA_VMAX), acc_limits=np.array(PANDA_AMAX),
                  home=PANDA_HOME.copy(), arm_bodies=["link0"] + bodies + ["link8"])
@@ -276,9 +298,8 @@ def robot_from_spec(spec: mujoco.MjSpec, name: str, vel_by_name: dict | None = N
                 sj.damping = np.full_like(np.asarray(sj.damping, float), 1.0)
     _exclude_tree_neighbours(spec, model)
     home = model.key_qpos[0].copy() if model.nkey else _inside_limits(model)
-    if not model.nkey:
-        spec.add_key(name="home", qpos=home.tolist())
     try:
+        _set_home_key(spec, home)
         model = spec.compile()
     except ValueError as e:
         raise DesignError(f"robot: MuJoCo could not compile '{path or name}': {e}") from None

@@ -11,6 +11,7 @@ non-colliding geoms in group `VISUAL_GROUP`, collision meshes colliding geoms in
 from __future__ import annotations
 
 import contextlib
+import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -103,9 +104,62 @@ def expand(path: Path, roots: dict[str, Path], args: dict | None = None) -> str:
     except DesignError:
         raise
     except Exception as e:  # xacro raises its own exception kinds and XacroException
-        raise DesignError(f"robot file '{path}': xacro failed ({type(e).__name__}: {e}); check the file and "
-                          "its arguments") from None
+        ours = _wrapped_design_error(e)  # our own $(find) refusal, which xacro wraps with its text repeated
+        if ours is not None:
+            raise DesignError(f"robot file '{path}': {ours}") from None
+        said = " ".join(str(e).split())  # one line: xacro's messages span lines
+        raise DesignError(f"robot file '{path}': xacro failed ({type(e).__name__}: {said}); "
+                          f"{_arg_hint(str(e), xacro_args_declared(path), args or {})}") from None
     return doc.toxml()
+
+
+def _wrapped_design_error(e: BaseException) -> DesignError | None:
+    """The DesignError inside xacro's exception chain (`XacroException.exc`, causes), if any."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, DesignError):
+            return e
+        seen.add(id(e))
+        e = getattr(e, "exc", None) or e.__cause__ or e.__context__
+    return None
+
+
+def _arg_hint(error: str, declared: dict, given: dict) -> str:
+    """The fix for a failed xacro expansion, naming the argument at fault where one can be told:
+    one xacro found unset, or, for a file not found, one whose value is the path's first missing
+    part (else the arguments left empty by default, which build such paths)."""
+    fix = "set it with --xacro-arg NAME:=VALUE"
+    unset = re.search(r"[Uu]ndefined substitution argument (\S+)", error)
+    if unset:
+        name = unset.group(1)
+        return f"xacro argument '{name}' is not set where the file first reads it: pass --xacro-arg {name}:=VALUE"
+    values = {k: (str(given[k]), "given") if k in given else (v, "its default")
+              for k, v in declared.items() if k in given or v is not None}
+    missing = re.search(r"No such file or directory: '?([^'\s]+)", error)
+    if missing:
+        path = Path(missing.group(1))
+        part = next((p.name for p in reversed(path.parents) if p != Path(p.anchor) and not p.exists()), path.name)
+        named = [f"'{k}' is '{v}' ({how})" for k, (v, how) in values.items() if v == part] or \
+            [f"'{k}' is '{v}' ({how})" for k, (v, how) in values.items() if len(v) > 2 and v in part]
+        if named:
+            return f"'{part}' in the missing path comes from xacro argument {', '.join(named)}: {fix}"
+        empty = sorted((k for k, (v, how) in values.items() if v == "" and how == "its default"),
+                       key=lambda k: k not in part)
+        if empty:
+            return (f"'{part}' in the missing path is built from an argument left empty by default "
+                    f"({', '.join(empty)}): {fix}")
+    return f"check the file and its arguments (this file declares {', '.join(declared) or 'none'})"
+
+
+def parse_xacro_args(items, where: str = "xacro arguments") -> dict[str, str]:
+    """`NAME:=VALUE` items (a list, or one string separated by ';' or spaces) as a dict; DesignError
+    naming the item that is not NAME:=VALUE."""
+    if isinstance(items, str):
+        items = [a for a in re.split(r"[;\s]+", items) if a]
+    bad = [a for a in items if ":=" not in a or not a.split(":=", 1)[0].strip()]
+    if bad:
+        raise DesignError(f"{where}: '{bad[0]}' is not NAME:=VALUE (e.g. ur_type:=ur5e)")
+    return {k.strip(): v.strip() for k, v in (a.split(":=", 1) for a in items)}
 
 
 def _origin(el) -> tuple[list[float], list[float]]:
@@ -153,13 +207,19 @@ def links_without_inertia(root: ET.Element) -> list[str]:
             and any(m.find("visual") is not None or m.find("collision") is not None for m in members)]
 
 
-def xacro_arg_names(path: Path) -> list[str]:
-    """The arguments a xacro file declares (`<xacro:arg name=...>`), for messages."""
+def xacro_args_declared(path: Path) -> dict[str, str | None]:
+    """The arguments a xacro file declares (`<xacro:arg name=... default=...>`): name -> default
+    (None when it has none), for messages."""
     try:
         root = ET.parse(path).getroot()
     except (ET.ParseError, OSError):
-        return []
-    return [el.get("name") for el in root.iter() if el.tag.endswith("}arg") and el.get("name")]
+        return {}
+    return {el.get("name"): el.get("default") for el in root.iter() if el.tag.endswith("}arg") and el.get("name")}
+
+
+def xacro_arg_names(path: Path) -> list[str]:
+    """The arguments a xacro file declares, for messages."""
+    return list(xacro_args_declared(path))
 
 
 def urdf_spec(path: str | Path, package_dirs=(), args: dict | None = None) -> tuple[mujoco.MjSpec, dict, list[str]]:

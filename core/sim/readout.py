@@ -43,7 +43,10 @@ def default_footprint(design: SkinDesign) -> float:
 class SkinReadout:
     """Vectorised contact-to-taxel readout with a taxel footprint model.
 
-    After `mj_step`/`mj_forward`, `read(data)` returns a new `(N,)` array of normal forces [N].
+    After `mj_step`/`mj_forward`, `read(data)` returns a new `(N,)` array of normal forces [N];
+    `update(data)` writes them into the readout's own array `forces` and returns it (valid until
+    the next update: a control loop's way, with no O(N) allocation or zeroing per step, only the
+    taxels lit the step before are cleared).
     `last_missed` counts the contacts of the last read that touched a skinned body but no taxel.
     `kernel`: "linear" spreads a contact over its footprint (weights `1 - d/R`); "nearest" gives
     it all to the nearest facing taxel within R (the cell model of MuJoCo's touch sensors).
@@ -65,16 +68,28 @@ class SkinReadout:
         lut = -np.ones(model.nbody, dtype=np.int64)
         lut[self.body_ids] = np.arange(len(self.body_ids))
         self.geom_skin = lut[model.geom_bodyid]
-        self.grid = VoxelGrid(t.positions, t.body, t.enabled, len(design.bodies), self.radius)
-        # per voxel row: candidate positions and normals packed (rows, K, 6); the padding taxel n is
-        # far away, so its weight is always 0
-        pad = np.vstack([np.hstack([t.positions, t.normals]), [[1e9, 1e9, 1e9, 0, 0, 0]]])
-        self.packed = pad[self.grid.table]
+        g = self.grid = VoxelGrid(t.positions, t.body, t.enabled, len(design.bodies), self.radius)
+        # per voxel row: candidate positions, normals and taxel index packed (rows, K, 7); the padding
+        # taxel n is far away, so its weight is always 0
+        pad = np.vstack([np.hstack([t.positions, t.normals, np.arange(self.n)[:, None]]), [[1e9, 1e9, 1e9, 0, 0, 0, self.n]]])
+        self.packed = pad[g.table]
         self.inv_r = 1.0 / self.radius
         rows = _contact_rows(model)
         self.rows = None if rows is None else np.arange(rows)
         self.pyramidal = model.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
         self.n_rows = -1 if rows is None else rows
+        # everything else the compiled pass needs, in one int and one float array (each argument of a
+        # compiled call costs ~70 ns to check and unpack; the pass itself takes ~0.1 us)
+        body_grid = np.concatenate([self.body_ids[:, None], g.last, g.stride, g.offset[:, None]], axis=1)
+        self._ints = np.concatenate([[model.ngeom, len(self.body_ids)], self.geom_skin, body_grid.ravel(), g.row]
+                                    ).astype(np.int64)
+        self._floats = np.concatenate([[1.0 / g.h, self.inv_r, kernel == "nearest", self.pyramidal, self.n_rows],
+                                       g.origin.ravel()])
+        # the forces, then how many taxels were written since the last clear and which (as floats: one
+        # array for the compiled pass)
+        self._state = np.zeros(2 * self.n + 1)
+        self.forces = self._state[:self.n]
+        self._data = self._xpos = self._xmat = None
         self._missed = 0
 
     @property
@@ -100,29 +115,50 @@ class SkinReadout:
         take = active[:, None] & (k < rows[:, None])
         return np.where(take, data.efc_force[np.where(take, adr[:, None] + k, 0)], 0.0).sum(axis=1)
 
-    def read(self, data: mujoco.MjData) -> np.ndarray:
-        out = np.zeros(self.n)
-        ncon = data.ncon
-        if ncon == 0:
+    def read(self, data: mujoco.MjData, warm: bool = False) -> np.ndarray:
+        """The taxels' normal forces as a new (N,) array (`warm`: see `update`)."""
+        return self.update(data, warm).copy()
+
+    def update(self, data: mujoco.MjData, warm: bool = False) -> np.ndarray:
+        """The taxels' normal forces in `self.forces` (overwritten by the next update); `warm=True` runs the
+        compiled pass even without contacts, so numba compiles it now (seconds) rather than at a real-time
+        loop's first contact."""
+        if data is not self._data:  # body poses live in MjData's fixed buffer: one view per MjData
+            self._data, self._xpos, self._xmat = data, data.xpos, data.xmat
+        if data.ncon == 0 and self._state[self.n] == 0 and not warm:
             self._missed = 0
-            return out
+            return self.forces
         con = data.contact
-        g = self.grid
-        self._missed = _readout(
-            out, con.geom, con.pos, con.frame, con.efc_address, con.dim, data.efc_force, data.xpos, data.xmat,
-            self.geom_skin, self.body_ids, g.origin, g.last, g.stride, g.offset, g.row, g.table, self.packed,
-            1.0 / g.h, self.inv_r, self.kernel == "nearest", self.pyramidal, self.n_rows)
-        return out
+        self._missed = _readout(self._state, con.geom, con.pos, con.frame, con.efc_address, data.efc_force,
+                                self._xpos, self._xmat, self._ints, self._floats, self.packed)
+        return self.forces
 
 
 @numba.njit(cache=True, nogil=True)
-def _readout(out, geom, pos, frame, efc_address, dim, efc_force, xpos, xmat, geom_skin, body_ids, origin, last,
-             stride, offset, row_of, table, packed, inv_h, inv_r, nearest, pyramidal, n_rows):
+def _readout(state, geom, pos, frame, efc_address, efc_force, xpos, xmat, ints, floats, packed):
     """Every contact on a skinned body -> its facing taxels within the footprint (see SkinReadout).
-    Adds the forces into `out` and returns the number of missed contacts."""
+    `state`: the forces (n), then the count and indices of the taxels written since the last
+    clear (n + 1; count -1: all may be). Clears those, adds the forces, lists the taxels it writes
+    and returns the number of missed contacts.
+
+    ints: n_geoms, n_bodies, then per geom its skinned body (-1: none), per skinned body its MuJoCo
+    id, last voxel (3), voxel strides (3) and first voxel, then per voxel its row of `packed`.
+    floats: 1 / voxel side, 1 / footprint radius, nearest kernel, pyramidal cone, efc rows per
+    contact (-1: they differ; a contact's rows then run to the next contact's, contacts being
+    MuJoCo's last constraints), then per skinned body its grid origin (3)."""
+    n = (state.shape[0] - 1) // 2
+    out, lit = state[:n], state[n:]
+    if lit[0] < 0:
+        out[:] = 0.0
+    for i in range(int(lit[0])):
+        out[int(lit[1 + i])] = 0.0
+    lit[0] = 0
+    inv_h, inv_r, nearest, pyramidal, n_rows = floats[0], floats[1], floats[2] > 0, floats[3] > 0, int(floats[4])
+    g0 = 2  # per geom
+    b0 = g0 + ints[0]  # per skinned body, 8 each
+    v0 = b0 + 8 * ints[1]  # per voxel
     missed = 0
-    width = table.shape[1]
-    w = np.empty(width)
+    width = packed.shape[1]
     for c in range(geom.shape[0]):
         adr = efc_address[c]
         if adr < 0:
@@ -130,60 +166,73 @@ def _readout(out, geom, pos, frame, efc_address, dim, efc_force, xpos, xmat, geo
         if not pyramidal:
             f = efc_force[adr]
         else:  # pyramidal cone: the normal force is the sum of the pyramid edge forces
-            rows = n_rows if n_rows > 0 else (2 * (dim[c] - 1) if dim[c] > 1 else 1)
+            rows = n_rows
+            if rows < 0:
+                rows = efc_force.shape[0] - adr
+                for c2 in range(c + 1, geom.shape[0]):
+                    if efc_address[c2] >= 0:
+                        rows = efc_address[c2] - adr
+                        break
             f = 0.0
             for k in range(rows):
                 f += efc_force[adr + k]
         if f <= 0.0:
             continue
         for side in range(2):
-            skin = geom_skin[geom[c, side]]
+            skin = ints[g0 + geom[c, side]]
             if skin < 0:
                 continue
-            b = body_ids[skin]
+            bg = b0 + 8 * skin
+            b = ints[bg]
             sign = 1.0 if side == 0 else -1.0  # the contact normal points from geom 0 to geom 1
             # contact point and normal in body coordinates: R^T (p - x), R^T n
-            lp = np.zeros(3)
-            ln = np.zeros(3)
-            for i in range(3):
-                for j in range(3):
-                    lp[j] += xmat[b, 3 * i + j] * (pos[c, i] - xpos[b, i])
-                    ln[j] += xmat[b, 3 * i + j] * frame[c, i]
-            flat = offset[skin]
-            for j in range(3):
-                v = int((lp[j] - origin[skin, j]) * inv_h)
-                v = min(max(v, 0), last[skin, j])
-                flat += v * stride[skin, j]
-            row = row_of[flat]
-            total = 0.0
-            best, best_k = 0.0, -1
+            p0, p1, p2 = pos[c, 0] - xpos[b, 0], pos[c, 1] - xpos[b, 1], pos[c, 2] - xpos[b, 2]
+            lp0 = xmat[b, 0] * p0 + xmat[b, 3] * p1 + xmat[b, 6] * p2
+            lp1 = xmat[b, 1] * p0 + xmat[b, 4] * p1 + xmat[b, 7] * p2
+            lp2 = xmat[b, 2] * p0 + xmat[b, 5] * p1 + xmat[b, 8] * p2
+            ln0 = xmat[b, 0] * frame[c, 0] + xmat[b, 3] * frame[c, 1] + xmat[b, 6] * frame[c, 2]
+            ln1 = xmat[b, 1] * frame[c, 0] + xmat[b, 4] * frame[c, 1] + xmat[b, 7] * frame[c, 2]
+            ln2 = xmat[b, 2] * frame[c, 0] + xmat[b, 5] * frame[c, 1] + xmat[b, 8] * frame[c, 2]
+            flat = ints[bg + 7]
+            for j, x in enumerate((lp0, lp1, lp2)):
+                v = min(max(int((x - floats[5 + 3 * skin + j]) * inv_h), 0), ints[bg + 1 + j])
+                flat += v * ints[bg + 4 + j]
+            row = ints[v0 + flat]
+            # two passes over the row's candidates: the weights' total (and the best), then the shares
+            total, best, best_k = 0.0, 0.0, -1
             for k in range(width):
-                cand = packed[row, k]
-                d2 = 0.0
-                facing = 0.0
-                for j in range(3):
-                    d2 += (cand[j] - lp[j]) ** 2
-                    facing += cand[3 + j] * ln[j]
-                wk = 1.0 - np.sqrt(d2) * inv_r
-                if wk < 0.0 or facing * sign <= 0.0:
-                    wk = 0.0
-                w[k] = wk
+                wk = _weight(packed, row, k, lp0, lp1, lp2, ln0 * sign, ln1 * sign, ln2 * sign, inv_r)
                 total += wk
                 if wk > best:
                     best, best_k = wk, k
             if total <= 0.0:
                 missed += 1
                 continue
-            if nearest:
-                out[table[row, best_k]] += f
-            else:
-                scale = f / total
-                n = out.shape[0]
-                for k in range(width):
-                    t = table[row, k]
-                    if w[k] > 0.0 and t < n:
-                        out[t] += w[k] * scale
+            for k in range(width):
+                wk = f if nearest and k == best_k else (
+                    0.0 if nearest else _weight(packed, row, k, lp0, lp1, lp2, ln0 * sign, ln1 * sign, ln2 * sign, inv_r)
+                    * (f / total))
+                if wk <= 0.0:
+                    continue
+                t = int(packed[row, k, 6])
+                if out[t] == 0.0:  # first force on this taxel since the last clear: list it
+                    if 0 <= lit[0] < n:
+                        lit[1 + int(lit[0])] = t
+                        lit[0] += 1
+                    else:
+                        lit[0] = -1
+                out[t] += wk
     return missed
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _weight(packed, row, k, x, y, z, nx, ny, nz, inv_r):
+    """Footprint weight 1 - d/R of a packed candidate taxel for a contact at (x, y, z) whose normal
+    (nx, ny, nz) points into the skin (0 beyond R or where the taxel faces away)."""
+    d2 = ((packed[row, k, 0] - x) ** 2 + (packed[row, k, 1] - y) ** 2 + (packed[row, k, 2] - z) ** 2) * inv_r * inv_r
+    if d2 >= 1.0 or packed[row, k, 3] * nx + packed[row, k, 4] * ny + packed[row, k, 5] * nz <= 0.0:
+        return 0.0
+    return 1.0 - np.sqrt(d2)
 
 
 def _contact_rows(model: mujoco.MjModel) -> int | None:
@@ -247,15 +296,6 @@ class VoxelGrid:
 
         self.stride = np.stack([self.dims[:, 1] * self.dims[:, 2], self.dims[:, 2], np.ones(n_bodies, np.int64)], 1)
         self.last = self.dims - 1
-
-    def rows(self, local: np.ndarray, body: np.ndarray) -> np.ndarray:
-        """(k,) table rows of the voxels holding each point (body coordinates); 0 = no taxel near."""
-        v = np.clip(((local - self.origin[body]) * (1.0 / self.h)).astype(np.int64), 0, self.last[body])
-        return self.row[(v * self.stride[body]).sum(axis=1) + self.offset[body]]
-
-    def candidates(self, local: np.ndarray, body: np.ndarray) -> np.ndarray:
-        """(k, K) taxels that may lie within the radius of each point (body coordinates), n = none."""
-        return self.table[self.rows(local, body)]
 
 
 class TouchReadout:

@@ -102,7 +102,11 @@ def build_scene(design: SkinDesign | None, robot: Robot, obstacles=(), options: 
         spec.option.timestep = float(options.timestep)
     _process_meshes(spec, options)
     if design is not None:
-        _add_skin(spec, design, robot, options)
+        design.validate("design", robot.body_names)
+    if options.collision == "skin":
+        fit_to_skin(spec, design, options.clearance_tol)
+    if design is not None:
+        _warn_clearance(spec, design, robot, options)
     _add_obstacles(spec, list(obstacles))
     if design is not None and (options.taxel_sites or options.touch_sensors):  # a touch sensor reads a site
         _add_taxel_sites(spec, design, options.touch_sensors)
@@ -119,12 +123,8 @@ def build_scene(design: SkinDesign | None, robot: Robot, obstacles=(), options: 
     return spec
 
 
-def _add_skin(spec, design: SkinDesign, robot: Robot, options: SceneOptions) -> None:
-    """Fit the collision model to the skin (collision="skin") and warn where a taxel is farther
-    than `options.clearance_tol` from the contact surface."""
-    design.validate("design", robot.body_names)
-    if options.collision == "skin":
-        fit_to_skin(spec, design, options.clearance_tol)
+def _warn_clearance(spec, design: SkinDesign, robot: Robot, options: SceneOptions) -> None:
+    """Warn where a taxel is farther than `options.clearance_tol` from the contact surface."""
     if not len(design.taxels):
         return
     gap = taxel_clearance(spec, design, robot.home)

@@ -1,38 +1,60 @@
-"""A collision model where the skin is (`SceneOptions(collision="skin")`, the default).
+"""A collision model where the surface is (`SceneOptions(collision="skin")`, the default): at the
+exposed surface on links without skin, at the skin on skinned links.
 
-Chosen by measurement, per skinned link (the link and the links welded to it):
-1. every taxel's signed distance to the link's colliding geoms is measured with MuJoCo's own
+Chosen by measurement:
+1. every link without skin whose visual surface is a mesh and that collides through other shapes
+   (a collision hull, a CAD mesh MuJoCo would collide as its convex hull: 9-50 mm from the real
+   surface over concave parts) collides instead through convex pieces cut from its exposed visual
+   surface (`surface_pieces`: patches of the surface with their corners up to `PIECE_DEPTH` under
+   them, thinned and split until no exposed point lies more than `PIECE_TOL` inside any piece);
+2. every taxel's signed distance to the link's colliding geoms is measured with MuJoCo's own
    `mj_geomDistance` (a point probe; negative inside);
-2. a coarse geom (one that is not a skin surface itself: a collision hull, an inflated
-   self-collision capsule) burying taxels deeper than `tol` is shrunk until it sits under the skin
-   (primitives by their sizes, meshes by moving every face of their convex hull inward);
-3. where taxels are still farther than `tol` from the contact surface, each module becomes thin
-   convex shells (blocks of its taxel cells and a copy `shell_depth` below them) on the link.
+3. a coarse geom left (one that is not a skin surface itself: an inflated self-collision
+   capsule on a link without visual geometry) burying taxels deeper than `tol` is shrunk until it
+   sits under the skin (primitives by their sizes, meshes by moving every face of their convex
+   hull inward);
+4. where taxels are still farther than `tol` from the contact surface (and on every link of 1),
+   each module becomes thin convex shells (blocks of its taxel cells and a copy `shell_depth`
+   below them) on the link.
 
 Links whose own geoms already carry the skin (the built-in capsules) are left as they are.
+CoACD (convex decomposition) was measured for 1 and not taken: on the Gen3's links (3,000
+triangles) it took 20-45 s per link and left surface points 18-32 mm inside its pieces (threshold
+0.05); at 1,000 triangles without its preprocessing, 159 s and 392 pieces for one link.
 """
 from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
 
 import mujoco
 import numpy as np
 from scipy.spatial import ConvexHull, HalfspaceIntersection
 
-from skinsafe.core.design.surface import skin_geoms
+from skinsafe.core.design.surface import Surface, body_surface, skin_geoms
 from skinsafe.core.robot.shapes import inside_depth, mesh_vertices
 from skinsafe.core.skin.model import SkinDesign
 
 PROBE = "skinsafe_probe"
 SHELL_GROUP = 3
+PIECE_PREFIX = "surface_piece_"
+PIECE_DEPTH = 0.005  # m: how far a surface piece reaches under the surface (less where the wall is thinner)
+PIECE_BUDGET = 1500  # triangles of a link's outer surface the pieces are cut from
+MIN_PIECE_DEPTH = 1.5e-3  # m: a piece is made thinner (down to this) before it is split
+PIECE_TOL = 3e-3  # m: no outer surface point or taxel deeper than this inside a piece
+PIECE_MIN_SIZE = 0.008  # m: pieces smaller than this are not split further
+VOXEL = 0.002  # m: voxels that tell a link's outer surface from its hidden walls
 
 
 def _collides(model, g) -> bool:
     return bool(model.geom_contype[g] or model.geom_conaffinity[g])
 
 
-def taxel_clearance(spec: mujoco.MjSpec, design: SkinDesign, q=None) -> np.ndarray:
-    """(N,) signed distance (m) of each taxel to the contact surface of its link: the smallest
-    `mj_geomDistance` to the colliding geoms of the link and the links welded to it (negative:
-    buried inside one, by at least that much). Infinite where the link has no colliding geom."""
+def point_clearance(spec: mujoco.MjSpec, points: dict[str, np.ndarray], q=None) -> dict[str, np.ndarray]:
+    """Body name -> (n,) signed distance (m) of points (body frame) to the contact surface of that
+    body: the smallest `mj_geomDistance` to the colliding geoms of the body and the bodies welded
+    to it (negative: buried inside one, by at least that much); infinite where it has none."""
     s = spec.copy()
     probe = s.worldbody.add_body(name=PROBE, mocap=True)
     probe.add_geom(name=PROBE, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[1e-6, 0, 0], contype=0, conaffinity=0)
@@ -42,30 +64,43 @@ def taxel_clearance(spec: mujoco.MjSpec, design: SkinDesign, q=None) -> np.ndarr
         data.qpos[:len(q)] = q
     mujoco.mj_kinematics(model, data)
     pg = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, PROBE)
-    t = design.taxels
-    out = np.full(len(t), np.inf)
     fromto = np.zeros(6)
-    for bi, name in enumerate(design.bodies):
+    out = {}
+    for name, local in points.items():
         bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
         weld = model.body_weldid[bid]
         geoms = [g for g in range(model.ngeom) if g != pg and _collides(model, g)
                  and model.body_weldid[model.geom_bodyid[g]] == weld]
-        idx = np.flatnonzero(t.body == bi)
-        world = t.positions[idx] @ data.xmat[bid].reshape(3, 3).T + data.xpos[bid]
-        for i, p in zip(idx, world):
-            data.geom_xpos[pg] = p  # mj_geomDistance reads the pose from here: no kinematics per taxel
+        world = np.asarray(local, float).reshape(-1, 3) @ data.xmat[bid].reshape(3, 3).T + data.xpos[bid]
+        d = out[name] = np.full(len(world), np.inf)
+        for i, p in enumerate(world):
+            data.geom_xpos[pg] = p  # mj_geomDistance reads the pose from here: no kinematics per point
             for g in geoms:
-                out[i] = min(out[i], mujoco.mj_geomDistance(model, data, g, pg, 0.05, fromto))
+                d[i] = min(d[i], mujoco.mj_geomDistance(model, data, g, pg, 0.2, fromto))
     return out
 
 
-def fit_to_skin(spec: mujoco.MjSpec, design: SkinDesign, tol: float = 1e-3, shell_depth: float = 0.003) -> dict:
-    """Edit `spec` so every taxel is within `tol` of the contact surface (see the module doc).
-    Returns {"shrunk": geom names, "disabled": geom names, "shells": count}."""
-    report = {"shrunk": [], "disabled": [], "shells": 0}
+def taxel_clearance(spec: mujoco.MjSpec, design: SkinDesign, q=None) -> np.ndarray:
+    """(N,) signed distance (m) of each taxel to the contact surface of its link (`point_clearance`)."""
+    t = design.taxels
+    gaps = point_clearance(spec, {b: t.positions[t.body == bi] for bi, b in enumerate(design.bodies)}, q)
+    out = np.full(len(t), np.inf)
+    for bi, b in enumerate(design.bodies):
+        out[t.body == bi] = gaps[b]
+    return out
+
+
+def fit_to_skin(spec: mujoco.MjSpec, design: SkinDesign | None, tol: float = 1e-3, shell_depth: float = 0.003) -> dict:
+    """Edit `spec` so every link collides at its surface and every taxel is within `tol` of the
+    contact surface (see the module doc; `design=None`: the robot alone). Returns {"pieces": count,
+    "shrunk": geom names, "disabled": geom names, "shells": count}."""
+    report = {"pieces": 0, "shrunk": [], "disabled": [], "shells": 0}
     for k, g in enumerate(spec.geoms):  # unnamed geoms (URDF primitives) get names to be edited by
         if not g.name:
             g.name = f"{g.parent.name}_geom{k}"
+    _add_surface_pieces(spec, spec.compile(), design, report)
+    if design is None or not len(design.taxels):
+        return report
     model = spec.compile()
     data = mujoco.MjData(model)
     mujoco.mj_kinematics(model, data)
@@ -83,6 +118,7 @@ def fit_to_skin(spec: mujoco.MjSpec, design: SkinDesign, tol: float = 1e-3, shel
     # capsule) burying a taxel, of its own link or of a neighbour at the home pose, goes under the skin
     visual = {g for g in range(model.ngeom) if model.geom_bodyid[g] and not _collides(model, g)}
     surface = visual or {g for b in range(1, model.nbody) for g in skin_geoms(model, b)}
+    surface |= {g for g in range(model.ngeom) if model.geom(g).name.startswith(PIECE_PREFIX)}
     for g in range(model.ngeom):
         if not _collides(model, g) or model.geom_bodyid[g] == 0 or g in surface:
             continue
@@ -97,6 +133,253 @@ def fit_to_skin(spec: mujoco.MjSpec, design: SkinDesign, tol: float = 1e-3, shel
         if bi in needs_shell or (depth[t.module == m.id] > tol).any():  # taxels above the contact surface
             report["shells"] += _add_shell(spec, design, m, shell_depth)
     return report
+
+
+_PIECES: dict[str, list] = {}  # content digest -> pieces (scenes of one robot are built many times)
+PIECES_VERSION = 5  # part of every digest: bump it when the way pieces are cut changes
+
+
+def _add_surface_pieces(spec, model, design: SkinDesign | None, report: dict) -> None:
+    """Every body without skin that has a visual mesh and collides through other geoms collides
+    through `surface_pieces` of its exposed visual surface instead. (Skinned
+    links keep steps 2-4: pieces cut from a decimated surface stood up to a few mm above the taxels
+    beside them, so probes met them before the skin.) Pieces are kept by a digest of what they depend on, in this process
+    and on disk (`cache_dir`)."""
+    MESH = mujoco.mjtGeom.mjGEOM_MESH
+    visual = [g for g in range(model.ngeom) if model.geom_bodyid[g] and model.geom_type[g] == MESH
+              and not _collides(model, g)]
+    skinned = set(design.bodies) if design is not None else set()
+    todo = [b for b in range(1, model.nbody) if any(model.geom_bodyid[g] == b for g in visual)
+            and model.body(b).name not in skinned
+            and any(_collides(model, g) for g in np.flatnonzero(model.geom_bodyid == b))]
+    if not todo:
+        return
+    q = model.key_qpos[0] if model.nkey else model.qpos0
+    robot_key = _digest(model, visual, q, PIECES_VERSION, PIECE_TOL, PIECE_DEPTH, PIECE_BUDGET, PIECE_MIN_SIZE)
+    around = None
+    for b in todo:
+        name = model.body(b).name
+        key = _digest(model, [], robot_key, name)
+        if key not in _PIECES:
+            pieces = _load_pieces(key)
+            if pieces is None:
+                around = _world_triangles(model, q) if around is None else around
+                pieces = surface_pieces(body_surface(model, name, budget=10 ** 9),
+                                        around=_in_frame(model, q, b, around, exclude=name))
+                _save_pieces(key, pieces)
+            _PIECES[key] = pieces
+            if len(_PIECES) > 64:
+                _PIECES.pop(next(iter(_PIECES)))
+        for k, pts in enumerate(_PIECES[key]):
+            mesh = spec.add_mesh(name=f"{PIECE_PREFIX}{name}_{k}")
+            mesh.uservert = pts.ravel().tolist()
+            spec.body(name).add_geom(name=mesh.name, type=MESH, meshname=mesh.name, group=SHELL_GROUP, density=0,
+                                     contype=1, conaffinity=1, rgba=[0.5, 0.5, 0.6, 0.3])
+        report["pieces"] += len(_PIECES[key])
+        for g in np.flatnonzero(model.geom_bodyid == b):
+            if _collides(model, g):
+                sg = spec.geom(model.geom(g).name)
+                sg.contype, sg.conaffinity, sg.group = 0, 0, 5  # kept for its mass, hidden, no contacts
+                report["disabled"].append(sg.name)
+
+
+def _world_triangles(model, q) -> dict[str, np.ndarray]:
+    """Body name -> its visual surface's triangles (k,3,3) in the world at configuration q."""
+    data = mujoco.MjData(model)
+    data.qpos[:] = q
+    mujoco.mj_kinematics(model, data)
+    out = {}
+    for b in range(1, model.nbody):
+        if any(model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH and not _collides(model, g)
+               for g in np.flatnonzero(model.geom_bodyid == b)):
+            surf = body_surface(model, model.body(b).name, budget=5000)
+            out[model.body(b).name] = surf.vertices[surf.triangles] @ data.xmat[b].reshape(3, 3).T + data.xpos[b]
+    return out
+
+
+def _in_frame(model, q, b: int, world: dict, exclude: str) -> np.ndarray:
+    """The other bodies' triangles (k,3,3) in body b's frame at configuration q."""
+    data = mujoco.MjData(model)
+    data.qpos[:] = q
+    mujoco.mj_kinematics(model, data)
+    tri = [t for name, t in world.items() if name != exclude]
+    if not tri:
+        return np.zeros((0, 3, 3))
+    return (np.concatenate(tri) - data.xpos[b]) @ data.xmat[b].reshape(3, 3)
+
+
+def exposed_triangles(model: mujoco.MjModel, q=None) -> dict[str, np.ndarray]:
+    """Body name -> the triangles (k,3,3, body frame) of its visual surface that face the outside
+    of the whole robot at configuration q (default: the first keyframe): `outer_faces` with the
+    other links around it, as the surface pieces are cut (parts nested in a neighbour's housing
+    and hidden walls are left out)."""
+    q = (model.key_qpos[0] if model.nkey else model.qpos0) if q is None else q
+    world = _world_triangles(model, q)
+    out = {}
+    for name in world:
+        b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+        surf = body_surface(model, name, budget=10 ** 9)
+        outer, _ = outer_faces(surf, _in_frame(model, q, b, world, exclude=name))
+        out[name] = surf.vertices[surf.triangles[outer]]
+    return out
+
+
+def cache_dir() -> Path:
+    """Where surface pieces are kept between processes: $SKINSAFE_CACHE, else ~/.cache/skinsafe."""
+    return Path(os.environ.get("SKINSAFE_CACHE") or Path.home() / ".cache" / "skinsafe") / "pieces"
+
+
+def _load_pieces(key: str) -> list[np.ndarray] | None:
+    try:
+        with np.load(cache_dir() / f"{key}.npz") as z:
+            return np.split(z["points"], z["ends"][:-1]) if len(z["ends"]) else []
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def _save_pieces(key: str, pieces: list[np.ndarray]) -> None:
+    """Written to a temporary file and renamed: a reader never sees half a file; a cache that
+    cannot be written is only slower."""
+    folder = cache_dir()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, suffix=".npz", delete=False) as f:
+            np.savez(f, points=np.concatenate(pieces) if pieces else np.zeros((0, 3)),
+                     ends=np.cumsum([len(p) for p in pieces], dtype=np.int64))
+        os.replace(f.name, folder / f"{key}.npz")
+    except OSError:
+        pass
+
+
+def _digest(model, geoms, *values) -> str:
+    import hashlib
+
+    h = hashlib.sha1()
+    for g in geoms:
+        h.update(np.concatenate([model.geom_pos[g], model.geom_quat[g], model.geom_size[g]]).tobytes())
+        if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH:
+            h.update(mesh_vertices(model, g).tobytes())
+    for x in values:
+        h.update(x.encode() if isinstance(x, str) else np.asarray(x, float).tobytes())
+    return h.hexdigest()
+
+
+def _triangle_points(tri: np.ndarray, spacing: float) -> np.ndarray:
+    """Points on every triangle (k,3,3) of a mesh, no farther than `spacing` apart along an edge."""
+    edge = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+    steps = np.clip(np.ceil(edge / spacing), 1, 200).astype(int)
+    out = []
+    for k in np.unique(steps):
+        sel = tri[steps == k]
+        i, j = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
+        keep = (i + j) <= k
+        u, w = i[keep] / k, j[keep] / k
+        out.append((sel[:, None, 0] + u[None, :, None] * (sel[:, None, 1] - sel[:, None, 0])
+                    + w[None, :, None] * (sel[:, None, 2] - sel[:, None, 0])).reshape(-1, 3))
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def outer_faces(surf: Surface, around: np.ndarray | None = None, pitch: float = VOXEL) -> tuple[np.ndarray, np.ndarray]:
+    """Which triangles of a surface face the outside, and their outward unit normals. The surface
+    and `around` (triangles (k,3,3) of the robot's other links in this link's frame: they close
+    the link's open ends) are voxelised (`pitch`), the space outside them flood-filled from the
+    border of the link's box, and a triangle is outer where a point `1.5 pitch` off its centroid,
+    on either side, is outside. A CAD housing's inner walls, hidden parts and wrongly wound
+    triangles are told apart this way (the Gen3's links are 2-3 mm walls around hollow insides)."""
+    from scipy import ndimage
+
+    v, t = surf.vertices, surf.triangles
+    lo = v.min(axis=0) - 3 * pitch
+    hi = v.max(axis=0) + 3 * pitch
+    shape = np.ceil((hi - lo) / pitch).astype(int) + 1
+    pts = [_triangle_points(v[t], 0.5 * pitch)]
+    if around is not None and len(around):
+        near = around[((around.max(axis=1) > lo) & (around.min(axis=1) < hi)).all(axis=1)]
+        p = _triangle_points(near, 0.5 * pitch)
+        pts.append(p[((p > lo) & (p < hi)).all(axis=1)])
+    idx = np.floor((np.concatenate(pts) - lo) / pitch).astype(int)
+    wall = np.zeros(shape, bool)
+    wall[tuple(np.clip(idx, 0, shape - 1).T)] = True
+    wall = ndimage.binary_dilation(wall)  # closes cracks narrower than a voxel between CAD parts
+    wall[[0, -1]], wall[:, [0, -1]], wall[:, :, [0, -1]] = False, False, False  # the box's border is outside
+    labels, _ = ndimage.label(~wall)
+    outside = labels == labels[0, 0, 0]
+    n = surf.face_normals
+    cen = v[t].mean(axis=1)
+
+    def out_at(q):
+        return outside[tuple(np.clip(np.floor((q - lo) / pitch).astype(int), 0, shape - 1).T)]
+
+    front, back = out_at(cen + 1.5 * pitch * n), out_at(cen - 1.5 * pitch * n)
+    return front | back, np.where((front | ~back)[:, None], n, -n)
+
+
+def surface_pieces(surf: Surface, tol: float = PIECE_TOL, depth: float = PIECE_DEPTH, budget: int = PIECE_BUDGET,
+                   around: np.ndarray | None = None, min_size: float = PIECE_MIN_SIZE) -> list[np.ndarray]:
+    """Convex pieces (point sets) that make a collision model at the surface. The outer triangles
+    (`outer_faces`, wound outward; `around`: the robot's other links) are decimated to `budget`
+    and cut into patches, each patch with the same corners `depth` under it one piece; a piece
+    that buries an outer point more than `tol` is made thinner (the slab may cross a wall thinner
+    than itself) down to `MIN_PIECE_DEPTH`, then split in two along its longest spread
+    (recursively), until none does or it spans less than `min_size` (a bound on the pieces of
+    fine CAD detail). A convex link stays one piece: its hull."""
+    import trimesh
+
+    from skinsafe.core.robot.meshes import decimate
+
+    outer, normals = outer_faces(surf, around)
+    t = surf.triangles[outer]
+    flip = np.einsum("ij,ij->i", surf.face_normals[outer], normals[outer]) < 0
+    t[flip] = t[flip][:, ::-1]
+    small = decimate(trimesh.Trimesh(surf.vertices, t, process=True), budget)
+    v, t = np.asarray(small.vertices, float), np.asarray(small.faces, np.int64)
+    n = np.asarray(small.face_normals, float)
+    cen = v[t].mean(axis=1)
+    check = np.vstack([v, np.unique(_triangle_points(v[t], 0.004).round(6), axis=0)])  # inside a triangle too
+    def halves(faces):
+        x = cen[faces] - cen[faces].mean(axis=0)
+        low = x @ np.linalg.svd(x, full_matrices=False)[2][0] <= 0
+        if low.all() or not low.any():
+            low = np.arange(len(faces)) < len(faces) // 2
+        return [faces[low], faces[~low]]
+
+    stack = [np.arange(len(t))]
+    for _ in range(3):  # a link is rarely convex: start from 8 patches, not from its hull
+        stack = [h for f in stack for h in (halves(f) if len(f) > 1 else [f])]
+    stack = [(f, depth) for f in stack]
+    pieces = []
+    while stack:
+        faces, d = stack.pop()
+        if not len(faces):
+            continue
+        corners = v[t[faces]]
+        pts = np.unique(np.concatenate([corners, corners - d * n[faces, None, :]]).reshape(-1, 3).round(9), axis=0)
+        if np.ptp(corners.reshape(-1, 3), axis=0).max() < min_size or not _buries(pts, check, tol):
+            pieces.append(pts)
+        elif d > MIN_PIECE_DEPTH:  # thinner first: the slab may cross a wall thinner than itself
+            stack.append((faces, d / 2))
+        elif len(faces) > 1:  # then smaller: the patch is not convex enough
+            stack += [(h, depth) for h in halves(faces)]
+        else:
+            pieces.append(pts)
+    return pieces
+
+
+def _buries(pts: np.ndarray, check: np.ndarray, tol: float, chunk: int = 1024) -> bool:
+    """Whether any `check` point lies more than `tol` inside the convex hull of `pts` (checked in
+    strided chunks: a piece that buries points is usually told by the first)."""
+    from scipy.spatial import QhullError
+
+    lo, hi = pts.min(axis=0) + tol, pts.max(axis=0) - tol
+    near = check[((check > lo) & (check < hi)).all(axis=1)]
+    if not len(near):
+        return False
+    try:
+        eq = ConvexHull(pts).equations
+    except QhullError:
+        return False
+    stride = max(1, len(near) // chunk)
+    return any(((near[k::stride] @ eq[:, :3].T + eq[:, 3]).max(axis=1) < -tol).any() for k in range(stride))
 
 
 def _shrink(spec, model, g, delta: float, report: dict) -> None:

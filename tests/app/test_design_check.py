@@ -42,3 +42,55 @@ def test_far_anchor_is_refused_not_snapped():
     with pytest.raises(PlacementError, match="anchor .* is 2\\d\\d mm from the surface of 'forearm_link'") as e:
         place_module(surf, m, np.array([-0.2, 0.0, 0.3]), np.array([1.0, 0, 0]))
     assert e.value.kind == "far_anchor"
+
+
+def _mating_robot(tmp_path, overlap: float) -> Path:
+    """A box base and a cylinder turning about its own axis on the box's top face, sunk `overlap`
+    into it: the top face under the cylinder is covered at every joint angle."""
+    path = tmp_path / f"mate_{overlap * 1e6:.0f}um.urdf"
+    path.write_text(
+        '<robot name="mate"><link name="a"><visual><geometry><box size="0.2 0.2 0.1"/></geometry></visual>'
+        '<collision><geometry><box size="0.2 0.2 0.1"/></geometry></collision>'
+        '<inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>'
+        '<link name="b"><visual><origin xyz="0 0 0.05"/><geometry><cylinder radius="0.05" length="0.1"/></geometry>'
+        '</visual><collision><origin xyz="0 0 0.05"/><geometry><cylinder radius="0.05" length="0.1"/></geometry>'
+        '</collision><inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/>'
+        f'</inertial></link><joint name="j" type="revolute"><parent link="a"/><child link="b"/><origin xyz="0 0 '
+        f'{0.05 - overlap}"/><axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint></robot>')
+    return path
+
+
+@pytest.mark.parametrize("overlap,valid", [(0.0002, False), (0.00005, True)])
+def test_check_refuses_taxels_buried_more_than_a_tenth_of_a_millimetre(tmp_path, capsys, overlap, valid):
+    """A module on the box's top face under the turning cylinder: 0.2 mm deep is refused (the old
+    1 mm tolerance let 0.5 mm through), 0.05 mm (within tessellation) passes."""
+    from skinsafe.core.app.design import robot_ref
+    from skinsafe.core.design.placement import build_design
+    from skinsafe.core.robot.models import load_robot
+    from skinsafe.core.skin.taxel_map import save
+
+    out = tmp_path / "skin.json"
+    ref = robot_ref(str(_mating_robot(tmp_path, overlap)), [], out)
+    robot = load_robot(ref, base_dir=tmp_path)
+    m = Module(0, "m", "a", rows=2, cols=2, pitch=0.01, taxel_diameter=0.006, margin=0.001, min_bend_radius=0.01)
+    placed = place_module(body_surface(robot.model, "a"), m, np.array([0.0, 0.0, 0.05]), np.array([1.0, 0, 0]))
+    assert np.allclose(placed.positions[:, 2], 0.05)
+    save(build_design(ref, [placed]), out)
+    assert main(["check", str(out)]) == (0 if valid else 1)
+    captured = capsys.readouterr()
+    if valid:
+        assert captured.out.rstrip().endswith("valid") and "refused" not in captured.err
+    else:
+        assert "4 taxels are buried more than 0.1 mm inside another link at all 16 sampled poses" in captured.err
+
+
+def test_design_leaves_the_mating_face_bare(tmp_path, capsys):
+    """`skinsafe design` on the box drops the modules the cylinder buries: what it writes passes check."""
+    out = tmp_path / "skin.json"
+    assert main(["design", str(_mating_robot(tmp_path, 0.0005)), "--bodies", "a", "--rows", "2", "--cols", "2",
+                 "--pitch", "0.01", "--out", str(out)]) == 0
+    raw = json.loads(out.read_text())
+    pos = np.array(raw["taxels"]["positions"])
+    top = pos[:, 2] > 0.0499
+    assert top.any() and not (top & (np.hypot(pos[:, 0], pos[:, 1]) < 0.05)).any()  # none under the cylinder
+    assert main(["check", str(out)]) == 0

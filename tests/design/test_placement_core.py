@@ -1,6 +1,7 @@
 """Placement core (pure numpy, no Blender): surfaces, conformal wrapping, frames, refusals, boards."""
 import numpy as np
 import pytest
+import trimesh
 
 from skinsafe.core.design.placement import (
     PlacementError,
@@ -10,7 +11,7 @@ from skinsafe.core.design.placement import (
     replace_module,
     template_grid,
 )
-from skinsafe.core.design.surface import Surface, body_surface, closest_on_packed
+from skinsafe.core.design.surface import Surface, body_surface
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.skin.model import DesignError, Module, RobotRef
 
@@ -40,12 +41,17 @@ def test_closest_points_match_brute_force():
     t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])]
     s = Surface.from_mesh(v, t)
     p = rng.normal(size=(200, 3)) * 1.5
-    q, _, _, d = s.closest(p)
-    # brute force over all triangles (big random triangles: the k-d candidates alone would miss)
-    pk = s._pack[None, :, :]
-    _, _, d2 = closest_on_packed(p[:, None, :], np.broadcast_to(pk, (len(p),) + s._pack.shape))
-    assert np.allclose(d, np.sqrt(d2.min(axis=1)), atol=1e-12)
+    q, _, tri, d = s.closest(p)
+    # brute force over all triangles (big overlapping random triangles: the hierarchy's boxes overlap
+    # everywhere), each point on each triangle by trimesh's own closest-point routine
+    every = np.repeat(s.vertices[s.triangles][None], len(p), 0).reshape(-1, 3, 3)
+    ref = trimesh.triangles.closest_point(every, np.repeat(p, len(s.triangles), 0)).reshape(len(p), -1, 3)
+    d_ref = np.linalg.norm(ref - p[:, None], axis=2).min(axis=1)
+    assert np.allclose(d, d_ref, atol=1e-12)
     assert np.allclose(np.linalg.norm(q - p, axis=1), d)
+    # the answer lies on the triangle it names
+    on = trimesh.triangles.closest_point(s.vertices[s.triangles[tri]], q)
+    assert np.abs(on - q).max() < 1e-12
 
 
 def test_capsule_surface_close_to_the_true_shape(forearm):

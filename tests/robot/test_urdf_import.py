@@ -37,8 +37,15 @@ def test_no_self_contact_at_home(franka):
 
 
 def test_errors_name_link_and_file(tmp_path):
-    with pytest.raises(DesignError, match=r"\$\(find franka_description\).*--package-dir"):
+    with pytest.raises(DesignError, match=r"\$\(find franka_description\).*--package-dir") as e:
         load_robot(RobotRef("urdf", "f", str(XACRO)))
+    said = str(e.value)  # once, one line, naming the file (xacro wraps our refusal and repeats it)
+    assert said.startswith(f"robot file '{XACRO}': ") and said.count("$(find") == 1 and "\n" not in said
+    bad = tmp_path / "bad.urdf.xacro"
+    bad.write_text('<robot name="r" xmlns:xacro="http://www.ros.org/wiki/xacro"><link name="${nothere}"/></robot>')
+    with pytest.raises(DesignError, match=r"xacro failed \(XacroException: name 'nothere' is not defined when") as e:
+        load_robot(RobotRef("urdf", "r", str(bad)))
+    assert "\n" not in str(e.value)
     urdf = tmp_path / "r.urdf"
     urdf.write_text('<robot name="r"><link name="base"><visual><geometry><mesh filename="package://pkg/m.dae"/>'
                     '</geometry></visual></link></robot>')

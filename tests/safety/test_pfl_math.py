@@ -126,7 +126,7 @@ def test_stack_applies_cap_after_modulation(setup):
 
     robot, design, kin = setup
     cap = pfl.PFLCap(kin, "chest")
-    stack = SafetyStack(robot.vel_limits, pfl=cap)
+    stack = SafetyStack(robot.vel_limits, pfl=cap, dt=0.002)
     v = stack.tick(0.0, robot.home, None, robot.vel_limits * 0.9, 0.002)
     assert 0 < cap.last_scale < 1 and np.allclose(v, cap.last_scale * robot.vel_limits * 0.9)
 

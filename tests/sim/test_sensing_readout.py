@@ -140,3 +140,57 @@ def test_missing_touch_sensors_named():
     model = build_scene(design, build_ur5()).compile()
     with pytest.raises(DesignError, match=f"touch_{int(design.taxels.ids[0])}.*touch_sensors=True"):
         TouchReadout(model, design)
+
+
+@pytest.mark.parametrize("kernel", ["linear", "nearest"])
+def test_update_in_place_equals_a_fresh_read_every_step(scene, kernel):
+    """`update` clears only what it lit the step before: over pokes of different taxels, off-centre
+    pokes and steps with no contact, its buffer equals the reading of a readout that never read before."""
+    design, robot, model, pos, frames = scene
+    live = SkinReadout(model, design, kernel=kernel)
+    taxels = _pokeable(design, model, robot, pos, frames, count=6)
+    rng = np.random.default_rng(3)
+    lit_steps = 0
+    for i in taxels + taxels[::-1]:
+        shift = rng.uniform(-0.4, 0.4, 2) * 0.01
+        at = pos[i] + shift[0] * frames[i][:, 0] + shift[1] * frames[i][:, 1]
+        for data in (_poke(model, robot, at, frames[i][:, 2])[0], _poke(model, robot, at + 0.05 * frames[i][:, 2],
+                                                                          frames[i][:, 2])[0]):
+            got = live.update(data)
+            assert got is live.forces
+            ref = SkinReadout(model, design, kernel=kernel).read(data)
+            np.testing.assert_array_equal(got, ref)
+            lit_steps += int(ref.any())
+    assert lit_steps == len(taxels) * 2  # every poke lit something, every lift cleared it
+
+
+def test_mixed_contact_dimensions_sum_each_contacts_own_rows():
+    """Pyramidal cones with contacts of different dimension (1 and 3: 1 and 4 efc rows): each
+    contact's normal force is the sum of its own rows, equal to MuJoCo's (mj_contactForce)."""
+    from skinsafe.core.sim.scene import build_scene
+
+    design = make_sample_design("ur5", pitch=0.02)
+    robot = build_ur5()
+    balls = [Obstacle("b1", "sphere", (0.03,), pos=(-0.2, 0.0, 0.6), free=True),
+             Obstacle("b3", "sphere", (0.03,), pos=(-0.45, 0.0, 0.6), free=True)]
+    spec = build_scene(design, robot, balls, SceneOptions(taxel_sites=False))
+    for g in spec.geoms:
+        g.condim = 3 if g.name == "b3" else 1
+    model = spec.compile()
+    assert model.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
+    data = mujoco.MjData(model)
+    data.qpos[:6] = robot.home
+    data.ctrl[:] = robot.home
+    r = SkinReadout(model, design)
+    assert r.n_rows == -1  # rows per contact differ
+    dims, checked = set(), 0
+    for _ in range(600):
+        mujoco.mj_step(model, data)
+        f = r.update(data)
+        on_skin = [c for c in range(data.ncon) if data.contact.efc_address[c] >= 0
+                   and any(model.geom_bodyid[g] in r.body_ids for g in data.contact.geom[c])]
+        if on_skin and r.last_missed == 0:
+            dims |= {int(data.contact.dim[c]) for c in on_skin}
+            assert f.sum() == pytest.approx(sum(_normal(model, data, c) for c in on_skin), rel=1e-9, abs=1e-12)
+            checked += 1
+    assert dims == {1, 3} and checked > 50

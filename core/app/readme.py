@@ -1,0 +1,342 @@
+"""`skinsafe readme`: the README's quoted figures, filled in from the results files the code writes.
+
+A figure sits between two HTML comments, which Markdown does not show:
+
+    <!-- fig:value FILE KEY.PATH[:FORMAT] -->0.0830<!-- /fig -->      one number in a sentence
+    <!-- fig:table FILE COLUMN[:FORMAT],... [where=KEY=VALUE,...] -->   a table of a file's rows
+    | ... |
+    <!-- /fig -->
+    <!-- fig:NAME -->...<!-- /fig -->                                   a composite figure (FIGURES below)
+
+Arguments are split as a shell would (quote a path with spaces: `"runs.no modulation.peak"`).
+FILE is relative to the repository (a `results/...` JSON); KEY.PATH walks its dicts and lists
+(`summary.claim.holds`, `runs.0.seconds`, `fail_open.sum`: a key of every row of a list), reduces a
+list (`force.max`: min, max, sum, mean, len)
+and scales (`slope*100`, `params.alpha*100/12`); a table's rows are the file itself when it is a list,
+or its `rows`. FORMAT is a Python format spec (`.3f`, `+.1f`, `.0%`), `mins` (seconds as "3 min 39 s") or
+`code` (as inline code: a command); without one, numbers keep 3 significant digits and thousands get separators.
+
+Markers inside fenced code blocks are examples, left alone. `skinsafe readme` rewrites README.md; `--check` changes nothing and exits 1 naming every figure
+whose text is not what its results file says (tests/app/test_readme_figures.py runs it).
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+import shlex
+import sys
+from pathlib import Path
+
+from skinsafe.core.skin.files import atomic_write
+
+REPO = Path(__file__).resolve().parents[2]
+MARKER = re.compile(r"<!-- fig:(\S+)((?: [^>]*?)?) -->(.*?)<!-- /fig -->", re.S)
+FENCE = re.compile(r"^```.*?^```", re.S | re.M)
+
+
+class FigureError(ValueError):
+    """A figure marker that cannot be filled: names the marker and what to do."""
+
+
+def load(root: Path, file: str):
+    path = root / file
+    if not path.is_file():
+        raise FigureError(f"results file '{file}' is missing; run the command that writes it (README names it)")
+    return json.loads(path.read_text())
+
+
+REDUCE = {"min": min, "max": max, "sum": sum, "len": len, "mean": lambda v: sum(v) / len(v)}
+
+
+def lookup(data, path: str):
+    """The value at KEY.PATH (module doc): keys, list indices, a key of every row of a list, `min`,
+    `max`, `sum`, `mean`, `len` of a list; a trailing `*F` or `/F` (repeatable) scales a number."""
+    path, *ops = re.split(r"(?=[*/][0-9.])", path)
+    for key in path.split("."):
+        try:
+            if isinstance(data, list) and key in REDUCE:
+                data = REDUCE[key](data)
+            elif isinstance(data, list) and not key.lstrip("-").isdigit():  # a key of every row
+                data = [row[key] for row in data]
+            else:
+                data = data[int(key)] if isinstance(data, list) else data[key]
+        except (KeyError, IndexError, ValueError, TypeError):
+            raise FigureError(f"no '{key}' in '{path}'") from None
+    for op in ops:
+        data = data * float(op[1:]) if op[0] == "*" else data / float(op[1:])
+    return data
+
+
+def fmt(v, spec: str = "") -> str:
+    """A value as the README prints it (module doc); None as a dash, booleans as yes/no."""
+    if v is None:
+        return "—"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if spec == "code":
+        return f"`{v}`"
+    if isinstance(v, (int, float)) and spec == "mins":
+        m, s = divmod(int(round(v)), 60)
+        return f"{m} min {s} s" if m else f"{s} s"
+    if isinstance(v, float) and not math.isfinite(v):
+        return str(v)
+    if spec:
+        if isinstance(v, (int, float)) and abs(v) >= 1000 and "," not in spec and spec[-1] in "fdg":
+            spec = "," + spec
+        return format(v, spec)
+    if isinstance(v, int):
+        return f"{v:,}"
+    if isinstance(v, float):
+        return f"{v:,.0f}" if abs(v) >= 1000 else f"{v:.3g}"
+    return str(v)
+
+
+def _columns(spec: str) -> list[tuple[str, str]]:
+    return [tuple(c.split(":", 1)) if ":" in c else (c, "") for c in spec.split(",") if c]
+
+
+def table(rows: list[dict], columns: list[tuple[str, str]]) -> str:
+    """A Markdown table of `rows`, one column per (key, format); numbers right-aligned."""
+    if not rows:
+        raise FigureError("no rows")
+    for key, _ in columns:
+        if all(key not in r for r in rows):
+            raise FigureError(f"no row has '{key}' (keys: {sorted({k for r in rows for k in r})})")
+    numeric = [all(r.get(k) is None or isinstance(r.get(k), (int, float)) and not isinstance(r.get(k), bool)
+                   for r in rows) for k, _ in columns]
+    lines = ["| " + " | ".join(k for k, _ in columns) + " |",
+             "| " + " | ".join("---:" if n else "---" for n in numeric) + " |"]
+    lines += ["| " + " | ".join(fmt(r.get(k), f) for k, f in columns) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def _rows(data) -> list[dict]:
+    rows = data.get("rows") if isinstance(data, dict) else data
+    if not isinstance(rows, list):
+        raise FigureError("the file holds no rows (a list, or a dict with 'rows')")
+    return rows
+
+
+def _where(rows: list[dict], spec: str) -> list[dict]:
+    for cond in filter(None, spec.split(",")):
+        key, _, want = cond.partition("=")
+        rows = [r for r in rows if str(r.get(key)) == want]
+    return rows
+
+
+def render(kind: str, args: list[str], root: Path) -> str:
+    """The text of one figure marker."""
+    if kind == "value":
+        if len(args) != 2:
+            raise FigureError("use <!-- fig:value FILE KEY.PATH[:FORMAT] -->")
+        path, _, spec = args[1].partition(":")
+        return fmt(lookup(load(root, args[0]), path), spec)
+    if kind == "table":
+        if len(args) not in (2, 3) or (len(args) == 3 and not args[2].startswith("where=")):
+            raise FigureError("use <!-- fig:table FILE COLUMN[:FORMAT],... [where=KEY=VALUE,...] -->")
+        rows = _rows(load(root, args[0]))
+        if len(args) == 3:
+            rows = _where(rows, args[2][len("where="):])
+        return "\n" + table(rows, _columns(args[1])) + "\n"
+    if kind in FIGURES:
+        if args:
+            raise FigureError(f"fig:{kind} takes no arguments")
+        return "\n" + FIGURES[kind](root) + "\n"
+    raise FigureError(f"unknown figure 'fig:{kind}'; use value, table or one of {sorted(FIGURES)}")
+
+
+def fill(text: str, root: Path = REPO) -> tuple[str, list[str]]:
+    """`text` with every figure re-rendered, and one line per figure whose text changed."""
+    changed = []
+    fences = [f.span() for f in FENCE.finditer(text)]
+
+    def sub(m: re.Match) -> str:
+        if any(a <= m.start() < b for a, b in fences):  # an example in a code block, not a figure
+            return m.group(0)
+        kind, args, old = m.group(1), shlex.split(m.group(2)), m.group(3)
+        line = text.count("\n", 0, m.start()) + 1
+        try:
+            new = render(kind, args, root)
+        except FigureError as e:
+            raise FigureError(f"README line {line}, fig:{kind} {' '.join(args)}: {e}") from None
+        if new != old:
+            changed.append(f"line {line}: fig:{kind} {' '.join(args)}: {_short(old)} -> {_short(new)}")
+        return m.group(0).replace(f"-->{old}<!--", f"-->{new}<!--", 1)
+
+    return MARKER.sub(sub, text), changed
+
+
+def _short(s: str) -> str:
+    s = " ".join(s.split())
+    return repr(s if len(s) < 60 else s[:57] + "...")
+
+
+# --- composite figures: the README's tables that combine several results files -------------------
+
+
+def maze_grid(root: Path) -> str:
+    """The full maze grid: contacts per method (mean ± std, per seed), goal rates per seed."""
+    data = load(root, "results/maze/maze_results.json")
+    summary, runs = data["summary"], data["runs"]
+    tdm = {m for m in summary["methods"] if m.endswith("-TDM")}
+    n = summary["config"]["seeds"]
+    last = summary["config"].get("last", 20)
+    lines = [f"| method | total contact events (mean ± std, {n} seeds) | per seed | goal rate, last {last} episodes "
+             "(per seed) |", "| --- | ---: | --- | --- |"]
+    for method, s in summary["methods"].items():
+        mine = sorted((r for r in runs if r["method"] == method), key=lambda r: r["seed"])
+        per_seed = " / ".join(fmt(int(sum(r["costs"]))) for r in mine)
+        rates = [sum(r["goals"][-last:]) / len(r["goals"][-last:]) for r in mine]
+        goal = "1.00 (all)" if all(g == 1 for g in rates) else \
+            f"{s['goal_rate_last_mean']:.2f} ({', '.join(fmt(round(g, 2)) for g in rates)})"
+        cell = f"{s['total_contacts_mean']:,.1f} ± {s['total_contacts_std']:,.1f}"
+        name = f"**{method}**" if method in tdm else method
+        lines.append(f"| {name} | {'**' + cell + '**' if method in tdm else cell} | {per_seed} | {goal} |")
+    return "\n".join(lines)
+
+
+def safety_audit(root: Path) -> str:
+    """`skinsafe bench safety`'s rows, limits and counts side by side."""
+    rows = load(root, "results/safety/safety_audit.json")
+    lines = ["| robot | contacts | cases | feasible | into_contact_mm_worst | into_contact_mm_worst_all | infeasible_cases | "
+             "dominant_ratio_min (cases) | vel / acc limit violations | nonfinite_cases | missing_cases | fail_open | "
+             "solver_failed | ms_median | ms_p999 | ms_worst |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        ratio = "—" if r.get("dominant_ratio_min") is None else f"{r['dominant_ratio_min']:.3f}"
+        lines.append(
+            f"| {r['robot']} | {r['contacts']} | {fmt(r['cases'])} | {fmt(r['feasible'])} | "
+            f"{r['into_contact_mm_worst']:.3f} | {_opt(r, 'into_contact_mm_worst_all', '.3f')} | "
+            f"{_opt(r, 'infeasible_cases', ',')} | {ratio} ({fmt(r['dominant_cases'])}) | "
+            f"{r['vel_limit_violations']} / {r['acc_limit_violations']} | {r['nonfinite_cases']} | "
+            f"{_opt(r, 'missing_cases', ',')} | {r['fail_open']} | "
+            f"{r.get('solver_failed', '—')} | {r['ms_median']:.2f} | {r['ms_p999']:.1f} | {r['ms_worst']:.0f} |")
+    return "\n".join(lines)
+
+
+def _opt(row: dict, key: str, spec: str) -> str:
+    """A row's value formatted, or a dash where the row predates the key."""
+    return "—" if row.get(key) is None else format(row[key], spec)
+
+
+def _fig7(poke: dict) -> str:
+    rows = [r for r in poke["multicontact"] if r["contacts"] == 2]
+    qp = next(r for r in rows if r["merge"] == "qp")
+    ratio = lambda r: f"{r['dominant_fraction']:.2f} / {sum(r['others_fraction']) / len(r['others_fraction']):.2f}"  # noqa: E731
+    closed = "; ".join(f"{r['merge']} ε = {r['epsilon']:g} {ratio(r)} ({r['into_contact_mm']:.1f} mm into contact)"
+                       for r in rows if r["merge"] != "qp")
+    return (f"prioritised QP, 2 contacts: dominant {qp['dominant_fraction']:.2f} of its own distance, the other "
+            f"{ratio(qp).split(' / ')[1]} (eq. 12 re-ranks them as they retract), {qp['into_contact_mm']:.1f} mm into "
+            f"its contact; closed forms: {closed}. Over random contact sets only the QP keeps every contacted taxel "
+            "out (`skinsafe bench safety`)")
+
+
+def paper_results(root: Path) -> str:
+    """The paper's claims against ours, each figure from its results file."""
+    poke = load(root, "results/poke/poke_results.json")
+    maze = load(root, "results/maze/maze_results.json")["summary"]
+    track = load(root, "results/tracking/tracking.json")
+    desk = load(root, "results/desk/desk.json")
+    collab = load(root, COLLAB)
+    fs, alpha = poke["force_sweep"], poke["params"]["alpha"]
+    forms = poke["forms"]
+    m = maze["methods"]
+    order = sorted(m, key=lambda k: m[k]["total_contacts_mean"])
+    totals = ", ".join(f"{k} {fmt(m[k]['total_contacts_mean'])}" for k in order)
+    learned = [k for k, v in maze["claim"]["learned"].items() if v]
+    ts = {r["method"]: r for r in track["summary"]}
+    ep = "episodes 6-10" if track["config"]["episodes"] >= 10 else f"the last of {track['config']['episodes']} episodes"
+    name = {"vanilla": "vanilla", "tdm": "TDM", "tdm2": "2-step TDM"}
+    tr = ", ".join(f"{name.get(k, k)} {ts[k]['contacts_ep6_10']:.1f} ± {ts[k]['contacts_ep6_10_std']:.1f}" for k in ts)
+    err = ", ".join(f"{name.get(k, k)} {ts[k]['tracking_error_mm']:.0f} mm" for k in ts)
+    touches = [r["touch_N"] for r in desk["sweep"]]
+    desk_cells = ", ".join(f"{r['stack']}: {r['min_clearance_mm']:+.1f} mm ({fmt(r['desk_force_N'])} N on the desk)"
+                           for r in desk["sweep_worst"])
+    rows = [
+        ("Fig. 8/12", "heavier touch, further retraction; −z follows eq. 10",
+         f"linear, {fs['slope'] * 100:.4f} cm/N vs α/12 = {alpha / 12 * 100:.4f}, R² = {fs['r2']:.5f}; displacement "
+         f"within {max(fs['profile_rel_err']) * 100:.1f}% of eq. 10", "`skinsafe poke --out results/poke`"),
+        ("Fig. 7", "lower priorities interfere minimally with the dominant retraction", _fig7(poke),
+         "`skinsafe poke --out results/poke`"),
+        ("III-C", "6-D task (zero rotation)",
+         f"the 6-D task achieves a median {forms['6d']['achieved_median']:.0%} of the commanded −z distance, a 3-D "
+         f"task {forms['3d']['achieved_median']:.0%}: we default to 3-D", "`skinsafe poke --out results/poke`"),
+        ("Fig. 9", "-TDM variants have the lowest total collisions",
+         f"**{'yes' if maze['claim']['holds'] else 'no'}** ({maze['config']['seeds']} seeds x "
+         f"{maze['config']['episodes']} episodes, all {len(m)} methods; verdict computed in `maze_results.json`): "
+         f"total contacts {totals}; {', '.join(learned)} reach the goal in >= 80% of the last 20 episodes",
+         "`skinsafe experiment maze`"),
+        ("Fig. 11", "vanilla most contacts; TDM reduces but doesn't improve; 2-step ≈ 0 after 6 episodes",
+         f"**{'holds' if track['claim']['holds'] else 'does not hold'}** ({len(track['config']['seeds'])} seeds x "
+         f"{track['config']['episodes']} episodes, {fmt(track['n_taxels'])} taxels): mean contact ticks per episode "
+         f"over {ep}: {tr}; mean tracking error {err} (the balls sit on the path)",
+         "`skinsafe experiment tracking`"),
+        ("Fig. 14", "modulation stops the retraction before the desk", f"worst min clearance over touches of {fmt(min(touches))}-{fmt(max(touches))} N: {desk_cells}",
+         "`skinsafe experiment desk`"),
+        ("Fig. 15", "the robot retracts from an accidental contact", _fig15(collab),
+         "`skinsafe experiment collaboration`"),
+    ]
+    lines = ["| paper | claim | ours | command |", "| --- | --- | --- | --- |"]
+    lines += [f"| {a} | {b} | {c} | {d} |" for a, b, c, d in rows]
+    return "\n".join(lines)
+
+
+COLLAB = "results/collaboration/collaboration.json"
+
+
+def _fig15(collab: dict) -> str:
+    """The collaboration scene's worst ratio to the ISO/TS 15066 limits per scenario and stack, and
+    the sweep's robot-driven cells that full+pfl exceeds."""
+    per = {}
+    for key, r in collab["runs"].items():
+        scenario, stack = key.split("/")
+        per.setdefault(scenario, []).append(f"{stack} {r['worst_ratio']:.2f}")
+    over = [r for r in collab["sweep"] if r["stack"] == "full+pfl" and r["worst_ratio"] > 1
+            and r["scenario"] != "person"]
+    cells = len([r for r in collab["sweep"] if r["stack"] == "full+pfl" and r["scenario"] != "person"])
+    sweep = (f"; sweep: full+pfl over its limit in {len(over)} of {cells} robot-driven cells"
+             + (f" (worst {max(r['worst_ratio'] for r in over):.2f})" if over else "")) if cells else ""
+    return ("a compliant person (ISO/TS 15066 masses, springs, force and pressure limits); worst peak over its "
+            "limit per stack: " + "; ".join(f"{s}: {', '.join(v)}" for s, v in per.items()) + sweep)
+
+
+def collaboration(root: Path) -> str:
+    """The collaboration scene's nominal runs (collaboration.md's first table)."""
+    from skinsafe.core.experiments.collaboration import nominal_table
+
+    return nominal_table(load(root, COLLAB))
+
+
+def collaboration_sweep(root: Path) -> str:
+    """The collaboration scene's robustness sweep (collaboration.md's second table)."""
+    from skinsafe.core.experiments.collaboration import sweep_table
+
+    return sweep_table(load(root, COLLAB))
+
+
+FIGURES = {"maze-grid": maze_grid, "safety-audit": safety_audit, "paper-results": paper_results,
+           "collaboration": collaboration, "collaboration-sweep": collaboration_sweep}
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--readme", default=str(REPO / "README.md"), help="the README to fill (default: the repository's)")
+    p.add_argument("--check", action="store_true", help="change nothing; exit 1 if a figure differs from its results")
+
+
+def run(args) -> int:
+    path = Path(args.readme)
+    text = path.read_text()
+    try:
+        new, changed = fill(text, path.resolve().parent)
+    except FigureError as e:
+        print(f"skinsafe readme: error: {e}", file=sys.stderr)
+        return 2
+    for line in changed:
+        print(f"{path}: {line}", file=sys.stderr if args.check else sys.stdout)
+    if args.check:
+        return 1 if changed else 0
+    if changed:
+        atomic_write(path, new)
+    print(f"{path}: {len(MARKER.findall(text))} figures, {len(changed)} updated")
+    return 0

@@ -1,0 +1,140 @@
+"""Every shell command the README shows runs as written on a fresh clone.
+
+Each ```bash block of README.md runs, in README order, as one bash script (`set -euo pipefail`) in
+a copy of the checkout's files (tracked, or untracked and not ignored: what a fresh clone holds),
+with this environment's `skinsafe` on PATH and its .venv linked in for `make`. A new ```bash block
+is picked up by itself. A command too slow for the suite declares, in an HTML comment anywhere in
+the README (a line of its own, invisible when rendered), flags appended to it (its reduced size), or that it is not
+run and why:
+
+    <!-- readme-test: skinsafe experiment maze += --quick --out out/mq -->
+    <!-- readme-test: make test => skip: the suite this check is part of -->
+
+The command is matched as written in its block (comments dropped, spaces collapsed). A directive
+naming no command of a bash block fails, as does any command that fails. Blocks of other languages
+(```python, ```json, plain ``` for synopses and output) are not run."""
+import os
+import re
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+README = ROOT / "README.md"
+DIRECTIVE = re.compile(r"^<!--\s*readme-test:\s*(.+?)\s*(\+=|=>)\s*(.+?)\s*-->", re.M)
+
+
+def _strip_comment(line: str) -> str:
+    """The line without its trailing `# comment` (a # at the start or after a space, outside quotes)."""
+    quote = None
+    for i, ch in enumerate(line):
+        if quote:
+            quote = None if ch == quote else quote
+        elif ch in "'\"":
+            quote = ch
+        elif ch == "#" and (i == 0 or line[i - 1].isspace()):
+            return line[:i].rstrip()
+    return line.rstrip()
+
+
+def _norm(cmd: str) -> str:
+    return " ".join(cmd.split())
+
+
+def bash_blocks(text: str) -> list[tuple[int, list[str]]]:
+    """(line number, commands) of every ```bash block; continuation lines joined, comments dropped."""
+    blocks, lines, i = [], text.splitlines(), 0
+    while i < len(lines):
+        if lines[i].strip() == "```bash":
+            start, cmds, pending = i + 1, [], ""
+            i += 1
+            while lines[i].strip() != "```":
+                line = pending + _strip_comment(lines[i])
+                pending = line[:-1] + " " if line.endswith("\\") else ""
+                if not pending and line.strip():
+                    cmds.append(_norm(line))
+                i += 1
+            blocks.append((start, cmds))
+        i += 1
+    return blocks
+
+
+def directives(text: str) -> dict[str, tuple[str, str]]:
+    """command -> ("+=", flags appended) or ("=>", "skip: reason")."""
+    found = {}
+    for cmd, op, what in DIRECTIVE.findall(text):
+        assert _norm(cmd) not in found, f"README: two readme-test directives for '{cmd}'"
+        assert op == "+=" or what.startswith("skip: ") and len(what) > 10, \
+            f"README: readme-test '{cmd} {op} {what}': use '+= FLAGS' or '=> skip: REASON'"
+        found[_norm(cmd)] = (op, what)
+    return found
+
+
+TEXT = README.read_text()
+BLOCKS = bash_blocks(TEXT)
+DIRECTIVES = directives(TEXT)
+
+
+def test_every_directive_names_a_command_of_a_bash_block():
+    commands = {c for _, cmds in BLOCKS for c in cmds}
+    assert BLOCKS and not set(DIRECTIVES) - commands, f"README: readme-test directives for no command: " \
+                                                      f"{sorted(set(DIRECTIVES) - commands)}"
+
+
+def test_parsing_keeps_quotes_and_joins_continuations():
+    blocks = bash_blocks("```bash\na 'x # y' # note\nb \\\n   --c 1  # more\n# only a comment\n```\n")
+    assert blocks == [(1, ["a 'x # y'", "b --c 1"])]
+    assert directives("<!-- readme-test: a  'x # y' += --quick -->") == {"a 'x # y'": ("+=", "--quick")}
+
+
+@pytest.fixture(scope="module")
+def clone(tmp_path_factory):
+    """The checkout's files as a fresh clone has them, with this environment's .venv linked in."""
+    dst = tmp_path_factory.mktemp("readme") / "skinsafe"
+    files = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=ROOT,
+                           capture_output=True, check=True).stdout.decode().split("\0")
+    for f in filter(None, files):
+        if (ROOT / f).is_file():
+            (dst / f).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / f, dst / f)
+    (dst / ".venv").symlink_to(Path(sys.prefix))
+    os.utime(dst / "pyproject.toml", (0, 0))  # older than the venv's stamp: `make` never reinstalls into this venv
+    return dst
+
+
+def _script(cmds: list[str]) -> str:
+    lines = ["set -euo pipefail", "trap 'echo \"readme-test: failed: $BASH_COMMAND\" >&2' ERR"]
+    for c in cmds:
+        op, what = DIRECTIVES.get(c, ("", ""))
+        if op == "=>":
+            lines.append(f"echo {shlex.quote('readme-test: not run: ' + c + ' (' + what + ')')}")
+            continue
+        run = f"{c} {what}" if op == "+=" else c
+        lines += [f"echo {shlex.quote('$ ' + run)} >&2", run]
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.parametrize("line,cmds", BLOCKS, ids=[f"line{n}-{c[0].split(' #')[0][:40]}" if c else f"line{n}"
+                                                    for n, c in BLOCKS])
+def test_readme_bash_block_runs_as_written(clone, line, cmds, tmp_path):
+    env = {**os.environ, "PATH": f"{Path(sys.prefix) / 'bin'}{os.pathsep}{os.environ['PATH']}", "MPLBACKEND": "Agg"}
+    log = tmp_path / "out.txt"
+    t = time.perf_counter()
+    with open(log, "w") as f:  # a file, not a pipe: a command left running in the background cannot hold it open
+        proc = subprocess.Popen(["bash", "-c", _script(cmds)], cwd=clone, env=env, stdout=f, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+        try:
+            proc.wait(timeout=600)
+        finally:
+            try:  # whatever the block left running (an emulator started with &) ends with it
+                os.killpg(proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+    assert proc.returncode == 0, f"README.md line {line}: the block failed after {time.perf_counter() - t:.0f} s:\n" \
+                                 f"{log.read_text()[-4000:]}"

@@ -1,0 +1,66 @@
+"""The README's figures are what the committed results files say (`make readme-figures` fills
+them), and the filling mechanism renders, scales, formats and refuses as documented."""
+import json
+from pathlib import Path
+
+import pytest
+
+from skinsafe.core.app import readme
+from skinsafe.core.app.readme import FigureError, fill, fmt, lookup
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_readme_figures_match_the_results_files():
+    text = (ROOT / "README.md").read_text()
+    _, changed = fill(text, ROOT)
+    assert not changed, "README figures differ from results/ (run `make readme-figures`):\n" + "\n".join(changed)
+    kinds = {m[0] for m in readme.MARKER.findall(text)}
+    assert {"maze-grid", "safety-audit", "paper-results", "table", "value"} <= kinds
+
+
+def test_a_stale_figure_is_named_and_rewritten(tmp_path):
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "r.json").write_text(json.dumps({
+        "command": "skinsafe bench x", "rows": [{"n": 1024, "ms": 0.07123, "ok": True}, {"n": 16384, "ms": 1234.5}],
+        "runs": {"no modulation": {"clear": [-3.39, 8.48]}}, "wall_s": 219.4}))
+    text = ("Took <!-- fig:value results/r.json wall_s:mins -->3 min 39 s<!-- /fig -->, clearance "
+            "<!-- fig:value results/r.json \"runs.no modulation.clear.max:+.1f\" -->+42.7<!-- /fig --> mm.\n"
+            "<!-- fig:table results/r.json n,ms:.3f,ok -->\nold\n<!-- /fig -->\n"
+            "```text\n<!-- fig:value results/r.json gone -->example<!-- /fig -->\n```\n")
+    new, changed = fill(text, tmp_path)
+    assert "Took <!-- fig:value results/r.json wall_s:mins -->3 min 39 s<!-- /fig -->" in new  # unchanged: 219 s
+    assert "-->+8.5<!-- /fig --> mm" in new
+    assert "| n | ms | ok |\n| ---: | ---: | --- |\n| 1,024 | 0.071 | yes |\n| 16,384 | 1,234.500 | — |" in new
+    assert "example" in new  # markers in code blocks are examples
+    assert len(changed) == 2 and "line 1" in changed[0] and "'+42.7' -> '+8.5'" in changed[0]
+    assert fill(new, tmp_path)[1] == []
+    with pytest.raises(FigureError, match=r"line 1, fig:value results/gone.json x: results file 'results/gone.json' "
+                                          "is missing"):
+        fill("<!-- fig:value results/gone.json x -->1<!-- /fig -->", tmp_path)
+    with pytest.raises(FigureError, match="no 'nope' in 'rows.0.nope'"):
+        fill("<!-- fig:value results/r.json rows.0.nope -->1<!-- /fig -->", tmp_path)
+    with pytest.raises(FigureError, match="unknown figure 'fig:pie'"):
+        fill("<!-- fig:pie -->\n<!-- /fig -->", tmp_path)
+
+
+def test_paths_reduce_scale_and_format():
+    data = {"rows": [{"f": 1.5, "n": None}, {"f": 4.0}], "s": {"slope": 0.00083, "alpha": 0.01}}
+    assert lookup(data, "rows.f.max") == 4.0 and lookup(data, "rows.f.len") == 2
+    assert lookup(data, "s.slope*100") == pytest.approx(0.083)
+    assert lookup(data, "s.alpha*100/12") == pytest.approx(0.08333333)
+    assert [fmt(v) for v in (0.07123, 93.94, 1234.5, 21000, None, False)] == ["0.0712", "93.9", "1,234", "21,000", "—", "no"]
+    assert fmt(389.6, "mins") == "6 min 30 s" and fmt(0.978, ".0%") == "98%" and fmt("a b", "code") == "`a b`"
+
+
+def test_skinsafe_readme_check_exits_1_on_a_stale_readme(tmp_path, capsys):
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "r.json").write_text('{"v": 2.0}')
+    path = tmp_path / "README.md"
+    path.write_text("v = <!-- fig:value results/r.json v -->1<!-- /fig -->\n")
+    args = type("A", (), {"readme": str(path), "check": True})
+    assert readme.run(args) == 1 and "fig:value results/r.json v: '1' -> '2'" in capsys.readouterr().err
+    args.check = False
+    assert readme.run(args) == 0 and path.read_text() == "v = <!-- fig:value results/r.json v -->2<!-- /fig -->\n"
+    args.check = True
+    assert readme.run(args) == 0
