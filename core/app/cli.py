@@ -45,7 +45,7 @@ EXPERIMENTS = {
     "maze": ("skinsafe.core.experiments.maze", "strategy layer: safe RL in the maze (paper Fig. 9)"),
     "tracking": ("skinsafe.core.experiments.tracking", "modulation layer: UR5 tracking among balls (Fig. 11)"),
     "desk": ("skinsafe.core.experiments.scenes", "retraction toward a desk stopped by modulation (Fig. 14)"),
-    "collaboration": ("skinsafe.core.experiments.scenes", "delivering parts next to a human arm (Fig. 15)"),
+    "collaboration": ("skinsafe.core.experiments.collaboration", "a person beside a delivery: ISO/TS 15066 per contact (Fig. 15)"),
 }
 BENCHES = {
     "jacobians": ("skinsafe.core.bench.jacobians", "batched taxel Jacobians vs a per-taxel loop"),

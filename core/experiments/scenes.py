@@ -1,7 +1,5 @@
-"""`skinsafe experiment desk` (Fig. 14) and `skinsafe experiment collaboration` (Fig. 15).
-
-Both run the UR5 with the sample skin in MuJoCo, readings from `SkinReadout`, and the layers
-through `SafetyStack`.
+"""`skinsafe experiment desk` (Fig. 14): the UR5 with the sample skin in MuJoCo (`arm_scene.Scene`),
+readings from `SkinReadout`, and the layers through `SafetyStack`.
 
 - desk: a probe on a spring presses on top of the forearm with a set force; the defensiveness
   layer retracts the touched taxels along -z, i.e. down toward a desk under the arm. The
@@ -12,9 +10,8 @@ through `SafetyStack`.
   between arm and desk (min signed distance, negative = penetration) and the desk contact
   force, without modulation, with f_phi and with w_phi, at one touch over time (`runs`) and over
   a touch-force sweep (`sweep`, 10-300 N by default).
-- collaboration (`collaboration.py`): the arm delivers a part with a fast sweep while a person
-  (ISO/TS 15066 body regions, compliant) reaches into its path; contact events per body region
-  against the ISO/TS 15066 limits with each stack (none, retraction, full, full+pfl).
+
+`skinsafe experiment collaboration` (Fig. 15) is `collaboration.py`.
 """
 from __future__ import annotations
 
@@ -28,6 +25,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from skinsafe.core.experiments.arm_scene import STATE, Scene
 from skinsafe.core.safety.modulation import ModulationLayer
 from skinsafe.core.safety.potential import (
     DangerPotential,
@@ -39,77 +37,8 @@ from skinsafe.core.safety.potential import (
     single_thread_blas,
 )
 from skinsafe.core.safety.stack import SafetyStack
-from skinsafe.core.safety.tdm import TactileDangerModel, train_tdm
+from skinsafe.core.safety.tdm import TactileDangerModel
 from skinsafe.core.skin.files import atomic_write
-
-JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint")
-STATE = np.arange(4)  # modulated joints: pan, lift, elbow, wrist 1
-
-
-class Scene:
-    """UR5 + sample skin + obstacles, stepped at `control_dt` with position servos tracking a
-    velocity command."""
-
-    def __init__(self, obstacles, pitch: float = 0.01, control_dt: float = 0.01, human=None):
-        from skinsafe.core.design.sample import make_sample_design
-        from skinsafe.core.robot.kinematics import TaxelKinematics
-        from skinsafe.core.robot.models import build_ur5
-        from skinsafe.core.safety.defensiveness import DefensivenessLayer
-        from skinsafe.core.sim.readout import SkinReadout
-        from skinsafe.core.sim.scene import build_scene
-
-        self.robot = build_ur5()
-        self.design = make_sample_design("ur5", pitch=pitch, robot=self.robot)
-        obstacles = list(obstacles) + (human.obstacles() if human is not None else [])
-        spec = build_scene(self.design, self.robot, obstacles)
-        if human is not None:  # a person (core.sim.human): compliant body regions with ISO/TS 15066 stiffness
-            from skinsafe.core.sim.human import robot_collision_geoms
-            human.attach(spec, robot_collision_geoms(self.robot.model, self.robot.arm_bodies))
-        self.model = spec.compile()
-        self.human = human
-        if human is not None:
-            human.bind(self.model)
-        self.data = mujoco.MjData(self.model)
-        self.readout = SkinReadout(self.model, self.design)
-        self.kin = TaxelKinematics(self.robot.model, self.design)
-        self.qadr = np.array([self.model.jnt_qposadr[self.model.joint(j).id] for j in JOINTS])
-        self.control_dt = control_dt
-        self.substeps = max(1, int(round(control_dt / self.model.opt.timestep)))
-        self.defensiveness = lambda: DefensivenessLayer(self.kin, self.design.taxels.thresholds,
-                                                        self.robot.vel_limits, self.robot.acc_limits, dt=control_dt)
-        self.arm_geoms = [g for g in range(self.model.ngeom)
-                          if self.model.body(self.model.geom_bodyid[g]).name in self.design.bodies]
-
-    def reset(self, q0) -> None:
-        mujoco.mj_resetData(self.model, self.data)
-        self.data.qpos[self.qadr] = q0
-        self.data.ctrl[:] = q0
-        self.q_cmd = np.array(q0, float)
-        mujoco.mj_forward(self.model, self.data)
-
-    @property
-    def q(self) -> np.ndarray:
-        return self.data.qpos[self.qadr].copy()
-
-    def step(self, v: np.ndarray, lead: float = 0.2) -> np.ndarray:
-        """Command joint velocity v for one control tick; returns the peak taxel forces (N,)."""
-        q = self.q
-        self.q_cmd = np.clip(self.q_cmd + v * self.control_dt, q - lead, q + lead)
-        self.data.ctrl[:] = self.q_cmd
-        peak = np.zeros(self.design.n_taxels)
-        self.human_peak = np.zeros(len(self.human.parts) if self.human is not None else 0)
-        for _ in range(self.substeps):
-            mujoco.mj_step(self.model, self.data)
-            peak = np.maximum(peak, self.readout.read(self.data))
-            if self.human is not None:  # contact force on each body region, every physics step
-                self.human_peak = np.maximum(self.human_peak, self.human.forces(self.data))
-        return peak
-
-    def clearance(self, geom: int) -> float:
-        """Signed distance (m) between the skinned arm and a geom (negative: penetration)."""
-        fromto = np.zeros(6)
-        return min(mujoco.mj_geomDistance(self.model, self.data, g, geom, 0.5, fromto) for g in self.arm_geoms)
-
 
 # ------------------------------------------------------------------------------------------ desk
 
@@ -155,7 +84,10 @@ def desk(args) -> dict:
     park = target + np.array([0, 0, 0.3])
     obstacles = [Obstacle("desk", "box", tuple(half), pos=tuple(centre), rgba=(0.6, 0.45, 0.3, 1)),
                  Obstacle("probe", "sphere", (PROBE_R,), pos=tuple(park), mocap=True, spring=PROBE_K)]
-    sc = Scene(obstacles, args.pitch)
+    # Fig. 14 as measured: servos without the UR5's torque limits (with them a 300 N touch on the
+    # forearm overpowers the shoulder, 150 N m, and the arm yields toward the desk: -0.68 mm with the
+    # TDM's stop level in tests/experiments/test_tracking_experiment.py)
+    sc = Scene(obstacles, args.pitch, torque_limits=None)
     desk_geom, probe_geom = sc.model.geom("desk").id, sc.model.geom("probe").id
     pots, stops, by_clearance = _learn_desk(sc, desk_geom, args)
     forces = sorted(set(args.forces) | {args.touch})
@@ -237,18 +169,6 @@ def _contact_force(sc: Scene, geom: int) -> float:
     return total
 
 
-def static_contact_tdm(S: np.ndarray, A: np.ndarray, D: np.ndarray, args) -> TactileDangerModel:
-    """A TDM fitted to static contact samples (states S, actions A, per-taxel danger labels D),
-    its head biased to a 1% prior danger per taxel; `args.steps` batches of 64, `args.seed`."""
-    torch.manual_seed(args.seed)
-    tdm = TactileDangerModel(S.shape[1], A.shape[1], D.shape[1], (64, 64))
-    with torch.no_grad():
-        tdm.head.bias.fill_(float(np.log(0.01 / D.shape[1])))
-    train_tdm(tdm, S, A, D, epochs=max(1, args.steps * 64 // len(S)), lr=3e-3, batch_size=64, seed=args.seed,
-              progress=False)
-    return tdm.eval()
-
-
 def _learn_desk(sc: Scene, desk_geom: int, args):
     """The desk's potentials and their stop levels, from static contacts around DESK_Q.
 
@@ -319,7 +239,7 @@ def _learn_desk(sc: Scene, desk_geom: int, args):
 def add_arguments(p) -> None:
     p.add_argument("--out", default=None, help="output folder (default results/<scene>)")
     p.add_argument("--pitch", type=float, default=0.01, help="sample skin pitch (m)")
-    p.add_argument("--duration", type=float, default=None, help="seconds (desk 1.5; collaboration: the delivery, 1.0)")
+    p.add_argument("--duration", type=float, default=1.5, help="seconds")
     p.add_argument("--gap", type=float, default=0.1, help="desk: gap between the desk and the lowest taxel (m)")
     p.add_argument("--samples", type=int, default=3000, help="desk: static contact samples for the TDM")
     p.add_argument("--steps", type=int, default=1500, help="desk: TDM training steps (batch 64)")
@@ -330,19 +250,6 @@ def add_arguments(p) -> None:
                    help="desk: the touch-force sweep (N)")
     p.add_argument("--margin", type=float, default=0.02,
                    help="desk: the potentials' stop level is their danger this close to the desk as the skin knows it (m)")
-    p.add_argument("--source", choices=["planner", "teleoperation"], default="planner",
-                   help="collaboration: the command source the stack filters")
-    p.add_argument("--attach", type=float, default=1500.0,
-                   help="collaboration: how firmly the person holds the arm in place (N/m)")
-    p.add_argument("--stay", type=float, default=1.5, help="collaboration: seconds the person stays in the path")
-    p.add_argument("--finish", type=float, default=3.0,
-                   help="collaboration: seconds after the person has left for the robot to complete the delivery")
-    p.add_argument("--presence", type=float, default=0.5,
-                   help="collaboration: fraction of deliveries with the person at the bench (scales the learned danger)")
-    p.add_argument("--pfl-regions", nargs="+", default=None,
-                   help="collaboration: body regions the PFL cap protects (default: the person's regions)")
-    p.add_argument("--pfl-factor", type=float, default=0.8,
-                   help="collaboration: PFL cap as a fraction of v_max (margin for the servos and the sampling)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
 
@@ -351,22 +258,13 @@ def run(args) -> int:
     torch.set_num_threads(1)
     single_thread_blas()
     name = args.command_name
-    if name not in ("desk", "collaboration"):
-        raise SystemExit(f"experiment_scenes serves 'desk' and 'collaboration', not '{name}'")
-    if args.duration is None:
-        args.duration = 1.5 if name == "desk" else 1.0
+    if name != "desk":
+        raise SystemExit(f"experiment scenes serves 'desk', not '{name}' (collaboration: core.experiments.collaboration)")
     if args.duration <= 0:
         raise SystemExit(f"--duration is {args.duration}; give a positive number of seconds")
-    if name == "collaboration":
-        from skinsafe.core.experiments.collaboration import check_args
-        check_args(args)
     out_dir = Path(args.out or f"results/{name}")
     t0 = time.perf_counter()
-    if name == "desk":
-        res = desk(args)
-    else:
-        from skinsafe.core.experiments.collaboration import run_scene
-        res = run_scene(args)
+    res = desk(args)
     res["seconds"] = time.perf_counter() - t0
     atomic_write(out_dir / f"{name}.json", json.dumps(res, indent=1))
     _plot(name, res, out_dir / f"{name}.png")
@@ -383,25 +281,14 @@ def _plot(name: str, res: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    if name == "collaboration":
-        from skinsafe.core.experiments.collaboration import plot
-
-        fig = plot(res)
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=110)
-        plt.close(fig)
-        atomic_write(path, buf.getvalue())
-        return
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    key = "clearance_mm" if name == "desk" else "force_N"
     for label, r in res["runs"].items():
-        y = np.array(r[key])
+        y = np.array(r["clearance_mm"])
         ax.plot(np.arange(len(y)) * 0.01, y, label=label)
-    if name == "desk":
-        ax.axhline(0, color="k", lw=0.8)
+    ax.axhline(0, color="k", lw=0.8)
     ax.set_xlabel("time (s)")
-    ax.set_ylabel("arm-desk clearance (mm)" if name == "desk" else "total skin force (N)")
-    ax.set_title("Fig. 14: retraction toward a desk" if name == "desk" else "Fig. 15: contact with a human arm")
+    ax.set_ylabel("arm-desk clearance (mm)")
+    ax.set_title("Fig. 14: retraction toward a desk")
     ax.legend(fontsize=7)
     fig.tight_layout()
     buf = io.BytesIO()
