@@ -4,7 +4,15 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: test demo bench clean readme-figures robots
+.PHONY: test demo bench clean readme-figures robots franky-sim
+
+# franky-sim 1.0.4 (the FR3 over the libfranka protocol, MuJoCo inside) needs numpy >= 2, which bpy
+# forbids: it gets its own environment, with the numpy/numba parts of skinsafe that its world runs
+# (core/sim/franky_world.py: the skin readout and the force feed).
+FRANKY       := .venv-franky
+FRANKY_STAMP := $(FRANKY)/.installed-stamp
+FRANKY_PKGS  := franky-sim==1.0.4 mujoco==4.0.0 pin==4.1.0 numpy==2.4.6 numba==0.68.1 scipy==1.17.1 pyserial==3.5 \
+               tqdm==4.70.1 pytest==9.2.0 hypothesis==6.170.17
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -12,25 +20,43 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e ".[test]"
 	touch $(STAMP)
 
+$(FRANKY_STAMP): pyproject.toml Makefile
+	test -x $(FRANKY)/bin/python || $(PYTHON) -m venv $(FRANKY)
+	$(FRANKY)/bin/python -m pip install -q --upgrade pip
+	$(FRANKY)/bin/python -m pip install -q $(FRANKY_PKGS)
+	$(FRANKY)/bin/python -m pip install -q --no-deps -e .
+	touch $(FRANKY_STAMP)
+
+franky-sim: $(FRANKY_STAMP)
+
 # Public robot descriptions not shipped in blend_assets/robots/ (from PyPI; cached): see its README.md
 ROBOTS_STAMP := blend_assets/robots/example-robot-data/FETCHED.json
 robots: $(ROBOTS_STAMP)
 $(ROBOTS_STAMP): blend_assets/robots/fetch.py $(STAMP)
 	$(BIN)/python blend_assets/robots/fetch.py
 
-test: $(STAMP) $(ROBOTS_STAMP)
+test: $(STAMP) $(ROBOTS_STAMP) $(FRANKY_STAMP) test-numpy2
 	$(BIN)/lint-imports
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
+
+# hardware/ runs under numpy 2 too (emulated boards run in franky-sim's environment): its protocol, stream
+# and link-fault tests in franky-sim's numpy-2 environment (no bpy there: no conftest)
+.PHONY: test-numpy2
+test-numpy2: $(FRANKY_STAMP)
+	$(FRANKY)/bin/python -c "import numpy; assert numpy.__version__ >= '2', numpy.__version__"
+	$(FRANKY)/bin/python -m pytest -q --noconftest -p no:cacheprovider tests/hardware/test_hardware_protocol.py \
+		tests/hardware/test_hardware_protocol_doc.py tests/hardware/test_hardware_stream.py \
+		tests/hardware/test_hardware_link_faults.py
 
 demo: $(STAMP) $(ROBOTS_STAMP)
 	$(BIN)/skinsafe demo $(DEMO_ARGS)
 
 bench: $(STAMP) $(ROBOTS_STAMP)
-	for b in jacobians design sensing import retraction modulation safety pfl serial; do $(BIN)/skinsafe bench $$b || exit 1; done
+	for b in jacobians design sensing import retraction modulation safety pfl serial runtime; do $(BIN)/skinsafe bench $$b || exit 1; done
 
 clean:
-	rm -rf $(VENV) out build *.egg-info
+	rm -rf $(VENV) $(FRANKY) out build *.egg-info
 
 # The Blender extension zip (dist/skinsafe-<version>.zip) with the skinsafe wheel and its runtime deps.
 .PHONY: addon

@@ -11,35 +11,18 @@ time, which a loaded machine skews less); speedup_vs_loop compares with decoding
 from __future__ import annotations
 
 import tempfile
-import time
 
 import numpy as np
 
-from skinsafe.core.bench.timing import median_ms
-from skinsafe.core.skin.model import Board, Module, RobotRef, SkinDesign, Taxels, frames_from_normals
+from skinsafe.core.skin.model import SkinDesign
+from skinsafe.core.timing import cpu_median_ms, median_ms
 from skinsafe.hardware import bench_faults
 from skinsafe.hardware import protocol as P
 from skinsafe.hardware.board_config import board_configs, channel_rows, default_sensor
 from skinsafe.hardware.deploy import deploy
 from skinsafe.hardware.emulator import EmulatorProcess
+from skinsafe.hardware.flat_design import flat_design
 from skinsafe.hardware.stream import decode_frames, decode_table
-
-
-def flat_design(n_taxels: int, n_boards: int, threshold: float = 5.0, uid_base: int = 0x5C1A0000) -> SkinDesign:
-    """A design of `n_taxels` on one body, spread evenly over `n_boards` boards of exactly that many channels."""
-    per = -(-n_taxels // n_boards)
-    board = (np.arange(n_taxels) // per).astype(np.int32)
-    channel = (np.arange(n_taxels) % per).astype(np.int32)
-    rng = np.random.default_rng(0)
-    return SkinDesign(
-        RobotRef(), ["forearm_link"],
-        [Module(i, f"module{i}", "forearm_link", rows=1, cols=per, board=i) for i in range(n_boards)],
-        [Board(i, f"board{i}", uid_base + i, per) for i in range(n_boards)],
-        Taxels(ids=np.arange(n_taxels, dtype=np.int64), body=np.zeros(n_taxels, np.int32),
-               positions=rng.normal(size=(n_taxels, 3)) * 0.05,
-               frames=frames_from_normals(np.tile([0.0, 0.0, 1.0], (n_taxels, 1)), np.array([1.0, 0, 0])),
-               module=board.copy(), board=board, channel=channel, area=np.full(n_taxels, 3e-5),
-               enabled=np.ones(n_taxels, bool), thresholds={"force": np.full(n_taxels, threshold)}))
 
 
 def add_arguments(p) -> None:
@@ -90,16 +73,6 @@ def decode_loop(design: SkinDesign, wires: list[bytes], decode, n_frames: int) -
         for fr in P.FrameParser().feed(wire)[:n_frames]:
             force[rows] = decode(np.frombuffer(fr.payload, "<u2", b.capacity, P.STREAM_HEAD.size)[channels])
     return force
-
-
-def cpu_median_ms(fn, repeat: int) -> float:
-    """Median CPU time of this process for `fn()`, ms: the decode figure other processes' load does not skew."""
-    times = []
-    for _ in range(repeat):
-        t0 = time.process_time()
-        fn()
-        times.append(time.process_time() - t0)
-    return float(np.median(times) * 1e3)
 
 
 def rows(args) -> list[dict]:

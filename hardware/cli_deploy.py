@@ -59,8 +59,9 @@ def check_link_options(args) -> None:
 
 def find_ports(design: SkinDesign, args, cancel=None
                ) -> tuple[dict[int, str], list[BoardReport], list[str], list[str]]:
-    """Board id -> port for the boards found (matched by uid), reports of boards not found (with the reason;
-    --all only), notes (ports skipped, boards not in the map) and problems (given ports without a board of the map)."""
+    """Board id -> port for the boards found (matched by uid), reports of the map's boards not found (each with
+    the reason), notes (--all: ports skipped, boards not in the map) and problems (--port: given ports holding a
+    board not in the map, or no board while every board of the map was found)."""
     if not args.all and not args.port:
         raise DesignError("give --port PORT (repeatable) or --all to find the boards")
     if getattr(args, "board", None):
@@ -76,9 +77,12 @@ def find_ports(design: SkinDesign, args, cancel=None
     p = plan(design, found)
     strangers = [f"{port}: board uid {uid:#x} is not in the map; it was left alone" for uid, port in p.strangers.items()]
     skipped = [f"{port}: no board ({why})" for port, why in sorted(found.skipped.items())]
+    missing = missing_reports(design, p)  # each names the ports that gave no board, and why
     if args.all:  # other devices on the bus are fine; a board of the map that is not there is not
-        return p.ports, missing_reports(design, p), strangers + skipped, []
-    return p.ports, [], [], skipped + strangers  # a port given by hand without a board of the map is a mistake
+        return p.ports, missing, strangers + skipped, []
+    # a port given by hand without a board of the map is a mistake: named in the missing boards' lines, or
+    # on its own line when every board was found elsewhere
+    return p.ports, missing, [], strangers + ([] if missing else skipped)
 
 
 def run(args) -> int:
@@ -120,8 +124,9 @@ def report(design, reports: list[BoardReport], notes: list[str], problems: list[
     states = {s: sum(r.state == s for r in reports) for s in ("untouched", "committed", "rolled back", "unknown")}
     verb = "would deploy" if dry_run else "deployed"
     states = ", ".join(f"{k} {v}" for k, v in states.items() if v)
-    print(f"{verb} {len(reports) - len(failed)} of {len(design.boards)} boards; {len(failed)} failed or not found, "
-          f"{len(problems)} other problems" + (f"; boards {states}" if states else "")
+    print(f"{verb} {len(reports) - len(failed)} of {len(design.boards)} boards; {len(failed)} failed or not found"
+          + (f", {len(problems)} port problems (the 'problem:' lines)" if problems else "")
+          + (f"; boards {states}" if states else "")
           + (f"; interrupted by {stop.name}" if stop.requested else ""), flush=True)
     if stop.requested:
         return stop.exit_code

@@ -25,13 +25,30 @@ class BoardError(Exception):
         self.status, self.kind, self.uid = status, kind, uid  # uid: the board's, where its frames said it
 
 
+def identity_problem(info: P.Identity, board) -> str | None:
+    """Why the map's `board` (with .name, .uid, .capacity) must not be used through the board that answered
+    identify: another uid, firmware major or channel count. None if it may."""
+    if info.uid != board.uid:
+        return (f"the port holds board uid {info.uid:#x}, the map's board '{board.name}' is uid {board.uid:#x}; "
+                "connect the right board or use --all to match boards by uid")
+    if info.firmware[0] != P.FIRMWARE_MAJOR:
+        return (f"firmware {info.firmware_str} is not supported (this host needs {P.FIRMWARE_MAJOR}.x); "
+                "update the board firmware")
+    if info.n_channels != board.capacity:
+        return (f"the board has {info.n_channels} channels, the map's board '{board.name}' has capacity "
+                f"{board.capacity}; fix the board's capacity in the design or connect the right board")
+    return None
+
+
 class BoardClient:
     """One serial link to one board.
 
     `timeout` is the wait for an answer on top of the wire time of request and answer at `baud`;
     failed requests (timeout, CRC error) are re-sent up to `retries` times, sleeping
     `backoff * 2**k` seconds before the k-th retry (PROTOCOL.md "Re-sending"). `cancel` (an
-    Interrupt) stops before the next request and ends a request's re-sends.
+    Interrupt) stops before the next request and ends a request's re-sends. Once identify named the
+    board, frames of any other uid are refused (counted by uid in `foreign`); a failing link raises
+    BoardError(kind="link") naming the board and the port.
     """
 
     def __init__(self, port: str, baud: int = 1_000_000, timeout: float = 0.25, retries: int = 4,
@@ -51,6 +68,9 @@ class BoardClient:
         self.max_chunk = P.MIN_CHUNK
         self.last_uid = uid
         self.committed = False  # a commit of this client was acknowledged
+        self.info: P.Identity | None = None  # the last identify answer
+        self.foreign: collections.Counter = collections.Counter()  # uid -> frames refused from it
+        self.start_answer_lost = False  # a stream start whose answers were lost was confirmed by identify
 
     def close(self) -> None:
         self.ser.close()
@@ -67,11 +87,24 @@ class BoardClient:
         return (self.tx_bytes + self.rx_bytes) * BITS_PER_BYTE / self.baud
 
     # -- transport ---------------------------------------------------------------------------
+    def link_lost(self, e: Exception) -> BoardError:
+        """The error for a link that failed under a read, write or poll (a cable pulled, a board powered off)."""
+        who = f"board {self.uid:#x} on {self.port}" if self.uid != P.BROADCAST_UID else self.port
+        return BoardError(f"{who}: link lost ({e}); check the cable and the board's power", kind="link",
+                          uid=self.uid if self.uid != P.BROADCAST_UID else None)
+
+    def waiting(self) -> int:
+        """Bytes waiting to be read; BoardError(kind="link") when the link is gone."""
+        try:
+            return self.ser.in_waiting
+        except (serial.SerialException, OSError) as e:
+            raise self.link_lost(e) from None
+
     def _read(self) -> list[P.Frame]:
         try:
-            data = self.ser.read(self.ser.in_waiting or 1)
+            data = self.ser.read(self.waiting() or 1)
         except (serial.SerialException, OSError) as e:
-            raise BoardError(f"{self.port}: the serial link failed ({e}); check the cable and the board") from None
+            raise self.link_lost(e) from None
         self.rx_bytes += len(data)
         frames = []
         for f in self.parser.feed(data) if data else ():
@@ -79,7 +112,9 @@ class BoardClient:
                 raise BoardError(f"{self.port}: board {f.uid:#x} speaks protocol version {f.version}, this host "
                                  f"speaks {P.PROTOCOL_VERSION}; update the board firmware or skinsafe", kind="version",
                                  uid=f.uid)
-            if f.type == P.STREAM_DATA:
+            if self.uid != P.BROADCAST_UID and f.uid != self.uid:  # another board on this link: never its data
+                self.foreign[f.uid] += len(f.seqs) if isinstance(f, P.FrameRun) else 1
+            elif f.type == P.STREAM_DATA:
                 self.stream.append(f)
             else:
                 frames.append(f)
@@ -106,8 +141,7 @@ class BoardClient:
             try:
                 self.ser.write(frame)
             except (serial.SerialException, OSError) as e:
-                raise BoardError(f"{self.port}: the serial link failed ({e}); check the cable and the board",
-                                 kind="link") from None
+                raise self.link_lost(e) from None
             self.tx_bytes += len(frame)
             wire = (len(frame) + self.parser.max_payload + P.OVERHEAD) * BITS_PER_BYTE / self.baud
             deadline = time.monotonic() + self.timeout + wire
@@ -156,6 +190,10 @@ class BoardClient:
         if info.n_channels > P.MAX_CHANNELS:
             raise BoardError(f"{self.port}: board {info.uid:#x} reports {info.n_channels} channels, the protocol "
                              f"carries at most {P.MAX_CHANNELS}; update the board firmware", kind="incompatible")
+        if info.config_length > P.max_config_bytes(info.n_channels):
+            raise self._malformed(info.uid, "identify", f"bytes 49-52 (config_len) say {info.config_length}, a board "
+                                  f"of {info.n_channels} channels holds at most {P.max_config_bytes(info.n_channels)}")
+        self.info = info
         self.max_chunk = info.max_chunk
         self.parser.max_payload = P.board_max_payload(info.max_chunk, info.n_channels)
         if self.uid == P.BROADCAST_UID:
@@ -174,7 +212,11 @@ class BoardClient:
                     if nxt != min(off + step, len(data)):
                         raise BoardError(f"{self.port}: board acknowledged up to byte {nxt}, sent up to {off + step}",
                                          P.E_RANGE)
-                self.request(P.CONFIG_COMMIT, P.COMMIT_REQ.pack(digest))
+                answer = self.request(P.CONFIG_COMMIT, P.COMMIT_REQ.pack(digest), P.COMMIT_REQ.size)
+                if answer[:P.COMMIT_REQ.size] != digest:
+                    raise self._malformed(self.uid, "config-commit", f"bytes 1-32 (the committed hash) are "
+                                          f"{answer[:P.COMMIT_REQ.size].hex()[:8]}, the config sent hashes to "
+                                          f"{digest.hex()[:8]}")
                 self.committed = True
                 return
             except BoardError as e:
@@ -182,7 +224,11 @@ class BoardClient:
                     raise
 
     def read_config(self, length: int) -> bytes:
-        """The board's active config, read back from its flash in chunks."""
+        """The board's active config, read back from its flash in chunks (at most what a board of its
+        channel count can hold: a lying length cannot keep the host reading)."""
+        top = P.max_config_bytes(self.info.n_channels if self.info else P.MAX_CHANNELS)
+        if not 0 <= length <= top:
+            raise ValueError(f"config read of {length} bytes: a board holds at most {top}")
         out = bytearray()
         while len(out) < length:
             n = min(self.max_chunk, length - len(out))
@@ -200,9 +246,22 @@ class BoardClient:
         return self.request(P.CONFIG_VERIFY, size=32)[:32]
 
     def start_stream(self, rate_hz: int) -> None:
+        """Start streaming at `rate_hz`. When every answer was lost (timeout), ask the board whether it streams:
+        if so the start took effect (its answers were lost, `start_answer_lost`), else the timeout is raised."""
         if not 1 <= rate_hz <= 65535:
             raise ValueError(f"stream rate {rate_hz} Hz: the protocol carries 1..65535")
-        self.request(P.STREAM_START, P.START_REQ.pack(rate_hz))
+        try:
+            self.request(P.STREAM_START, P.START_REQ.pack(rate_hz))
+        except BoardError as e:
+            if e.kind != "timeout":
+                raise
+            try:
+                streaming = self.identify().flags & P.FLAG_STREAMING
+            except BoardError:
+                raise e from None
+            if not streaming:
+                raise
+            self.start_answer_lost = True
 
     def stop_stream(self) -> int:
         """Stop streaming; returns how many frames the board sent since the stream started."""
@@ -217,10 +276,11 @@ class BoardClient:
         self.request(P.RESET)
 
     def read_stream(self, max_wait: float = 0.01) -> list:
-        """Stream frames (Frame or FrameRun) received so far, waiting up to `max_wait` for the first bytes."""
-        if max_wait > 0 and not self.ser.in_waiting:
+        """Stream frames (Frame or FrameRun) received so far, waiting up to `max_wait` for the first bytes;
+        BoardError(kind="link") when the link is gone."""
+        if max_wait > 0 and not self.waiting():
             select.select([self.ser.fileno()], [], [], max_wait)
-        while self.ser.in_waiting:
+        while self.waiting():
             self._read()
         out = list(self.stream)
         self.stream.clear()

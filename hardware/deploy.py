@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from skinsafe.core.skin.model import Board, DesignError, SkinDesign
 from skinsafe.hardware import protocol as P
 from skinsafe.hardware.board_config import BoardConfig, board_configs, diff
-from skinsafe.hardware.client import BoardClient, BoardError
+from skinsafe.hardware.client import BoardClient, BoardError, identity_problem
 
 STATES = {  # what a board runs after the command, in words for the report
     "untouched": "no config byte was sent; the board runs what it ran before",
@@ -71,15 +71,9 @@ class BoardReport:
 
 def check_compatible(info: P.Identity, cfg: BoardConfig, board: Board, port: str) -> str | None:
     """Why this board must not get this config (None if it may): checked before any config byte is sent."""
-    if info.uid != cfg.uid:
-        return (f"{port} holds board uid {info.uid:#x}, the map's board '{board.name}' is uid {cfg.uid:#x}; "
-                "connect the right board or use --all to match boards by uid")
-    if info.firmware[0] != P.FIRMWARE_MAJOR:
-        return (f"firmware {info.firmware_str} is not supported (this host needs {P.FIRMWARE_MAJOR}.x); "
-                "update the board firmware")
-    if info.n_channels != cfg.capacity:
-        return (f"the board has {info.n_channels} channels, the map's board '{board.name}' has capacity "
-                f"{cfg.capacity}; fix the board's capacity in the design or connect the right board")
+    why = identity_problem(info, board)
+    if why:
+        return why
     if not info.capabilities & P.CAP_READBACK:
         return "the board cannot read its config back; update the board firmware"
     if info.flags & P.FLAG_STREAMING:

@@ -2,13 +2,17 @@
 
 Each board owns a pty (`os.openpty`); the host opens the slave path with pyserial like
 `/dev/ttyUSB0`. Flash is a file written atomically on commit. Faults (dropped bytes, flipped bits,
-delays, a reset in the middle of a transfer, truncated answers, a wrong firmware or protocol version)
-are injected on the emulated link, each board from its own seed. At `baud`, the board paces its link
+delays, a reset in the middle of a transfer, truncated answers, a wrong firmware or protocol version;
+and the firmware and wiring faults a host must survive: replayed older frames, frames of another
+board, lost stream-start answers, an unplugged cable, a board left streaming, a commit answer
+without its hash, a lost flash write, a lying config length) are injected on the emulated link,
+each board from its own seed. At `baud`, the board paces its link
 at 10 bits per byte (8N1), so a pty takes as long as a real UART would. `NotABoard` is a device on a
 pty that answers text, as a modem or a GPS receiver on the same USB hub would.
 """
 from __future__ import annotations
 
+import collections
 import hashlib
 import os
 import select
@@ -23,8 +27,7 @@ import numpy as np
 from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.model import DesignError
 from skinsafe.hardware import protocol as P
-from skinsafe.hardware.board_config import ENTRY, GAIN_ONE, BoardConfig, default_sensor
-from skinsafe.hardware.board_config import HEADER as CONFIG_HEADER
+from skinsafe.hardware.board_config import GAIN_ONE, BoardConfig, default_sensor
 
 BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
 
@@ -41,6 +44,17 @@ class Faults:
     resets: int = 1  # ... this many times (-1: on every transfer)
     malformed: float = 0.0  # probability an answer is cut short at a random byte (framed and CRC'd correctly)
     seed: int = 0  # the run seed; each board draws from its own stream derived from it and its uid
+    old_frames: float = 0.0  # probability a stream frame is followed by a re-send of an older one (its old counter)
+    foreign_frames: float = 0.0  # probability a stream frame is followed by one of another board (FOREIGN_BIT uid)
+    lost_start_answers: int = 0  # the first K stream-start answers are lost (the board starts all the same)
+    unplug_after: int = 0  # the cable is pulled after this many stream frames (the pty closes); 0: never
+    streaming: int = 0  # the board boots streaming at this rate, Hz (a host started it and went away); 0: idle
+    hashless_commit: bool = False  # a commit is answered "ok" without the committed config's hash
+    flash_write_lost: bool = False  # the flash write is silently lost: RAM runs the new config, flash keeps the old
+    config_len: int | None = None  # identify reports this config length; reads past the config return erased 0xFF
+
+
+FOREIGN_BIT = 1 << 40  # a foreign frame's uid: the board's own with this bit flipped
 
 
 def board_seed(run_seed: int, uid: int) -> np.random.SeedSequence:
@@ -66,7 +80,7 @@ class EmulatedBoard:
     OVERRUN_S = 0.5  # how long a full link may block a send before the rest of the frame is dropped
 
     def __init__(self, spec: BoardSpec, flash_path: str | Path, baud: int | None = None,
-                 replay: np.ndarray | None = None, encode=None):
+                 replay: np.ndarray | None = None, encode=None, feed=None):
         self.spec, self.flash_path, self.baud = spec, Path(flash_path), baud
         self.master, self.slave = os.openpty()
         tty.setraw(self.slave)
@@ -75,10 +89,17 @@ class EmulatedBoard:
         self.rng = np.random.default_rng(board_seed(spec.faults.seed, spec.uid))
         self.encode = encode or default_sensor().encode
         self.replay = replay
+        self.feed = feed  # () -> (n_channels,) forces in N, e.g. from a simulation's ForceFeed
         self.resets_left = spec.faults.resets
         self.chunks_seen = 0
         self.tx_dropped = 0
+        self.start_answers_lost = 0
+        self.sent_frames: collections.deque[bytes] = collections.deque(maxlen=16)  # for old_frames
+        self.foreign_sample = 0
+        self.closed = False
         self._boot()
+        if spec.faults.streaming:  # left streaming by an earlier host
+            self.streaming, self.rate, self.next_tick = True, spec.faults.streaming, time.monotonic()
 
     # -- state -------------------------------------------------------------------------------
     def _boot(self) -> None:
@@ -117,9 +138,11 @@ class EmulatedBoard:
     def identity(self) -> P.Identity:
         flags = (P.FLAG_STREAMING * self.streaming | P.FLAG_CONFIG_VALID * (self.config is not None)
                  | P.FLAG_PARAMS_CHANGED * self.params_changed)
+        length = self.spec.faults.config_len
         return P.Identity(self.spec.uid, self.spec.protocol, self.spec.firmware, self.spec.n_channels,
                           self.spec.max_chunk, P.CAP_FORCE | P.CAP_SET_PARAMS | P.CAP_READBACK,
-                          self.spec.max_rate_hz, flags, self.config_hash, len(self.config_bytes))
+                          self.spec.max_rate_hz, flags, self.config_hash,
+                          len(self.config_bytes) if length is None else length)
 
     # -- link --------------------------------------------------------------------------------
     def _wire(self, data: bytes) -> bytes:
@@ -168,6 +191,11 @@ class EmulatedBoard:
                 time.sleep(f.delay_s)
             if f.malformed and out and self.rng.random() < f.malformed:
                 out = out[:int(self.rng.integers(0, len(out)))]
+            if frame.type == P.CONFIG_COMMIT and f.hashless_commit and out[:1] == bytes([P.OK]):
+                out = out[:1]
+            if frame.type == P.STREAM_START and self.start_answers_lost < f.lost_start_answers:
+                self.start_answers_lost += 1
+                continue
             self.send(P.encode_frame(frame.type | P.RESPONSE, frame.seq, self.spec.uid, out, self.spec.protocol))
             if frame.type == P.RESET:
                 self.reboot()
@@ -205,7 +233,7 @@ class EmulatedBoard:
 
     def _begin(self, p: bytes) -> bytes:
         total, digest = P.BEGIN_REQ.unpack(p)
-        limit = CONFIG_HEADER.size + ENTRY.itemsize * self.spec.n_channels
+        limit = P.max_config_bytes(self.spec.n_channels)
         if total > limit:
             return P.response(P.E_RANGE, b"config of %d bytes exceeds this board's %d" % (total, limit))
         self.staging, self.staging_hash, self.next = bytearray(total), digest, 0
@@ -247,7 +275,8 @@ class EmulatedBoard:
             return P.response(P.E_CONFIG, b"config for uid %#x with %d channels; this board is %#x with %d"
                               % (cfg.uid, cfg.capacity, self.spec.uid, self.spec.n_channels))
         try:
-            atomic_write(self.flash_path, data)
+            if not self.spec.faults.flash_write_lost:
+                atomic_write(self.flash_path, data)
         except OSError as e:
             return P.response(P.E_FLASH, str(e).encode()[:P.MAX_ERROR_TEXT])
         self.config, self.config_bytes = cfg, data
@@ -262,10 +291,17 @@ class EmulatedBoard:
         return P.response(P.OK, hashlib.sha256(data).digest())
 
     def _read(self, p: bytes) -> bytes:
+        """The active config's bytes as stored in flash (not the RAM copy the board runs)."""
         offset, length = P.READ_REQ.unpack(p)
         if len(p) != P.READ_REQ.size or length > self.spec.max_chunk:
             return P.response(P.E_PARAM, b"read of %d bytes exceeds max chunk %d" % (length, self.spec.max_chunk))
-        return P.response(P.OK, P.READ_RESP.pack(offset) + self.config_bytes[offset:offset + length])
+        try:
+            flash = self.flash_path.read_bytes() if self.config is not None else b""
+        except OSError as e:
+            return P.response(P.E_FLASH, str(e).encode()[:P.MAX_ERROR_TEXT])
+        total = self.identity().config_length  # past the stored bytes, up to what identify said: erased flash
+        erased = max(0, min(offset + length, total) - max(offset, len(flash)))
+        return P.response(P.OK, P.READ_RESP.pack(offset) + flash[offset:offset + length] + b"\xff" * erased)
 
     def _start(self, p: bytes) -> bytes:
         (rate,) = P.START_REQ.unpack(p)
@@ -299,8 +335,10 @@ class EmulatedBoard:
 
     # -- streaming ---------------------------------------------------------------------------
     def forces(self, t: float) -> np.ndarray:
-        """Synthetic forces (N): a 12 N press sweeping across the channels once a second, or a replay."""
+        """Synthetic forces (N): a 12 N press sweeping across the channels once a second, a replay, or the feed."""
         n = self.spec.n_channels
+        if self.feed is not None:
+            return self.feed()
         if self.replay is not None:
             return self.replay[self.sample % len(self.replay)]
         c = np.arange(n)
@@ -317,6 +355,21 @@ class EmulatedBoard:
         self.sample += 1
         return P.encode_frame(P.STREAM_DATA, sample, self.spec.uid, head + counts.tobytes(), self.spec.protocol)
 
+    def _stream_faults(self, frame: bytes) -> list[bytes]:
+        """What goes on the wire for one stream frame: the frame, then maybe an older one again, and maybe a
+        frame of another board (every channel at full scale: a phantom press wherever it is taken for ours)."""
+        f, out = self.spec.faults, [frame]
+        if f.old_frames and len(self.sent_frames) > 1 and self.rng.random() < f.old_frames:
+            out.append(self.sent_frames[int(self.rng.integers(0, len(self.sent_frames) - 1))])
+        self.sent_frames.append(frame)
+        if f.foreign_frames and self.rng.random() < f.foreign_frames:
+            n = self.spec.n_channels
+            head = P.STREAM_HEAD.pack(0, self.foreign_sample & 0xFFFFFFFF, n, n)
+            out.append(P.encode_frame(P.STREAM_DATA, self.foreign_sample, self.spec.uid ^ FOREIGN_BIT,
+                                      head + np.full(n, 65535, "<u2").tobytes(), self.spec.protocol))
+            self.foreign_sample += 1
+        return out
+
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
             now = time.monotonic()
@@ -329,12 +382,18 @@ class EmulatedBoard:
                 if data:
                     self.receive(data)
             if self.streaming and time.monotonic() >= self.next_tick:
-                self.send(self.stream_frame())
+                for frame in self._stream_faults(self.stream_frame()):
+                    self.send(frame)
                 self.next_tick = max(self.next_tick + 1.0 / self.rate, time.monotonic() - 1.0 / self.rate)
+                if self.spec.faults.unplug_after and self.sample >= self.spec.faults.unplug_after:
+                    self.close()  # the cable is pulled: the host's end of the pty hangs up
+                    return
 
     def close(self) -> None:
-        os.close(self.master)
-        os.close(self.slave)
+        if not self.closed:
+            self.closed = True
+            os.close(self.master)
+            os.close(self.slave)
 
 
 def flash_path(flash_dir: str | Path, uid: int) -> Path:

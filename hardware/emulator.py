@@ -9,6 +9,7 @@ its stdin closing: the signal handler only records the signal, and the wake-up f
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import select
 import signal
@@ -26,6 +27,7 @@ from skinsafe.hardware.emulated_board import BoardSpec, EmulatedBoard, Faults, N
 
 __all__ = ["EmulatorProcess", "add_arguments", "flash_path", "main", "serve"]
 STOP_S = 0.5  # how long the board threads get to finish once the emulator stops
+SWITCH_S = 0.0005  # with --feed: the interpreter's thread switch interval (default 5 ms)
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--board", action="append", default=[], metavar="UID:CHANNELS[:KEY=VALUE,...]",
@@ -37,6 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--link-dir", help="also create symlinks board-UID -> pty here (for `deploy --all --glob`)")
     p.add_argument("--replay", help=".npy of forces in N to stream instead of the synthetic press: (T, channels), "
                    "or (T, taxels) in the --map's taxel order (e.g. recorded from a MuJoCo simulation)")
+    p.add_argument("--feed", metavar="NAME", help="with --map: stream each board's channels from this shared-memory "
+                   "force feed (core/skin/force_feed.py, written by a simulation) instead of the synthetic press")
     p.add_argument("--firmware", default="1.0.0", help="firmware version to report (fault: a wrong version)")
     p.add_argument("--protocol", type=int, default=P.PROTOCOL_VERSION, help="protocol version to speak")
     p.add_argument("--max-chunk", type=int, default=1024,
@@ -49,6 +53,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reset-at-chunk", type=int, default=None, help="fault: reboot when the k-th chunk arrives")
     p.add_argument("--resets", type=int, default=1, help="how often that reset happens (-1: always)")
     p.add_argument("--malformed", type=float, default=0.0, help="fault: probability an answer is cut short")
+    p.add_argument("--old-frames", type=float, default=0.0,
+                   help="fault: probability a stream frame is followed by an older one again (a replayed counter)")
+    p.add_argument("--foreign-frames", type=float, default=0.0,
+                   help="fault: probability a stream frame is followed by a frame of another board (another uid)")
+    p.add_argument("--lost-start-answers", type=int, default=0, metavar="K",
+                   help="fault: the first K stream-start answers are lost (the board starts all the same)")
+    p.add_argument("--unplug-after", type=int, default=0, metavar="FRAMES",
+                   help="fault: the cable is pulled (the pty closes) after this many stream frames")
+    p.add_argument("--streaming", type=int, default=0, metavar="HZ",
+                   help="fault: the board boots streaming at this rate, as if an earlier host had left it so")
+    p.add_argument("--hashless-commit", type=int, default=0, choices=[0, 1],
+                   help="fault: a commit is answered ok without the committed config's hash")
+    p.add_argument("--flash-write-lost", type=int, default=0, choices=[0, 1],
+                   help="fault: flash writes are silently lost (the board runs the new config from RAM)")
+    p.add_argument("--config-len", type=int, default=None,
+                   help="fault: identify reports this config length (reads past the config return erased 0xFF)")
     p.add_argument("--not-a-board", type=int, default=0, metavar="N",
                    help="also open N devices that answer text, not frames (link names other-K)")
     p.add_argument("--seed", type=int, default=0, help="run seed; each board's fault seed is derived from it and its uid")
@@ -56,7 +76,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 OVERRIDES = {"drop": float, "flip": float, "delay": float, "delay_p": float, "reset_at_chunk": int, "resets": int,
-             "malformed": float, "firmware": str, "protocol": int, "max_chunk": int, "max_rate_hz": int}
+             "malformed": float, "firmware": str, "protocol": int, "max_chunk": int, "max_rate_hz": int,
+             "old_frames": float, "foreign_frames": float, "lost_start_answers": int, "unplug_after": int,
+             "streaming": int, "hashless_commit": int, "flash_write_lost": int, "config_len": int}
 
 
 def _firmware(text: str) -> tuple[int, int, int]:
@@ -71,7 +93,7 @@ def _firmware(text: str) -> tuple[int, int, int]:
 
 def _spec(uid: int, n: int, opts: dict, where: str) -> BoardSpec:
     """A board's spec from the run's options with its own overrides; checked before any pty opens."""
-    for k in ("drop", "flip", "delay_p", "malformed"):
+    for k in ("drop", "flip", "delay_p", "malformed", "old_frames", "foreign_frames"):
         if not 0.0 <= opts[k] <= 1.0:
             raise SystemExit(f"{where}: {k.replace('_', '-')} {opts[k]} is a probability; give 0..1")
     if not P.MIN_CHUNK <= opts["max_chunk"] <= P.MAX_CHUNK:
@@ -79,10 +101,17 @@ def _spec(uid: int, n: int, opts: dict, where: str) -> BoardSpec:
                          "(the protocol minimum and what a frame can carry)")
     if not 1 <= n <= P.MAX_CHANNELS:
         raise SystemExit(f"{where}: {n} channels; a board has 1..{P.MAX_CHANNELS}")
-    if opts["delay"] < 0:
-        raise SystemExit(f"{where}: delay {opts['delay']} s is negative")
+    for k in ("delay", "lost_start_answers", "unplug_after", "streaming"):
+        if opts[k] < 0:
+            raise SystemExit(f"{where}: {k.replace('_', '-')} {opts[k]} is negative")
+    if opts["streaming"] > opts["max_rate_hz"]:
+        raise SystemExit(f"{where}: streaming at {opts['streaming']} Hz exceeds the board's max rate {opts['max_rate_hz']}")
+    if opts["config_len"] is not None and not 0 <= opts["config_len"] < 2 ** 32:
+        raise SystemExit(f"{where}: config length {opts['config_len']} does not fit the 32-bit field")
     faults = Faults(opts["drop"], opts["flip"], opts["delay"], opts["delay_p"], opts["reset_at_chunk"], opts["resets"],
-                    opts["malformed"], opts["seed"])
+                    opts["malformed"], opts["seed"], opts["old_frames"], opts["foreign_frames"],
+                    opts["lost_start_answers"], opts["unplug_after"], opts["streaming"], bool(opts["hashless_commit"]),
+                    bool(opts["flash_write_lost"]), opts["config_len"])
     return BoardSpec(uid, n, _firmware(opts["firmware"]), opts["protocol"], opts["max_chunk"],
                      opts["max_rate_hz"], faults=faults)
 
@@ -130,6 +159,39 @@ def board_replay(forces: np.ndarray, spec: BoardSpec, board, design) -> np.ndarr
                      f"channels{taxels}")
 
 
+def board_feed(feed, board, design, n_channels: int):
+    """() -> (n_channels,) forces of `board`'s channels, read from the shared-memory `feed` (taxel order)."""
+    rows = channel_rows(design, board)
+    channels = design.taxels.channel[rows].astype(np.intp)
+    out = np.zeros(n_channels)
+
+    def forces() -> np.ndarray:
+        out[channels] = feed.read(rows)[2]
+        return out
+    return forces
+
+
+def _open_feed(args, design):
+    if not args.feed:
+        return None
+    from skinsafe.core.skin.force_feed import FeedError, ForceFeed
+    if design is None:
+        raise SystemExit("--feed needs --map: the feed holds forces in the map's taxel order")
+    if args.replay:
+        raise SystemExit("give --feed or --replay, not both")
+    try:
+        feed = ForceFeed.attach(args.feed)
+    except FeedError as e:
+        raise SystemExit(f"--feed: {e}") from None
+    if feed.n != design.n_taxels:
+        feed.close()
+        raise SystemExit(f"--feed {args.feed} holds {feed.n} taxels, the map {design.n_taxels}; feed it from the "
+                         "simulation of this map")
+    sys.setswitchinterval(SWITCH_S)  # a simulation's boards stream in real time: no thread waits 5 ms for the GIL
+    gc.freeze()  # ... nor for a collector pass over every object imported so far
+    return feed
+
+
 def serve(args, out=sys.stdout) -> int:
     """Start the boards, print `board UID PORT` lines and `ready`, run until SIGTERM/SIGINT (or stdin EOF)."""
     signals: list[int] = []
@@ -140,8 +202,11 @@ def serve(args, out=sys.stdout) -> int:
     old = {s: signal.signal(s, lambda signum, _f: signals.append(signum)) for s in (signal.SIGTERM, signal.SIGINT)}
     specs, design = _specs(args)
     replay = np.load(args.replay) if args.replay else None
+    feed = _open_feed(args, design)
     boards = [EmulatedBoard(s, flash_path(args.flash_dir, s.uid), args.baud,
-                            None if replay is None else board_replay(replay, s, b, design)) for s, b in specs]
+                            None if replay is None else board_replay(replay, s, b, design),
+                            feed=None if feed is None or b is None else board_feed(feed, b, design, s.n_channels))
+              for s, b in specs]
     others = [NotABoard() for _ in range(args.not_a_board)]
     links = []
     if args.link_dir:
@@ -176,7 +241,9 @@ def serve(args, out=sys.stdout) -> int:
         link.unlink(missing_ok=True)
     for d, t in zip(boards + others, threads):
         if not t.is_alive():  # a thread still in a fault's delay keeps its fds; the process exit closes them
-            d.close()
+            d.close()  # (an unplugged board closed its own)
+    if feed is not None and not any(t.is_alive() for t in threads):
+        feed.close()
     signal.set_wakeup_fd(old_fd)
     for s, h in old.items():
         signal.signal(s, h)

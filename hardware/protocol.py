@@ -90,6 +90,14 @@ def host_max_payload(max_chunk: int, n_channels: int) -> int:
     return max(MAX_SHORT_PAYLOAD, CHUNK_REQ.size + max_chunk, PARAMS_REQ.size + 4 * n_channels)
 
 
+CONFIG_HEADER_BYTES, CONFIG_ENTRY_BYTES = 24, 12  # the board config's layout (PROTOCOL.md "Board config")
+
+
+def max_config_bytes(n_channels: int) -> int:
+    """The largest config a board of `n_channels` holds: the header and one entry per channel."""
+    return CONFIG_HEADER_BYTES + CONFIG_ENTRY_BYTES * n_channels
+
+
 def stream_frame_bytes(n_channels: int) -> int:
     """Bytes on the wire of one stream frame of a board with `n_channels`."""
     return OVERHEAD + STREAM_HEAD.size + 2 * n_channels

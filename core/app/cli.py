@@ -8,12 +8,21 @@ also writes them with the command line and the machine (results/bench/NAME.json:
 """
 from __future__ import annotations
 
-import argparse
-import importlib
-import json
-import signal
 import sys
-import warnings
+
+
+def _interrupted(kind, value, tb, default=sys.excepthook) -> None:
+    """Ctrl-C while this module still loads (before main's handler is in place): one line, no traceback."""
+    if issubclass(kind, KeyboardInterrupt):
+        print("skinsafe: interrupted", file=sys.stderr)
+    else:
+        default(kind, value, tb)
+
+
+if sys.argv and sys.argv[0].endswith("skinsafe"):  # the `skinsafe` command, not a program importing this module
+    sys.excepthook = _interrupted
+
+import signal  # noqa: E402  (after the hook: nothing else loads before main installs its Ctrl-C handler)
 
 COMMANDS = {
     "demo": ("skinsafe.core.app.demo", "run the whole product on the bundled sample scene and write a report"),
@@ -25,6 +34,9 @@ COMMANDS = {
     "deploy": ("skinsafe.hardware.cli_deploy", "push a taxel map to the interface boards over serial and verify it"),
     "stream": ("skinsafe.hardware.cli_stream", "stream readings from the boards, mapped to taxels"),
     "emulate": ("skinsafe.hardware.cli_emulate", "run a board emulator on a pseudo-terminal"),
+    "run": ("skinsafe.core.app.run", "the safety runtime: boards -> the three layers -> a robot (sim or FR3), with watchdogs"),
+    "view": ("skinsafe.core.app.view", "see a run live (`run --view` stream) or a record in the browser"),
+    "replay": ("skinsafe.core.app.replay", "re-run the layers on a `run --record` MCAP and compare the commands"),
     "pfl": ("skinsafe.core.app.pfl", "ISO/TS 15066: effective mass and safe approach speed per taxel, at a pose or along a trajectory"),
     "trade": ("skinsafe.core.app.trade", "sweep speed-vs-accuracy knobs (Ray) and plot the Pareto front"),
     "readme": ("skinsafe.core.app.readme", "fill the README's figures from the results files (make readme-figures)"),
@@ -33,7 +45,7 @@ EXPERIMENTS = {
     "maze": ("skinsafe.core.experiments.maze", "strategy layer: safe RL in the maze (paper Fig. 9)"),
     "tracking": ("skinsafe.core.experiments.tracking", "modulation layer: UR5 tracking among balls (Fig. 11)"),
     "desk": ("skinsafe.core.experiments.scenes", "retraction toward a desk stopped by modulation (Fig. 14)"),
-    "collaboration": ("skinsafe.core.experiments.scenes", "delivering parts next to a human arm (Fig. 15)"),
+    "collaboration": ("skinsafe.core.experiments.collaboration", "a person beside a delivery: ISO/TS 15066 per contact (Fig. 15)"),
 }
 BENCHES = {
     "jacobians": ("skinsafe.core.bench.jacobians", "batched taxel Jacobians vs a per-taxel loop"),
@@ -45,10 +57,14 @@ BENCHES = {
     "pfl": ("skinsafe.core.bench.pfl", "the ISO/TS 15066 speed cap tick vs a per-taxel loop"),
     "safety": ("skinsafe.core.bench.safety", "correctness audit: no-push, limits, fail-safe on random contact sets"),
     "serial": ("skinsafe.hardware.bench_serial", "deploy and stream decoding over a pseudo-terminal"),
+    "runtime": ("skinsafe.core.bench.runtime", "skinsafe run closed-loop: loop rate, latency, reaction, faults"),
+    "viewers": ("skinsafe.core.app.view_bench", "the live view in headless Chromium: viser vs Rerun at 16,384 taxels"),
 }
 
 
 def _load(module: str, what: str):
+    import importlib
+
     try:
         return importlib.import_module(module)
     except ModuleNotFoundError as e:
@@ -60,6 +76,8 @@ def _load(module: str, what: str):
 def print_rows(rows: list[dict], as_json: bool) -> None:
     """A benchmark's rows as a JSON list or an aligned table."""
     if as_json:
+        import json
+
         print(json.dumps(rows))
         return
     if not rows:
@@ -75,6 +93,7 @@ def print_rows(rows: list[dict], as_json: bool) -> None:
 
 def save_rows(path: str, rows: list[dict], command: str) -> None:
     """A benchmark's rows as a results file: the rows, the command that made them, when and under what load."""
+    import json
     import os
     import platform
     import time
@@ -92,7 +111,9 @@ def _fmt(v) -> str:
     return str(v)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser():
+    import argparse
+
     p = argparse.ArgumentParser(prog="skinsafe", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for name, (_, helptext) in COMMANDS.items():
@@ -150,8 +171,10 @@ def _main(argv: list[str] | None) -> int:
     return 2
 
 
-def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False) -> argparse.Namespace:
+def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False):
     """Parse `argv` with the module's own arguments (the demo uses this to run commands in-process)."""
+    import argparse
+
     p = argparse.ArgumentParser(prog=prog, description=helptext)
     if bench:
         p.add_argument("--json", action="store_true", help="print one JSON list of flat rows")
@@ -164,6 +187,8 @@ def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench
 
 
 def _run_module(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False) -> int:
+    import warnings
+
     from skinsafe.core.skin.model import DesignError  # here: the CLI starts (and takes Ctrl-C) before numpy loads
 
     args = module_args(mod, prog, helptext, argv, name, bench)

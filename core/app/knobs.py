@@ -124,10 +124,10 @@ def density_point(pitch: float, quick: bool, where: str | None = None) -> dict:
     taxels' Jacobians, once per control tick."""
     import mujoco
 
-    from skinsafe.core.bench.timing import median_ms
     from skinsafe.core.robot.kinematics import TaxelKinematics
     from skinsafe.core.sim.readout import SkinReadout
     from skinsafe.core.sim.scene import Obstacle, SceneOptions, build_scene
+    from skinsafe.core.timing import median_ms
 
     if where is None:
         robot, design = skin_of(None, pitch)
@@ -224,8 +224,8 @@ SENSING_VALUES = ("touch", "linear R=2p", "linear R=1p", "linear R=0.5p", "neare
 def sensing_point(value: str, quick: bool, where: str | None = None) -> dict:
     """Per-taxel MuJoCo touch sensors (the reference) or the vectorised readout with a kernel and
     footprint radius in units of the pitch p, on the same sliding-probe simulation."""
-    from skinsafe.core.bench.timing import median_ms
     from skinsafe.core.sim.readout import SkinReadout, TouchReadout
+    from skinsafe.core.timing import median_ms
 
     robot, design = skin_of(where, 0.02 if quick else 0.01)
     pitch = map_pitch(where) if where is not None else (0.02 if quick else 0.01)
@@ -253,9 +253,9 @@ def nstep_point(samples: int, quick: bool, where: str | None = None) -> dict:
     the field has contrast). `w_spread`: the standard deviation of w over the states."""
     import torch
 
-    from skinsafe.core.bench.timing import median_ms
     from skinsafe.core.safety.potential import DangerPotential, EulerDynamics, NStepConfig, UniformPolicy, nstep_targets
     from skinsafe.core.safety.tdm import TactileDangerModel
+    from skinsafe.core.timing import median_ms
 
     torch.set_num_threads(1)
     torch.manual_seed(0)
@@ -302,8 +302,8 @@ def damping_point(damping: float, quick: bool, where: str | None = None) -> dict
     q[2] = ELBOW
     i = stretching_taxel(kin, design, q)
     params = RetractionParams(damping=float(damping))
-    layer = DefensivenessLayer(kin, design.taxels.thresholds, 1e6, 1e9, params)
     dt = 0.002
+    layer = DefensivenessLayer(kin, design.taxels.thresholds, 1e6, 1e9, params, dt)
     force = np.zeros(design.n_taxels)
     force[i] = 20.0
     zero = np.zeros_like(force)

@@ -10,13 +10,13 @@ import time
 import numpy as np
 from tqdm import tqdm
 
-from skinsafe.core.bench.timing import median_ms
 from skinsafe.core.design.placement import build_design, place_module, replace_module, tile_bodies
 from skinsafe.core.design.sample import sample_bodies
 from skinsafe.core.design.surface import body_surfaces
 from skinsafe.core.robot.kinematics import TaxelKinematics, retractability
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.skin.model import Module, RobotRef
+from skinsafe.core.timing import median_ms
 
 TEMPLATE = Module(id=0, name="fpc16", body="", rows=16, cols=16, pitch=0.004, taxel_diameter=0.0024, margin=0.0008,
                   min_bend_radius=0.01)

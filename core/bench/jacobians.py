@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from skinsafe.core.bench.timing import median_ms
 from skinsafe.core.design.sample import design_with
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.robot.models import build_ur5
+from skinsafe.core.timing import median_ms
 
 
 def add_arguments(p) -> None:

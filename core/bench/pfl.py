@@ -12,8 +12,8 @@ import time
 import mujoco
 import numpy as np
 
-from skinsafe.core.bench.timing import median_ms
 from skinsafe.core.safety.pfl import PFLCap, region
+from skinsafe.core.timing import median_ms
 
 
 def add_arguments(p) -> None:

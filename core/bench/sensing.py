@@ -37,11 +37,11 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
-from skinsafe.core.bench.timing import interleaved_ms, median_ms
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.models import build_ur5, mesh_ur5
 from skinsafe.core.sim.probes import BASE_PITCH, Probes, design_for, probe_scene
 from skinsafe.core.sim.readout import SkinReadout, TactileReadout, TouchReadout
+from skinsafe.core.timing import interleaved_ms, median_ms
 
 
 def _medians(fns: dict[str, Callable[[], object]], repeat: int) -> dict[str, float]:

@@ -115,15 +115,17 @@ class SkinReadout:
         take = active[:, None] & (k < rows[:, None])
         return np.where(take, data.efc_force[np.where(take, adr[:, None] + k, 0)], 0.0).sum(axis=1)
 
-    def read(self, data: mujoco.MjData) -> np.ndarray:
-        """The taxels' normal forces as a new (N,) array."""
-        return self.update(data).copy()
+    def read(self, data: mujoco.MjData, warm: bool = False) -> np.ndarray:
+        """The taxels' normal forces as a new (N,) array (`warm`: see `update`)."""
+        return self.update(data, warm).copy()
 
-    def update(self, data: mujoco.MjData) -> np.ndarray:
-        """The taxels' normal forces in `self.forces` (overwritten by the next update)."""
+    def update(self, data: mujoco.MjData, warm: bool = False) -> np.ndarray:
+        """The taxels' normal forces in `self.forces` (overwritten by the next update); `warm=True` runs the
+        compiled pass even without contacts, so numba compiles it now (seconds) rather than at a real-time
+        loop's first contact."""
         if data is not self._data:  # body poses live in MjData's fixed buffer: one view per MjData
             self._data, self._xpos, self._xmat = data, data.xpos, data.xmat
-        if data.ncon == 0 and self._state[self.n] == 0:
+        if data.ncon == 0 and self._state[self.n] == 0 and not warm:
             self._missed = 0
             return self.forces
         con = data.contact

@@ -12,9 +12,9 @@ import pytest
 
 from skinsafe.core.app.cli import main
 from skinsafe.core.skin.taxel_map import save
-from skinsafe.hardware.bench_serial import flat_design
 from skinsafe.hardware.board_config import board_configs
 from skinsafe.hardware.emulator import flash_path
+from skinsafe.hardware.flat_design import flat_design
 
 SKINSAFE = str(Path(sys.executable).with_name("skinsafe"))
 
@@ -76,7 +76,9 @@ def test_deploy_cli_errors(tmp_path, capsys):
     assert "give --port PORT" in capsys.readouterr().err
     assert main(["deploy", str(tmp_path / "skin.json"), "--port", str(tmp_path / "nope")]) == 1
     out = capsys.readouterr().out
-    assert "nope: no board (link: " in out and "cannot open the serial port" in out and "1 other problems" in out
+    # the map's board gets its line, naming the port and why (issue 26: "1 other problems" and no board named)
+    assert "board 0 'board0' uid 0x5c1a0000: missing [untouched]: not found; 1 of 1 ports gave no board: " in out
+    assert "nope (link: " in out and "cannot open the serial port" in out and "other problems" not in out
     assert main(["deploy", str(tmp_path / "skin.json"), "--all", "--no-system-ports", "--glob", str(tmp_path / "x*")]) == 1
     out = capsys.readouterr().out
     assert "board 0 'board0' uid 0x5c1a0000: missing [untouched]: no serial port to probe" in out
@@ -99,11 +101,17 @@ def test_bench_serial_rows(capsys):
 
 def test_bench_serial_fault_storm_rows(capsys):
     assert main(["bench", "serial", "--faults", "--json", "--rounds", "2", "--boards-per-round", "6",
-                 "--kills", "2", "--seed", "3"]) == 0
+                 "--kills", "2", "--early-interrupts", "3", "--seed", "3"]) == 0
     (row,) = json.loads(capsys.readouterr().out)
     assert row["board_deploys"] == 12 and row["emulator_kills"] >= 2
-    assert sum(row[k] for k in ("updated", "unchanged", "refused", "failed", "cancelled", "missing")) == 12
+    assert sum(row[k] for k in ("updated", "unchanged", "refused", "failed", "cancelled", "missing",
+                                "would-update")) == 12
+    assert row["stream_runs"] == 1 and row["early_interrupts"] == 3
     for k in ("mixed_configs", "wrong_states", "tracebacks", "bad_exit_codes", "boards_without_report",
-              "not_found_without_reason", "emulator_hangs"):
+              "not_found_without_reason", "emulator_hangs", "updated_not_in_flash", "hashless_commits_accepted",
+              "lying_config_len_accepted", "dry_run_writes", "hung_commands", "left_streaming", "link_lost_unnamed",
+              "replays_counted_as_lost", "replays_unnamed", "foreign_accepted", "start_answer_lost_failed",
+              "incompatible_streamed", "stream_tracebacks", "stream_bad_exit_codes", "early_interrupt_tracebacks",
+              "early_interrupt_bad_exit"):
         assert row[k] == 0, k
     assert row["not_found"] == row["missing"] and 0 < row["emulator_kill_max_s"] < 5

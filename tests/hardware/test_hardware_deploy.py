@@ -7,10 +7,10 @@ import pytest
 from skinsafe.core.sim.sensor_model import FSRModel
 from skinsafe.core.skin.model import DesignError
 from skinsafe.hardware import protocol as P
-from skinsafe.hardware.bench_serial import flat_design
 from skinsafe.hardware.board_config import BoardConfig, board_config, board_configs, diff
 from skinsafe.hardware.deploy import candidate_ports, deploy, deploy_board, discover, plan
 from skinsafe.hardware.emulator import EmulatorProcess, flash_path
+from skinsafe.hardware.flat_design import flat_design
 
 
 def _sha(path):

@@ -70,6 +70,9 @@ def test_frame_and_stream_layouts_match_the_structs():
     assert sum(s for _, s in _layout(stream)) == P.STREAM_HEAD.size
     assert sum(s for _, s in _layout(config)) == C.HEADER.size and "12m" in config[-1][1]
     assert C.ENTRY.itemsize == 12 and "Entry (12 bytes)" in DOC
+    # the config length bound of identify: the header and an entry per channel, as the layout says
+    assert (P.CONFIG_HEADER_BYTES, P.CONFIG_ENTRY_BYTES) == (C.HEADER.size, C.ENTRY.itemsize)
+    assert f"`{C.HEADER.size} + {C.ENTRY.itemsize} n_channels`" in DOC and P.max_config_bytes(3) == 24 + 36
 
 
 def test_prose_figures_follow_from_the_code(tmp_path):
@@ -88,6 +91,9 @@ def test_prose_figures_follow_from_the_code(tmp_path):
     finally:
         board.close()
     assert "`min(65535, (raw * gain) >> 8)`" in DOC
+    # the replay bound's slack on the board's clock
+    from skinsafe.hardware.stream import CLOCK_SLACK
+    assert f"with {round((CLOCK_SLACK[0] - 1) * 100)}% and {round(CLOCK_SLACK[1] * 1000)} ms of slack" in DOC
     # the two CRC check values
     import zlib
     assert f"`0x{P.crc16(b'123456789'):04X}`" in DOC and f"`0x{zlib.crc32(b'123456789'):08X}`" in DOC

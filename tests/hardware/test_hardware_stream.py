@@ -7,11 +7,12 @@ import pytest
 from skinsafe.core.safety.events import danger_events
 from skinsafe.core.sim.sensor_model import FSRModel
 from skinsafe.hardware import protocol as P
-from skinsafe.hardware.bench_serial import decode_all, decode_loop, flat_design, stream_bytes
+from skinsafe.hardware.bench_serial import decode_all, decode_loop, stream_bytes
 from skinsafe.hardware.board_config import channel_rows
 from skinsafe.hardware.client import BoardClient, BoardError
 from skinsafe.hardware.deploy import deploy
 from skinsafe.hardware.emulator import EmulatorProcess
+from skinsafe.hardware.flat_design import flat_design
 from skinsafe.hardware.stream import SkinStream, decode_frames, decode_table
 
 THRESHOLD = 5.0

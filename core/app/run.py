@@ -1,0 +1,398 @@
+"""`skinsafe run MAP --robot sim|fr3 --boards emulate|PORT... --command SOURCE`: the safety runtime.
+
+Wires the pieces (only `app` may): the robot driver (`sim`: core/sim/robot_driver.py, in-process
+MuJoCo whose contacts feed the emulated boards; `fr3`: hardware/franka.py), the boards (`emulate`:
+one emulator process per run on pseudo-terminals, fed by the simulation and deployed with MAP
+first; or the serial ports of real boards), the pre-flight and readings source
+(hardware/skin_source.py), the stack, the command source and the recorder, then hands the loop
+(core/runtime/loop.py) to the driver. Ctrl-C (or SIGTERM) stops the robot first, then reports.
+
+Exit codes: 0 the run ended as planned (--seconds, the trajectory's end) and the robot stopped;
+1 a watchdog or the driver stopped the robot (the reason is named); 2 bad input; 3 the pre-flight
+refused (the robot never moved); 130 Ctrl-C; 143 SIGTERM.
+"""
+from __future__ import annotations
+
+import contextlib
+import gc
+import hashlib
+import importlib
+import json
+import math
+import os
+import signal
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from skinsafe.core.runtime.commands import CommandError, Trajectory, command_source
+from skinsafe.core.runtime.layers import build_stack, run_config
+from skinsafe.core.runtime.loop import Runtime, warm_up
+from skinsafe.core.runtime.tap import Tap
+from skinsafe.core.runtime.view_stream import DEFAULT_PORT
+from skinsafe.core.safety.retraction import RetractionParams
+from skinsafe.core.skin.files import atomic_write
+from skinsafe.core.skin.model import DesignError
+
+RT_PRIORITY = 10
+SWITCH_S = 0.0005  # the interpreter's thread switch interval while the robot moves (default 5 ms)
+EXIT_CODES = {0: "ran as planned, robot stopped", 1: "a watchdog or the driver stopped the robot (named)",
+              2: "bad input", 3: "pre-flight refused (the robot never moved)", 130: "Ctrl-C", 143: "SIGTERM"}
+
+
+def add_arguments(p) -> None:
+    p.add_argument("map", help="taxel map (JSON) of the skin the boards run")
+    p.add_argument("--robot", choices=("sim", "fr3"), default="sim", help="sim: MuJoCo in this process (default); "
+                   "fr3: a Franka FR3 over libfranka (hardware/franka.py)")
+    p.add_argument("--host", help="fr3: the robot's (or franky-sim's) address")
+    p.add_argument("--boards", nargs="+", required=True, metavar="emulate|PORT",
+                   help="'emulate': emulated boards fed by the simulation; or the serial port of every board")
+    p.add_argument("--command", required=True, metavar="SOURCE", help="hold | trajectory:FILE.csv | teleop:[HOST:]PORT")
+    p.add_argument("--seconds", type=float, help="stop after this long on the robot's clock (default: a trajectory's "
+                   "end plus 1 s; otherwise until Ctrl-C)")
+    p.add_argument("--record", metavar="FILE.mcap", help="record the run (MCAP, ROS 2 messages); `skinsafe replay` re-runs it")
+    p.add_argument("--rate", type=int, default=100, help="frames per second per board (default 100: a board is "
+                   "silent after 20 ms)")
+    p.add_argument("--realtime", choices=("auto", "off"), default="auto",
+                   help="auto: run the loop, the skin reader and the emulated boards at real-time priority "
+                        "(SCHED_FIFO 10) where the system allows it, as libfranka does (default)")
+    p.add_argument("--baud", type=int, default=1_000_000, help="board link speed (real boards)")
+    p.add_argument("--tare-frames", type=int, default=100, help="frames per board for the tare and health checks")
+    p.add_argument("--noise-fraction", type=float, default=0.25,
+                   help="a taxel whose reading spreads more than this fraction of its threshold at rest is noisy")
+    p.add_argument("--max-excluded", type=float, default=0.02,
+                   help="refuse to move when more than this fraction of the taxels is dead, stuck or noisy")
+    p.add_argument("--command-timeout", type=float, default=0.1, help="teleop: stop when no datagram came for this long, s")
+    p.add_argument("--tdm", help="a TDM checkpoint (skinsafe's torch format) for the strategy and modulation layers")
+    p.add_argument("--alpha", type=float, default=RetractionParams.alpha, help="retraction sensitivity, m/N")
+    sim = p.add_argument_group("sim robot")
+    sim.add_argument("--period", type=float, default=0.002, help="the sim's control period, s (default 0.002: 500 Hz)")
+    sim.add_argument("--contact", default="none", metavar="poke|post[:KEY=VALUE,...]|none",
+                     help="something in the sim's world to touch: poke (a sprung probe jabs the most upward taxel at "
+                          "t=at s) or post (a sprung post in front of the taxel that rotating `joint` sweeps into it); "
+                          "keys: at, taxel, joint, gap, depth, speed, stiffness")
+    sim.add_argument("--taxel-fault", action="append", default=[], metavar="stuck|noisy:TAXEL",
+                     help="a faulty sensor in the sim's skin (the pre-flight must find it); repeatable")
+    sim.add_argument("--inject", action="append", default=[], metavar="FAULT@SECONDS[:BOARD]",
+                     help="fault injection for tests and `bench runtime --faults`: board-unplug, frame-delay (50 ms or 3 "
+                          "frame periods, the longer), "
+                          "frame-replay, foreign-uid, crc-storm (on the emulated boards' links), sim-freeze, sim-die")
+    p.add_argument("--feed", metavar="NAME", help="with --boards emulate: the emulated boards stream this existing "
+                   "shared-memory feed of simulated contacts (e.g. franky-sim's world, `feed NAME`; default: a fresh "
+                   "one the sim driver writes)")
+    p.add_argument("--view", action="store_true", help="see the run live: publish a view stream (Blender's add-on "
+                   "attaches to it) and serve the web page (`skinsafe view`, its own process) at --view-port")
+    p.add_argument("--view-port", type=int, default=8080, help="--view: the web page's port (0: no page, stream only)")
+    p.add_argument("--view-stream", default=f"127.0.0.1:{DEFAULT_PORT}", metavar="[HOST:]PORT",
+                   help="--view: where the view stream is published (port 0: any free one)")
+    p.add_argument("--stats", metavar="FILE.json", help="write the run's figures (loop, latency, world, stop) as JSON")
+    p.epilog = "exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items())
+
+
+def _realtime(mode: str) -> str:
+    """Real-time priority for this process and what it starts (threads, the emulator), where allowed."""
+    if mode == "off" or not hasattr(os, "sched_setscheduler"):
+        return "normal priority"
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RT_PRIORITY))
+    except (PermissionError, OSError):
+        return "normal priority (real-time not allowed here)"
+    return f"real-time priority SCHED_FIFO {RT_PRIORITY}"
+
+
+def _contact(text: str):
+    from skinsafe.core.sim.robot_driver import Contact
+
+    if text == "none":
+        return None
+    kind, _, rest = text.partition(":")
+    kw = {}
+    try:
+        for item in filter(None, rest.split(",")):
+            k, v = item.split("=")
+            kw[k] = int(v) if k in ("taxel", "joint") else float(v)
+        return Contact(kind, **kw)
+    except (ValueError, TypeError) as e:
+        raise DesignError(f"--contact {text!r}: {e}; e.g. poke, post:joint=0,gap=0.01 or poke:at=1.0") from None
+
+
+def _check(args) -> None:
+    if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
+        raise DesignError(f"--seconds {args.seconds}: give a positive duration")
+    if not 1 <= args.rate <= 65535:
+        raise DesignError(f"--rate {args.rate}: give frames per second per board, 1..65535")
+    if args.tare_frames < 2:
+        raise DesignError(f"--tare-frames {args.tare_frames}: give at least 2")
+    if not (0 <= args.max_excluded < 1) or not args.noise_fraction > 0:
+        raise DesignError("--max-excluded must be in [0, 1) and --noise-fraction positive")
+    if args.boards != ["emulate"] and "emulate" in args.boards:
+        raise DesignError("--boards: give 'emulate' alone or serial ports")
+    if args.robot == "sim" and args.host:
+        raise DesignError("--host is for --robot fr3")
+    sim_only = [o for o, v in (("--contact", args.contact != "none"), ("--taxel-fault", args.taxel_fault),
+                               ("--inject sim-*", any(i.startswith("sim-") for i in args.inject))) if v]
+    if args.robot != "sim" and sim_only:
+        raise DesignError(f"{', '.join(sim_only)}: for --robot sim only")
+
+
+def _taxel_faults(items: list[str]) -> dict[int, str]:
+    out = {}
+    for item in items:
+        kind, _, i = item.partition(":")
+        try:
+            out[int(i)] = kind
+        except ValueError:
+            raise DesignError(f"--taxel-fault {item!r}: give stuck:TAXEL or noisy:TAXEL (a taxel index)") from None
+    return out
+
+
+def _injections(items: list[str]) -> list[tuple[str, float, int | None]]:
+    from skinsafe.hardware.link_faults import LINK_FAULTS
+
+    out = []
+    for item in items:
+        kind, _, rest = item.partition("@")
+        at, _, board = rest.partition(":")
+        try:
+            t = float(at)
+            b = int(board) if board else None
+        except ValueError:
+            raise DesignError(f"--inject {item!r}: give FAULT@SECONDS[:BOARD], e.g. board-unplug@0.5:1") from None
+        if kind not in LINK_FAULTS + ("sim-freeze", "sim-die") or not (math.isfinite(t) and t >= 0):
+            raise DesignError(f"--inject {item!r}: faults are {', '.join(LINK_FAULTS + ('sim-freeze', 'sim-die'))}, "
+                              "at a time >= 0 s")
+        out.append((kind, t, b))
+    return out
+
+
+def _driver(args, design, robot, feed, inject):
+    if args.robot == "fr3":
+        try:
+            franka = importlib.import_module("skinsafe.hardware.franka")
+        except ModuleNotFoundError as e:
+            if e.name != "skinsafe.hardware.franka":
+                raise
+            raise DesignError("--robot fr3: the FR3 driver (skinsafe.hardware.franka) is not in this installation "
+                              "yet; use --robot sim") from None
+        if not args.host:
+            raise DesignError("--robot fr3 needs --host IP: the robot's (or franky-sim's) address")
+        return franka.FrankaDriver(args.host)
+    from skinsafe.core.sim.robot_driver import SimDriver, SimFaults
+
+    faults = SimFaults(**{("freeze_at" if k == "sim-freeze" else "die_at"): t for k, t, _ in inject
+                          if k.startswith("sim-")})
+    try:
+        return SimDriver(design, robot, feed, args.period, _contact(args.contact), faults=faults,
+                         taxel_faults=_taxel_faults(args.taxel_fault))
+    except ValueError as e:
+        raise DesignError(f"--robot sim: {e}") from None
+
+
+def _ports(args, design, stack: contextlib.ExitStack, feed) -> dict[int, str]:
+    """Board id -> port: emulated boards fed by the simulation (the map deployed to them first), or the given ports."""
+    from skinsafe.hardware.cli_deploy import find_ports
+    from skinsafe.hardware.deploy import deploy
+    from skinsafe.hardware.emulator import EmulatorProcess
+
+    if args.boards == ["emulate"]:
+        flash = stack.enter_context(tempfile.TemporaryDirectory(prefix="skinsafe-flash-"))
+        em = stack.enter_context(EmulatorProcess([], flash, "--map", str(args.map), "--feed", feed.name))
+        ports = {b.id: em.ports[b.uid] for b in design.boards}
+        bad = [r.line() for r in deploy(design, ports) if not r.ok]
+        if bad:
+            raise DesignError(f"deploying the map to the emulated boards failed: {bad[0]}")
+        return ports
+    ns = type("Ports", (), {"port": args.boards, "all": False, "glob": [], "timeout": 0.25, "retries": 4,
+                            "baud": args.baud, "board": None, "no_system_ports": True})()
+    ports, _, _, problems = find_ports(design, ns)
+    if problems:
+        raise DesignError(problems[0])
+    return ports
+
+
+def _view(args, stack: contextlib.ExitStack, tap, design, driver, map_path: Path, map_hash: bytes) -> None:
+    """Publish the tap as a view stream (a thread reading it off the loop) and start the web page in its own
+    process at a lower priority (`skinsafe view HOST:PORT`), ready before the robot moves; both end with the run."""
+    import subprocess
+
+    from skinsafe.core.runtime.view_stream import ViewPublisher, hello
+
+    host, _, port = args.view_stream.rpartition(":")
+    msg = hello(design.n_taxels, design.taxels.ids, driver.joint_names, {b.uid: b.name for b in design.boards},
+                str(map_path.resolve()), map_hash.hex(), driver.period_s, board_period_s=1.0 / args.rate)
+    pub = ViewPublisher(tap.latest, msg, host or "127.0.0.1", int(port))
+    stack.callback(pub.close)
+    where = f"{pub.address[0]}:{pub.address[1]}"
+    print(f"skinsafe run: view stream at {where} (Blender: Skin > Live > Attach)", file=sys.stderr)
+    if not args.view_port:
+        return
+    page = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", "view", where, "--port", str(args.view_port),
+                             "--until-ended"],
+                            stdout=subprocess.PIPE, text=True, preexec_fn=_background)
+    stack.callback(_end, page)
+    line = "-"
+    while line and not line.startswith("skinsafe view:"):  # the page says where it is once it serves
+        line = page.stdout.readline()
+    if not line:
+        raise ValueError(f"the view page did not start (exit {page.wait()})")
+    print(f"skinsafe run: the view page at {line.split(' at ')[-1].strip()}", file=sys.stderr)
+
+
+def _background() -> None:
+    """In the page's process before it starts: the normal scheduler (not the run's real-time one, which a
+    child inherits: a page at SCHED_FIFO starved the emulated boards, stopped as silent) at nice 10."""
+    if hasattr(os, "sched_setscheduler"):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    os.nice(10)
+
+
+def _end(proc) -> None:
+    proc.terminate()
+    try:
+        proc.wait(5)
+    except Exception:
+        proc.kill()
+        proc.wait()
+
+
+def run(args, feed=None, ports=None, on_moving=None) -> int:
+    """The command. In-process callers (the fault bench) may pass an existing `feed` and the `ports` of boards
+    it feeds (already running this map), and `on_moving(runtime)`, called once the robot is handed over."""
+    from skinsafe.core.robot.models import load_robot
+    from skinsafe.core.runtime.record import Recorder
+    from skinsafe.core.skin.force_feed import FeedError, ForceFeed
+    from skinsafe.core.skin.taxel_map import load
+    from skinsafe.hardware.client import BoardError
+    from skinsafe.hardware.skin_source import PreflightRefused, SkinSource
+
+    def fail(code: int, msg: str) -> int:
+        print(f"skinsafe run: {msg}", file=sys.stderr)
+        return code
+
+    try:
+        _check(args)
+        inject = _injections(args.inject)
+        map_path = Path(args.map)
+        map_hash = hashlib.sha256(map_path.read_bytes()).digest()
+        robot = load_robot(load(map_path).robot, base_dir=map_path.parent)
+        design = load(map_path, robot.body_names)
+    except (DesignError, OSError) as e:
+        return fail(2, str(e))
+    rt = _realtime(args.realtime)
+    with contextlib.ExitStack() as stack:
+        try:
+            if feed is None:
+                feed = stack.enter_context(ForceFeed.attach(args.feed) if args.feed else
+                                           ForceFeed.create(None, design.n_taxels))
+                if feed.n != design.n_taxels:
+                    raise DesignError(f"--feed {args.feed} holds {feed.n} taxels, the map {design.n_taxels}")
+            driver = _driver(args, design, robot, feed, inject)
+            stack.callback(driver.close)
+            limits = driver.limits()
+            command = command_source(args.command, driver.joint_names, limits, args.command_timeout)
+            stack.callback(command.close)
+            ports = ports or _ports(args, design, stack, feed)
+            links = None
+            link_faults = [f for f in inject if not f[0].startswith("sim-")]
+            if link_faults:
+                from skinsafe.hardware.link_faults import DELAY_S, LinkFaults
+
+                links = stack.enter_context(LinkFaults(ports, link_faults, max(DELAY_S, 3.0 / args.rate)))
+                ports = links.ports
+            source = SkinSource(design, ports, args.rate, args.noise_fraction, args.max_excluded, baud=args.baud)
+            stack.callback(source.close)
+            report = source.preflight(map_hash, args.tare_frames)
+        except (DesignError, CommandError, FeedError) as e:
+            return fail(2, str(e))
+        except (PreflightRefused, BoardError) as e:
+            return fail(3, f"pre-flight refused: {e}")
+        print(f"skinsafe run: pre-flight passed: {len(report['boards'])} boards run this map, tared over "
+              f"{args.tare_frames} frames; excluded {report['excluded']} taxels (dead {report['dead'][:8]}, stuck "
+              f"{report['stuck'][:8]}, noisy {report['noisy'][:8]}, disabled in the map {report['disabled_in_map']})",
+              file=sys.stderr)
+        params = RetractionParams(alpha=args.alpha)
+        try:
+            layers = build_stack(design, robot.model, limits["qd_max"], limits["qdd_max"], driver.period_s, params,
+                                 args.tdm)
+        except (ValueError, OSError) as e:
+            return fail(2, f"--tdm: {e}")
+        warm_up(layers, robot.home, design.taxels.thresholds["force"], driver.period_s)
+        seconds = args.seconds or (command.duration + 1.0 if isinstance(command, Trajectory) else None)
+        recorder = None
+        if args.record:
+            config = run_config(map_path, driver, limits, params, source.excluded, command.spec, args.tdm)
+            config["board_period_s"] = 1.0 / args.rate  # for the view's board health
+            try:
+                recorder = Recorder(args.record, driver.joint_names, config)
+            except OSError as e:
+                return fail(2, f"--record {args.record}: {e.strerror or e}; choose a folder you can write to")
+        tap = Tap()
+        if args.view:
+            try:
+                _view(args, stack, tap, design, driver, map_path, map_hash)
+            except (OSError, ValueError) as e:
+                return fail(2, f"--view: {e}")
+        runtime = Runtime(driver, source, layers, command, source.excluded, design.taxels.thresholds["force"],
+                          recorder, tap, seconds=seconds)
+        if links is not None:
+            links.arm()
+        signals = {}
+
+        def on_signal(signum, _frame):
+            signals.setdefault("first", signum)
+            signal.signal(signum, signal.SIG_DFL if signum == signal.SIGTERM else _second)
+            runtime.stop_by_operator(f"interrupted by the operator ({signal.Signals(signum).name})")
+
+        def _second(signum, _frame):
+            raise KeyboardInterrupt
+
+        old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        print(f"skinsafe run: {driver.name} robot moving under '{command.spec}' ({driver.period_s * 1e3:g} ms period, "
+              f"boards at {args.rate} Hz, {rt}); Ctrl-C stops it", file=sys.stderr, flush=True)
+        if on_moving is not None:
+            on_moving(runtime)
+        switch = sys.getswitchinterval()
+        sys.setswitchinterval(SWITCH_S)
+        gc.freeze()  # no collector pause while the robot moves (what the loop allocates is freed by refcount)
+        gc.disable()
+        try:
+            outcome = runtime.run()
+        finally:
+            gc.enable()
+            sys.setswitchinterval(switch)
+            for s, h in old.items():
+                signal.signal(s, h)
+        lost = source.frames_lost()
+        rec = recorder.close({"reason": outcome.reason, "kind": outcome.kind, "watchdog": outcome.watchdog,
+                              "t": outcome.t, "ns": time.time_ns(), "ticks": outcome.ticks,
+                              "dropped": recorder.dropped, "frames_lost": lost}) if recorder else None
+    t = outcome.stats
+    head = {"end": "stopped as planned", "operator": "STOPPED by the operator", "fault": "STOPPED by a watchdog",
+            "driver": "STOPPED by the robot"}[outcome.kind]
+    print(f"skinsafe run: {head}: {outcome.reason}", file=sys.stderr if outcome.kind != "end" else sys.stdout)
+    if not t:  # stopped before the robot moved: no loop figures
+        print("the robot never moved" + (f"; record {rec.get('path', rec.get('error'))}" if rec else ""))
+    else:
+        print(f"ticks {t['ticks']}, loop {t['loop_hz_p50']:.0f} Hz (period p99 {t['period_ms_p99']:.2f} ms), contact latency "
+              f"p50 {t['latency_ms_p50']:.2f} / p99 {t['latency_ms_p99']:.2f} / max {t['latency_ms_max']:.2f} ms over "
+              f"{t['latency_samples']} frames, frames lost {lost}"
+              + (f"; record {rec.get('path', rec.get('error'))}: {rec['written']} messages, {rec['dropped']} ticks dropped"
+                 if rec else ""))
+    if args.stats:
+        world = getattr(driver, "stats", None)
+        out = {"reason": outcome.reason, "kind": outcome.kind, "watchdog": outcome.watchdog, "t": outcome.t,
+               "detected_mono": outcome.detected_mono, "frames_lost": lost, "preflight": report,
+               "record": rec, "period_s": driver.period_s, "robot": driver.name, "taxels": design.n_taxels,
+               "boards": len(design.boards), **t,
+               "world": {k: v for k, v in vars(world).items() if k != "extra"} if world is not None else {}}
+        atomic_write(Path(args.stats), json.dumps(out, default=_plain))
+    if outcome.kind == "operator":
+        return 128 + signals.get("first", signal.SIGINT)
+    return 0 if outcome.kind == "end" else 1
+
+
+def _plain(x):
+    return x.item() if isinstance(x, np.generic) else str(x)

@@ -1,0 +1,1 @@
+"""The safety runtime: boards' readings -> the three layers -> a robot driver, with watchdogs and a record."""

@@ -1,0 +1,70 @@
+"""The two interfaces the runtime sees the world through (duck-typed; docs/RUNTIME_CONTRACT in the issue).
+
+`RobotDriver`: `core/sim/robot_driver.py` (MuJoCo) and `hardware/franka.py` (FR3 over libfranka).
+The driver owns the clock: every period it calls `control(state)` with the newest measured state
+and sends the joint velocities returned. `control` returning None, raising `StopRobot(reason)` (or
+any exception: its text is the reason), `stop(reason)` from any thread, or a communication fault
+(named) ends the motion: zero velocity, then the robot's own stop; `run` returns the reason.
+
+`ReadingsSource`: `hardware/skin_source.py` (boards over serial). `newest()` never waits on I/O.
+"""
+from __future__ import annotations
+
+from typing import Callable, Protocol
+
+import numpy as np
+
+
+class StopRobot(Exception):
+    """Raised by the control callback: stop the robot; `str(exc)` names why (one line)."""
+
+
+class RobotState(Protocol):
+    t: float  # the robot's clock, s
+    q: np.ndarray  # measured joint positions (n,)
+    qd: np.ndarray  # measured joint velocities (n,)
+    seq: int  # increments with every new robot state
+
+
+class RobotDriver(Protocol):
+    name: str
+    joint_names: list[str]
+    period_s: float
+
+    def limits(self) -> dict[str, np.ndarray]:
+        """The robot's own q_min, q_max, qd_max, qdd_max, (n,) each."""
+
+    def run(self, control: Callable[[RobotState], np.ndarray | None]) -> str:
+        """Blocks until the motion ends; returns the stop reason."""
+
+    def stop(self, reason: str) -> None:
+        """Thread-safe: end the motion (zero velocity, then the robot's stop)."""
+
+    def close(self) -> None:
+        ...
+
+
+class Readings(Protocol):
+    t: float  # host time.monotonic() of the newest complete frame
+    force: np.ndarray  # (N,) N after tare, taxel order; NaN where no fresh data or disabled by the health policy
+    seq: int  # increments when new data arrived
+    board_age_s: dict[int, float]  # per board uid: seconds since its last frame
+    faults: list[str]  # named faults since the last call
+    frames_lost: int
+
+
+class ReadingsSource(Protocol):
+    n_taxels: int
+    frame_period_s: float
+
+    def preflight(self, map_hash: bytes, tare_frames: int) -> dict:
+        """Refuses (raises naming the board) a board whose deployed map differs; tares; names unhealthy taxels."""
+
+    def start(self) -> None:
+        ...
+
+    def newest(self) -> Readings:
+        ...
+
+    def close(self) -> None:
+        ...

@@ -1,0 +1,234 @@
+"""The Franka FR3 over libfranka (pylibfranka 0.21): a robot driver whose clock is the robot's 1 kHz.
+
+The control loop is libfranka's: every `readOnce` blocks until the robot's next 1 ms state, the
+runtime's tick runs on it (`control(state)`), and its joint velocities go back with `writeOnce`
+in the same cycle. The robot stops the arm when 20 cycles in a row bring no command
+(`communication_constraints_violation`), so the tick must fit the cycle; `stats` counts the robot
+states a slow tick let pass (`states_skipped`, `longest_gap_ms`) and the robot's own
+`control_command_success_rate`.
+
+Chosen over franky-control 2.0.0 by measurement (README, "The FR3 case"): franky runs its own 1 kHz
+loop in C++ and takes new targets asynchronously through a jerk-limited planner, so a tick's
+command reaches the robot after a planner delay and not in the cycle its state came from.
+
+Every command is rate limited to the FR3's published acceleration and jerk (libfranka's
+`limitRate` rule): a step change in the commanded velocity would otherwise trip the robot's
+discontinuity reflexes. A stop -- `control` returning None or raising, `stop(reason)` from any
+thread, a non-finite or ill-shaped command -- ramps the velocity to zero at those limits, one
+command per cycle, finishes the motion and calls the robot's own `stop()`. A communication fault
+(libfranka's network, control or command exceptions) ends the motion where the robot already
+stopped it; its reason is named. numpy and pylibfranka only (never mujoco, torch or bpy).
+"""
+from __future__ import annotations
+
+import sys
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+JOINT_NAMES = [f"fr3_joint{i}" for i in range(1, 8)]
+PERIOD_S = 0.001
+# Franka Robotics, FR3 "Robot and interface specifications" (the limits libfranka's FR3 rate limiter uses)
+Q_MIN = np.array([-2.7437, -1.7837, -2.9007, -3.0421, -2.8065, 0.5445, -3.0159])
+Q_MAX = np.array([2.7437, 1.7837, 2.9007, -0.1518, 2.8065, 4.5169, 3.0159])
+QD_MAX = np.array([2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26])
+QDD_MAX = np.full(7, 10.0)
+QDDD_MAX = np.full(7, 5000.0)
+MARGIN = 1e-3  # libfranka's kLimitEps: stay this fraction inside each limit
+SWITCH_S = 1e-4  # Python's thread switch interval while run() runs (see FrankaDriver.run)
+RAMP_MAX_S = 2.0  # a stop's ramp to zero never takes longer (2.62 rad/s at 10 rad/s^2 takes 0.27 s)
+
+
+class FrankaError(Exception):
+    """The FR3 could not be reached or refused to start a motion (the text names why and the fix)."""
+
+
+@dataclass
+class FrankaState:
+    t: float  # the robot's clock (libfranka RobotState.time), s
+    q: np.ndarray  # measured joint positions (7,)
+    qd: np.ndarray  # measured joint velocities (7,)
+    seq: int  # increments with every robot state read
+    qd_sent: np.ndarray = field(default_factory=lambda: np.zeros(7))  # the previous cycle's command, after limits
+    success_rate: float = 1.0  # the robot's control_command_success_rate
+
+
+def rate_limit(qd_cmd: np.ndarray, qd_last: np.ndarray, qdd_last: np.ndarray, dt: float = PERIOD_S,
+               qd_max: np.ndarray = QD_MAX, qdd_max: np.ndarray = QDD_MAX, qddd_max: np.ndarray = QDDD_MAX
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """libfranka's `limitRate` for joint velocities, all joints at once: the command reached from the last
+    one with bounded jerk and acceleration, inside the velocity limit. Returns (velocity, acceleration)."""
+    qd_max, qdd_max, qddd_max = (x * (1 - MARGIN) for x in (qd_max, qdd_max, qddd_max))
+    jerk = np.clip(((qd_cmd - qd_last) / dt - qdd_last) / dt, -qddd_max, qddd_max)
+    acc = qdd_last + jerk * dt
+    hi = np.minimum(qddd_max / qdd_max * (qd_max - qd_last), qdd_max)
+    lo = np.maximum(qddd_max / qdd_max * (-qd_max - qd_last), -qdd_max)
+    acc = np.clip(acc, lo, hi)
+    return qd_last + acc * dt, acc
+
+
+def realtime_kernel() -> bool:
+    """True on a PREEMPT_RT kernel (where libfranka's real-time scheduling is enforced)."""
+    try:
+        return Path("/sys/kernel/realtime").read_text().strip() == "1"
+    except OSError:
+        return False
+
+
+def _fault(e: Exception) -> str:
+    import pylibfranka as pf
+
+    kind = {pf.NetworkException: "communication with the robot lost",
+            pf.ControlException: "the robot stopped the motion",
+            pf.CommandException: "the robot refused a command",
+            pf.RealtimeException: "real-time scheduling failed"}.get(type(e), type(e).__name__)
+    return f"fr3: {kind}: {' '.join(str(e).split())}"
+
+
+class FrankaDriver:
+    """A `RobotDriver` (core/runtime/protocol.py) for the FR3 at `host` (an FCI address, or franky-sim's)."""
+
+    name = "fr3"
+    joint_names = JOINT_NAMES
+    period_s = PERIOD_S
+
+    def __init__(self, host: str, realtime: bool | None = None, rate_limited: bool = True):
+        import pylibfranka as pf
+
+        self._pf = pf
+        rt = realtime_kernel() if realtime is None else realtime
+        try:
+            self._robot = pf.Robot(host, pf.RealtimeConfig.kEnforce if rt else pf.RealtimeConfig.kIgnore)
+        except (pf.NetworkException, pf.RealtimeException, pf.InvalidOperationException,
+                pf.FrankaException, RuntimeError) as e:
+            raise FrankaError(f"fr3: cannot connect to {host}: {' '.join(str(e).split())}; check the robot's "
+                              "address, that FCI is activated in Desk and the brakes are open") from None
+        self.host = host
+        self.rate_limited = rate_limited
+        self._reason: str | None = None
+        self._lock = threading.Lock()
+        self.stats: dict = {}
+
+    def limits(self) -> dict[str, np.ndarray]:
+        """The FR3's published limits: q_min, q_max (rad), qd_max (rad/s), qdd_max (rad/s^2), qddd_max (rad/s^3)."""
+        return {"q_min": Q_MIN.copy(), "q_max": Q_MAX.copy(), "qd_max": QD_MAX.copy(), "qdd_max": QDD_MAX.copy(),
+                "qddd_max": QDDD_MAX.copy()}
+
+    def stop(self, reason: str) -> None:
+        """End the motion at the next cycle (any thread); the first reason given is kept."""
+        with self._lock:
+            if self._reason is None:
+                self._reason = reason
+
+    def _take_reason(self) -> str | None:
+        with self._lock:
+            return self._reason
+
+    def run(self, control) -> str:
+        """Joint-velocity control at the robot's clock until a stop; returns its reason (one line).
+
+        pylibfranka 0.21.3's `readOnce` keeps the interpreter lock while it waits for the robot's state
+        (measured: a thread sleeping 0.5 ms at a time woke 122 times a second beside this loop, 1,857
+        alone), so a reader thread in this process (the boards') would run once per 5 ms switch
+        interval; while it runs, the interval is 0.1 ms, which gives such threads the interpreter once
+        per cycle, between the robot's state and the tick (494 wakes a second)."""
+        previous = sys.getswitchinterval()
+        sys.setswitchinterval(SWITCH_S)
+        try:
+            return self._run(control)
+        finally:
+            sys.setswitchinterval(previous)
+
+    def _run(self, control) -> str:
+        pf = self._pf
+        errors = (pf.NetworkException, pf.ControlException, pf.CommandException, pf.RealtimeException,
+                  pf.InvalidOperationException, pf.FrankaException)
+        with self._lock:
+            self._reason = None
+        self.stats = st = {"ticks": 0, "states_skipped": 0, "longest_gap_ms": 0.0, "success_rate_min": 1.0,
+                           "ramp_ticks": 0, "rate_limited_ticks": 0}
+        try:
+            active = self._robot.start_joint_velocity_control(pf.ControllerMode.JointImpedance)
+        except errors as e:
+            return _fault(e)
+        sent, acc = np.zeros(7), np.zeros(7)
+        seq = 0
+        reason = None
+        while reason is None:
+            try:
+                rs, gap = active.readOnce()
+            except errors as e:
+                return self._end(_fault(e), motion_open=False)
+            seq += 1
+            gap_ms = gap.to_sec() * 1e3
+            st["ticks"] = seq
+            if seq > 1:  # the first read's gap is the time since the motion was requested
+                st["states_skipped"] += max(0, round(gap_ms) - 1)
+                st["longest_gap_ms"] = max(st["longest_gap_ms"], gap_ms)
+            st["success_rate_min"] = min(st["success_rate_min"], rs.control_command_success_rate)
+            state = FrankaState(rs.time.to_sec(), np.array(rs.q), np.array(rs.dq), seq, sent.copy(),
+                                rs.control_command_success_rate)
+            reason = self._take_reason()
+            if reason is None:
+                reason, cmd = _command(control, state)
+            if reason is None:
+                want = cmd
+            else:  # this cycle already starts the ramp down
+                want = np.zeros(7)
+            nxt, acc = rate_limit(want, sent, acc) if self.rate_limited else (want, np.zeros(7))
+            st["rate_limited_ticks"] += bool(reason is None and not np.array_equal(nxt, want))
+            sent = nxt
+            try:
+                active.writeOnce(pf.JointVelocities(sent.tolist()))
+            except errors as e:
+                return self._end(_fault(e), motion_open=False)
+        return self._ramp_down(active, sent, acc, reason, errors)
+
+    def _ramp_down(self, active, sent, acc, reason: str, errors) -> str:
+        """Zero velocity at the robot's acceleration and jerk limits, one command per cycle, then finish."""
+        pf = self._pf
+        for _ in range(int(RAMP_MAX_S / PERIOD_S)):
+            done = np.abs(sent).max() <= QDD_MAX.min() * PERIOD_S and np.abs(acc).max() <= QDDD_MAX.min() * PERIOD_S
+            try:
+                active.readOnce()
+                if done:
+                    cmd = pf.JointVelocities([0.0] * 7)
+                    cmd.motion_finished = True
+                    active.writeOnce(cmd)
+                    return self._end(reason, motion_open=False)
+                sent, acc = rate_limit(np.zeros(7), sent, acc)
+                active.writeOnce(pf.JointVelocities(sent.tolist()))
+                self.stats["ramp_ticks"] += 1
+            except errors as e:
+                return self._end(f"{reason}; then {_fault(e)}", motion_open=False)
+        return self._end(f"{reason}; the ramp to zero did not finish in {RAMP_MAX_S} s", motion_open=True)
+
+    def _end(self, reason: str, motion_open: bool) -> str:
+        """The robot's own stop after every motion (it ends one still open); its failure is named too."""
+        try:
+            self._robot.stop()
+        except Exception as e:  # noqa: BLE001 - a robot in reflex may refuse; the reason says so
+            if motion_open:
+                reason = f"{reason}; robot stop failed: {' '.join(str(e).split())}"
+        return reason
+
+    def close(self) -> None:
+        """Disconnect (libfranka closes the connection when the robot object goes)."""
+        self._robot = None
+
+
+def _command(control, state: FrankaState) -> tuple[str | None, np.ndarray | None]:
+    """(stop reason, None) or (None, the 7 joint velocities control returned)."""
+    try:
+        cmd = control(state)
+    except Exception as e:  # noqa: BLE001 - any exception from control is a stop with its text as the reason
+        return (str(e) or type(e).__name__), None
+    if cmd is None:
+        return "control ended the motion", None
+    cmd = np.asarray(cmd, dtype=float)
+    if cmd.shape != (7,) or not np.isfinite(cmd).all():
+        return f"fr3: control returned {cmd.shape} joint velocities {np.round(cmd, 3).tolist()}; 7 finite values " \
+               "expected", None
+    return None, cmd

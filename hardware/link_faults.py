@@ -1,0 +1,154 @@
+"""Link faults between boards and host, for tests and `skinsafe bench runtime --faults`: a proxy on
+pseudo-terminals that passes every byte until a fault's time comes.
+
+Each board's port gets a new pseudo-terminal for the host; one thread copies bytes both ways. From
+`arm()` on, the boards' stream is cut into whole frames (`FrameParser`, re-encoded byte for byte) so
+a fault lands between frames. Faults, `at` seconds after `arm()` on one board (default the first):
+- board-unplug: the host's side of the link closes (reads fail, as a pulled USB cable);
+- frame-delay: the board's frames are held back `delay_s` (default 50 ms), then delivered at once;
+- frame-replay: a frame is sent again 20 ms after it first went through (its counter is older);
+- foreign-uid: a copy of a frame with another board's uid;
+- crc-storm: the next 10 frames arrive with one byte of their payload flipped.
+"""
+from __future__ import annotations
+
+import os
+import select
+import threading
+import time
+import tty
+
+from skinsafe.hardware import protocol as P
+
+LINK_FAULTS = ("board-unplug", "frame-delay", "frame-replay", "foreign-uid", "crc-storm")
+DELAY_S = 0.05
+REPLAY_AFTER_S = 0.02
+STORM_FRAMES = 10
+
+
+class _Link:
+    def __init__(self, port: str, delay_s: float):
+        self.delay_s = delay_s
+        self.board = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)
+        os.set_blocking(self.master, False)
+        self.port = os.ttyname(self.slave)
+        self.parser = P.FrameParser(P.MAX_PAYLOAD)
+        self.framed = False
+        self.held: list[tuple[float, bytes]] = []  # (due time, bytes) to the host
+        self.fault = None  # (kind, start time)
+        self.storm = 0
+        self.replay = None  # bytes of a frame to send again
+        self.unplugged = False
+
+    def to_host(self, data: bytes, now: float) -> None:
+        if self.unplugged:
+            return
+        if not self.framed:
+            self.held.append((now, data))
+            return
+        for f in self.parser.feed(data):
+            raw = P.encode_frame(f.type, f.seq, f.uid, f.payload, f.version)
+            self.held.append((now, self._apply(raw, f, now)))
+
+    def _apply(self, raw: bytes, f: P.Frame, now: float) -> bytes:
+        kind, start = self.fault or ("", float("inf"))
+        if now < start or f.type != P.STREAM_DATA:
+            return raw
+        if kind == "frame-delay" and now < start + self.delay_s:
+            self.held.append((start + self.delay_s, raw))
+            return b""
+        if kind == "frame-replay" and self.replay is None:
+            self.replay = raw
+            self.held.append((now + REPLAY_AFTER_S, raw))
+        elif kind == "foreign-uid" and self.replay is None:
+            self.replay = raw
+            return raw + P.encode_frame(f.type, f.seq, f.uid ^ 0x1000, f.payload, f.version)
+        elif kind == "crc-storm" and self.storm < STORM_FRAMES:
+            self.storm += 1
+            b = bytearray(raw)
+            b[P.HEADER_SIZE + 4] ^= 0xFF
+            return bytes(b)
+        return raw
+
+    def flush(self, now: float) -> None:
+        if self.fault and self.fault[0] == "board-unplug" and now >= self.fault[1] and not self.unplugged:
+            self.unplugged = True
+            os.close(self.master)
+            self.held = []
+            return
+        due = [b for t, b in self.held if t <= now]
+        self.held = [(t, b) for t, b in self.held if t > now]
+        data = b"".join(due)
+        if data and not self.unplugged:
+            try:
+                os.write(self.master, data)
+            except (BlockingIOError, OSError):
+                pass  # a host that does not read loses data, as on a full USB buffer
+
+    def close(self) -> None:
+        for fd in (self.board, self.slave) + (() if self.unplugged else (self.master,)):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+
+class LinkFaults:
+    """Proxies for `ports` (board id -> port) with `faults` [(kind, at, board id or None)]; `.ports` for the host."""
+
+    def __init__(self, ports: dict[int, str], faults: list[tuple[str, float, int | None]], delay_s: float = DELAY_S):
+        self.links = {b: _Link(p, delay_s) for b, p in ports.items()}
+        self.ports = {b: link.port for b, link in self.links.items()}
+        first = min(ports)
+        self.faults = [(kind, at, first if b is None else b) for kind, at, b in faults]
+        unknown = [b for _, _, b in self.faults if b not in self.links]
+        if unknown:
+            self.close()
+            raise ValueError(f"link fault on board {unknown[0]}: the map's boards are {sorted(self.links)}")
+        self._run = True
+        self.thread = threading.Thread(target=self._pump, name="link-faults", daemon=True)
+        self.thread.start()
+
+    def arm(self) -> None:
+        """Start the fault clock (the robot starts moving)."""
+        now = time.monotonic()
+        for kind, at, b in self.faults:
+            self.links[b].fault = (kind, now + at)
+            self.links[b].framed = True
+
+    def _pump(self) -> None:
+        while self._run:
+            links = list(self.links.values())
+            fds = [x.board for x in links] + [x.master for x in links if not x.unplugged]
+            try:
+                ready = select.select(fds, [], [], 0.002)[0]
+            except (OSError, ValueError):
+                ready = []
+            now = time.monotonic()
+            for x in links:
+                if x.board in ready:
+                    try:
+                        x.to_host(os.read(x.board, 65536), now)
+                    except (BlockingIOError, OSError):
+                        pass
+                if not x.unplugged and x.master in ready:
+                    try:
+                        os.write(x.board, os.read(x.master, 65536))
+                    except (BlockingIOError, OSError):
+                        pass
+                x.flush(now)
+
+    def close(self) -> None:
+        self._run = False
+        if hasattr(self, "thread"):
+            self.thread.join(1.0)
+        for x in self.links.values():
+            x.close()
+
+    def __enter__(self) -> "LinkFaults":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

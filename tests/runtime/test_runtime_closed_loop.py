@@ -1,0 +1,194 @@
+"""`skinsafe run` end to end on one machine: MuJoCo contacts -> shared-memory feed -> emulated boards on
+pseudo-terminals (their own process) -> serial -> host decode -> the layers -> the sim driver; every
+watchdog, Ctrl-C, the pre-flight's refusals, the record (read by mcap-ros2-support) and its replay.
+Boards stream at 25 Hz here (a board is silent after 80 ms): the shared test machine stalls the
+pseudo-terminals for 20-40 ms at times (README "Running a robot")."""
+import json
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+
+from skinsafe.core.design.sample import make_sample_design
+from skinsafe.core.robot.models import build_ur5
+from skinsafe.core.runtime.commands import teleop_datagram
+from skinsafe.core.skin.taxel_map import save
+
+TOPICS = {"/joint_states", "/skinsafe/command", "/skinsafe/planned", "/skinsafe/taxels", "/skinsafe/tick",
+          "/skinsafe/layers", "/diagnostics"}
+
+
+@pytest.fixture(scope="module")
+def skin(tmp_path_factory):
+    path = tmp_path_factory.mktemp("run") / "skin.json"
+    save(make_sample_design("ur5"), path)
+    return path
+
+
+def skinsafe(*args, timeout=60, **kw):
+    return subprocess.run([sys.executable, "-m", "skinsafe.core.app.cli", *map(str, args)], capture_output=True,
+                          text=True, timeout=timeout, **kw)
+
+
+def run(skin, tmp_path, *extra, command="hold", seconds=1.5, when_moving=None):
+    """`skinsafe run` with the emulated boards; `when_moving(proc)` is called once the robot moves."""
+    stats, record = tmp_path / "stats.json", tmp_path / "run.mcap"
+    args = ["run", skin, "--robot", "sim", "--boards", "emulate", "--command", command, "--rate", 25, "--tare-frames", 10,
+            "--seconds", seconds, "--record", record, "--stats", stats, *extra]
+    proc = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", *map(str, args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    err = []
+    for line in proc.stderr:
+        err.append(line)
+        if "Ctrl-C stops it" in line:
+            if when_moving is not None:
+                when_moving(proc)
+            break
+    out, rest = proc.communicate(timeout=60)
+    p = subprocess.CompletedProcess(args, proc.returncode, out, "".join(err) + rest)
+    assert "Traceback" not in p.stderr, p.stderr
+    return p, (json.loads(stats.read_text()) if stats.exists() else None), record
+
+
+def messages(record):
+    """Every message of a record, decoded by mcap-ros2-support (the ROS 2 reader)."""
+    with open(record, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        return [(c.topic, m) for _, c, _, m in reader.iter_decoded_messages(log_time_order=False)]
+
+
+def test_a_poke_is_retracted_and_the_record_replays_exactly(skin, tmp_path):
+    p, s, record = run(skin, tmp_path, "--contact", "poke:at=0.4", seconds=1.6)
+    assert p.returncode == 0, p.stderr
+    w = s["world"]
+    assert w["onset_t"] is not None and w["reaction_t"] is not None and w["peak_N"] > 2.0  # above the 2 N threshold
+    msgs = messages(record)
+    assert {t for t, _ in msgs} == TOPICS
+    times = np.array([m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for t, m in msgs if t == "/skinsafe/command"])
+    cmd = np.array([m.velocity for t, m in msgs if t == "/skinsafe/command"])
+    assert np.abs(cmd[times < w["onset_t"]]).max() == 0.0  # hold: still until the poke
+    assert np.abs(cmd[times > w["onset_t"]]).max() > 0.05  # then the retraction
+    taxels = [m for t, m in msgs if t == "/skinsafe/taxels"]
+    assert len(taxels[0].data) == s["taxels"] and max(max(m.data) for m in taxels) > 2.0
+    layers = [np.asarray(m.data) for t, m in msgs if t == "/skinsafe/layers"]
+    assert len(layers) == len(cmd)  # one per tick: [f, speed factor, retracting, K, K taxels]
+    assert all(len(x) == 4 + int(x[3]) for x in layers)
+    on = [x for x in layers if x[2] == 1.0]
+    assert on and all(x[3] >= 1 for x in on)  # the retraction names its taxels
+    assert not any(x[2] for x, tt in zip(layers, times) if tt < w["onset_t"])
+    r = skinsafe("replay", record, "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["ticks"] == s["ticks"] and out["complete"] and out["max_abs_diff"] <= 1e-12
+
+
+def test_a_trajectory_into_the_post_is_turned_back(skin, tmp_path):
+    home = build_ur5().home
+    t = np.linspace(0, 2, 21)
+    q = np.repeat(home[None], len(t), 0)
+    q[:, 0] += 0.2 * t  # the post stands in the way of joint 0 turning positive
+    csv = tmp_path / "traj.csv"
+    joints = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]
+    csv.write_text("t," + ",".join(joints) + "\n" + "\n".join(",".join(map(str, [a, *b])) for a, b in zip(t, q)))
+    p, s, record = run(skin, tmp_path, "--contact", "post:joint=0,gap=0.01", command=f"trajectory:{csv}", seconds=1.5)
+    assert p.returncode == 0, p.stderr
+    w = s["world"]
+    assert w["onset_t"] is not None and w["reaction_t"] is not None
+    msgs = messages(record)
+    planned = np.array([m.velocity[0] for t, m in msgs if t == "/skinsafe/planned"])
+    sent = np.array([m.velocity[0] for t, m in msgs if t == "/skinsafe/command"])
+    assert planned.min() >= 0 and sent.min() < -0.01  # the plan pushes on; the layers pulled the arm back
+
+
+def _teleop(port: int, stop: threading.Event):
+    """Leader-arm datagrams at 100 Hz (the UR5's home pose) until `stop`."""
+    out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    home, k = build_ur5().home, 0
+    while not stop.is_set():
+        out.sendto(teleop_datagram(k, home), ("127.0.0.1", port))
+        k += 1
+        time.sleep(0.01)
+    out.close()
+
+
+@pytest.mark.parametrize("inject, reason, kind", [
+    ("board-unplug@0.3:1", "board 'board1' (uid 0x5c1a0001): link lost", "fault"),
+    ("frame-delay@0.3", "silent for", "fault"),
+    ("frame-replay@0.3", "frame counter went back", "fault"),
+    ("foreign-uid@0.3", "frames from another uid", "fault"),
+    ("crc-storm@0.3", "CRC storm", "fault"),
+    ("sim-freeze@0.3", "robot: state not updating", "fault"),
+    ("sim-die@0.3", "sim: the simulation failed", "driver"),
+    ("teleop-silent@0.3", "command: teleop:127.0.0.1:", "fault"),
+])
+def test_every_watchdog_stops_the_robot_naming_why(skin, tmp_path, inject, reason, kind):
+    extra, command, stop, moving = [], "hold", threading.Event(), None
+    if inject.startswith("teleop"):  # the operator's leader arm goes quiet 0.3 s after the robot moves
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        command = f"teleop:{port}"
+        threading.Thread(target=_teleop, args=(port, stop), daemon=True).start()
+        moving = lambda proc: threading.Timer(0.3, stop.set).start()  # noqa: E731
+    else:
+        extra = ["--inject", inject]
+    try:
+        p, s, record = run(skin, tmp_path, *extra, command=command, seconds=3.0, when_moving=moving)
+    finally:
+        stop.set()
+    assert p.returncode == 1, p.stderr
+    assert reason in s["reason"] and s["kind"] == kind and reason in p.stderr
+    w = s["world"]
+    assert w["zero_mono"] - s["detected_mono"] < 2 * s["period_s"]  # zero velocity within 2 periods of detection
+    assert w["rest_qd"] < 1e-2 or kind == "driver"  # the robot's own stop ended at rest (a dead sim has no arm)
+    msgs = messages(record)
+    last_cmd = [m for t, m in msgs if t == "/skinsafe/command"][-1]
+    assert list(last_cmd.velocity) == [0.0] * 6 or kind == "driver"
+    stop_diag = [m for t, m in msgs if t == "/diagnostics"][-1].status[0]
+    assert stop_diag.name == "skinsafe/watchdog" and stop_diag.level == 2 and reason in stop_diag.message
+
+
+def test_ctrl_c_stops_the_robot_first_then_reports_and_exits_130(skin, tmp_path):
+    p, s, record = run(skin, tmp_path, "--contact", "poke:at=0.2", seconds=30,
+                       when_moving=lambda proc: threading.Timer(0.6, proc.send_signal, (signal.SIGINT,)).start())
+    assert p.returncode == 130, p.stderr
+    assert "STOPPED by the operator" in p.stderr and "SIGINT" in p.stderr
+    assert s["kind"] == "operator" and s["world"]["zero_mono"] - s["detected_mono"] < 2 * s["period_s"]
+    assert s["world"]["rest_qd"] < 1e-2 and s["t"] < 5  # the robot's own stop ended at rest, long before --seconds
+    msgs = messages(record)
+    assert list([m for t, m in msgs if t == "/skinsafe/command"][-1].velocity) == [0.0] * 6
+    assert "interrupted by the operator" in [m for t, m in msgs if t == "/diagnostics"][-1].status[0].message
+
+
+def test_preflight_names_faulty_taxels_and_refuses_beyond_the_limit(skin, tmp_path):
+    p, s, _ = run(skin, tmp_path, "--taxel-fault", "stuck:10", "--taxel-fault", "noisy:20", seconds=0.3)
+    assert p.returncode == 0, p.stderr
+    assert s["preflight"]["stuck"] == [10] and s["preflight"]["noisy"] == [20] and s["preflight"]["excluded"] == 2
+    assert "stuck [10], noisy [20]" in p.stderr
+    (tmp_path / "refused").mkdir()
+    p, s, _ = run(skin, tmp_path / "refused", "--taxel-fault", "stuck:10", "--max-excluded", "0", seconds=0.3)
+    assert p.returncode == 3 and "pre-flight refused" in p.stderr and "stuck 1" in p.stderr and "[10]" in p.stderr
+    assert s is None  # the robot never moved
+
+
+def test_preflight_refuses_a_board_running_another_map(skin, tmp_path):
+    from skinsafe.core.skin.taxel_map import load
+    from skinsafe.hardware.deploy import deploy
+    from skinsafe.hardware.emulator import EmulatorProcess
+
+    design = load(skin)
+    other = load(skin)
+    other.taxels.thresholds["force"][:] = 3.0  # another map: the boards' configs differ
+    with EmulatorProcess([], tmp_path / "flash", "--map", str(skin)) as em:
+        ports = {b.id: em.ports[b.uid] for b in design.boards}
+        assert all(r.ok for r in deploy(other, ports))
+        p = skinsafe("run", skin, "--boards", *ports.values(), "--command", "hold", "--seconds", 0.2)
+    assert p.returncode == 3, p.stderr
+    assert "pre-flight refused" in p.stderr and "board 'board0' runs another config than this map" in p.stderr

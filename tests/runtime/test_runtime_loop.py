@@ -1,0 +1,96 @@
+"""The loop in-process on the sim driver (no boards: readings straight from the sim's readout): the tap a
+viewer reads while the robot moves, the exclusion policy (excluded taxels are 0 N to the layers, a NaN
+anywhere else stops the robot), the robot-state watchdog, and `--seconds`."""
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+import pytest
+
+from skinsafe.core.design.sample import make_sample_design
+from skinsafe.core.robot.models import build_ur5
+from skinsafe.core.runtime.commands import Hold
+from skinsafe.core.runtime.layers import build_stack
+from skinsafe.core.runtime.loop import Runtime, warm_up
+from skinsafe.core.sim.robot_driver import Contact, SimDriver, SimFaults
+
+
+@dataclass
+class Readings:
+    t: float
+    force: np.ndarray
+    seq: int
+    board_age_s: dict = field(default_factory=dict)
+    faults: list = field(default_factory=list)
+    frames_lost: int = 0
+
+
+class SimReadings:
+    """A readings source on the sim's own readout (what the boards would stream, without them); `nan` taxels read NaN."""
+
+    frame_period_s = 0.002
+
+    def __init__(self, driver, nan=()):
+        self.driver, self.nan, self.n_taxels, self.seq = driver, list(nan), driver.design.n_taxels, 0
+
+    def newest(self):
+        self.seq += 1
+        f = self.driver.forces.copy()
+        f[self.nan] = np.nan
+        return Readings(0.0, f, self.seq, {0: 0.0})
+
+
+@pytest.fixture(scope="module")
+def ur5():
+    robot = build_ur5()
+    return robot, make_sample_design("ur5", robot=robot)
+
+
+def _runtime(ur5, excluded=(), nan=(), faults=None, seconds=0.6):
+    robot, design = ur5
+    drv = SimDriver(design, robot, None, 0.002, Contact("poke", at=0.1), realtime=False, faults=faults)
+    lim = drv.limits()
+    stack = build_stack(design, robot.model, lim["qd_max"], lim["qdd_max"], drv.period_s)
+    warm_up(stack, robot.home, design.taxels.thresholds["force"], drv.period_s)
+    ex = np.zeros(design.n_taxels, bool)
+    ex[list(excluded)] = True
+    return drv, Runtime(drv, SimReadings(drv, nan), stack, Hold(6), ex, design.taxels.thresholds["force"],
+                        seconds=seconds)
+
+
+def test_the_tap_shows_every_tick_to_a_viewer_without_blocking(ur5):
+    drv, rt = _runtime(ur5)
+    seen, done = [], threading.Event()
+
+    def viewer():
+        while not done.is_set():
+            f = rt.tap.latest()
+            if f is not None and (not seen or f is not seen[-1]):
+                seen.append(f)
+
+    th = threading.Thread(target=viewer)
+    th.start()
+    out = rt.run(settle_s=0.0)
+    done.set()
+    th.join()
+    assert out.kind == "end" and "0.6 s" in out.reason
+    t = [f.t for f in seen]
+    assert len(seen) > 10 and all(np.diff(t) >= 0)
+    assert any(f.retracting for f in seen) and max(np.abs(f.command).max() for f in seen) > 0.05  # the poke's retraction
+    last = rt.tap.latest()
+    assert last.stop == out.reason and not last.command.any()  # the stop is the last frame: zero velocity
+
+
+def test_excluded_taxels_read_zero_and_a_nan_anywhere_else_stops_the_robot(ur5):
+    drv, rt = _runtime(ur5, excluded=[5, 6], nan=[5, 6])
+    assert rt.run(settle_s=0.0).kind == "end"  # NaN only where excluded: the layers never see it
+    drv, rt = _runtime(ur5, excluded=[5], nan=[5, 7])
+    out = rt.run(settle_s=0.0)
+    assert out.kind == "fault" and out.watchdog == "nonfinite" and "first taxel 7" in out.reason and out.ticks == 0
+
+
+def test_a_robot_state_that_stops_updating_stops_the_robot(ur5):
+    drv, rt = _runtime(ur5, faults=SimFaults(freeze_at=0.2))
+    out = rt.run(settle_s=0.0)
+    assert out.watchdog == "robot-state" and "state not updating" in out.reason
+    assert drv.stats.stop_t == pytest.approx(0.2, abs=0.01)  # within a few periods of the freeze

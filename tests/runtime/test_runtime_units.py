@@ -1,0 +1,165 @@
+"""Runtime pieces without a robot: the force feed's seqlock across processes, command sources (trajectory
+CSV validation, teleop over real UDP), the record's CDR encoders against mcap-ros2-support, the
+pre-flight's taxel health policy."""
+import io
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from mcap.reader import make_reader
+from mcap_ros2.writer import Writer as Ros2Writer
+
+from skinsafe.core.runtime.commands import CommandError, Teleop, Trajectory, read_trajectory, teleop_datagram
+from skinsafe.core.runtime.protocol import StopRobot
+from skinsafe.core.runtime.record import SCHEMAS, JointStateEncoder, encode_diagnostics, encode_float64_array
+from skinsafe.core.runtime.replay import decode_float64_array
+from skinsafe.core.skin.force_feed import FeedError, ForceFeed
+from skinsafe.hardware.skin_source import classify
+
+JOINTS = ["j0", "j1", "j2"]
+LIMITS = {"q_min": np.full(3, -2.0), "q_max": np.full(3, 2.0), "qd_max": np.full(3, 1.0), "qdd_max": np.full(3, 10.0)}
+
+
+def test_feed_reads_are_never_torn_across_processes():
+    n = 20_000
+    with ForceFeed.create(None, n) as feed:
+        writer = subprocess.Popen([sys.executable, "-c", (
+            "import numpy as np, sys; from skinsafe.core.skin.force_feed import ForceFeed\n"
+            f"f = ForceFeed.attach('{feed.name}')\n"
+            f"for k in range(1, 3001): f.write(np.full({n}, float(k)), k * 0.001)\n"
+            "f.close()")])
+        seen = set()
+        while writer.poll() is None or len(seen) < 2:
+            seq, t, x = feed.read()
+            assert x.min() == x.max() == seq and t == pytest.approx(seq * 0.001)  # one write, whole
+            seen.add(seq)
+            if writer.poll() is not None:
+                break
+        assert writer.wait() == 0 and len(seen) > 1
+        idx = np.array([5, 7])
+        assert feed.read(idx)[2].tolist() == [3000.0, 3000.0]
+    with pytest.raises(FeedError, match="does not exist"):
+        ForceFeed.attach(feed.name)
+
+
+def _csv(tmp_path, text):
+    p = tmp_path / "traj.csv"
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize("text, match", [
+    ("time,j0,j1,j2\n0,0,0,0\n1,0,0,0\n", "first column"),
+    ("t,j0,j1\n0,0,0\n1,0,0\n", r"missing \['j2'\]"),
+    ("t,j0,j1,j2\n0,0,0,0\n1,0,x,0\n", "row 3, column 'j1'"),
+    ("t,j0,j1,j2\n0,0,0,0\n1,0,nan,0\n", "not finite"),
+    ("t,j0,j1,j2\n0,0,0,0\n1,0,0,0\n1,0,0,0\n", "row 4: t = 1.0 does not increase"),
+    ("t,j0,j1,j2\n0,0,0,0\n1,0,0,2.5\n", "row 3, joint 'j2': 2.5000 is above"),
+    ("t,j0,j1,j2\n0,0,0,0\n0.5,0,0.9,0\n", "rows 2-3, joint 'j1': 1.800 rad/s"),
+    ("t,j0,j1,j2\n0,0,0,0\n", "at least two"),
+])
+def test_bad_trajectories_are_refused_naming_row_and_column(tmp_path, text, match):
+    with pytest.raises(CommandError, match=match):
+        read_trajectory(_csv(tmp_path, text), JOINTS, LIMITS)
+
+
+def test_trajectory_tracks_then_holds_its_last_row(tmp_path):
+    src = Trajectory(_csv(tmp_path, "# a comment\nt,j2,j0,j1\n0,0,0,0\n1,0.5,0.2,0\n"), JOINTS, LIMITS)
+    q = np.zeros(3)
+    v = src(0.5, q)  # on the path: feed-forward rate plus the error term, in the robot's joint order
+    assert v == pytest.approx([0.2 + 3 * 0.1, 0.0, 0.5 + 3 * 0.15])  # error clipped at 0.15
+    assert src(5.0, np.array([0.2, 0.0, 0.5])) == pytest.approx(np.zeros(3))
+    assert src.duration == 1.0
+
+
+def test_teleop_over_udp_tracks_rejects_and_goes_stale():
+    src = Teleop("127.0.0.1:0", JOINTS, LIMITS, stale_s=0.05)
+    out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        q = np.zeros(3)
+        assert src(0.0, q).tolist() == [0, 0, 0] and src.age() == 0.0  # nothing before the first datagram
+        addr = ("127.0.0.1", src.port)
+        out.sendto(teleop_datagram(7, [0.1, -0.05, 9.0]), addr)
+        out.sendto(b"SKT1garbage", addr)
+        out.sendto(teleop_datagram(8, [0.1, 0.2]), addr)
+        time.sleep(0.05)
+        v = src(0.0, q)
+        assert v == pytest.approx([0.3, -0.15, 0.45])  # 3 x error, clipped at 0.15; target clipped to q_max
+        assert src.accepted == 1 and src.rejected == 2 and "2 joints" not in src.reject_reason
+        out.sendto(teleop_datagram(6, [0.0, 0.0, 0.0]), addr)  # older: ignored
+        time.sleep(0.02)
+        assert src(0.0, q) == pytest.approx(v)
+        time.sleep(0.06)
+        assert src.age() > src.stale_s
+        out.sendto(teleop_datagram(9, [np.nan, 0, 0]), addr)
+        time.sleep(0.02)
+        with pytest.raises(StopRobot, match="non-finite"):
+            src(0.0, q)
+    finally:
+        out.close()
+        src.close()
+
+
+def _reference(name, msg) -> bytes:
+    buf = io.BytesIO()
+    w = Ros2Writer(buf)
+    schema = w.register_msgdef(name, SCHEMAS[name])
+    w.write_message("/x", schema, msg, log_time=1)
+    w.finish()
+    buf.seek(0)
+    return next(iter(make_reader(buf).iter_messages()))[2].data
+
+
+@settings(max_examples=30, deadline=None)
+@given(t=st.floats(0, 1e5), n=st.integers(0, 9), names=st.lists(st.text("abcxyz_", min_size=1, max_size=9), max_size=8),
+       seed=st.integers(0, 2 ** 31))
+def test_cdr_encoders_equal_mcap_ros2_support(t, n, names, seed):
+    rng = np.random.default_rng(seed)
+    pos, vel = rng.normal(size=len(names)), rng.normal(size=len(names))
+    sec = int(np.floor(t))
+    stamp = {"sec": sec, "nanosec": min(int(round((t - sec) * 1e9)), 999_999_999)}
+    ref = _reference("sensor_msgs/msg/JointState", {"header": {"stamp": stamp, "frame_id": ""}, "name": names,
+                                                    "position": pos.tolist(), "velocity": vel.tolist(), "effort": []})
+    assert JointStateEncoder(names)(t, pos, vel) == ref
+    x = rng.normal(size=n)
+    data = encode_float64_array(x)
+    assert data == _reference("std_msgs/msg/Float64MultiArray", {"layout": {"dim": [], "data_offset": 0},
+                                                                 "data": x.tolist()})
+    assert decode_float64_array(data).tolist() == x.tolist()
+    status = [(nm, k % 3, nm * 2, [(nm, str(k))] * k) for k, nm in enumerate(names)]
+    ref = _reference("diagnostic_msgs/msg/DiagnosticArray", {"header": {"stamp": stamp, "frame_id": ""}, "status": [
+        {"level": lv, "name": nm, "message": m, "hardware_id": "skinsafe",
+         "values": [{"key": a, "value": b} for a, b in v]} for nm, lv, m, v in status]})
+    assert encode_diagnostics(t, status) == ref
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2 ** 31), frames=st.integers(2, 60), n=st.integers(8, 300))
+def test_health_policy_finds_exactly_the_faulty_taxels(seed, frames, n):
+    rng = np.random.default_rng(seed)
+    th = rng.uniform(1.0, 5.0, n)
+    x = np.zeros((frames, n))
+    live = rng.random(n) < 0.3  # preloaded cells with ADC noise below the noise limit: healthy
+    x[:, live] = rng.uniform(0.1, 0.5, live.sum()) * th[live] + rng.uniform(0, 0.2, (frames, live.sum())) * th[live]
+    kinds = rng.choice(["ok", "dead", "stuck", "noisy", "pressed", "saturated"], n, p=[0.6, 0.08, 0.08, 0.08, 0.08, 0.08])
+    x[:, kinds == "dead"] = np.nan
+    x[:, kinds == "stuck"] = rng.uniform(0.1, 0.9, (kinds == "stuck").sum()) * th[kinds == "stuck"]
+    noisy = kinds == "noisy"
+    x[:, noisy] = rng.uniform(0, 1, (frames, noisy.sum())) * th[noisy]
+    x[0, noisy], x[1, noisy] = 0.0, th[noisy] * 0.9  # spread 0.9 x threshold
+    pressed = kinds == "pressed"
+    x[:, pressed] = th[pressed] * 1.5 + rng.uniform(0, 0.05, (frames, pressed.sum())) * th[pressed]
+    x[0, pressed] -= 0.01
+    x[:, kinds == "saturated"] = 34.0
+    base, found = classify(x, th, 34.0, 0.25)
+    assert np.array_equal(found["dead"], kinds == "dead")
+    assert np.array_equal(found["stuck"], (kinds == "stuck") | (kinds == "saturated"))
+    assert np.array_equal(found["noisy"], noisy)
+    assert np.array_equal(found["pressed"], pressed)
+    ok = kinds == "ok"
+    assert np.allclose(base[ok], np.median(x[:, ok], axis=0))
