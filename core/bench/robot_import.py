@@ -193,8 +193,8 @@ def robot_row(robot: str | RobotRef, n_pokes: int, pitch: float) -> dict:
     mujoco.mj_forward(model, data)
     home_contacts = self_contacts(model, data)
     recall = pokes(model, data, design, surfaces, n_pokes)
-    worst = lambda d: float(d.max()) * 1e3 if len(d) else float("nan")  # noqa: E731
-    p90 = lambda d: float(np.percentile(d, 90)) * 1e3 if len(d) else float("nan")  # noqa: E731
+    worst = lambda d: float(d.max()) * 1e3 if len(d) else None  # noqa: E731 (None: no such link)
+    p90 = lambda d: float(np.percentile(d, 90)) * 1e3 if len(d) else None  # noqa: E731 (None: no such link)
     return dict(robot=ref.name, links=len(skinned), skinned_links=" ".join(skinned), triangles_in=tri_in, triangles_used=tri_used,
                 import_s=t1 - t0, design_s=t2 - t1, taxels=design.n_taxels, modules=len(design.modules),
                 peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
