@@ -4,9 +4,9 @@ adapts Blender data and draws.
 
 Registers properties, then operators, then panels, drawing and handlers; unregisters in reverse.
 """
-from skinsafe.addon import cover, drawing, handlers, operators, panels, pfl, props
+from skinsafe.addon import cover, drawing, handlers, live, operators, panels, pfl, props
 
-_MODULES = (props, operators, cover, panels, pfl, drawing, handlers)
+_MODULES = (props, operators, cover, panels, pfl, drawing, handlers, live)
 
 
 def register():

@@ -23,10 +23,11 @@ ROOT = HERE.parent
 # (mujoco-core holds its compiled library; its viewers are never imported) and scipy for robots,
 # surfaces and placement; trimesh, pycollada (with python-dateutil, six), xacro and PyYAML read
 # ROS descriptions; pymeshlab decimates CAD meshes above the per-link triangle budget; numba and
-# llvmlite only because `skinsafe.core.safety.pfl` (the PFL heat map) imports numba at module level:
-# enabling, importing, placing and exporting load neither (kinematics compiles on first Jacobian).
+# llvmlite for the body surfaces' closest-point kernels (core/design/surface_kernels.py, loaded by the
+# first surface, never at enable) and the PFL heat map; mcap, mcap-ros2-support and lz4 read a run's
+# record for the live link (addon/live.py, on attach).
 DEPS = ["mujoco", "mujoco-core", "scipy", "trimesh", "pycollada", "python-dateutil", "six", "xacro", "PyYAML",
-        "pymeshlab", "numba", "llvmlite"]
+        "pymeshlab", "numba", "llvmlite", "mcap", "mcap-ros2-support", "lz4"]
 # The platform the manifest names (`platforms = ["linux-x64"]`: glibc 2.35+, pymeshlab's floor; pip
 # does not widen a --platform to older manylinux tags itself) and Blender 4.2-5.0's Python (3.11).
 PLATFORM = [a for glibc in range(35, 16, -1) for a in ("--platform", f"manylinux_2_{glibc}_x86_64")] + [

@@ -12,7 +12,7 @@ import bpy  # first: before anything that could import pymeshlab
 import skinsafe.addon as addon
 from skinsafe.addon import blender_to_core as b2c
 from skinsafe.core.design.placement import ring_layout
-from skinsafe.core.design.sample import SAMPLE_BODIES, turned_poses
+from skinsafe.core.design.sample import sample_bodies, turned_poses
 from skinsafe.core.skin.model import DesignError, Module
 
 PITCH = 0.008
@@ -35,7 +35,7 @@ def build(out: Path, capacity: int = 512) -> dict:
         robot = b2c.robot_for(scene)
         refused = 0
         poses = turned_poses(robot.model, robot.home)  # slots under a joint housing are left out
-        for body in SAMPLE_BODIES["ur5"]:
+        for body in sample_bodies(robot.model):
             for anchor, direction in ring_layout(robot.model, body, TEMPLATE, poses):
                 try:
                     bpy.ops.skinsafe.place_module(body=body, anchor=anchor, direction=direction, use_cursor=False)

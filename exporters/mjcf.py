@@ -68,12 +68,24 @@ def _write_meshes(spec: mujoco.MjSpec, stage: Path) -> None:
             v = np.asarray(m.uservert, float).reshape(-1, 3)
             f = np.asarray(m.userface, int).reshape(-1, 3)
             dst = out / f"{m.name}.stl"
-            mesh = trimesh.Trimesh(v, f, process=False) if len(f) else trimesh.Trimesh(v).convex_hull  # points: their hull, as MuJoCo reads them
-            mesh.export(str(dst))
+            trimesh.Trimesh(*((v, f) if len(f) else _hull(v)), process=False).export(str(dst))
             m.uservert, m.userface = [], []
         m.file = dst.name
     spec.meshdir = MESH_DIR
     spec.modelfiledir = str(stage)  # to_xml re-reads the meshes from where they now are
+
+
+def _hull(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A point set's convex hull as vertices and outward-wound triangles, as MuJoCo reads the points
+    (scipy's qhull directly: trimesh's hull repairs each mesh, 3 ms per piece for ~1,000 pieces)."""
+    from scipy.spatial import ConvexHull
+
+    h = ConvexHull(v)
+    f = h.simplices.copy()
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    flip = np.einsum("ij,ij->i", n, h.equations[:, :3]) < 0
+    f[flip] = f[flip][:, ::-1]
+    return v, f
 
 
 def _move_into(stage: Path, out_dir: Path) -> None:

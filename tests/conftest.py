@@ -18,3 +18,50 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+# two links each, the Gen3's forearm_link among them (its name once sent poke down a UR5-only branch)
+PUBLIC_LINKS = {"ur5e": ["forearm_link", "wrist_1_link"], "gen3": ["half_arm_2_link", "forearm_link"],
+                "xarm7": ["link3", "link4"]}
+
+
+@pytest.fixture(scope="session")
+def public_skin(tmp_path_factory):
+    """name -> (robot, design, taxel map path): a skin of 3x3 modules at 12 mm on two links of a
+    public description (`PUBLIC_LINKS`), made once per test run; the tests that share it share its
+    scenes' surface pieces too (kept in the process, never from an earlier run: see `fresh_pieces`)."""
+    from skinsafe.core.app.design import design_robot
+    from skinsafe.core.robot.catalog import description
+    from skinsafe.core.robot.models import load_robot
+    from skinsafe.core.skin.taxel_map import save
+
+    made = {}
+
+    def get(name: str):
+        """(robot, design, map path); `get.links[name]` are the links it covers."""
+        if name not in made:
+            ref = description(name)
+            robot = load_robot(ref)
+            design = design_robot(robot, ref, {"module": {"rows": 3, "cols": 3, "pitch": 0.012},
+                                               "bodies": PUBLIC_LINKS[name]})[0]
+            made[name] = robot, design, save(design, tmp_path_factory.mktemp(name) / "skin.json")
+        return made[name]
+
+    get.links = PUBLIC_LINKS
+    return get
+
+
+@pytest.fixture(scope="session", autouse=True)
+def fresh_pieces(tmp_path_factory):
+    """Surface pieces are kept on disk between processes (`skin_collision.cache_dir`): a test run
+    (its subprocesses too) starts from an empty folder, as CI's clean clone does, so it never
+    passes on pieces an earlier version of the code cut."""
+    import os
+
+    old = os.environ.get("SKINSAFE_PIECES")
+    os.environ["SKINSAFE_PIECES"] = str(tmp_path_factory.mktemp("pieces"))
+    yield
+    if old is None:
+        os.environ.pop("SKINSAFE_PIECES", None)
+    else:
+        os.environ["SKINSAFE_PIECES"] = old

@@ -35,6 +35,7 @@ COMMANDS = {
     "stream": ("skinsafe.hardware.cli_stream", "stream readings from the boards, mapped to taxels"),
     "emulate": ("skinsafe.hardware.cli_emulate", "run a board emulator on a pseudo-terminal"),
     "run": ("skinsafe.core.app.run", "the safety runtime: boards -> the three layers -> a robot (sim or FR3), with watchdogs"),
+    "view": ("skinsafe.core.app.view", "see a run live (`run --view` stream) or a record in the browser"),
     "replay": ("skinsafe.core.app.replay", "re-run the layers on a `run --record` MCAP and compare the commands"),
     "pfl": ("skinsafe.core.app.pfl", "ISO/TS 15066: effective mass and safe approach speed per taxel, at a pose or along a trajectory"),
     "trade": ("skinsafe.core.app.trade", "sweep speed-vs-accuracy knobs (Ray) and plot the Pareto front"),
@@ -44,7 +45,7 @@ EXPERIMENTS = {
     "maze": ("skinsafe.core.experiments.maze", "strategy layer: safe RL in the maze (paper Fig. 9)"),
     "tracking": ("skinsafe.core.experiments.tracking", "modulation layer: UR5 tracking among balls (Fig. 11)"),
     "desk": ("skinsafe.core.experiments.scenes", "retraction toward a desk stopped by modulation (Fig. 14)"),
-    "collaboration": ("skinsafe.core.experiments.scenes", "delivering parts next to a human arm (Fig. 15)"),
+    "collaboration": ("skinsafe.core.experiments.collaboration", "a person beside a delivery: ISO/TS 15066 per contact (Fig. 15)"),
 }
 BENCHES = {
     "jacobians": ("skinsafe.core.bench.jacobians", "batched taxel Jacobians vs a per-taxel loop"),
@@ -57,6 +58,7 @@ BENCHES = {
     "safety": ("skinsafe.core.bench.safety", "correctness audit: no-push, limits, fail-safe on random contact sets"),
     "serial": ("skinsafe.hardware.bench_serial", "deploy and stream decoding over a pseudo-terminal"),
     "runtime": ("skinsafe.core.bench.runtime", "skinsafe run closed-loop: loop rate, latency, reaction, faults"),
+    "viewers": ("skinsafe.core.app.view_bench", "the live view in headless Chromium: viser vs Rerun at 16,384 taxels"),
 }
 
 

@@ -40,20 +40,11 @@ def retiled(where: str, pitch: float):
     return robot, design_robot(robot, design.robot, spec)[0]
 
 
-def probe_bodies(design, n: int = 3) -> list[str]:
-    """The `n` skinned links with the most taxels (the UR5's probe links on the sample skin)."""
-    from skinsafe.core.sim.probes import PROBE_BODIES
-
-    if all(b in design.bodies for b in PROBE_BODIES):
-        return PROBE_BODIES
-    counts = np.bincount(design.taxels.body, minlength=len(design.bodies))
-    return [design.bodies[i] for i in np.argsort(-counts)[:n] if counts[i]]
-
-
 def map_probe_points(where: str, per_body: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Probe points and normals (world, at home) on a map's skin: random taxels of each probed
     link of the map as given (the same points whatever pitch the skin is tiled at)."""
     from skinsafe.core.robot.kinematics import TaxelKinematics
+    from skinsafe.core.sim.probes import probe_bodies
 
     robot, design = skin_of(where)
     pos, frames = TaxelKinematics(robot.model, design).poses(robot.home)

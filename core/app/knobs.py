@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from skinsafe.core.app.knob_skins import map_pitch, map_probe_points, probe_bodies, retiled, skin_of
+from skinsafe.core.app.knob_skins import map_pitch, map_probe_points, retiled, skin_of
 
 PROBE_R, PROBE_DEPTH = 0.01, 0.003  # m, density knob probes
 SAMPLE_DT = 0.008  # s between force samples of the timestep knob (every swept timestep divides it)
@@ -69,7 +69,7 @@ def _probe_scene(design, robot, **opts):
     from skinsafe.core.sim.probes import Probes
     from skinsafe.core.sim.scene import SceneOptions, build_scene
 
-    probes = Probes(design, robot, probe_bodies(design))
+    probes = Probes(design, robot)
     model = build_scene(design, robot, probes.obstacles, SceneOptions(**opts)).compile()
     data = mujoco.MjData(model)
     mujoco.mj_resetDataKeyframe(model, data, 0)
@@ -302,8 +302,8 @@ def damping_point(damping: float, quick: bool, where: str | None = None) -> dict
     q[2] = ELBOW
     i = stretching_taxel(kin, design, q)
     params = RetractionParams(damping=float(damping))
-    layer = DefensivenessLayer(kin, design.taxels.thresholds, 1e6, 1e9, params)
     dt = 0.002
+    layer = DefensivenessLayer(kin, design.taxels.thresholds, 1e6, 1e9, params, dt)
     force = np.zeros(design.n_taxels)
     force[i] = 20.0
     zero = np.zeros_like(force)
@@ -326,15 +326,24 @@ def damping_point(damping: float, quick: bool, where: str | None = None) -> dict
 
 
 def stretching_taxel(kin, design, q) -> int:
-    """The wrist_1 taxel whose retraction direction -z points most outward along the arm (from
-    the shoulder to the wrist): retracting it stretches the arm toward its elbow singularity."""
+    """The taxel whose retraction direction -z points most outward along the arm (from the origin
+    of the skin's most proximal link to the middle of the taxel's own link): retracting it
+    stretches the arm toward its elbow singularity. On the UR5 sample skin, one on wrist_1_link."""
     import mujoco
 
-    on = np.flatnonzero(design.taxels.body == design.bodies.index("wrist_1_link"))
     pos, frames = kin.poses(q)
-    shoulder = kin.data.xpos[mujoco.mj_name2id(kin.model, mujoco.mjtObj.mjOBJ_BODY, "upper_arm_link")]
-    out = pos[on].mean(axis=0) - shoulder
-    return int(on[np.argmax(-frames[on, :, 2] @ (out / np.linalg.norm(out)))])
+    ids = [mujoco.mj_name2id(kin.model, mujoco.mjtObj.mjOBJ_BODY, b) for b in design.bodies]
+    shoulder = kin.data.xpos[min(ids)]  # bodies come in tree order: a parent before its children
+    best, score = 0, -np.inf
+    for bi in range(len(design.bodies)):
+        on = np.flatnonzero(design.taxels.body == bi)
+        if not len(on):
+            continue
+        out = pos[on].mean(axis=0) - shoulder
+        s = -frames[on, :, 2] @ (out / max(np.linalg.norm(out), 1e-12))
+        if s.max() > score:
+            best, score = int(on[np.argmax(s)]), float(s.max())
+    return best
 
 
 def path_error(path: np.ndarray, ref: np.ndarray) -> float:

@@ -199,17 +199,25 @@ def maze_grid(root: Path) -> str:
 def safety_audit(root: Path) -> str:
     """`skinsafe bench safety`'s rows, limits and counts side by side."""
     rows = load(root, "results/safety/safety_audit.json")
-    lines = ["| robot | contacts | cases | feasible | into_contact_mm_worst | dominant_ratio_min (cases) | vel / acc "
-             "limit violations | nonfinite_cases | fail_open | solver_failed | ms_median | ms_p999 | ms_worst |",
-             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    lines = ["| robot | contacts | cases | feasible | into_contact_mm_worst | into_contact_mm_worst_all | infeasible_cases | "
+             "dominant_ratio_min (cases) | vel / acc limit violations | nonfinite_cases | missing_cases | fail_open | "
+             "solver_failed | ms_median | ms_p999 | ms_worst |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in rows:
         ratio = "—" if r.get("dominant_ratio_min") is None else f"{r['dominant_ratio_min']:.3f}"
         lines.append(
             f"| {r['robot']} | {r['contacts']} | {fmt(r['cases'])} | {fmt(r['feasible'])} | "
-            f"{r['into_contact_mm_worst']:.3f} | {ratio} ({fmt(r['dominant_cases'])}) | "
-            f"{r['vel_limit_violations']} / {r['acc_limit_violations']} | {r['nonfinite_cases']} | {r['fail_open']} | "
+            f"{r['into_contact_mm_worst']:.3f} | {_opt(r, 'into_contact_mm_worst_all', '.3f')} | "
+            f"{_opt(r, 'infeasible_cases', ',')} | {ratio} ({fmt(r['dominant_cases'])}) | "
+            f"{r['vel_limit_violations']} / {r['acc_limit_violations']} | {r['nonfinite_cases']} | "
+            f"{_opt(r, 'missing_cases', ',')} | {r['fail_open']} | "
             f"{r.get('solver_failed', '—')} | {r['ms_median']:.2f} | {r['ms_p999']:.1f} | {r['ms_worst']:.0f} |")
     return "\n".join(lines)
+
+
+def _opt(row: dict, key: str, spec: str) -> str:
+    """A row's value formatted, or a dash where the row predates the key."""
+    return "—" if row.get(key) is None else format(row[key], spec)
 
 
 def _fig7(poke: dict) -> str:
@@ -229,8 +237,8 @@ def paper_results(root: Path) -> str:
     poke = load(root, "results/poke/poke_results.json")
     maze = load(root, "results/maze/maze_results.json")["summary"]
     track = load(root, "results/tracking/tracking.json")
-    desk = load(root, "results/desk/desk.json")["runs"]
-    collab = load(root, "results/collaboration/collaboration.json")
+    desk = load(root, "results/desk/desk.json")
+    collab = load(root, COLLAB)
     fs, alpha = poke["force_sweep"], poke["params"]["alpha"]
     forms = poke["forms"]
     m = maze["methods"]
@@ -242,9 +250,9 @@ def paper_results(root: Path) -> str:
     name = {"vanilla": "vanilla", "tdm": "TDM", "tdm2": "2-step TDM"}
     tr = ", ".join(f"{name.get(k, k)} {ts[k]['contacts_ep6_10']:.1f} ± {ts[k]['contacts_ep6_10_std']:.1f}" for k in ts)
     err = ", ".join(f"{name.get(k, k)} {ts[k]['tracking_error_mm']:.0f} mm" for k in ts)
-    desk_cells = ", ".join(f"{name}: {r['min_clearance_mm']:+.1f} mm ({fmt(r['desk_force_N'])} N on the desk)"
-                           for name, r in desk.items())
-    peaks = ", ".join(f"{stack} {_peak(collab, stack, 'hand'):.0f} N" for stack in collab["runs"])
+    touches = [r["touch_N"] for r in desk["sweep"]]
+    desk_cells = ", ".join(f"{r['stack']}: {r['min_clearance_mm']:+.1f} mm ({fmt(r['desk_force_N'])} N on the desk)"
+                           for r in desk["sweep_worst"])
     rows = [
         ("Fig. 8/12", "heavier touch, further retraction; −z follows eq. 10",
          f"linear, {fs['slope'] * 100:.4f} cm/N vs α/12 = {alpha / 12 * 100:.4f}, R² = {fs['r2']:.5f}; displacement "
@@ -264,29 +272,51 @@ def paper_results(root: Path) -> str:
          f"{track['config']['episodes']} episodes, {fmt(track['n_taxels'])} taxels): mean contact ticks per episode "
          f"over {ep}: {tr}; mean tracking error {err} (the balls sit on the path)",
          "`skinsafe experiment tracking`"),
-        ("Fig. 14", "modulation stops the retraction before the desk", f"min clearance after the touch: {desk_cells}",
+        ("Fig. 14", "modulation stops the retraction before the desk", f"worst min clearance over touches of {fmt(min(touches))}-{fmt(max(touches))} N: {desk_cells}",
          "`skinsafe experiment desk`"),
-        ("Fig. 15", "the robot retracts from an accidental contact",
-         f"a compliant person (ISO/TS 15066 masses and springs) meets a fast delivery; hand peak force per stack "
-         f"(limit {fmt(_limit(collab, 'hand'))} N): {peaks}", "`skinsafe experiment collaboration`"),
+        ("Fig. 15", "the robot retracts from an accidental contact", _fig15(collab),
+         "`skinsafe experiment collaboration`"),
     ]
     lines = ["| paper | claim | ours | command |", "| --- | --- | --- | --- |"]
     lines += [f"| {a} | {b} | {c} | {d} |" for a, b, c, d in rows]
     return "\n".join(lines)
 
 
-def _peak(collab: dict, stack: str, region: str) -> float:
-    return max((e["peak_N"] for e in collab["contacts"] if e["stack"] == stack and e["region"] == region), default=0.0)
+COLLAB = "results/collaboration/collaboration.json"
 
 
-def _limit(collab: dict, region: str) -> float:
-    for e in collab["contacts"]:
-        if e["region"] == region:
-            return e["limit_N"]
-    raise FigureError(f"no contact event on the {region} in the collaboration results")
+def _fig15(collab: dict) -> str:
+    """The collaboration scene's worst ratio to the ISO/TS 15066 limits per scenario and stack, and
+    the sweep's robot-driven cells that full+pfl exceeds."""
+    per = {}
+    for key, r in collab["runs"].items():
+        scenario, stack = key.split("/")
+        per.setdefault(scenario, []).append(f"{stack} {r['worst_ratio']:.2f}")
+    over = [r for r in collab["sweep"] if r["stack"] == "full+pfl" and r["worst_ratio"] > 1
+            and r["scenario"] != "person"]
+    cells = len([r for r in collab["sweep"] if r["stack"] == "full+pfl" and r["scenario"] != "person"])
+    sweep = (f"; sweep: full+pfl over its limit in {len(over)} of {cells} robot-driven cells"
+             + (f" (worst {max(r['worst_ratio'] for r in over):.2f})" if over else "")) if cells else ""
+    return ("a compliant person (ISO/TS 15066 masses, springs, force and pressure limits); worst peak over its "
+            "limit per stack: " + "; ".join(f"{s}: {', '.join(v)}" for s, v in per.items()) + sweep)
 
 
-FIGURES = {"maze-grid": maze_grid, "safety-audit": safety_audit, "paper-results": paper_results}
+def collaboration(root: Path) -> str:
+    """The collaboration scene's nominal runs (collaboration.md's first table)."""
+    from skinsafe.core.experiments.collaboration import nominal_table
+
+    return nominal_table(load(root, COLLAB))
+
+
+def collaboration_sweep(root: Path) -> str:
+    """The collaboration scene's robustness sweep (collaboration.md's second table)."""
+    from skinsafe.core.experiments.collaboration import sweep_table
+
+    return sweep_table(load(root, COLLAB))
+
+
+FIGURES = {"maze-grid": maze_grid, "safety-audit": safety_audit, "paper-results": paper_results,
+           "collaboration": collaboration, "collaboration-sweep": collaboration_sweep}
 
 
 def add_arguments(p) -> None:

@@ -172,45 +172,12 @@ def desk(res: dict):
 
 
 def collaboration(res: dict):
-    """Force on the person and the delivery per stack, and each contact event against its
-    ISO/TS 15066 limits (collaboration.json, Fig. 15)."""
-    plt = _plt()
-    dt = res.get("control_dt", SCENE_DT)
-    fig, (a, p, b) = plt.subplots(1, 3, figsize=(16, 4.2))
-    for stack, f in res["force_N"].items():
-        a.plot(np.arange(len(f)) * dt, f, label=stack, lw=1)
-        pan = res["pan_rad"][stack]
-        done = res["runs"][stack]["task_time_s"]
-        p.plot(np.arange(len(pan)) * dt, pan, lw=1, label=f"{stack}: " + ("not done" if done is None else
-                                                                           f"done at {done:.2f} s"))
-    for ax in (a, p):
-        ax.axvspan(res["person_in_s"], res["person_out_s"], color="0.9", zorder=0, label="person in reach")
-        ax.set_xlabel("time (s)")
-    hit = [e["start_s"] for e in res["contacts"]]
-    a.set_xlim(min(hit, default=0) - 0.1, max(hit, default=1) + 0.6)
-    regions = " + ".join(dict.fromkeys(e["region"] for e in res["contacts"])) or "person"
-    a.set_ylabel(f"normal force on the person (N)\n{regions} summed")
-    a.set_title(f"Contact force ({res['duration_s']:.1f} s delivery)")
-    a.legend(fontsize=7)
-    p.set_ylabel("pan joint angle (rad)")
-    p.set_title("The delivery and its task time")
-    p.legend(fontsize=7)
-    for i, e in enumerate(res["contacts"]):
-        b.bar(i - 0.2, e["peak_N"] / e["limit_N"], 0.4, color="tab:red" if e["peak_N"] > e["limit_N"] else "tab:green",
-              label="transient peak / limit" if i == 0 else None)
-        b.bar(i + 0.2, e["quasi_static_N"] / e["quasi_static_limit_N"], 0.4, color="tab:olive",
-              label="quasi-static / limit" if i == 0 else None)
-    b.axhline(1, color="k", lw=0.8)
-    b.set_xticks(range(len(res["contacts"])), [f"{e['stack']}: {e['region']}" for e in res["contacts"]],
-                 fontsize=7, rotation=45, ha="right")
-    b.set_xlabel("contact event (stack: body region)")
-    b.set_ylabel("force / ISO/TS 15066 limit (ratio)")
-    b.set_title("Each contact event against its limits")
-    if res["contacts"]:
-        b.legend(fontsize=7)
-    fig.suptitle("Fig. 15 as an ISO/TS 15066 test: a person reaches into the delivery")
-    fig.tight_layout()
-    return fig
+    """Force on the person per scenario and stack, each contact's and sweep cell's worst ratio to its
+    ISO/TS 15066 limits (collaboration.json, Fig. 15): the experiment's own figure."""
+    from skinsafe.core.experiments.collaboration import plot
+
+    _plt()
+    return plot(res)
 
 
 def poke_force(res: dict):

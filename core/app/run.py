@@ -31,6 +31,8 @@ import numpy as np
 from skinsafe.core.runtime.commands import CommandError, Trajectory, command_source
 from skinsafe.core.runtime.layers import build_stack, run_config
 from skinsafe.core.runtime.loop import Runtime, warm_up
+from skinsafe.core.runtime.tap import Tap
+from skinsafe.core.runtime.view_stream import DEFAULT_PORT
 from skinsafe.core.safety.retraction import RetractionParams
 from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.model import DesignError
@@ -85,6 +87,11 @@ def add_arguments(p) -> None:
     p.add_argument("--feed", metavar="NAME", help="with --boards emulate: the emulated boards stream this existing "
                    "shared-memory feed of simulated contacts (e.g. franky-sim's world, `feed NAME`; default: a fresh "
                    "one the sim driver writes)")
+    p.add_argument("--view", action="store_true", help="see the run live: publish a view stream (Blender's add-on "
+                   "attaches to it) and serve the web page (`skinsafe view`, its own process) at --view-port")
+    p.add_argument("--view-port", type=int, default=8080, help="--view: the web page's port (0: no page, stream only)")
+    p.add_argument("--view-stream", default=f"127.0.0.1:{DEFAULT_PORT}", metavar="[HOST:]PORT",
+                   help="--view: where the view stream is published (port 0: any free one)")
     p.add_argument("--stats", metavar="FILE.json", help="write the run's figures (loop, latency, world, stop) as JSON")
     p.epilog = "exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items())
 
@@ -218,6 +225,51 @@ def _ports(args, design, stack: contextlib.ExitStack, feed) -> dict[int, str]:
     return ports
 
 
+def _view(args, stack: contextlib.ExitStack, tap, design, driver, map_path: Path, map_hash: bytes) -> None:
+    """Publish the tap as a view stream (a thread reading it off the loop) and start the web page in its own
+    process at a lower priority (`skinsafe view HOST:PORT`), ready before the robot moves; both end with the run."""
+    import subprocess
+
+    from skinsafe.core.runtime.view_stream import ViewPublisher, hello
+
+    host, _, port = args.view_stream.rpartition(":")
+    msg = hello(design.n_taxels, design.taxels.ids, driver.joint_names, {b.uid: b.name for b in design.boards},
+                str(map_path.resolve()), map_hash.hex(), driver.period_s, board_period_s=1.0 / args.rate)
+    pub = ViewPublisher(tap.latest, msg, host or "127.0.0.1", int(port))
+    stack.callback(pub.close)
+    where = f"{pub.address[0]}:{pub.address[1]}"
+    print(f"skinsafe run: view stream at {where} (Blender: Skin > Live > Attach)", file=sys.stderr)
+    if not args.view_port:
+        return
+    page = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", "view", where, "--port", str(args.view_port),
+                             "--until-ended"],
+                            stdout=subprocess.PIPE, text=True, preexec_fn=_background)
+    stack.callback(_end, page)
+    line = "-"
+    while line and not line.startswith("skinsafe view:"):  # the page says where it is once it serves
+        line = page.stdout.readline()
+    if not line:
+        raise ValueError(f"the view page did not start (exit {page.wait()})")
+    print(f"skinsafe run: the view page at {line.split(' at ')[-1].strip()}", file=sys.stderr)
+
+
+def _background() -> None:
+    """In the page's process before it starts: the normal scheduler (not the run's real-time one, which a
+    child inherits: a page at SCHED_FIFO starved the emulated boards, stopped as silent) at nice 10."""
+    if hasattr(os, "sched_setscheduler"):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    os.nice(10)
+
+
+def _end(proc) -> None:
+    proc.terminate()
+    try:
+        proc.wait(5)
+    except Exception:
+        proc.kill()
+        proc.wait()
+
+
 def run(args, feed=None, ports=None, on_moving=None) -> int:
     """The command. In-process callers (the fault bench) may pass an existing `feed` and the `ports` of boards
     it feeds (already running this map), and `on_moving(runtime)`, called once the robot is handed over."""
@@ -286,12 +338,19 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
         recorder = None
         if args.record:
             config = run_config(map_path, driver, limits, params, source.excluded, command.spec, args.tdm)
+            config["board_period_s"] = 1.0 / args.rate  # for the view's board health
             try:
                 recorder = Recorder(args.record, driver.joint_names, config)
             except OSError as e:
                 return fail(2, f"--record {args.record}: {e.strerror or e}; choose a folder you can write to")
+        tap = Tap()
+        if args.view:
+            try:
+                _view(args, stack, tap, design, driver, map_path, map_hash)
+            except (OSError, ValueError) as e:
+                return fail(2, f"--view: {e}")
         runtime = Runtime(driver, source, layers, command, source.excluded, design.taxels.thresholds["force"],
-                          recorder, seconds=seconds)
+                          recorder, tap, seconds=seconds)
         if links is not None:
             links.arm()
         signals = {}
@@ -332,11 +391,14 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
     for silence in skin.get("silences", []):
         print(f"skinsafe run: board '{silence['board']}' silent for {silence['silent_ms']} ms: {silence['cause']}",
               file=sys.stderr)
-    print(f"ticks {t['ticks']}, loop {t['loop_hz_p50']:.0f} Hz (period p99 {t['period_ms_p99']:.2f} ms), contact latency "
-          f"p50 {t['latency_ms_p50']:.2f} / p99 {t['latency_ms_p99']:.2f} / max {t['latency_ms_max']:.2f} ms over "
-          f"{t['latency_samples']} frames, frames lost {lost}"
-          + (f"; record {rec.get('path', rec.get('error'))}: {rec['written']} messages, {rec['dropped']} ticks dropped"
-             if rec else ""))
+    if not t:  # stopped before the robot moved: no loop figures
+        print("the robot never moved" + (f"; record {rec.get('path', rec.get('error'))}" if rec else ""))
+    else:
+        print(f"ticks {t['ticks']}, loop {t['loop_hz_p50']:.0f} Hz (period p99 {t['period_ms_p99']:.2f} ms), contact latency "
+              f"p50 {t['latency_ms_p50']:.2f} / p99 {t['latency_ms_p99']:.2f} / max {t['latency_ms_max']:.2f} ms over "
+              f"{t['latency_samples']} frames, frames lost {lost}"
+              + (f"; record {rec.get('path', rec.get('error'))}: {rec['written']} messages, {rec['dropped']} ticks dropped"
+                 if rec else ""))
     if args.stats:
         world = getattr(driver, "stats", None)
         world = world if isinstance(world, dict) or world is None else vars(world)

@@ -214,15 +214,23 @@ def write_outputs(rows: list[dict], out: Path) -> list[Path]:
 def design_first(args) -> str:
     """`--robot`: a skin designed from `--layout` (as `skinsafe design` does), saved in `--out`."""
     from skinsafe.core.app import design
-    from skinsafe.core.bench.robot_import import ROBOTS
+    from skinsafe.core.robot.catalog import DESCRIPTIONS, description
+    from skinsafe.core.skin.model import DesignError
 
-    robot, dirs = args.robot, list(args.package_dir)
-    if robot in ROBOTS and ROBOTS[robot][0] == "urdf":  # the bundled sample description by name
-        robot, dirs = ROBOTS[robot][2], dirs or list(ROBOTS[robot][3])
+    robot, dirs, xargs = args.robot, list(args.package_dir), list(args.xacro_arg)
+    if robot in DESCRIPTIONS:  # a bundled or fetched description by name
+        try:
+            ref = description(robot)
+        except DesignError as e:
+            raise SystemExit(f"skinsafe trade: {e}") from None
+        robot, dirs = ref.path, dirs or list(ref.package_dirs)
+        xargs = [f"{k}:={v}" for k, v in ref.xacro_args.items()] + xargs
     out = Path(args.out) / "skin.json"
-    ns = argparse.Namespace(robot=robot, package_dir=dirs, xacro_arg=list(args.xacro_arg), layout=args.layout,
-                            bodies=None, rows=None, cols=None, pitch=None, max_taxels=None, out=str(out))
-    design.run(ns)
+    parser = argparse.ArgumentParser()
+    design.add_arguments(parser)  # the design command's own defaults for what trade does not ask
+    argv = [robot, "--out", str(out)] + (["--layout", args.layout] if args.layout else [])
+    argv += [f"--package-dir={d}" for d in dirs] + [f"--xacro-arg={a}" for a in xargs]
+    design.run(parser.parse_args(argv))
     return str(out)
 
 

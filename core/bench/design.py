@@ -11,7 +11,7 @@ import numpy as np
 from tqdm import tqdm
 
 from skinsafe.core.design.placement import build_design, place_module, replace_module, tile_bodies
-from skinsafe.core.design.sample import SAMPLE_BODIES
+from skinsafe.core.design.sample import sample_bodies
 from skinsafe.core.design.surface import body_surfaces
 from skinsafe.core.robot.kinematics import TaxelKinematics, retractability
 from skinsafe.core.robot.models import build_ur5
@@ -28,7 +28,7 @@ def add_arguments(p) -> None:
 
 
 def design_and_map(robot, surfaces, n: int):
-    placed, refused = tile_bodies(surfaces, robot.model, TEMPLATE, SAMPLE_BODIES["ur5"], limit=n)
+    placed, refused = tile_bodies(surfaces, robot.model, TEMPLATE, sample_bodies(robot.model), limit=n)
     design = build_design(RobotRef("builtin", "ur5"), placed, capacity=1024)
     kin = TaxelKinematics(robot.model, design)
     J, _, frames = kin.jacobians(robot.home)
@@ -38,7 +38,7 @@ def design_and_map(robot, surfaces, n: int):
 def rows(args) -> list[dict]:
     robot = build_ur5()
     t0 = time.perf_counter()
-    surfaces = body_surfaces(robot.model, SAMPLE_BODIES["ur5"])
+    surfaces = body_surfaces(robot.model, sample_bodies(robot.model))
     surf_s = time.perf_counter() - t0
     out = []
     for n in tqdm([int(s) for s in args.sizes.split(",")], desc="bench design", unit="size"):

@@ -39,6 +39,8 @@ from skinsafe.core.safety.stack import PRIOR, SafetyStack, StrategyFilter
 from skinsafe.core.safety.tdm import TactileDangerModel
 from skinsafe.core.timing import interleaved_ms, median_ms
 
+DT = 0.002  # s: the control period of the benched ticks (a 500 Hz robot)
+
 
 def add_arguments(p) -> None:
     p.add_argument("--taxels", type=int, nargs="+", default=[1024, 4096, 16384], help="TDM output sizes")
@@ -123,16 +125,16 @@ def full_tick_rows(taxels, actives, hidden: int, repeat: int) -> list[dict]:
             cmd = rng.uniform(-0.5, 0.5, 6)
 
             def make(fast: bool, readings, prior=PRIOR, out=None):
-                d = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits)
+                d = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, dt=DT)
                 mod = ModulationLayer(DangerPotential(tdm))
                 if not fast:
                     from skinsafe.core.safety.potential import potential_and_normal
                     mod._eval = lambda s, a_: potential_and_normal(mod.potential, s, a_)
-                stack = SafetyStack(robot.vel_limits, d, mod, StrategyFilter(tdm, prior=prior))
-                clock = iter(np.arange(10 ** 6) * 0.002)
+                stack = SafetyStack(robot.vel_limits, d, mod, StrategyFilter(tdm, prior=prior), dt=DT)
+                clock = iter(np.arange(10 ** 6) * DT)
                 if out is None:
-                    return lambda: stack.tick(next(clock), q, readings, cmd, 0.002)
-                return lambda: out.append(stack.tick(next(clock), q, readings, cmd, 0.002))
+                    return lambda: stack.tick(next(clock), q, readings, cmd, DT)
+                return lambda: out.append(stack.tick(next(clock), q, readings, cmd, DT))
 
             torch.set_num_threads(1)
             touch, free, flat = {"force": force}, {"force": np.zeros(n)}, np.ones(len(PRIOR))

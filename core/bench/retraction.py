@@ -22,6 +22,8 @@ from skinsafe.core.safety.defensiveness import DefensivenessLayer
 from skinsafe.core.safety.retraction import RetractionParams, dls_pinv, merge_loop, task_jacobians, task_velocities
 from skinsafe.core.timing import interleaved_ms, median_ms
 
+DT = 0.002  # s: the control period of the benched ticks (a 500 Hz robot)
+
 
 class LoopLayer(DefensivenessLayer):
     """The same layer with its hot path written as per-taxel loops (the reference)."""
@@ -75,9 +77,9 @@ def rows(args) -> list[dict]:
     for k in (int(s) for s in args.active.split(",")):
         active = np.sort(rng.choice(args.taxels, k, replace=False))
         closed = replace(params, merge="joint")
-        qp = DefensivenessLayer(kin, th, robot.vel_limits, robot.acc_limits, params)
-        fast = DefensivenessLayer(kin, th, robot.vel_limits, robot.acc_limits, closed)
-        loop = LoopLayer(kin, th, robot.vel_limits, robot.acc_limits, closed)
+        qp = DefensivenessLayer(kin, th, robot.vel_limits, robot.acc_limits, params, DT)
+        fast = DefensivenessLayer(kin, th, robot.vel_limits, robot.acc_limits, closed, DT)
+        loop = LoopLayer(kin, th, robot.vel_limits, robot.acc_limits, closed, DT)
         readings = primed(fast, q, active, args.taxels)
         primed(loop, q, active, args.taxels)
         primed(qp, q, active, args.taxels)

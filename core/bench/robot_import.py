@@ -1,17 +1,22 @@
-"""`skinsafe bench import`: a robot in, a full-arm skin designed on it, and whether the skin
-sits on the robot's real surface, feels where it sits, and the robot collides where it is.
+"""`skinsafe bench import`: a robot in, its arm covered with skin (`cover_design`), and whether the
+skin sits on the robot's real surface, feels where it sits, and the robot collides where it is.
 
 One row per robot (the built-ins, the bundled and fetched public descriptions by name, and any
 URDF, xacro or MJCF given with `--robot PATH`), each run in a fresh process so `peak_mb` is that
 robot's own peak resident memory:
 `robot`, `links` (skinned) and `skinned_links` (their names), `triangles_in` (mesh triangles of the skinned links' visual surfaces
 as described), `triangles_used` (in their design surfaces), `import_s` (load the robot and build
-the surfaces), `design_s` (place the modules), `taxels`, `peak_mb`,
+the surfaces), `design_s` (cover every moving link: 3x3 modules at `--pitch`), `taxels`, `peak_mb`,
 `taxel_to_surface_mm_worst` (to the link's visual surface as described, not decimated),
 `taxel_to_collision_mm_worst` (to the contact surface of the scene, `collision="skin"`),
-`coverage_min` (the smallest covered fraction of a skinned arm link's area, `coverage_report`),
+`coverage_min` (the smallest covered fraction of an arm link's open surface: its area less what
+lies inside another link at home or behind its own internal faces, `cover_report`; a moving link
+left bare counts 0) with `coverage_min_link` (which link), `coverage_of_link_min` (the same over
+each link's whole surface),
 `bare_collision_mm_worst` / `bare_collision_mm_p90` (|distance| from points on the exposed
 surface of every moving link without skin to the scene's contact surface),
+`skinned_bare_collision_mm_worst` / `_p90` (the same from the exposed surface of the skinned links
+outside their taxel cells),
 `contact_recall` (random pokes 3 mm deep on skinned surfaces that light the nearest taxel),
 `self_contacts_home` (robot-robot contacts at the home pose).
 """
@@ -40,7 +45,7 @@ def add_arguments(p) -> None:
     p.add_argument("--package-dir", action="append", default=[], help="ROS package folder for --robot (repeatable)")
     p.add_argument("--xacro-arg", action="append", default=[], metavar="NAME:=VALUE", help="xacro argument for --robot")
     p.add_argument("--pokes", type=int, default=400, help="random pokes per robot for contact_recall")
-    p.add_argument("--pitch", type=float, default=0.012, help="taxel pitch of the 4x4 modules, m")
+    p.add_argument("--pitch", type=float, default=0.01, help="taxel pitch of the 3x3 cover modules, m")
 
 
 def robot_ref(robot: str, package_dirs=(), xacro_args: dict | None = None) -> RobotRef:
@@ -63,25 +68,6 @@ def skinnable_bodies(robot) -> list[str]:
     from skinsafe.core.design.surface import surface_bodies
 
     return surface_bodies(robot.model, moving=True)
-
-
-def design_arm(robot, ref, pitch: float = 0.012, bodies=None):
-    """A full-arm skin of 4x4 modules tiled over every moving link; returns (design, surfaces)."""
-    from skinsafe.core.design.layout import tile_body, without_buried
-    from skinsafe.core.design.placement import build_design
-    from skinsafe.core.design.surface import cached_surfaces
-    from skinsafe.core.skin.model import Module
-
-    bodies = bodies or skinnable_bodies(robot)
-    surfaces = cached_surfaces(robot.model, bodies)
-    template = Module(0, "tile", "", rows=4, cols=4, pitch=pitch, taxel_diameter=0.6 * pitch, margin=0.002,
-                      min_bend_radius=0.02)
-    placed = []
-    for b in bodies:
-        mine, _ = tile_body(surfaces[b], robot.model, template, b, len(placed))
-        placed += mine
-    design = build_design(ref, placed, capacity=512, bodies=[b for b in bodies if any(p.module.body == b for p in placed)])
-    return without_buried(design, robot.model, robot.home)[0], surfaces
 
 
 def pokes(model, data, design, surfaces, n: int, depth: float = 0.003, radius: float = 0.005, seed: int = 0):
@@ -127,17 +113,18 @@ def self_contacts(model, data) -> int:
                if c.dist < 0 and not {int(model.geom_bodyid[g]) for g in c.geom} & skip)
 
 
-def bare_points(model, design, q, n: int = BARE_POINTS, seed: int = 0) -> dict[str, np.ndarray]:
+def bare_points(model, design, q, n: int = BARE_POINTS, seed: int = 0, skinned: bool = False) -> dict[str, np.ndarray]:
     """Body name -> `n` random points (body frame) on the exposed surface (`exposed_triangles`;
-    the built-ins' primitives where a robot has no visual mesh) of each moving link without skin."""
+    the built-ins' primitives where a robot has no visual mesh) of each moving link without skin,
+    or with `skinned`, of each skinned link outside its taxel cells (`Footprint`)."""
     from skinsafe.core.design.surface import body_surface, surface_bodies
-    from skinsafe.core.sim.skin_collision import exposed_triangles
+    from skinsafe.core.sim.skin_collision import Footprint, exposed_triangles
 
     rng = np.random.default_rng(seed)
     exposed = exposed_triangles(model, q)
     out = {}
     for name in surface_bodies(model, moving=True):
-        if name in design.bodies:
+        if (name in design.bodies) != skinned:
             continue
         tri = exposed.get(name)
         if tri is None:
@@ -146,15 +133,25 @@ def bare_points(model, design, q, n: int = BARE_POINTS, seed: int = 0) -> dict[s
         area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
         if not len(tri) or area.sum() <= 0:
             continue
-        k = rng.choice(len(tri), n, p=area / area.sum())
-        out[name] = np.einsum("kj,kjd->kd", rng.dirichlet([1, 1, 1], n), tri[k])
+        m = 20 * n if skinned else n  # most of a covered link's surface is under its cells
+        k = rng.choice(len(tri), m, p=area / area.sum())
+        pts = np.einsum("kj,kjd->kd", rng.dirichlet([1, 1, 1], m), tri[k])
+        if skinned:
+            pts = pts[~Footprint.of(design, name).near(pts, 0.0)][:n]
+        if len(pts):
+            out[name] = pts
     return out
+
+
+def _abs_finite(gaps: dict) -> np.ndarray:
+    d = np.concatenate(list(gaps.values()) or [np.zeros(0)])
+    return np.abs(d[np.isfinite(d)])
 
 
 def robot_row(robot: str | RobotRef, n_pokes: int, pitch: float) -> dict:
     import mujoco
 
-    from skinsafe.core.design.coverage import coverage_report
+    from skinsafe.core.design.cover import cover_design, cover_report
     from skinsafe.core.design.surface import body_surface, cached_surfaces, skin_geoms
     from skinsafe.core.robot.models import load_robot
     from skinsafe.core.sim.scene import Obstacle, build_scene
@@ -166,7 +163,7 @@ def robot_row(robot: str | RobotRef, n_pokes: int, pitch: float) -> dict:
     bodies = skinnable_bodies(robot)
     surfaces = cached_surfaces(robot.model, bodies)
     t1 = time.perf_counter()
-    design, _ = design_arm(robot, ref, pitch, bodies)
+    design, _ = cover_design(robot, ref, bodies, pitch=pitch, surfaces=surfaces)
     t2 = time.perf_counter()
     m = robot.model
     skinned = design.bodies  # rows count the skinned links only
@@ -178,14 +175,15 @@ def robot_row(robot: str | RobotRef, n_pokes: int, pitch: float) -> dict:
         on = design.taxels.body == bi
         full = body_surface(m, b, budget=10 ** 9)
         to_surface = max(to_surface, float(full.closest(design.taxels.positions[on])[3].max()))
-    cover = coverage_report(design, m)
-    arm = [b for b in skinned if m.body_weldid[m.body(b).id] != 0]
+    report = cover_report(design, m, robot.home)
+    arm = [b for b in bodies if m.body_weldid[m.body(b).id] != 0]  # a moving link left bare counts 0
+    covered = {b: report[b]["covered"] if b in report else 0.0 for b in arm}
+    least = min(covered, key=covered.get) if arm else ""
     poke = Obstacle("poke", "sphere", (0.005,), pos=(0, 0, -5), mocap=True)
     spec = build_scene(design, robot, [poke])
     clearance = taxel_clearance(spec, design, robot.home)
-    bare = np.concatenate(list(point_clearance(spec, bare_points(m, design, robot.home), robot.home).values())
-                          or [np.zeros(0)])
-    bare = np.abs(bare[np.isfinite(bare)])
+    bare = _abs_finite(point_clearance(spec, bare_points(m, design, robot.home), robot.home))
+    skin_bare = _abs_finite(point_clearance(spec, bare_points(m, design, robot.home, skinned=True), robot.home))
     model = spec.compile()
     data = mujoco.MjData(model)
     data.qpos[:] = robot.home
@@ -195,14 +193,18 @@ def robot_row(robot: str | RobotRef, n_pokes: int, pitch: float) -> dict:
     mujoco.mj_forward(model, data)
     home_contacts = self_contacts(model, data)
     recall = pokes(model, data, design, surfaces, n_pokes)
+    worst = lambda d: float(d.max()) * 1e3 if len(d) else None  # noqa: E731 (None: no such link)
+    p90 = lambda d: float(np.percentile(d, 90)) * 1e3 if len(d) else None  # noqa: E731 (None: no such link)
     return dict(robot=ref.name, links=len(skinned), skinned_links=" ".join(skinned), triangles_in=tri_in, triangles_used=tri_used,
-                import_s=t1 - t0, design_s=t2 - t1, taxels=design.n_taxels,
+                import_s=t1 - t0, design_s=t2 - t1, taxels=design.n_taxels, modules=len(design.modules),
                 peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                 taxel_to_surface_mm_worst=to_surface * 1e3,
                 taxel_to_collision_mm_worst=float(np.abs(clearance).max()) * 1e3,
-                coverage_min=float(min(cover[b]["fraction"] for b in arm)) if arm else float("nan"),
-                bare_collision_mm_worst=float(bare.max()) * 1e3 if len(bare) else float("nan"),
-                bare_collision_mm_p90=float(np.percentile(bare, 90)) * 1e3 if len(bare) else float("nan"),
+                coverage_min=covered[least] if arm else float("nan"), coverage_min_link=least,
+                coverage_of_link_min=min((report[b]["covered_of_link"] if b in report else 0.0 for b in arm),
+                                         default=float("nan")),
+                bare_collision_mm_worst=worst(bare), bare_collision_mm_p90=p90(bare),
+                skinned_bare_collision_mm_worst=worst(skin_bare), skinned_bare_collision_mm_p90=p90(skin_bare),
                 contact_recall=recall, self_contacts_home=home_contacts)
 
 

@@ -13,8 +13,12 @@ into it. Per row, over `--repeats` runs (worst case where it says so):
   into the post after the onset; `peak_N_in_process` is the same contact with the stack fed straight
   from the sim's readout (no boards, no serial; same code, `SimDriver(realtime=False)`);
 - stale_stops: runs a staleness watchdog (silent board, robot state, command) stopped with nothing
-  injected (the shared machine's stalls); such a run is run again (up to RETRIES times) and the row's
-  figures are those of the runs that went to the end; frames_lost: frames sent that never arrived.
+  injected (the shared machine's stalls), or a board was silent before the robot moved; such a run is run
+  again (up to RETRIES times) and the row's figures are those of the runs that went to the end;
+  frames_lost: frames sent that never arrived.
+`--view off page browser`: a row per mode (key `view`), the modes' runs alternating so they share the
+machine's load: without the live view, with `run --view` (its stream and page process), and with a headless
+Chromium on the page too; per_run_* list each run's loop figures (the spread).
 `--faults`: the fault storm (core/app/runtime_faults.py) in its own process, one row: runs, faults
 (runs the fault stopped), stopped_within_2_periods (fraction: zero velocity sent within 2 control
 periods of the detection), unnamed, tracebacks, records_readable (fraction), and named_as_injected.
@@ -42,6 +46,7 @@ SECONDS = 3.0
 STALE = ("skin-silent", "robot-state", "command-stale")
 RETRIES = 5
 FR3_SECONDS = 60.0
+VIEW_PORT = 8480
 
 
 def add_arguments(p) -> None:
@@ -70,6 +75,9 @@ def add_arguments(p) -> None:
     p.add_argument("--fault-rate", type=int, default=50, help="--faults: board frames per second (a board is silent "
                    "after 2 frame periods: 40 ms, so a 50 ms delay trips it and the machine's stalls mostly do not)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--view", nargs="+", default=["off"], choices=("off", "page", "browser"),
+                   help="rows without the live view (off), with `run --view` (page: the stream and its page process), "
+                   "and also with a headless Chromium showing the page (browser); the runs alternate between them")
 
 
 def sample_skin(n: int, capacity: int, robot=None) -> SkinDesign:
@@ -132,21 +140,63 @@ def reference(design, robot, traj: Path, period: float = 0.002, seconds: float =
     return vars(drv.stats)
 
 
-def _run(args, map_path: Path, command: str, stats: Path, seconds: float, *extra: str) -> tuple[dict, int]:
-    """`skinsafe run` in its own process: its figures, and how many runs a staleness stop (nothing injected: the
-    machine's stalls) cut short before this one (each is run again, up to RETRIES times in all)."""
+def _run(args, map_path: Path, command: str, stats: Path, seconds: float, *extra: str, view: str = "off") -> dict:
+    """One `skinsafe run` in its own process: its figures. `view`: "page" with `--view` (the stream and its page
+    process), "browser" also with a headless Chromium (nice 19) showing the page while the robot moves."""
     cmd = [sys.executable, "-m", "skinsafe.core.app.cli", "run", str(map_path), "--boards", "emulate", "--command", command,
            "--seconds", str(seconds), "--rate", str(args.rate), "--link-latency", str(args.link_latency),
            "--stats", str(stats), *extra]
-    for attempt in range(RETRIES):
-        stats.unlink(missing_ok=True)
+    if view != "off":
+        cmd += ["--view", "--view-port", str(VIEW_PORT), "--view-stream", "127.0.0.1:0"]
+    stats.unlink(missing_ok=True)
+    if view == "browser":
+        p = _with_browser(cmd)
+    else:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=600 + 20 * seconds)
-        if not stats.exists():
-            raise RuntimeError(f"bench runtime: `skinsafe run` exited {p.returncode} without figures: {p.stderr[-800:]}")
-        r = json.loads(stats.read_text())
-        if r["watchdog"] not in STALE:
-            break
-    return r, attempt
+    if not stats.exists():
+        raise RuntimeError(f"bench runtime: `skinsafe run` exited {p.returncode} without figures: {p.stderr[-800:]}")
+    return json.loads(stats.read_text())
+
+
+def _cut_short(r: dict) -> bool:
+    """A staleness stop with nothing injected (the machine's stalls), or a board silent before the robot moved."""
+    return r["watchdog"] in STALE or not r.get("ticks")
+
+
+def _retried(run) -> tuple[dict, int]:
+    """`run()` again while a false staleness stop cuts it short (RETRIES in all): the last run, and how many were cut."""
+    for attempt in range(RETRIES):
+        r = run()
+        if not _cut_short(r):
+            return r, attempt
+    return r, RETRIES
+
+
+def _with_browser(cmd: list[str]) -> subprocess.CompletedProcess:
+    """`cmd` (a `run --view`) with a headless Chromium (Debian's, nice 19) on its page from before the robot moves."""
+    from playwright.sync_api import Error as PlaywrightError
+    from playwright.sync_api import sync_playwright
+
+    from skinsafe.core.bench.browser import CHROMIUM_ARGS, chromium, niced
+
+    exe = chromium()
+    if exe is None:
+        raise RuntimeError("bench runtime --view browser: no chromium (`apt-get install -y chromium`)")
+    with tempfile.TemporaryDirectory() as tmp, sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=niced(tmp, exe), args=CHROMIUM_ARGS)
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        err = []
+        for line in proc.stderr:
+            err.append(line)
+            if "the view page at" in line:
+                try:
+                    browser.new_page().goto(line.rsplit(" at ", 1)[1].strip())
+                except PlaywrightError:  # the run already stopped (a false staleness stop) and its page with it
+                    pass
+                break
+        out, rest = proc.communicate(timeout=600)
+        browser.close()
+    return subprocess.CompletedProcess(cmd, proc.returncode, out, "".join(err) + rest)
 
 
 def _ms(world: dict, key: str) -> float:
@@ -174,36 +224,44 @@ def rows(args) -> list[dict]:
             design = sample_skin(n, args.capacity, robot)
             save(design, tmp / f"skin{n}.json")
             ref = reference(design, robot, traj, args.period, seconds)
-            runs, stale = [], 0
-            for k in range(args.repeats):
-                r, cut = _run(args, tmp / f"skin{n}.json", f"trajectory:{traj}", tmp / f"stats{n}_{k}.json", seconds,
-                              "--robot", "sim", "--contact", CONTACT, "--period", str(args.period))
-                runs.append(r)
-                stale += cut
-            w = [r["world"] for r in runs]
-            worst = lambda key: float(np.nanmax([r[key] for r in runs]))  # noqa: E731
-            peaks = [x["peak_N"] for x in w]
-            out.append({
-                "robot": "ur5", "driver": "sim", "boards": len(design.boards), "taxels": design.n_taxels,
-                "ticks": int(sum(r["ticks"] for r in runs)), "rate_hz": args.rate, "period_ms": args.period * 1e3,
-                "link_latency_ms": args.link_latency * 1e3, "runs": len(runs),
-                "loop_hz_p50": float(np.median([r["loop_hz_p50"] for r in runs])), "period_ms_p99": worst("period_ms_p99"),
-                "latency_ms_p50": float(np.nanmedian([r["latency_ms_p50"] for r in runs])),
-                "latency_ms_p99": worst("latency_ms_p99"), "latency_ms_max": worst("latency_ms_max"),
-                "reaction_ms": float(np.nanmax([_ms(x, "reaction_t") for x in w])),
-                "peak_N": float(max(peaks)),
-                "into_contact_mm_worst": float(max(x["into_contact_m"] for x in w)) * 1e3,
-                "stale_stops": stale,
-                "frames_lost": int(sum(r["frames_lost"] for r in runs)),
-                "peak_N_in_process": float(ref["peak_N"]), "reaction_ms_in_process": _ms(ref, "reaction_t"),
-                "into_contact_mm_in_process": float(ref["into_contact_m"]) * 1e3,
-                "peak_vs_in_process": float(max(peaks) / ref["peak_N"]) if ref["peak_N"] else float("nan"),
-                "peak_vs_in_process_median": float(np.median(peaks) / ref["peak_N"]) if ref["peak_N"] else float("nan"),
-                "work_ms_p99": worst("work_ms_p99"), "work_ms_max": worst("work_ms_max"),
-                "latency_samples": int(sum(r["latency_samples"] for r in runs)),
-                "frame_delay_ms_max": float(max(r["skin"]["frame_delay_ms_max"] or 0.0 for r in runs)),
-                "stops": ";".join(sorted({r["kind"] + (":" + r["watchdog"] if r["watchdog"] else "") for r in runs}))})
+            runs, stale = {v: [] for v in args.view}, {v: 0 for v in args.view}
+            for k in range(args.repeats):  # a run a false staleness stop cut short is counted, then run again
+                for v in args.view:  # alternating: the modes share the machine's load
+                    r, cut = _retried(lambda: _run(args, tmp / f"skin{n}.json", f"trajectory:{traj}",
+                                                   tmp / f"stats{n}_{v}_{k}.json", seconds, "--robot", "sim", "--contact",
+                                                   CONTACT, "--period", str(args.period), view=v))
+                    runs[v].append(r)
+                    stale[v] += cut
+            for v in args.view:
+                out.append(_row(design, runs[v], stale[v], ref, args) | ({"view": v} if args.view != ["off"] else {}))
     return out
+
+
+def _row(design, runs: list[dict], stale: int, ref: dict, args) -> dict:
+    w = [r["world"] for r in runs]
+    worst = lambda key: float(np.nanmax([r[key] for r in runs]))  # noqa: E731
+    return {
+        "robot": "ur5", "driver": "sim", "boards": len(design.boards), "taxels": design.n_taxels,
+        "ticks": int(sum(r["ticks"] for r in runs)), "rate_hz": args.rate, "period_ms": args.period * 1e3,
+        "link_latency_ms": args.link_latency * 1e3, "runs": len(runs),
+        "loop_hz_p50": float(np.median([r["loop_hz_p50"] for r in runs])), "period_ms_p99": worst("period_ms_p99"),
+        "latency_ms_p50": float(np.nanmedian([r["latency_ms_p50"] for r in runs])),
+        "latency_ms_p99": worst("latency_ms_p99"), "latency_ms_max": worst("latency_ms_max"),
+        "reaction_ms": float(np.nanmax([_ms(x, "reaction_t") for x in w])),
+        "peak_N": float(max(x["peak_N"] for x in w)),
+        "into_contact_mm_worst": float(max(x["into_contact_m"] for x in w)) * 1e3,
+        "stale_stops": stale,
+        "frames_lost": int(sum(r["frames_lost"] for r in runs)),
+        "peak_N_in_process": float(ref["peak_N"]), "reaction_ms_in_process": _ms(ref, "reaction_t"),
+        "into_contact_mm_in_process": float(ref["into_contact_m"]) * 1e3,
+        "peak_vs_in_process": float(max(x["peak_N"] for x in w) / ref["peak_N"]) if ref["peak_N"] else float("nan"),
+        "work_ms_p99": worst("work_ms_p99"), "work_ms_max": worst("work_ms_max"),
+        "latency_samples": int(sum(r["latency_samples"] for r in runs)),
+        "frame_delay_ms_max": float(max(r["skin"].get("frame_delay_ms_max") or 0.0 for r in runs)),
+        "stops": ";".join(sorted({r["kind"] + (":" + r["watchdog"] if r["watchdog"] else "") for r in runs})),
+        "per_run_loop_hz_p50": [round(r["loop_hz_p50"], 3) for r in runs],
+        "per_run_period_ms_p99": [round(r["period_ms_p99"], 4) for r in runs],
+        "per_run_latency_ms_p99": [round(r["latency_ms_p99"], 4) for r in runs]}
 
 
 def write_still(path: Path, joints: list[str], q) -> Path:
@@ -234,8 +292,8 @@ def fr3_rows(args) -> list[dict]:
             still = write_still(tmp / "still.csv", [robot.model.joint(j).name for j in range(7)], INITIAL_Q)
             hand = hand_in_reach(str(path), INITIAL_Q)
             with WorldProcess(path, tmp / "world.json", hand=hand, realtime=args.realtime) as world:
-                r, stale = _run(args, path, f"trajectory:{still}", tmp / "stats.json", seconds, "--robot", "fr3",
-                                "--host", world.host, "--feed", world.feed)
+                r, stale = _retried(lambda: _run(args, path, f"trajectory:{still}", tmp / "stats.json", seconds,
+                                                 "--robot", "fr3", "--host", world.host, "--feed", world.feed))
                 w = world.stop()
             out.append(fr3_row(r, w, stale, args))
     return out

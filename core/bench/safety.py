@@ -12,6 +12,10 @@ layer's command is integrated tick by tick (dt 2 ms) over the whole retraction (
   velocity and acceleration limits) without relaxing any;
 * `into_contact_mm_worst`: the largest displacement of any contacted taxel toward its own
   contact (along +z at its trigger, from its trigger position), feasible cases, mm;
+* `into_contact_mm_worst_all`: the same over all cases, infeasible ones included, while the
+  contacts are held (every tick whose command was made with them in the pool), mm;
+* `infeasible_cases`: cases with a tick flagged `infeasible` (no command within the limits met
+  every no-push and viability row; the least-violating one was sent);
 * `dominant_ratio_min`: achieved over eq. 10 speed of the highest-priority contact along its
   retraction axis, in feasible cases, over the ticks where eq. 10 asks for at least 5% of its
   peak speed and nothing binds the dominant task at that tick (no joint limit, no other
@@ -21,12 +25,14 @@ layer's command is integrated tick by tick (dt 2 ms) over the whole retraction (
 * `solver_failed`: cases with a tick whose QP solver gave up on the dominant level (flagged; the
   smallest command meeting every constraint was sent);
 * `nonfinite_cases`: further cases run through the full stack (strategy filter + defensiveness
-  + modulation with a small TDM), each with one non-finite value (NaN, +Inf or -Inf) injected at
-  a random tick into one of the readings (at a touched or a random taxel), q, the clock, the
-  planned command, the TDM output or the potential;
-* `fail_open`: of those, cases where the injected tick sent anything but the safe command (the
-  brake from the last command) or, while retracting, a command that keeps every contacted
-  taxel out of its contact - or where a later tick was non-finite;
+  + modulation with a small TDM), each with one fault injected at a random tick: a non-finite
+  value (NaN, +Inf or -Inf) in the readings (at a touched or a random taxel), q, the clock, the
+  planned command, the TDM output or the potential, or missing readings (`MISSING`: no readings
+  at all, an empty dict, the force array cut short by one board's block, one board's block NaN);
+* `missing_cases`: how many of those injected missing readings;
+* `fail_open`: of all injection cases, those where the injected tick sent anything but the safe
+  command (the brake from the last command) or, while retracting, a command that keeps every
+  contacted taxel out of its contact - or where a later tick was non-finite;
 * `ms_median`, `ms_worst`: the defensiveness tick over all ticks of the cases (`ms_p999`: the
   99.9th percentile, as the maximum on a shared machine is the scheduler's).
 
@@ -60,7 +66,8 @@ from skinsafe.core.skin.files import atomic_write
 
 DT = 0.002
 CONTACTS = (1, 2, 3, 8)
-INJECT = ("readings_touched", "readings_random", "q", "clock", "command", "tdm", "potential")
+MISSING = ("readings_none", "readings_empty", "readings_short", "readings_board_nan")
+INJECT = ("readings_touched", "readings_random", "q", "clock", "command", "tdm", "potential") + MISSING
 
 
 def add_arguments(p) -> None:
@@ -124,7 +131,8 @@ def retraction_case(s: Setup, q, idx, f, times: list) -> dict:
     _, p0, fr0 = s.kin.jacobians_of(idx, q)
     z0 = fr0[:, :, 2].copy()
     prev = np.zeros(len(q))
-    out = {"into": 0.0, "ratio": np.inf, "feasible": True, "vel": False, "acc": False, "solver_failed": False}
+    out = {"into": 0.0, "into_all": 0.0, "ratio": np.inf, "feasible": True, "infeasible": False, "vel": False,
+           "acc": False, "solver_failed": False}
     for k in range(int(np.ceil(p.T / DT)) + 3):
         t = k * DT
         t0 = time.perf_counter()
@@ -135,7 +143,9 @@ def retraction_case(s: Setup, q, idx, f, times: list) -> dict:
         out["vel"] |= v
         out["acc"] |= a
         out["feasible"] &= not (info.infeasible or info.recovery_dropped)
+        out["infeasible"] |= info.infeasible
         out["solver_failed"] |= info.solver_failed
+        held = L.active
         if L.active and not (info.limited or info.blocked or info.damped):
             st = L._state[0]
             D = min(st[2], 12 * p.max_distance)
@@ -146,7 +156,10 @@ def retraction_case(s: Setup, q, idx, f, times: list) -> dict:
         prev = qd
         q = q + qd * DT
         pos = s.kin.jacobians_of(idx, q)[1]
-        out["into"] = max(out["into"], float(np.max(np.einsum("ki,ki->k", pos - p0, z0))))
+        into = float(np.max(np.einsum("ki,ki->k", pos - p0, z0)))
+        out["into"] = max(out["into"], into)
+        if held:
+            out["into_all"] = max(out["into_all"], into)
     return out
 
 
@@ -162,11 +175,11 @@ def stack_for(s: Setup, seed: int):
     torch.manual_seed(seed)
     nv = s.robot.model.nv
     tdm = TactileDangerModel(nv, nv, 64, (32, 32)).eval()
-    return SafetyStack(s.robot.vel_limits, s.layer(), ModulationLayer(DangerPotential(tdm)), StrategyFilter(tdm))
+    return SafetyStack(s.robot.vel_limits, s.layer(), ModulationLayer(DangerPotential(tdm)), StrategyFilter(tdm), dt=DT)
 
 
-def nonfinite_case(s: Setup, stack, rng: np.random.Generator, q, idx, f) -> tuple[bool, bool, bool]:
-    """One injection case: (fail_open, vel violated, acc violated)."""
+def nonfinite_case(s: Setup, stack, rng: np.random.Generator, q, idx, f) -> tuple[bool, bool, bool, bool]:
+    """One injection case: (fail_open, vel violated, acc violated, the injection was missing readings)."""
     stack.reset()
     d, lim = stack.defensiveness, stack.limits
     force = np.zeros(s.design.n_taxels)
@@ -184,7 +197,9 @@ def nonfinite_case(s: Setup, stack, rng: np.random.Generator, q, idx, f) -> tupl
         r = {"force": (force if k == 0 else zero).copy()}
         saved = {}
         if k == at:
-            if where.startswith("readings"):
+            if where in MISSING:
+                r = _missing(s, r, where, rng)
+            elif where.startswith("readings"):
                 r["force"][idx[0] if where == "readings_touched" else rng.integers(len(force))] = value
             elif where == "q":
                 qk[rng.integers(nv)] = value
@@ -214,7 +229,22 @@ def nonfinite_case(s: Setup, stack, rng: np.random.Generator, q, idx, f) -> tupl
             fail |= not (safe or retreat)
         prev = out
         q = q + out * DT
-    return fail, vel, acc
+    return fail, vel, acc, where in MISSING
+
+
+def _missing(s: Setup, readings: dict, where: str, rng: np.random.Generator) -> dict | None:
+    """Readings with a silent board: none at all, an empty dict, the force array without one
+    board's block (cut short), or that block NaN (what the stream holds before a board's first frame)."""
+    if where == "readings_none":
+        return None
+    if where == "readings_empty":
+        return {}
+    board = np.flatnonzero(s.design.taxels.board == rng.choice(np.unique(s.design.taxels.board)))
+    force = readings["force"]
+    if where == "readings_short":
+        return {"force": np.delete(force, board)}
+    force[board] = np.nan
+    return {"force": force}
 
 
 def eq2_rows(seed: int, reps: int = 300) -> list[dict]:
@@ -279,6 +309,8 @@ def audit_task(method: str, seed: int, robot: str, contacts: int, chunk: int, ca
     ms = np.array(times) * 1e3
     hist = np.histogram(np.clip(ms, BINS[0], BINS[-1]), BINS)[0]
     return {"cases": len(res), "feasible": len(feas), "into": max((r["into"] for r in feas), default=0.0),
+            "into_all": max((r["into_all"] for r in res), default=0.0),
+            "infeasible": sum(r["infeasible"] for r in res), "missing": sum(b[3] for b in bad),
             "ratio": min(free, default=None), "dominant_cases": len(free),
             "vel": sum(r["vel"] for r in res) + sum(b[1] for b in bad),
             "acc": sum(r["acc"] for r in res) + sum(b[2] for b in bad),
@@ -313,10 +345,13 @@ def _merge(robot: str, contacts: int, parts: list[dict]) -> dict:
     return {"robot": robot, "contacts": contacts, "cases": sum(p["cases"] for p in parts),
             "feasible": sum(p["feasible"] for p in parts),
             "into_contact_mm_worst": round(max(p["into"] for p in parts) * 1e3, 4),
+            "into_contact_mm_worst_all": round(max(p["into_all"] for p in parts) * 1e3, 4),
+            "infeasible_cases": sum(p["infeasible"] for p in parts),
             "dominant_ratio_min": round(min(ratios), 4) if ratios else None,
             "dominant_cases": sum(p["dominant_cases"] for p in parts),
             "vel_limit_violations": sum(p["vel"] for p in parts), "acc_limit_violations": sum(p["acc"] for p in parts),
-            "nonfinite_cases": sum(p["nonfinite"] for p in parts), "fail_open": sum(p["fail_open"] for p in parts),
+            "nonfinite_cases": sum(p["nonfinite"] for p in parts), "missing_cases": sum(p["missing"] for p in parts),
+            "fail_open": sum(p["fail_open"] for p in parts),
             "solver_failed": sum(p["solver_failed"] for p in parts),
             "ms_median": round(_quantile(counts, 0.5), 4), "ms_worst": round(max(p["ms_max"] for p in parts), 3),
             "ms_p999": round(_quantile(counts, 0.999), 3)}

@@ -228,18 +228,30 @@ def collision_rows(steps: int) -> list[dict]:
 REST_Q = np.array([0.0, 0.0, 0.0, -np.pi / 2, 0.0, 0.0])  # upper arm and forearm level
 
 
+def resting_place(model, design, q) -> np.ndarray:
+    """Where a load can rest on the skin at configuration q (world): on the link with the most
+    up-facing taxels (normal within 8 degrees of up), the most upward of them nearest their middle.
+    On the UR5 sample skin with the arm level, the top of the upper arm."""
+    from skinsafe.core.robot.kinematics import TaxelKinematics
+
+    pos, frames = TaxelKinematics(model, design).poses(q)
+    up = np.flatnonzero(frames[:, 2, 2] > 0.99)
+    if not len(up):
+        raise ValueError("bench sensing: no taxel faces up at the rest pose; nothing to rest a load on")
+    link = np.bincount(design.taxels.body[up]).argmax()
+    on = up[design.taxels.body[up] == link]
+    on = on[frames[on, 2, 2] >= frames[on, 2, 2].max() - 1e-3]
+    return pos[on[np.argmin(np.linalg.norm(pos[on] - pos[on].mean(axis=0), axis=1))]]
+
+
 def timestep_rows(timesteps=(0.0005, 0.001, 0.002, 0.004, 0.008), mass: float = 0.5) -> list[dict]:
     from skinsafe.core.sim.scene import Obstacle, SceneOptions, build_scene
 
     design = make_sample_design("ur5", pitch=BASE_PITCH)
     robot = build_ur5()
     rows = []
-    data0 = mujoco.MjData(robot.model)
-    data0.qpos[:] = REST_Q
-    mujoco.mj_kinematics(robot.model, data0)
-    bid = mujoco.mj_name2id(robot.model, mujoco.mjtObj.mjOBJ_BODY, "upper_arm_link")
-    top = data0.xpos[bid] + data0.xmat[bid].reshape(3, 3) @ np.array([-0.2, 0, 0.13585])
-    box = Obstacle("load", "box", (0.04, 0.04, 0.01), pos=tuple(top + [0, 0, 0.05 + 0.011]), free=True, mass=mass)
+    top = resting_place(robot.model, design, REST_Q)
+    box = Obstacle("load", "box", (0.04, 0.04, 0.01), pos=tuple(top + [0, 0, 0.011]), free=True, mass=mass)
     for ts in tqdm(timesteps, desc="timestep sweep"):
         model = build_scene(design, robot, [box], SceneOptions(timestep=ts)).compile()
         data = mujoco.MjData(model)

@@ -15,11 +15,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from skinsafe.core.design.surface import Surface, closest_one
+from skinsafe.core.design.surface import Surface
 from skinsafe.core.skin.boards import assign_boards, number_channels
 from skinsafe.core.skin.model import DesignError, Module, RobotRef, SkinDesign, Taxels, frames_from_normals
 
@@ -110,55 +109,9 @@ def _march(surface: Surface, p, n, t, carry, hs: np.ndarray):
     not the chord, is h. Returns per-step arrays (steps+1, m, ...) and each walker's first failing
     step (-1 for none)."""
     f = lambda a: np.ascontiguousarray(a, dtype=float)  # noqa: E731
-    return _march_kernel(f(p), f(n), f(t), f(carry), f(hs), *surface.kernel)
+    from skinsafe.core.design.surface_kernels import march
 
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _onto(t, n):
-    """t made tangent to the unit normal n and unit (in place)."""
-    d = t[0] * n[0] + t[1] * n[1] + t[2] * n[2]
-    s = 0.0
-    for k in range(3):
-        t[k] -= d * n[k]
-        s += t[k] * t[k]
-    s = max(np.sqrt(s), 1e-300)
-    for k in range(3):
-        t[k] /= s
-
-
-@numba.njit(cache=True, nogil=True)
-def _march_kernel(p, n, t, carry, hs, *kernel):
-    m, steps = p.shape[0], hs.shape[0]
-    P, N, C = np.empty((steps + 1, m, 3)), np.empty((steps + 1, m, 3)), np.empty((steps + 1, m, 3))
-    P[0], N[0], C[0] = p, n, carry
-    fail = np.full(m, -1, np.int64)
-    stack = np.empty(kernel[4].shape[0] + 1, np.int64)
-    x, tt = np.empty(3), np.empty(3)
-    for i in range(m):
-        kappa = 0.0
-        tt[:] = t[i]
-        for k in range(1, steps + 1):
-            h = hs[k - 1]
-            kh = min(kappa * h, 1.0)
-            reach = h * np.tan(kh) / kh if kh > 1e-9 else h
-            for j in range(3):
-                x[j] = P[k - 1, i, j] + reach * tt[j]
-            closest_one(x, P[k, i], N[k, i], stack, *kernel)
-            chord, cos = 0.0, 0.0
-            for j in range(3):
-                chord += (P[k, i, j] - P[k - 1, i, j]) ** 2
-                cos += N[k - 1, i, j] * N[k, i, j]
-            chord = np.sqrt(chord)
-            if chord < 0.5 * h and fail[i] < 0:
-                fail[i] = k
-            theta = np.arccos(min(max(cos, -1.0), 1.0))
-            half = max(theta / 2, 1e-12)
-            arc = chord * half / np.sin(half)
-            kappa = theta / arc if arc > 0 else 0.0
-            _onto(tt, N[k, i])
-            C[k, i] = C[k - 1, i]
-            _onto(C[k, i], N[k, i])
-    return P, N, C, fail
+    return march(f(p), f(n), f(t), f(carry), f(hs), *surface.kernel)
 
 
 def place_module(surface: Surface, module: Module, anchor, direction, method: str = "geodesic",

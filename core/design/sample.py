@@ -17,10 +17,21 @@ from skinsafe.core.robot.shapes import inside_depth
 from skinsafe.core.skin.boards import assign_boards, number_channels
 from skinsafe.core.skin.model import DesignError, Module, RobotRef, SkinDesign, Taxels
 
-SAMPLE_BODIES = {
-    "ur5": ["upper_arm_link", "forearm_link", "wrist_1_link", "wrist_2_link", "wrist_3_link"],
-    "panda": ["link2", "link3", "link4", "link5", "link6", "link7"],
-}
+
+def sample_bodies(model: mujoco.MjModel) -> list[str]:
+    """The links a sample skin wraps, from the model's data: every link whose first geom (its main
+    shape) is a capsule or cylinder and that at least two joints move (the link on the first joint only turns in place about the base's
+    axis). On the UR5 upper_arm_link to wrist_3_link, on the Panda link2 to link7."""
+    shapes = (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER))
+    out = []
+    for b in range(1, model.nbody):
+        joints, a = 0, b
+        while a:
+            joints += int(model.body_jntnum[a])
+            a = int(model.body_parentid[a])
+        if joints >= 2 and model.body_geomnum[b] and int(model.geom_type[model.body_geomadr[b]]) in shapes:
+            out.append(model.body(b).name)
+    return out
 
 
 def turned_poses(model: mujoco.MjModel, home: np.ndarray, turn: float = 2.1) -> list[mujoco.MjData]:
@@ -147,8 +158,8 @@ def wrap_cylinder(model: mujoco.MjModel, geom: int, pitch: float, rows: int, col
 def make_sample_design(robot_name: str = "ur5", pitch: float = 0.01, rows: int = 8, cols: int = 8,
                        board_capacity: int = 512, threshold: float = 2.0, robot: Robot | None = None) -> SkinDesign:
     """A skin of rows x cols modules on the main capsule of each sample body of a built-in robot."""
-    if robot_name not in SAMPLE_BODIES:
-        raise DesignError(f"sample skin: robot '{robot_name}' is not a built-in ({', '.join(sorted(SAMPLE_BODIES))}); "
+    if robot_name not in BUILTIN:
+        raise DesignError(f"sample skin: robot '{robot_name}' is not a built-in ({', '.join(sorted(BUILTIN))}); "
                           "for any other robot (a URDF, xacro or MJCF file) use `skinsafe design ROBOT`")
     if not (0 < pitch < 1):
         raise DesignError(f"sample skin: pitch {pitch} m is outside (0, 1); use e.g. 0.01")
@@ -158,7 +169,7 @@ def make_sample_design(robot_name: str = "ur5", pitch: float = 0.01, rows: int =
     modules: list[Module] = []
     parts: list[Taxels] = []
     poses = turned_poses(model, robot.home)
-    for name in SAMPLE_BODIES[robot_name]:
+    for name in sample_bodies(model):
         bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
         geom = int(np.flatnonzero(model.geom_bodyid == bid)[0])
         ms, tx = wrap_cylinder(model, geom, pitch, rows, cols, margin=0.5 * pitch,
@@ -192,7 +203,7 @@ def design_with(n: int, robot=None):
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--robot", default="ur5", help=f"built-in robot ({', '.join(sorted(SAMPLE_BODIES))}); "
+    p.add_argument("--robot", default="ur5", help=f"built-in robot ({', '.join(sorted(BUILTIN))}); "
                    "for a URDF/xacro/MJCF use `skinsafe design`")
     p.add_argument("--pitch", type=float, default=0.01, help="taxel pitch in m (default 0.01)")
     p.add_argument("--out", default="out/sample_skin.json", help="taxel map to write")

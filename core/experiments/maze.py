@@ -1,49 +1,127 @@
 """`skinsafe experiment maze`: the strategy-layer experiment of the paper (Fig. 9) in the MuJoCo maze.
 
-Trains every method (SAC, AC, each plain / -RP / -TDM, and the safe-RL baselines RRL, CPO, SQRL)
-for several seeds, one Ray task per method x seed (`core.experiments.runner`: local Ray by default,
-`--address` for a cluster, finished tasks reused by a restarted run). Writes into `--out`
-(default `results/maze`): `maze_results.json` (per-method mean +- std total contacts and goal rates
-over seeds, every run's per-episode returns, costs, goals and TDM fit records, and a `claim` computed
-from the numbers), `maze_contacts.md` (the table) and `maze_curves.png` (return and cost curves
-with 95% confidence bands).
+Nine methods (SAC, AC, each plain / -RP / -TDM, and the safe-RL baselines RRL, CPO, SQRL), one Ray task
+per run (`core.experiments.runner`: local Ray by default, `--address` for a cluster, every finished run
+cached in `--out`/tasks and reused by a restarted run).
 
-Budgets: the maze has 72 (cell, heading) states and a 12-action shortest path; a random walk needs
-a median ~500 macro-actions to reach the goal (20% within 200), so a run is 200 episodes of at most
-200 macro-actions (`FULL`). `DEMO` is the demo's reduced run, `QUICK` the test suite's smoke run.
+The full protocol (the default; issue 31), the same effort for every method:
+
+1. tuning: every method's `TUNING` configurations (the same number for each, its previous default
+   first) on the tuning seeds (`--tuning-seeds`, default 0-1) for `TUNING_EPISODES` (40) episodes; the
+   chosen configuration is the one with the lowest mean total contacts among those whose mean goal rate
+   over the last 20 of those episodes is at least 0.8, else the one with the highest such goal rate
+   (`choose`);
+2. evaluation: each chosen configuration on held-out seeds (`--seeds`, default 10-19), reported per
+   seed and as means with 95% intervals; the claim (Fig. 9b: the -TDM variants have the fewest total
+   contacts) is decided per pair by Welch's interval of the difference (`claim_check`);
+3. ablation: each -TDM extra removed in turn (`TDM_EXTRAS`) and each one that applies given to RRL and
+   SQRL (`BASELINE_EXTRAS`), on the first three evaluation seeds (10-12, `--ablation-seeds`) for the first
+   `ABLATION_EPISODES` (30) episodes, where nearly all -TDM contacts happen, each against the same
+   episodes of its method's evaluation runs (a run's first episodes do not depend on how many follow).
+
+The budget (issue 31: the full grids within 60 min on 2 cores) is set by the cost of a run: ~3-5 ms of
+CPU per macro-action for the SAC family (one gradient step per step), ~1 ms for AC and CPO; a run that
+never reaches the goal takes all 200 macro-actions of every episode. README "Equal effort" has the estimate.
+
+`--demo` and `--quick` are single-stage runs of the default configurations (the demo's reduced run and
+the test suite's smoke run). Writes `maze_results.json` (`summary`, `eval_seeds`, `tuning`, `per_seed`,
+`ablation`, `runs` with every evaluation run's per-episode returns, costs, goals and TDM fit records),
+`maze_contacts.md` (the tables) and `maze_curves.png` (return and cost curves, 95% bands).
+
+Budget: the maze has 72 (cell, heading) states, 68 wall-facing moves and a 12-action shortest path; a
+random walk needs a median ~500 macro-actions to reach the goal (20% within 200), so an episode is at
+most 200 macro-actions; 80 episodes per evaluation run (on every seed of the earlier 200-episode grid
+SAC, AC and both -TDM variants were in their final behaviour by episode 60: goal rate >= 0.8 over the 20
+episodes from then on).
 """
 from __future__ import annotations
 
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 from skinsafe.core.experiments.runner import run_tasks
+from skinsafe.core.experiments.stats import compare, diff_ci, mean_ci, parse_seeds
 from skinsafe.core.skin.files import atomic_write
 
 METHODS = ("SAC", "SAC-RP", "SAC-TDM", "AC", "AC-RP", "AC-TDM", "RRL", "CPO", "SQRL")
-FULL = dict(seeds=5, episodes=200, max_steps=200)
+TDM_METHODS = ("SAC-TDM", "AC-TDM")
+FULL = dict(seeds=10, episodes=80, max_steps=200)  # the evaluation stage of the full protocol
+PROTOCOL = dict(tuning_seeds=[0, 1], eval_seeds=list(range(10, 20)), ablation_seeds=3)  # the first 3 evaluation seeds
+TUNING_EPISODES = 40
+ABLATION_EPISODES = 30
 DEMO = dict(seeds=2, episodes=60, max_steps=200)
 QUICK = dict(seeds=1, episodes=2, max_steps=20)
-LAST = 20  # episodes over which the final goal rate is measured
-LEARNED_AT = 0.8  # a method "reaches the goal" when its goal rate over the last LAST episodes is at least this
-# Relative CPU cost of one run (measured at the full budget), so the grid starts the longest first.
-RUN_COST = {"SQRL": 5.0, "RRL": 5.0, "SAC-RP": 4.0, "SAC": 2.5, "CPO": 1.0, "SAC-TDM": 1.0, "AC-TDM": 1.0,
-            "AC-RP": 0.4, "AC": 0.4}
 PRESETS = {"full": FULL, "demo": DEMO, "quick": QUICK}
+LAST = 20  # episodes over which the final goal rate is measured
+LEARNED_AT = 0.8  # a method "reaches the goal" when its mean goal rate over the last LAST episodes is at least this
+
+# Configurations searched per method on the tuning seeds: the same number for every method, each
+# method's own most influential knobs, its previous default (or its paper's setting) first.
+TUNING = {
+    "SAC": [{}, {"lr": 1e-3}, {"entropy_share": 0.5}],
+    "SAC-RP": [{}, {"cost_penalty": 10.0}, {"cost_penalty": 50.0}],  # 50: recovery-rl's maze reward penalty
+    "SAC-TDM": [{}, {"prior_count": 0.5}, {"prior_count": 0.1}],
+    "AC": [{}, {"lr": 1e-3}, {"entropy_coef": 0.05}],
+    "AC-RP": [{}, {"cost_penalty": 10.0}, {"cost_penalty": 50.0}],
+    "AC-TDM": [{}, {"prior_count": 0.5}, {"prior_count": 0.1}],
+    # RRL, SQRL {}: recovery-rl's maze (eps 0.15, gamma_safe 0.5, SQRL nu from 100, 4,000 offline transitions)
+    "RRL": [{}, {"eps_risk": 0.3}, {"offline_transitions": 500}],
+    "CPO": [{}, {"target_kl": 0.01}, {"target_kl": 0.05}],  # the cost budget is the maze's (`cpo_budget`)
+    "SQRL": [{}, {"nu": 1.0}, {"offline_transitions": 500}],
+}
+# The -TDM extras, each removed in turn (ablation): what is removed and the keyword that removes it.
+TDM_EXTRAS = (
+    ("5% uniform floor", {"raw_floor": 0.0}),
+    ("entropy on the unfiltered policy", {"unfiltered_entropy": False}),
+    ("visit-count shrinkage", {"shrink": False}),
+    ("contact refits (100 steps, the contact in every batch)", {"contact_steps": 0}),
+    ("tuned prior count (-> 0.5, its value before it was tuned)", {"prior_count": 0.5}),
+)
+# The extras that apply to RRL and SQRL, given to each in turn. The entropy term does not apply: their
+# actors already learn the unfiltered policy with its entropy; the prior count is tuned for every method.
+BASELINE_EXTRAS = (
+    ("5% uniform floor", {"floor": 0.05}),
+    ("visit-count shrinkage", {"shrink": True}),
+    ("contact refits (100 steps, the contact in every batch)", {"contact_steps": 100}),
+)
+BASELINES_GIVEN = ("RRL", "SQRL")
+# Relative CPU cost of one run (measured), so every stage starts the longest first.
+RUN_COST = {"SQRL": 5.0, "RRL": 5.0, "SAC-RP": 4.0, "SAC": 2.5, "CPO": 1.0, "SAC-TDM": 1.5, "AC-TDM": 1.5,
+            "AC-RP": 0.4, "AC": 0.4}
+
+
+def cpo_budget(episodes: int) -> float:
+    """CPO's cost limit per episode: the maze's 68 wall-facing moves (`maze_env.wall_moves`), each of which
+    a learner that cannot see the walls must try once, spread over the run (0.85 at 80 episodes). A
+    trained policy needs no contact at all; a larger budget licenses contacts no learner needs."""
+    from skinsafe.core.learn.maze_env import LAYOUT, parse_layout, wall_moves
+
+    return wall_moves(parse_layout(LAYOUT)[0]) / episodes
 
 
 def add_arguments(p) -> None:
     p.add_argument("--out", default="results/maze", help="folder for the plots, table and JSON (default: %(default)s)")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--full", action="store_const", dest="preset", const="full", help=f"the paper's budget (default): {FULL}")
+    g.add_argument("--full", action="store_const", dest="preset", const="full",
+                   help=f"the full protocol (default): tuning, evaluation on held-out seeds, ablation; {FULL}")
     g.add_argument("--demo", action="store_const", dest="preset", const="demo", help=f"the demo's reduced run: {DEMO}")
     g.add_argument("--quick", action="store_const", dest="preset", const="quick", help=f"smoke test: {QUICK}")
     p.set_defaults(preset="full")
-    p.add_argument("--seeds", type=int, help="seeds per method (overrides the preset)")
+    p.add_argument("--seeds", help="evaluation seeds, a range or a list: 10-19 (full default) or 11,12,13 "
+                                   "(--demo/--quick: 0-1 / 0)")
+    p.add_argument("--tuning-seeds", help="tuning seeds of the full protocol (default 0-1)")
+    p.add_argument("--tuning-episodes", type=int, default=TUNING_EPISODES,
+                   help="episodes of every tuning run (default %(default)s, at most --episodes)")
+    p.add_argument("--configs", type=int, help="configurations searched per method (default all: 3); the same for every method")
+    p.add_argument("--ablation-seeds", help="evaluation seeds the ablation runs on (default the first three: 10-12)")
+    p.add_argument("--ablation-episodes", type=int, default=ABLATION_EPISODES,
+                   help="episodes of every ablation run (default %(default)s, at most --episodes)")
+    p.add_argument("--no-ablation", action="store_true", help="full protocol without the ablation stage")
     p.add_argument("--episodes", type=int, help="training episodes per run (overrides the preset)")
     p.add_argument("--max-steps", type=int, help="macro-actions per episode (overrides the preset)")
     p.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset of %(default)s")
@@ -59,11 +137,13 @@ def add_arguments(p) -> None:
 
 def run_one(method: str, seed: int, episodes: int, max_steps: int, agent_kw: dict | None = None) -> dict:
     """Train one method with one seed; per-episode returns, contact events (costs), goals and lengths.
-    `agent_kw` overrides the agent's keyword arguments (`make_agent`); a TDM `fit` is a FitConfig dict."""
+    `agent_kw` overrides the agent's keyword arguments (`make_agent`); a TDM `fit` is a FitConfig dict.
+    Agents with an offline phase (RRL, SQRL) get their random transitions first; their contacts are
+    `offline_contacts`, apart from the online `costs`."""
     import torch
 
     from skinsafe.core.learn.baselines import make_agent
-    from skinsafe.core.learn.maze_env import MazeEnv, MazeFeatures
+    from skinsafe.core.learn.maze_env import MazeEnv, MazeFeatures, random_rollouts
     from skinsafe.core.learn.tdm_training import FitConfig
 
     torch.set_num_threads(1)
@@ -73,6 +153,11 @@ def run_one(method: str, seed: int, episodes: int, max_steps: int, agent_kw: dic
     if "fit" in kw:
         kw["fit"] = FitConfig(**kw["fit"])
     agent = make_agent(method, 4, env.action_space.n, env.n_taxels, MazeFeatures(env.walls), seed=seed, **kw)
+    offline = {}
+    if getattr(agent, "offline_transitions", 0) > 0:
+        data = random_rollouts(env, agent.offline_transitions, np.random.default_rng(seed + 424242))
+        agent.pretrain(data["obs"], data["actions"], data["costs"], data["next_obs"], data["terminated"])
+        offline = {"offline_transitions": len(data["actions"]), "offline_contacts": int(data["costs"].sum())}
     returns, costs, goals, steps = [], [], [], []
     for ep in range(episodes):
         obs, _ = env.reset(seed=seed * 100003 + ep)
@@ -94,11 +179,11 @@ def run_one(method: str, seed: int, episodes: int, max_steps: int, agent_kw: dic
     stats.get("tdm", {}).pop("last", None)  # the fit records go in whole (thinned) below
     fits = agent.shield.trainer.history if agent.shield is not None else []
     return {"method": method, "seed": seed, "returns": returns, "costs": costs, "goals": goals, "steps": steps,
-            "stats": stats, "tdm_fits": _thin(fits), "seconds": time.perf_counter() - t0,
+            **offline, "stats": stats, "tdm_fits": _thin(fits), "seconds": time.perf_counter() - t0,
             "cpu_seconds": time.process_time() - c0}
 
 
-def _thin(fits: list[dict], keep: int = 60) -> list[dict]:
+def _thin(fits: list[dict], keep: int = 30) -> list[dict]:
     """At most `keep` fit records, evenly spread (the result file stays small)."""
     if len(fits) <= keep:
         return fits
@@ -110,84 +195,278 @@ def _mean_std(x) -> tuple[float, float]:
     return float(x.mean()), float(x.std(ddof=1)) if len(x) > 1 else 0.0
 
 
+def run_row(r: dict) -> dict:
+    """One run in a line: `total_contacts` (every contact the robot made: online, plus the offline phase's
+    of RRL and SQRL), `online_contacts`, `offline_contacts`, goal rates (all episodes, last LAST)."""
+    online, offline = float(sum(r["costs"])), float(r.get("offline_contacts", 0))
+    return {"method": r["method"], "seed": r["seed"], "total_contacts": online + offline, "online_contacts": online,
+            "offline_contacts": offline, "goal_rate": float(np.mean(r["goals"])),
+            "goal_rate_last": float(np.mean(r["goals"][-LAST:])), "cpu_seconds": r.get("cpu_seconds")}
+
+
 def summarise(runs: list[dict], methods: list[str]) -> dict:
-    """Per-method totals and goal rates (mean and std over seeds) and the claim check."""
+    """Per-method totals and goal rates (mean, std and 95% interval over seeds) and the claim check."""
     rows = {}
+    per_seed = [run_row(r) for r in runs]
     for m in methods:
         rs = [r for r in runs if r["method"] == m]
-        tot = _mean_std([sum(r["costs"]) for r in rs])
-        rate = _mean_std([np.mean(r["goals"]) for r in rs])
-        last = _mean_std([np.mean(r["goals"][-LAST:]) for r in rs])
-        rows[m] = {"total_contacts_mean": tot[0], "total_contacts_std": tot[1],
-                   "goal_rate_mean": rate[0], "goal_rate_std": rate[1],
-                   "goal_rate_last_mean": last[0], "goal_rate_last_std": last[1],
+        per = [p for p in per_seed if p["method"] == m]
+        row = {}
+        for key in ("total_contacts", "online_contacts", "offline_contacts", "goal_rate", "goal_rate_last"):
+            x = [p[key] for p in per]
+            row[f"{key}_mean"], row[f"{key}_std"] = _mean_std(x)
+            row[f"{key}_ci95"] = mean_ci(x)[1]
+        rows[m] = {**row, "seeds_reaching": int(sum(p["goal_rate_last"] >= LEARNED_AT for p in per)),
                    "mean_return": float(np.mean([np.mean(r["returns"]) for r in rs])),
                    "mean_steps": float(np.mean([np.mean(r["steps"]) for r in rs])),
                    "seconds_mean": float(np.mean([r.get("seconds", np.nan) for r in rs])), "seeds": len(rs)}
-    return {"methods": rows, "claim": claim_check(rows)}
+    claim = claim_check(rows, per_seed)
+    if any(p["offline_contacts"] for p in per_seed):
+        claim["online_only"] = claim_check(rows, per_seed, key="online_contacts")
+        claim["statement"] += (" Counting only the online contacts (recovery-rl's accounting, the offline phase's "
+                               "apart): " + claim["online_only"]["statement"])
+    return {"methods": rows, "claim": claim}
 
 
-def claim_check(rows: dict, learned_at: float = LEARNED_AT) -> dict:
-    """The paper's claim (Fig. 9b): the -TDM variants have the lowest total contact events (means over
-    seeds). `learned` says whether SAC and AC (and their -TDM variants) reach the goal in at least
-    `learned_at` of the last episodes: without that, the comparison says little."""
-    tdm = {m: v["total_contacts_mean"] for m, v in rows.items() if m.endswith("-TDM")}
-    other = {m: v["total_contacts_mean"] for m, v in rows.items() if not m.endswith("-TDM")}
+def _pairs(tdm: list[str], other: list[str], totals: dict) -> dict:
+    """Welch's interval of (other - TDM) contacts for every pair, and its verdict (`stats.compare`)."""
+    out = {}
+    for t in tdm:
+        for o in other:
+            d, ci = diff_ci(totals[t], totals[o])
+            out[f"{t} vs {o}"] = {"difference": d, "ci95": ci, "verdict": compare(ci)}
+    return out
+
+
+def claim_check(rows: dict, per_seed: list[dict] | None = None, learned_at: float = LEARNED_AT,
+                key: str = "total_contacts") -> dict:
+    """The paper's claim (Fig. 9b): the -TDM variants have the fewest total contact events (`key` per run,
+    from `per_seed`; without it the means in `rows`). `holds`: for every -TDM variant and every other
+    method, the 95% (Welch) interval of the difference of means lies above 0 (with one seed per method:
+    the means alone). `holds_on_means`: the plain ordering of the means. The same among the methods that
+    reach the goal (mean goal rate over the last LAST episodes >= `learned_at`); `seeds_beaten`: runs of
+    another method that reached the goal with fewer contacts than some -TDM run. `learned`: whether SAC,
+    AC and their -TDM variants reach the goal."""
+    per_seed = per_seed or []
+    totals = {m: [p[key] for p in per_seed if p["method"] == m] or [v[f"{key}_mean"]] for m, v in rows.items()}
+    tdm = [m for m in rows if m.endswith("-TDM")]
+    other = [m for m in rows if not m.endswith("-TDM")]
     if not tdm or not other:
         return {"holds": None, "statement": "needs at least one -TDM method and one other method"}
-    best_tdm, best_other = min(tdm, key=tdm.get), min(other, key=other.get)
-    worst_tdm = max(tdm, key=tdm.get)
-    holds = tdm[worst_tdm] < other[best_other]
-    ratio = other[best_other] / tdm[best_tdm] if tdm[best_tdm] > 0 else float("inf")
+    mean = {m: float(np.mean(v)) for m, v in totals.items()}
+    ci = {m: mean_ci(v)[1] for m, v in totals.items()}
+    best_tdm, best_other, worst_tdm = min(tdm, key=mean.get), min(other, key=mean.get), max(tdm, key=mean.get)
+    pairs = _pairs(tdm, other, totals)
+    holds = all(p["verdict"] == "lower" for p in pairs.values())
+    holds_on_means = mean[worst_tdm] < mean[best_other]
+    ratio = mean[best_other] / mean[best_tdm] if mean[best_tdm] > 0 else float("inf")
+    n_seeds = min(len(v) for v in totals.values())
+    reach = {m for m, v in rows.items() if v.get("goal_rate_last_mean") is not None and v["goal_rate_last_mean"] >= learned_at}
     learners = [m for m in ("SAC", "AC", "SAC-TDM", "AC-TDM") if m in rows and "goal_rate_last_mean" in rows[m]]
     learned = {m: rows[m]["goal_rate_last_mean"] >= learned_at for m in learners}
-    own = []
-    for m, v in tdm.items():
-        base = m[:-4]
-        if base in other and other[base] > 0:
-            own.append(f"{m} has {100 * (1 - v / other[base]):.0f}% fewer contacts than {base}")
+    what = key.replace("_", " ")
+    s = (f"{what.capitalize()}, mean [95% interval] over {n_seeds} seed{'s' if n_seeds > 1 else ''}: "
+         + ", ".join(f"{m} {mean[m]:.1f} [{ci[m][0]:.1f}, {ci[m][1]:.1f}]" for m in sorted(rows, key=mean.get)) + ". ")
     if holds:
-        s = (f"The paper's claim holds: every -TDM variant has fewer total contacts than every other method; the best, "
-             f"{best_tdm} ({tdm[best_tdm]:.1f}), is {ratio:.2f}x lower than the best other method, {best_other} "
-             f"({other[best_other]:.1f}).")
+        s += (f"The paper's claim holds: every -TDM variant has fewer {what} than every other method, each "
+              f"difference's 95% interval above 0; the best, {best_tdm}, is {ratio:.2f}x lower than the best other "
+              f"method, {best_other}.")
     else:
-        lower = sorted((m for m in other if other[m] <= tdm[worst_tdm]), key=other.get)
-        rate = {m: rows[m].get("goal_rate_last_mean") for m in lower}
-        lower = [f"{m} (goal rate {rate[m]:.2f} over the last {LAST} episodes)" if rate[m] is not None else m for m in lower]
-        s = (f"The paper's claim does not hold here: {', '.join(lower)} had no more total contacts than {worst_tdm} "
-             f"({tdm[worst_tdm]:.1f}); best -TDM {best_tdm} {tdm[best_tdm]:.1f} vs best other {best_other} "
-             f"{other[best_other]:.1f} (ratio other/TDM {ratio:.2f}).")
+        bad = {k: p for k, p in pairs.items() if p["verdict"] != "lower"}
+        reversed_ = any(p["verdict"] == "higher" for p in bad.values())
+        s += (("The paper's claim does not hold here: " if reversed_ else
+               "The paper's claim is not resolved at 95% here (no pair reversed, some intervals contain 0): ") + "; ".join(
+            f"{k}: difference {p['difference']:.1f} [{p['ci95'][0]:.1f}, {p['ci95'][1]:.1f}] ({p['verdict']})"
+            for k, p in bad.items()) + f". On the means alone it {'holds' if holds_on_means else 'does not hold'}.")
+    own = [f"{m} has {100 * (1 - mean[m] / mean[m[:-4]]):.0f}% fewer contacts than {m[:-4]}"
+           for m in tdm if m[:-4] in mean and mean[m[:-4]] > 0]
     if own:
         s += " " + "; ".join(own) + "."
-    # The same comparison among the methods that learned the task (goal rate over the last episodes >=
-    # learned_at): a method that never reaches the goal can touch little by hardly moving on.
-    reach = {m for m, v in rows.items() if v.get("goal_rate_last_mean") is not None and v["goal_rate_last_mean"] >= learned_at}
-    tdm_r = {m: v for m, v in tdm.items() if m in reach}
-    other_r = {m: v for m, v in other.items() if m in reach}
+    tdm_r, other_r = [m for m in tdm if m in reach], [m for m in other if m in reach]
     holds_r = None
     if tdm_r and other_r:
-        w, b = max(tdm_r, key=tdm_r.get), min(other_r, key=other_r.get)
-        holds_r = tdm_r[w] < other_r[b]
-        s += (f" Among the methods that reach the goal in >= {learned_at:.0%} of the last {LAST} episodes "
-              f"({', '.join(sorted(reach))}) the claim {'holds' if holds_r else 'does not hold'}: worst -TDM {w} "
-              f"{tdm_r[w]:.1f} vs best other {b} {other_r[b]:.1f}.")
+        pr = {k: p for k, p in pairs.items() if k.split(" vs ")[0] in tdm_r and k.split(" vs ")[1] in other_r}
+        holds_r = all(p["verdict"] == "lower" for p in pr.values())
+        who = ", ".join(f"{m} on {rows[m].get('seeds_reaching', n_seeds)}/{rows[m].get('seeds', n_seeds)} seeds" for m in sorted(reach))
+        s += (f" Among the methods that reach the goal in >= {learned_at:.0%} of the last {LAST} episodes ({who}) "
+              f"the claim {'holds' if holds_r else 'does not hold'}"
+              + ("" if holds_r else ": " + ", ".join(k for k, p in pr.items() if p["verdict"] != "lower")) + ".")
+    beaten = []
+    for p in per_seed:
+        if p["method"] in other and p["goal_rate_last"] >= learned_at:
+            worse = [q for q in per_seed if q["method"] in tdm and q[key] > p[key]]
+            if worse:
+                beaten.append({"method": p["method"], "seed": p["seed"], key: p[key],
+                               "above": sorted(f"{q['method']} seed {q['seed']}" for q in worse)})
+    if beaten:
+        s += (f" Per seed the ordering breaks {len(beaten)} time{'s' if len(beaten) > 1 else ''}: a goal-reaching run of "
+              "another method touched less than some -TDM run (" + "; ".join(
+                  f"{b['method']} seed {b['seed']}: {b[key]:.0f}" for b in beaten[:6]) + ("; ..." if len(beaten) > 6 else "") + ").")
     if learned:
-        bad = [m for m, ok in learned.items() if not ok]
+        slow = [m for m, ok in learned.items() if not ok]
         s += (f" Learning: {', '.join(learned)} reach the goal in >= {learned_at:.0%} of the last {LAST} episodes."
-              if not bad else f" Learning: {', '.join(bad)} reach{'es' if len(bad) == 1 else ''} the goal in fewer than {learned_at:.0%} of the last "
-              f"{LAST} episodes, so this budget does not show the trained behaviour of the paper.")
-    return {"holds": bool(holds), "holds_among_goal_reaching": holds_r, "best_tdm": best_tdm, "best_other": best_other, "ratio_best_other_to_best_tdm": ratio,
-            "learned": learned, "all_learned": bool(learned) and all(learned.values()), "statement": s}
+              if not slow else f" Learning: {', '.join(slow)} reach{'es' if len(slow) == 1 else ''} the goal in fewer than "
+              f"{learned_at:.0%} of the last {LAST} episodes, so this budget does not show the trained behaviour of the paper.")
+    verdict = "holds" if holds else "does not hold" if any(p["verdict"] == "higher" for p in pairs.values()) else "not resolved"
+    return {"holds": bool(holds), "verdict": verdict, "holds_on_means": bool(holds_on_means), "holds_among_goal_reaching": holds_r,
+            "measure": key, "pairs": pairs, "best_tdm": best_tdm, "best_other": best_other,
+            "ratio_best_other_to_best_tdm": ratio, "seeds_beaten": beaten, "learned": learned,
+            "all_learned": bool(learned) and all(learned.values()), "statement": s}
 
 
-def markdown_table(summary: dict) -> str:
-    lines = ["| method | total contact events (mean ± std over seeds) | goal rate | goal rate, last 20 episodes | "
-             "mean episode return | seeds |", "| --- | --- | --- | --- | --- | --- |"]
+# -- the tuning protocol ----------------------------------------------------------------------------
+def choose(rows: list[dict], learned_at: float = LEARNED_AT) -> int:
+    """Index of the chosen configuration: the lowest mean total contacts among those whose mean goal rate
+    over the last LAST episodes is >= `learned_at`; if none, the highest such goal rate (then fewer contacts)."""
+    ok = [i for i, r in enumerate(rows) if r["goal_rate_last_mean"] >= learned_at]
+    if ok:
+        return min(ok, key=lambda i: (rows[i]["total_contacts_mean"], i))
+    return min(range(len(rows)), key=lambda i: (-rows[i]["goal_rate_last_mean"], rows[i]["total_contacts_mean"], i))
+
+
+CRITERION = (f"lowest mean total contacts among the configurations whose mean goal rate over the last {LAST} "
+             f"episodes on the tuning seeds is >= {LEARNED_AT}; if none, the highest such goal rate")
+
+
+def agent_kw(method: str, config: dict, episodes: int, extra: dict | None = None) -> dict:
+    """The agent's keyword arguments for a configuration: CPO gets the maze's cost budget, -TDM agents
+    the command line's TDM overrides (`extra`)."""
+    kw = dict(config)
+    if method == "CPO":
+        kw.setdefault("cost_limit", cpo_budget(episodes))
+    if extra and method in TDM_METHODS:
+        kw.update(extra)
+    return kw
+
+
+def _task(method, seed, cfg, kw) -> dict:
+    t = {"method": method, "seed": int(seed), "episodes": cfg["episodes"], "max_steps": cfg["max_steps"]}
+    if kw:
+        t["agent_kw"] = kw
+    return t
+
+
+def _run(tasks, out, args, desc, keep_ray: bool = False) -> list[dict]:
+    return run_tasks(run_one, tasks, out / "tasks", address=args.address, workers=args.workers,
+                     progress=not args.no_progress, desc=desc, fresh=args.fresh,
+                     cost=lambda t: RUN_COST[t["method"]] * t["episodes"] * t["max_steps"], keep_ray=keep_ray)
+
+
+def _stop_ray() -> None:
+    """End a Ray this process started (without importing Ray when no stage needed it)."""
+    if "ray" in sys.modules and sys.modules["ray"].is_initialized():
+        sys.modules["ray"].shutdown()
+
+
+def tune(methods, cfg, seeds, k, out, args, extra) -> tuple[dict, list[dict]]:
+    """Stage 1: every method's first `k` TUNING configurations on the tuning seeds; the record and the runs."""
+    grid = {m: TUNING[m][:k] for m in methods}
+    tasks = [_task(m, s, cfg, agent_kw(m, c, cfg["episodes"], extra)) for m in methods for c in grid[m] for s in seeds]
+    runs = _run(tasks, out, args, "maze tuning", keep_ray=True)  # the evaluation stage reuses this Ray
+    record, it = {}, iter(runs)
+    for m in methods:
+        rows = []
+        for c in grid[m]:
+            rs = [run_row(next(it)) for _ in seeds]
+            rows.append({"config": c, "agent_kw": agent_kw(m, c, cfg["episodes"], extra),
+                         "total_contacts_mean": float(np.mean([r["total_contacts"] for r in rs])),
+                         "goal_rate_last_mean": float(np.mean([r["goal_rate_last"] for r in rs])),
+                         "per_seed": [{k_: r[k_] for k_ in ("seed", "total_contacts", "goal_rate_last")} for r in rs]})
+        i = choose(rows)
+        record[m] = {"configs": rows, "tuning_seeds": list(seeds), "episodes": cfg["episodes"], "chosen": rows[i]["config"],
+                     "chosen_index": i, "criterion": CRITERION}
+    return record, runs
+
+
+def ablation_tasks(chosen: dict, methods, cfg, seeds) -> list[tuple[dict, dict]]:
+    """(row head, task) for every ablation run: each -TDM extra removed from a -TDM method's chosen
+    configuration, each applicable extra given to RRL and SQRL (variants identical to the chosen
+    configuration are left out: they are its evaluation runs)."""
+    out = []
+    for m in methods:
+        extras = TDM_EXTRAS if m in TDM_METHODS else BASELINE_EXTRAS if m in BASELINES_GIVEN else ()
+        for what, delta in extras:
+            kw = {**chosen[m], **delta}
+            if kw == chosen[m]:
+                continue
+            head = {"method": m, "variant": f"{m} {'-' if m in TDM_METHODS else '+'} {what.split(' (')[0]}",
+                    "removed": what if m in TDM_METHODS else None, "added": None if m in TDM_METHODS else what,
+                    "agent_kw": kw}
+            out += [(head, _task(m, s, cfg, kw)) for s in seeds]
+    return out
+
+
+def first_episodes(run: dict, n: int) -> dict:
+    """A run cut to its first `n` episodes (training is causal: those episodes are the same in a shorter run)."""
+    return {**run, **{k: run[k][:n] for k in ("returns", "costs", "goals", "steps")}}
+
+
+def ablation_rows(heads_runs, eval_runs: list[dict], chosen: dict) -> list[dict]:
+    """The ablation table: per method its chosen configuration (its evaluation runs on the ablation's seeds,
+    cut to the ablation's episodes), then each variant: mean total contacts and its 95% interval, the
+    difference to the chosen one with Welch's interval."""
+    groups: dict[str, tuple[dict, list]] = {}
+    for head, run in heads_runs:
+        groups.setdefault(head["variant"], (head, []))[1].append(run_row(run))
+    seeds = {r["seed"] for _, r in heads_runs}
+    episodes = min((len(r["costs"]) for _, r in heads_runs), default=0)
+    rows, base = [], {}
+    for m in dict.fromkeys(h["method"] for h, _ in groups.values()):
+        ref = [run_row(first_episodes(r, episodes)) for r in eval_runs if r["method"] == m and r["seed"] in seeds]
+        base[m] = [r["total_contacts"] for r in ref]
+        mu, ci = mean_ci(base[m])
+        rows.append({"method": m, "variant": f"{m} (chosen configuration)", "removed": None, "added": None,
+                     "agent_kw": chosen[m], "total_contacts_mean": mu, "ci95": ci, "episodes": episodes,
+                     "goal_rate_last_mean": float(np.mean([r["goal_rate_last"] for r in ref])), "seeds": len(ref),
+                     "per_seed": [{k: r[k] for k in ("seed", "total_contacts", "goal_rate_last")} for r in ref]})
+        for head, rs in (g for g in groups.values() if g[0]["method"] == m):
+            x = [r["total_contacts"] for r in rs]
+            mu, ci = mean_ci(x)
+            d, dci = diff_ci(base[m], x)
+            rows.append({**head, "total_contacts_mean": mu, "ci95": ci, "episodes": episodes,
+                         "goal_rate_last_mean": float(np.mean([r["goal_rate_last"] for r in rs])),
+                         "difference_to_chosen": d, "difference_ci95": dci, "seeds": len(rs),
+                         "per_seed": [{k: r[k] for k in ("seed", "total_contacts", "goal_rate_last")} for r in rs]})
+    return rows
+
+
+# -- output -----------------------------------------------------------------------------------------
+def markdown_table(summary: dict, per_seed: list[dict] | None = None, tuning: dict | None = None,
+                   ablation: list[dict] | None = None) -> str:
+    n = max((v["seeds"] for v in summary["methods"].values()), default=0)
+    lines = ["| method | total contact events: mean [95% interval] | std | of them offline | goal rate | goal rate, "
+             "last 20 episodes (seeds >= 0.8) | seeds |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for m, v in summary["methods"].items():
-        lines.append(f"| {m} | {v['total_contacts_mean']:.1f} ± {v['total_contacts_std']:.1f} | "
-                     f"{v['goal_rate_mean']:.2f} ± {v['goal_rate_std']:.2f} | {v['goal_rate_last_mean']:.2f} ± "
-                     f"{v['goal_rate_last_std']:.2f} | {v['mean_return']:.1f} | {v['seeds']} |")
-    return "\n".join(lines) + "\n\n" + summary["claim"]["statement"] + "\n"
+        lo, hi = v["total_contacts_ci95"]
+        lines.append(f"| {m} | {v['total_contacts_mean']:.1f} [{lo:.1f}, {hi:.1f}] | {v['total_contacts_std']:.1f} | "
+                     f"{v['offline_contacts_mean']:.0f} | {v['goal_rate_mean']:.2f} | {v['goal_rate_last_mean']:.2f} "
+                     f"({v['seeds_reaching']}/{v['seeds']}) | {v['seeds']} |")
+    text = "\n".join(lines) + "\n\n" + summary["claim"]["statement"] + "\n"
+    if per_seed and n > 1:
+        seeds = sorted({p["seed"] for p in per_seed})
+        text += ("\nPer seed: total contacts (goal rate over the last 20 episodes)\n\n| method | "
+                 + " | ".join(f"seed {s}" for s in seeds) + " |\n| --- |" + " --- |" * len(seeds) + "\n")
+        for m in summary["methods"]:
+            by = {p["seed"]: p for p in per_seed if p["method"] == m}
+            text += f"| {m} | " + " | ".join(
+                f"{by[s]['total_contacts']:.0f} ({by[s]['goal_rate_last']:.2f})" if s in by else "-" for s in seeds) + " |\n"
+    if tuning:
+        text += "\nTuning (" + CRITERION + "):\n\n| method | configuration | total contacts | goal rate, last 20 | chosen |\n| --- | --- | --- | --- | --- |\n"
+        for m, rec in tuning.items():
+            for i, c in enumerate(rec["configs"]):
+                text += (f"| {m} | {json.dumps(c['config']) if c['config'] else 'default'} | {c['total_contacts_mean']:.1f} | "
+                         f"{c['goal_rate_last_mean']:.2f} | {'**yes**' if i == rec['chosen_index'] else ''} |\n")
+    if ablation:
+        text += (f"\nAblation (seeds {', '.join(str(p['seed']) for p in ablation[0]['per_seed'])}, the first "
+                 f"{ablation[0]['episodes']} episodes): total contacts, mean [95% interval]; difference to the chosen "
+                 "configuration [Welch 95% interval]\n\n| variant | removed / added | total contacts | difference | "
+                 "goal rate, last 20 |\n| --- | --- | --- | --- | --- |\n")
+        for r in ablation:
+            d = (f"{r['difference_to_chosen']:+.1f} [{r['difference_ci95'][0]:+.1f}, {r['difference_ci95'][1]:+.1f}]"
+                 if "difference_to_chosen" in r else "")
+            text += (f"| {r['variant']} | {r['removed'] or (('+ ' + r['added']) if r['added'] else '')} | "
+                     f"{r['total_contacts_mean']:.1f} [{r['ci95'][0]:.1f}, {r['ci95'][1]:.1f}] | {d} | {r['goal_rate_last_mean']:.2f} |\n")
+    return text
 
 
 def plot_curves(runs: list[dict], methods: list[str], path: Path, window: int = 5) -> None:
@@ -249,12 +528,18 @@ def tdm_overrides(args) -> dict:
 
 
 def config_from_args(args) -> dict:
+    """Episodes, max steps and the evaluation seeds (a list; `seeds` is their number)."""
     cfg = dict(PRESETS[args.preset])
-    for k in ("seeds", "episodes", "max_steps"):
-        if getattr(args, k) is not None:
+    for k in ("episodes", "max_steps"):
+        if getattr(args, k, None) is not None:
             cfg[k] = getattr(args, k)
-    if min(cfg.values()) < 1:
-        raise SystemExit(f"skinsafe experiment maze: seeds, episodes and max-steps must be >= 1, got {cfg}")
+    if getattr(args, "seeds", None):
+        cfg["eval_seeds"] = parse_seeds(args.seeds)
+    else:
+        cfg["eval_seeds"] = list(PROTOCOL["eval_seeds"]) if args.preset == "full" else list(range(cfg["seeds"]))
+    cfg["seeds"] = len(cfg["eval_seeds"])
+    if min(cfg["episodes"], cfg["max_steps"]) < 1:
+        raise SystemExit(f"skinsafe experiment maze: episodes and max-steps must be >= 1, got {cfg}")
     return cfg
 
 
@@ -267,24 +552,55 @@ def run(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    tasks = [{"method": m, "seed": s, "episodes": cfg["episodes"], "max_steps": cfg["max_steps"]}
-             for s in range(cfg["seeds"]) for m in methods]
-    agent_kw = tdm_overrides(args)
-    for t in tasks:
-        if agent_kw and t["method"].endswith("-TDM"):
-            t["agent_kw"] = agent_kw
-    runs = run_tasks(run_one, tasks, out / "tasks", address=args.address, workers=args.workers,
-                     progress=not args.no_progress, desc="maze runs", fresh=args.fresh,
-                     cost=lambda t: RUN_COST[t["method"]] * t["episodes"] * t["max_steps"])
+    extra = tdm_overrides(args)
+    full = args.preset == "full"
+    tuning, stage_runs = None, {}
+    if full:
+        k = args.configs or max(len(v) for v in TUNING.values())
+        if k < 1:
+            raise SystemExit(f"skinsafe experiment maze: --configs must be >= 1, got {k}")
+        tuning_seeds = parse_seeds(getattr(args, "tuning_seeds", None) or PROTOCOL["tuning_seeds"])
+        overlap = sorted(set(tuning_seeds) & set(cfg["eval_seeds"]))
+        if overlap:
+            raise SystemExit(f"skinsafe experiment maze: seeds {overlap} are both tuning and evaluation seeds; "
+                             "evaluate on held-out seeds (e.g. --tuning-seeds 0-1 --seeds 10-19)")
+        n = min(getattr(args, "tuning_episodes", TUNING_EPISODES), cfg["episodes"])
+        tuning, stage_runs["tuning"] = tune(methods, dict(cfg, episodes=n), tuning_seeds, k, out, args, extra)
+    chosen = {m: agent_kw(m, tuning[m]["chosen"] if tuning else {}, cfg["episodes"], extra) for m in methods}
+    eval_tasks = [_task(m, s, cfg, chosen[m]) for s in cfg["eval_seeds"] for m in methods]
+    abl = []
+    if full and not args.no_ablation:
+        named = getattr(args, "ablation_seeds", None)
+        abl_seeds = parse_seeds(named) if named else cfg["eval_seeds"][:PROTOCOL["ablation_seeds"]]
+        if not set(abl_seeds) <= set(cfg["eval_seeds"]):
+            raise SystemExit(f"skinsafe experiment maze: --ablation-seeds {abl_seeds} must be evaluation seeds ({cfg['eval_seeds']}): "
+                             "each variant is compared with its method's evaluation runs")
+        n = min(getattr(args, "ablation_episodes", ABLATION_EPISODES), cfg["episodes"])
+        abl = ablation_tasks(chosen, methods, dict(cfg, episodes=n), abl_seeds)
+    try:
+        done = _run(eval_tasks + [t for _, t in abl], out, args, "maze evaluation" + (" + ablation" if abl else ""))
+    finally:
+        _stop_ray()
+    runs, abl_runs = done[:len(eval_tasks)], done[len(eval_tasks):]
+    stage_runs["evaluation"], stage_runs["ablation"] = runs, abl_runs
     summary = summarise(runs, methods)
-    summary["config"] = cfg
+    for m in methods:
+        summary["methods"][m]["agent_kw"] = chosen[m]
+    summary["config"] = {k: cfg[k] for k in ("seeds", "episodes", "max_steps")}
     summary["wall_seconds"] = time.perf_counter() - t0
     summary["task_seconds"] = float(sum(r["seconds"] for r in runs))
     summary["task_cpu_seconds"] = float(sum(r.get("cpu_seconds", np.nan) for r in runs))
+    summary["stage_cpu_seconds"] = {k: float(sum(r.get("cpu_seconds", 0.0) for r in v)) for k, v in stage_runs.items() if v}
+    per_seed = [run_row(r) for r in runs]
+    ablation = ablation_rows(list(zip((h for h, _ in abl), abl_runs)), runs, chosen) if abl else []
+    doc = {"summary": summary, "eval_seeds": cfg["eval_seeds"], "tuning": tuning or {}, "per_seed": per_seed,
+           "ablation": ablation, "runs": runs}
     plot_curves(runs, methods, out / "maze_curves.png")
-    atomic_write(out / "maze_contacts.md", markdown_table(summary))
-    atomic_write(out / "maze_results.json", json.dumps({"summary": summary, "runs": runs}, indent=1))
-    print(markdown_table(summary))
+    md = markdown_table(summary, per_seed, tuning, ablation)
+    atomic_write(out / "maze_contacts.md", md)
+    atomic_write(out / "maze_results.json", json.dumps(doc, indent=1))
+    print(md)
     print(f"wrote {out / 'maze_curves.png'}, {out / 'maze_contacts.md'}, {out / 'maze_results.json'} "
-          f"({summary['wall_seconds']:.0f} s wall, {summary['task_seconds']:.0f} s in tasks)")
+          f"({summary['wall_seconds']:.0f} s wall; CPU s in tasks: "
+          + ", ".join(f"{k} {v:.0f}" for k, v in summary["stage_cpu_seconds"].items()) + ")")
     return 0

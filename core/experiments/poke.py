@@ -91,7 +91,7 @@ def simulate(design: SkinDesign, robot: Robot, pokes: list[Poke], params: Retrac
     mujoco.mj_forward(model, data)
     kin = TaxelKinematics(robot.model, design)  # its own data: kinematics at the measured q
     readout = SkinReadout(model, design, kernel="nearest")
-    layer = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, params)
+    layer = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, params, DT)
     target = robot.home.copy()
     steps = int(round(duration / DT))
     T, Q, F = np.zeros(steps), np.zeros((steps, nq)), np.zeros((steps, len(pokes)))
@@ -228,7 +228,7 @@ def multicontact(design, robot, params, bodies, forces, epsilons) -> list[dict]:
     for merge_kind in MERGES:
         for eps in epsilons if merge_kind != "qp" else epsilons[-1:]:
             p = replace(params, epsilon=eps, merge=merge_kind)
-            layer = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, p)
+            layer = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, p, DT)
             q, worst = retract_kinematic(kin, layer, robot.home, f, p.T + 2 * DT, watch=np.asarray(taxels))
             along = np.einsum("ki,ki->k", p0 - kin.poses(q)[0][taxels], fr[:, :, 2])
             frac = along / (np.minimum(p.alpha * np.asarray(forces), 12 * p.max_distance) / 12)
@@ -246,7 +246,7 @@ def compare_forms(design, robot, params, stride: int = 25, force: float = 40.0) 
     out = {}
     for form in ("3d", "6d"):
         p = replace(params, form=form)
-        layer = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, p)
+        layer = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, p, DT)
         ratio, drift = [], []
         for i in tqdm(range(0, design.n_taxels, stride), desc=f"forms ({form})", leave=False):
             layer.reset()

@@ -1,7 +1,7 @@
 """Experiments as Ray tasks: one task per (method, seed), results cached per task.
 
 `run_tasks(fn, tasks, cache)` runs `fn(**task)` for every task dict as a Ray task (one CPU each).
-Each finished task is written at once to `cache/<method>_s<seed>.json` (atomically) together with
+Each finished task is written at once to `cache/<method>_s<seed>[_<digest>].json` (atomically) together with
 the task it ran and a digest of every skinsafe source file loaded where it ran, so a restarted run
 reuses every task whose file holds the same task (the same method, seed and configuration) run by
 the same code, and only runs the rest (a changed default in an agent re-runs its tasks). Ray is local by default (`workers`
@@ -24,10 +24,10 @@ from skinsafe.core.skin.files import atomic_write
 
 
 def task_file(cache: Path, task: dict) -> Path:
-    """`<method>_s<seed>.json`, with a short digest of any `agent_kw` overrides (so variants do not collide)."""
-    tag = ""
-    if task.get("agent_kw"):
-        tag = "_" + hashlib.sha1(json.dumps(task["agent_kw"], sort_keys=True).encode()).hexdigest()[:8]
+    """`<method>_s<seed>.json`, with a short digest of the run's configuration when it has one (`agent_kw`,
+    `config`), so configurations and variants never share a file (the task itself is checked on reuse)."""
+    conf = {k: task[k] for k in ("agent_kw", "config") if task.get(k)}
+    tag = "_" + hashlib.sha1(json.dumps(conf, sort_keys=True).encode()).hexdigest()[:8] if conf else ""
     return Path(cache) / f"{task['method']}_s{task['seed']}{tag}.json"
 
 
@@ -98,11 +98,12 @@ def _start_ray(ray, address: str | None, workers: int | None, tries: int = 3) ->
 
 def run_tasks(fn: Callable[..., dict], tasks: list[dict], cache: str | Path, address: str | None = None,
               workers: int | None = None, progress: bool = True, desc: str = "tasks", fresh: bool = False,
-              cost: Callable[[dict], float] | None = None) -> list[dict]:
+              cost: Callable[[dict], float] | None = None, keep_ray: bool = False) -> list[dict]:
     """Results of `fn(**task)` for every task, in the order given (module doc). `fn` must be a
     module-level function (Ray pickles it by reference); `fresh` ignores cached results. `cost`, an
     estimate of a task's run time, submits the longest first (so that no long task starts last and
-    runs alone on an otherwise idle machine)."""
+    runs alone on an otherwise idle machine). `keep_ray` leaves a Ray it started running for the next
+    stage (the caller then ends it with `ray.shutdown()`)."""
     cache = Path(cache)
     cache.mkdir(parents=True, exist_ok=True)
     results: list[dict | None] = [None if fresh else cached(cache, t) for t in tasks]
@@ -130,7 +131,7 @@ def run_tasks(fn: Callable[..., dict], tasks: list[dict], cache: str | Path, add
                     bar.set_postfix_str(f"{tasks[i]['method']} seed {tasks[i]['seed']}")
                     bar.update()
         finally:
-            if started:
+            if started and not keep_ray:
                 ray.shutdown()
     bar.close()
     return results

@@ -1,17 +1,17 @@
-"""`skinsafe experiment desk` (Fig. 14) and `skinsafe experiment collaboration` (Fig. 15).
+"""`skinsafe experiment desk` (Fig. 14): the UR5 with the sample skin in MuJoCo (`arm_scene.Scene`),
+readings from `SkinReadout`, and the layers through `SafetyStack`.
 
-Both run the UR5 with the sample skin in MuJoCo, readings from `SkinReadout`, and the layers
-through `SafetyStack`.
+- desk: a probe on a spring presses on top of the forearm with a set force; the defensiveness
+  layer retracts the touched taxels along -z, i.e. down toward a desk under the arm. The
+  modulation potential is a TDM learned from static contacts with the desk (random
+  configurations around the start, distance labels from the skin's own contacts), used as f_phi
+  and as the distilled 2-step w_phi, each with the stop level at which it knows the desk close
+  (`ModulationLayer.stop`: a retraction never carries the arm past it). Reported: the clearance
+  between arm and desk (min signed distance, negative = penetration) and the desk contact
+  force, without modulation, with f_phi and with w_phi, at one touch over time (`runs`) and over
+  a touch-force sweep (`sweep`, 10-300 N by default).
 
-- desk: a probe presses on top of the forearm; the defensiveness layer retracts the touched
-  taxels along -z, i.e. down toward a desk under the arm. The modulation potential is a TDM
-  learned from static contacts with the desk (random configurations around the start, labels
-  from the skin readout), used as f_phi and as the distilled 2-step w_phi. Reported: the
-  clearance between arm and desk (min signed distance, negative = penetration) and the desk
-  contact force, without modulation, with f_phi and with w_phi.
-- collaboration (`collaboration.py`): the arm delivers a part with a fast sweep while a person
-  (ISO/TS 15066 body regions, compliant) reaches into its path; contact events per body region
-  against the ISO/TS 15066 limits with each stack (none, retraction, full, full+pfl).
+`skinsafe experiment collaboration` (Fig. 15) is `collaboration.py`.
 """
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from skinsafe.core.experiments.arm_scene import STATE, Scene
 from skinsafe.core.safety.modulation import ModulationLayer
 from skinsafe.core.safety.potential import (
     DangerPotential,
@@ -32,80 +33,12 @@ from skinsafe.core.safety.potential import (
     NStepConfig,
     UniformPolicy,
     distill_nstep,
+    potential_and_normal,
     single_thread_blas,
 )
 from skinsafe.core.safety.stack import SafetyStack
-from skinsafe.core.safety.tdm import TactileDangerModel, train_tdm
+from skinsafe.core.safety.tdm import TactileDangerModel
 from skinsafe.core.skin.files import atomic_write
-
-JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint")
-STATE = np.arange(4)  # modulated joints: pan, lift, elbow, wrist 1
-
-
-class Scene:
-    """UR5 + sample skin + obstacles, stepped at `control_dt` with position servos tracking a
-    velocity command."""
-
-    def __init__(self, obstacles, pitch: float = 0.01, control_dt: float = 0.01, human=None):
-        from skinsafe.core.design.sample import make_sample_design
-        from skinsafe.core.robot.kinematics import TaxelKinematics
-        from skinsafe.core.robot.models import build_ur5
-        from skinsafe.core.safety.defensiveness import DefensivenessLayer
-        from skinsafe.core.sim.readout import SkinReadout
-        from skinsafe.core.sim.scene import build_scene
-
-        self.robot = build_ur5()
-        self.design = make_sample_design("ur5", pitch=pitch, robot=self.robot)
-        obstacles = list(obstacles) + (human.obstacles() if human is not None else [])
-        spec = build_scene(self.design, self.robot, obstacles)
-        if human is not None:  # a person (core.sim.human): compliant body regions with ISO/TS 15066 stiffness
-            from skinsafe.core.sim.human import robot_collision_geoms
-            human.attach(spec, robot_collision_geoms(self.robot.model, self.robot.arm_bodies))
-        self.model = spec.compile()
-        self.human = human
-        if human is not None:
-            human.bind(self.model)
-        self.data = mujoco.MjData(self.model)
-        self.readout = SkinReadout(self.model, self.design)
-        self.kin = TaxelKinematics(self.robot.model, self.design)
-        self.qadr = np.array([self.model.jnt_qposadr[self.model.joint(j).id] for j in JOINTS])
-        self.control_dt = control_dt
-        self.substeps = max(1, int(round(control_dt / self.model.opt.timestep)))
-        self.defensiveness = lambda: DefensivenessLayer(self.kin, self.design.taxels.thresholds,
-                                                        self.robot.vel_limits, self.robot.acc_limits)
-        self.arm_geoms = [g for g in range(self.model.ngeom)
-                          if self.model.body(self.model.geom_bodyid[g]).name in self.design.bodies]
-
-    def reset(self, q0) -> None:
-        mujoco.mj_resetData(self.model, self.data)
-        self.data.qpos[self.qadr] = q0
-        self.data.ctrl[:] = q0
-        self.q_cmd = np.array(q0, float)
-        mujoco.mj_forward(self.model, self.data)
-
-    @property
-    def q(self) -> np.ndarray:
-        return self.data.qpos[self.qadr].copy()
-
-    def step(self, v: np.ndarray, lead: float = 0.2) -> np.ndarray:
-        """Command joint velocity v for one control tick; returns the peak taxel forces (N,)."""
-        q = self.q
-        self.q_cmd = np.clip(self.q_cmd + v * self.control_dt, q - lead, q + lead)
-        self.data.ctrl[:] = self.q_cmd
-        peak = np.zeros(self.design.n_taxels)
-        self.human_peak = np.zeros(len(self.human.parts) if self.human is not None else 0)
-        for _ in range(self.substeps):
-            mujoco.mj_step(self.model, self.data)
-            peak = np.maximum(peak, self.readout.read(self.data))
-            if self.human is not None:  # contact force on each body region, every physics step
-                self.human_peak = np.maximum(self.human_peak, self.human.forces(self.data))
-        return peak
-
-    def clearance(self, geom: int) -> float:
-        """Signed distance (m) between the skinned arm and a geom (negative: penetration)."""
-        fromto = np.zeros(6)
-        return min(mujoco.mj_geomDistance(self.model, self.data, g, geom, 0.5, fromto) for g in self.arm_geoms)
-
 
 # ------------------------------------------------------------------------------------------ desk
 
@@ -132,7 +65,15 @@ def _desk_layout(robot, design, gap: float):
     return centre, half, target
 
 
+PROBE_R = 0.02  # m, the probe's sphere
+PROBE_K = 20e3  # N/m: the probe rides on a spring, so a touch of F newtons is its holder F / PROBE_K past first contact
+DESK_STACKS = ("no modulation", "TDM modulation", "2-step TDM modulation")  # the runs over time
+UNSTOPPED = ", no stop"  # sweep-only variants: the same potentials without the stop level (the paper's modulation)
+
+
 def desk(args) -> dict:
+    """Fig. 14 at the touch `args.touch` (the runs over time) and the touch-force sweep
+    `args.forces` (clearance per force per stack); module docstring."""
     from skinsafe.core.design.sample import make_sample_design
     from skinsafe.core.robot.models import build_ur5
     from skinsafe.core.sim.scene import Obstacle
@@ -140,32 +81,83 @@ def desk(args) -> dict:
     robot = build_ur5()
     design = make_sample_design("ur5", pitch=args.pitch, robot=robot)
     centre, half, target = _desk_layout(robot, design, args.gap)
-    probe_r = 0.02
     park = target + np.array([0, 0, 0.3])
     obstacles = [Obstacle("desk", "box", tuple(half), pos=tuple(centre), rgba=(0.6, 0.45, 0.3, 1)),
-                 Obstacle("probe", "sphere", (probe_r,), pos=tuple(park), mocap=True)]
-    sc = Scene(obstacles, args.pitch)
-    desk_geom = sc.model.geom("desk").id
-    f_pot, w_pot = _learn_desk(sc, desk_geom, args)
-    out = {"gap_m": args.gap, "runs": {}}
-    for name, pot in (("no modulation", None), ("TDM modulation", f_pot), ("2-step TDM modulation", w_pot)):
-        mod = None if pot is None else ModulationLayer(pot, tangent_gain=args.tangent_gain)
-        stack = SafetyStack(sc.robot.vel_limits, sc.defensiveness(), mod, joints=STATE)
-        sc.reset(DESK_Q)
-        clear, desk_force, trace = [], 0.0, []
-        v = np.zeros(6)
-        for k in range(int(args.duration / sc.control_dt)):
-            t = k * sc.control_dt
-            press = 0.1 <= t < 0.2  # the touch: the probe pushes 3 mm into the forearm top
-            sc.data.mocap_pos[0] = target + np.array([0, 0, probe_r - 0.003]) if press else park
-            force = sc.step(v)
-            v = stack.tick(t, sc.q, {"force": force}, np.zeros(6), sc.control_dt)
-            clear.append(sc.clearance(desk_geom))
-            desk_force = max(desk_force, _contact_force(sc, desk_geom))
-            trace.append(clear[-1])
-        out["runs"][name] = {"min_clearance_mm": 1e3 * float(np.min(clear[int(0.25 / sc.control_dt):])),
-                             "desk_force_N": desk_force, "clearance_mm": (1e3 * np.array(trace)).round(2).tolist()}
+                 Obstacle("probe", "sphere", (PROBE_R,), pos=tuple(park), mocap=True, spring=PROBE_K)]
+    # Fig. 14 as measured: servos without the UR5's torque limits (with them a 300 N touch on the
+    # forearm overpowers the shoulder, 150 N m, and the arm yields toward the desk: -0.68 mm with the
+    # TDM's stop level in tests/experiments/test_tracking_experiment.py)
+    sc = Scene(obstacles, args.pitch, torque_limits=None)
+    desk_geom, probe_geom = sc.model.geom("desk").id, sc.model.geom("probe").id
+    pots, stops, by_clearance = _learn_desk(sc, desk_geom, args)
+    forces = sorted(set(args.forces) | {args.touch})
+    depth = _press_depths(sc, park, probe_geom, forces)
+    out = {"gap_m": args.gap, "touch_N": args.touch, "stop_levels": stops, "margin_m": args.margin,
+           "potential_by_clearance": by_clearance, "runs": {}, "sweep": []}
+    stacks = [(name, pot, stops[name]) for name, pot in zip(DESK_STACKS, (None,) + pots)]
+    stacks += [(name + UNSTOPPED, pot, None) for name, pot in zip(DESK_STACKS[1:], pots)]
+    bar = tqdm(total=len(forces) * len(stacks), desc="desk touches", disable=args.no_progress, leave=False)
+    for force in forces:
+        for name, pot, stop in stacks:
+            mod = None if pot is None else ModulationLayer(pot, tangent_gain=args.tangent_gain, stop=stop)
+            run = _desk_episode(sc, mod, park - np.array([0, 0, depth[force]]), park, desk_geom, probe_geom,
+                                args.duration)
+            out["sweep"].append({"stack": name, "stop": stop, "touch_target_N": force, "touch_N": round(run["touch_N"], 1),
+                                 "min_clearance_mm": round(run["min_clearance_mm"], 2),
+                                 "desk_force_N": round(run["desk_force_N"], 1)})
+            if force == args.touch and name in DESK_STACKS:
+                out["runs"][name] = run
+            bar.update()
+    bar.close()
+    rows = {name: [r for r in out["sweep"] if r["stack"] == name] for name, _, _ in stacks}
+    out["sweep_worst"] = [{"stack": name, "min_clearance_mm": min(r["min_clearance_mm"] for r in rs),
+                           "desk_force_N": max(r["desk_force_N"] for r in rs), "touches": len(rs)}
+                          for name, rs in rows.items()]  # the worst over the sweep, per stack
     return out
+
+
+def _press_depths(sc: Scene, park: np.ndarray, probe_geom: int, forces) -> dict:
+    """How far below `park` the probe's holder goes for each touch force: the first tick's
+    contact force (the touch's peak: the retraction starts after it) of presses on the arm at rest
+    at DESK_Q, measured over the holder's travel and interpolated."""
+    down, hit = np.array([0.0, 0.0, -1.0]), np.zeros(1, np.int32)
+    sc.reset(DESK_Q)
+    for _ in range(int(0.1 / sc.control_dt)):  # the arm settles under gravity as in an episode
+        sc.step(np.zeros(6))
+    reach = mujoco.mj_ray(sc.model, sc.data, park, down, None, 0, sc.model.geom_bodyid[probe_geom], hit) - PROBE_R
+    travel = reach + np.linspace(-0.005, 0.005 + max(forces) / PROBE_K, 24)
+    peak = np.zeros(len(travel))
+    for i, x in enumerate(travel):
+        sc.reset(DESK_Q)
+        for _ in range(int(0.1 / sc.control_dt)):
+            sc.step(np.zeros(6))
+        sc.data.mocap_pos[0] = park + down * x
+        sc.step(np.zeros(6))
+        peak[i] = _contact_force(sc, probe_geom)
+    peak = np.maximum.accumulate(peak)  # monotone in the travel, for the interpolation
+    return {f: float(np.interp(f, peak, travel)) for f in forces}
+
+
+def _desk_episode(sc: Scene, mod, pressed: np.ndarray, park: np.ndarray, desk_geom: int, probe_geom: int,
+                  duration: float) -> dict:
+    """One touch: the probe's holder at `pressed` from 0.1 to 0.2 s, else parked; the stack (with
+    modulation `mod` or none) retracts. Clearance and desk force from 0.25 s on (the touch itself
+    first pushes the arm down)."""
+    stack = SafetyStack(sc.robot.vel_limits, sc.defensiveness(), mod, joints=STATE, dt=sc.control_dt)
+    sc.reset(DESK_Q)
+    v, trace, desk_force, touch = np.zeros(6), [], 0.0, 0.0
+    for k in range(int(duration / sc.control_dt)):
+        t = k * sc.control_dt
+        sc.data.mocap_pos[0] = pressed if 0.1 <= t < 0.2 else park
+        readings = sc.step(v)
+        v = stack.tick(t, sc.q, {"force": readings}, np.zeros(6), sc.control_dt)
+        trace.append(sc.clearance(desk_geom))
+        touch = max(touch, _contact_force(sc, probe_geom))
+        if t >= 0.25:
+            desk_force = max(desk_force, _contact_force(sc, desk_geom))
+    after = int(0.25 / sc.control_dt)
+    return {"touch_N": touch, "min_clearance_mm": 1e3 * float(np.min(trace[after:])), "desk_force_N": desk_force,
+            "clearance_mm": (1e3 * np.array(trace)).round(2).tolist()}
 
 
 def _contact_force(sc: Scene, geom: int) -> float:
@@ -177,25 +169,28 @@ def _contact_force(sc: Scene, geom: int) -> float:
     return total
 
 
-def static_contact_tdm(S: np.ndarray, A: np.ndarray, D: np.ndarray, args) -> TactileDangerModel:
-    """A TDM fitted to static contact samples (states S, actions A, per-taxel danger labels D),
-    its head biased to a 1% prior danger per taxel; `args.steps` batches of 64, `args.seed`."""
-    torch.manual_seed(args.seed)
-    tdm = TactileDangerModel(S.shape[1], A.shape[1], D.shape[1], (64, 64))
-    with torch.no_grad():
-        tdm.head.bias.fill_(float(np.log(0.01 / D.shape[1])))
-    train_tdm(tdm, S, A, D, epochs=max(1, args.steps * 64 // len(S)), lr=3e-3, batch_size=64, seed=args.seed,
-              progress=False)
-    return tdm.eval()
-
-
 def _learn_desk(sc: Scene, desk_geom: int, args):
-    """A TDM from static contacts around DESK_Q (labels from the skin readout), and its 2-step potential."""
+    """The desk's potentials and their stop levels, from static contacts around DESK_Q.
+
+    Labels are the skin's own: at each sampled configuration the readout says which taxels touch
+    the desk (binary events); the world positions of every taxel that touched are the known desk
+    points, and each sample's taxel nearest to them gets the soft label `1 - d / ramp` (d its
+    distance, ramp 8 cm; the tracking experiment's distance labels), so the TDM's total danger is a
+    ramp of the distance to the desk as the skin knows it. The 2-step potential w is distilled from
+    it (eq. 8). Each potential's stop level (`ModulationLayer.stop`) is its median over the samples
+    whose skin-known distance to the desk is `args.margin` (within half of it either way): the
+    danger at which the potential knows the desk that close. Returns ((f, w), stops by stack, the
+    potentials' medians over the samples per band of their true clearance: a report, not an input)."""
+    from scipy.spatial import cKDTree
+
+    from skinsafe.core.learn.tdm_training import FitConfig, TDMTrainer
+
     rng = np.random.default_rng(args.seed)
-    n = args.samples
+    n, ramp = args.samples, 0.08
     S = DESK_Q[STATE] + rng.uniform(-1, 1, (n, len(STATE))) * np.array([0.15, 0.35, 0.35, 0.35])
     A = rng.uniform(-1, 1, (n, len(STATE)))
     D = np.zeros((n, sc.design.n_taxels), np.float32)
+    P, clear = np.zeros((n, sc.design.n_taxels, 3)), np.zeros(n)
     m, d = sc.model, sc.data
     for i in tqdm(range(n), desc="desk contacts", disable=args.no_progress, leave=False):
         q = DESK_Q.copy()
@@ -204,12 +199,39 @@ def _learn_desk(sc: Scene, desk_geom: int, args):
         d.qpos[sc.qadr] = q
         d.mocap_pos[0] = [0, 0, 5]
         mujoco.mj_forward(m, d)
-        # static contact: any penetration of the desk counts, at the taxels nearest to it
-        D[i] = sc.readout.read(d) > 0
-    f_pot = DangerPotential(static_contact_tdm(S, A, D, args))
+        D[i] = sc.readout.read(d) > 0  # static contact: any penetration of the desk, at the taxels nearest to it
+        P[i] = sc.kin.poses(q)[0]
+        clear[i] = sc.clearance(desk_geom)  # for the report only (`potential_by_clearance`), not for learning
+    known = cKDTree(np.unique(np.round(P[D > 0], 2), axis=0))  # the desk as the skin touched it (1 cm voxels)
+    dist = known.query(P.reshape(-1, 3))[0].reshape(n, -1)
+    near = np.argmin(dist, axis=1)
+    closest = dist[np.arange(n), near]
+    Y = D.copy()
+    Y[np.arange(n), near] = np.maximum(Y[np.arange(n), near], np.clip(1 - closest / ramp, 0, 1))
+    torch.manual_seed(args.seed)
+    tdm = TactileDangerModel(len(STATE), len(STATE), sc.design.n_taxels, (64, 64))
+    with torch.no_grad():  # prior: 1% total danger spread over the taxels
+        tdm.head.bias.fill_(float(np.log(0.01 / sc.design.n_taxels)))
+    trainer = TDMTrainer(tdm, FitConfig(steps=args.steps, batch_size=64, lr=3e-3, total_weight=1.0, patience=10,
+                                        eval_every=25), seed=args.seed)
+    trainer.add(S, A, Y)
+    trainer.fit()
+    f_pot = DangerPotential(tdm.eval())
     net, _ = distill_nstep(f_pot, S, A, EulerDynamics(0.15), UniformPolicy(-np.ones(len(STATE)), np.ones(len(STATE))),
                            NStepConfig(2, 0.9, 8), state_noise=0.03, epochs=40, seed=args.seed)
-    return f_pot, net.eval()
+    w_pot = net.eval()
+    band = np.abs(closest - args.margin) <= args.margin / 2
+    stops, by_clearance = {"no modulation": None}, []
+    edges = (-np.inf, 0.0, 0.005, 0.01, 0.02, 0.04, 0.08, np.inf)
+    for name, pot in (("TDM modulation", f_pot), ("2-step TDM modulation", w_pot)):
+        level = potential_and_normal(pot, S, A)[0]
+        stops[name] = float(np.median(level[band])) if band.any() else None
+        for lo, hi in zip(edges[:-1], edges[1:]):  # how the potential grows toward the desk
+            sel = (clear >= lo) & (clear < hi)
+            band_mm = [round(x * 1e3, 1) if np.isfinite(x) else None for x in (lo, hi)]
+            by_clearance.append({"stack": name, "clearance_mm": band_mm, "samples": int(sel.sum()),
+                                 "median": round(float(np.median(level[sel])), 3) if sel.any() else None})
+    return (f_pot, w_pot), stops, by_clearance
 
 
 # ------------------------------------------------------------------------------------- command
@@ -217,25 +239,17 @@ def _learn_desk(sc: Scene, desk_geom: int, args):
 def add_arguments(p) -> None:
     p.add_argument("--out", default=None, help="output folder (default results/<scene>)")
     p.add_argument("--pitch", type=float, default=0.01, help="sample skin pitch (m)")
-    p.add_argument("--duration", type=float, default=None, help="seconds (desk 1.5; collaboration: the delivery, 1.0)")
+    p.add_argument("--duration", type=float, default=1.5, help="seconds")
     p.add_argument("--gap", type=float, default=0.1, help="desk: gap between the desk and the lowest taxel (m)")
     p.add_argument("--samples", type=int, default=3000, help="desk: static contact samples for the TDM")
     p.add_argument("--steps", type=int, default=1500, help="desk: TDM training steps (batch 64)")
     p.add_argument("--tangent-gain", type=float, default=0.0,
                    help="desk: modulation's tangential gain (1 = the paper's 1+f; 0 never speeds up)")
-    p.add_argument("--source", choices=["planner", "teleoperation"], default="planner",
-                   help="collaboration: the command source the stack filters")
-    p.add_argument("--attach", type=float, default=1500.0,
-                   help="collaboration: how firmly the person holds the arm in place (N/m)")
-    p.add_argument("--stay", type=float, default=1.5, help="collaboration: seconds the person stays in the path")
-    p.add_argument("--finish", type=float, default=3.0,
-                   help="collaboration: seconds after the person has left for the robot to complete the delivery")
-    p.add_argument("--presence", type=float, default=0.5,
-                   help="collaboration: fraction of deliveries with the person at the bench (scales the learned danger)")
-    p.add_argument("--pfl-regions", nargs="+", default=None,
-                   help="collaboration: body regions the PFL cap protects (default: the person's regions)")
-    p.add_argument("--pfl-factor", type=float, default=0.8,
-                   help="collaboration: PFL cap as a fraction of v_max (margin for the servos and the sampling)")
+    p.add_argument("--touch", type=float, default=100.0, help="desk: the touch of the runs over time (N)")
+    p.add_argument("--forces", type=float, nargs="+", default=[10, 25, 50, 100, 150, 200, 250, 300],
+                   help="desk: the touch-force sweep (N)")
+    p.add_argument("--margin", type=float, default=0.02,
+                   help="desk: the potentials' stop level is their danger this close to the desk as the skin knows it (m)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
 
@@ -244,22 +258,13 @@ def run(args) -> int:
     torch.set_num_threads(1)
     single_thread_blas()
     name = args.command_name
-    if name not in ("desk", "collaboration"):
-        raise SystemExit(f"experiment_scenes serves 'desk' and 'collaboration', not '{name}'")
-    if args.duration is None:
-        args.duration = 1.5 if name == "desk" else 1.0
+    if name != "desk":
+        raise SystemExit(f"experiment scenes serves 'desk', not '{name}' (collaboration: core.experiments.collaboration)")
     if args.duration <= 0:
         raise SystemExit(f"--duration is {args.duration}; give a positive number of seconds")
-    if name == "collaboration":
-        from skinsafe.core.experiments.collaboration import check_args
-        check_args(args)
     out_dir = Path(args.out or f"results/{name}")
     t0 = time.perf_counter()
-    if name == "desk":
-        res = desk(args)
-    else:
-        from skinsafe.core.experiments.collaboration import run_scene
-        res = run_scene(args)
+    res = desk(args)
     res["seconds"] = time.perf_counter() - t0
     atomic_write(out_dir / f"{name}.json", json.dumps(res, indent=1))
     _plot(name, res, out_dir / f"{name}.png")
@@ -276,25 +281,37 @@ def _plot(name: str, res: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    if name == "collaboration":
-        from skinsafe.core.experiments.collaboration import plot
-
-        fig = plot(res)
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=110)
-        plt.close(fig)
-        atomic_write(path, buf.getvalue())
-        return
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    key = "clearance_mm" if name == "desk" else "force_N"
     for label, r in res["runs"].items():
-        y = np.array(r[key])
+        y = np.array(r["clearance_mm"])
         ax.plot(np.arange(len(y)) * 0.01, y, label=label)
-    if name == "desk":
-        ax.axhline(0, color="k", lw=0.8)
+    ax.axhline(0, color="k", lw=0.8)
     ax.set_xlabel("time (s)")
-    ax.set_ylabel("arm-desk clearance (mm)" if name == "desk" else "total skin force (N)")
-    ax.set_title("Fig. 14: retraction toward a desk" if name == "desk" else "Fig. 15: contact with a human arm")
+    ax.set_ylabel("arm-desk clearance (mm)")
+    ax.set_title("Fig. 14: retraction toward a desk")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    atomic_write(path, buf.getvalue())
+    if name == "desk" and res.get("sweep"):
+        _plot_desk_sweep(res, path.with_name("desk_sweep.png"))
+
+
+def _plot_desk_sweep(res: dict, path: Path) -> None:
+    """The touch-force sweep: the closest each stack's arm came to the desk against the touch."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for name in dict.fromkeys(r["stack"] for r in res["sweep"]):
+        rows = [r for r in res["sweep"] if r["stack"] == name]
+        ax.plot([r["touch_N"] for r in rows], [r["min_clearance_mm"] for r in rows], "o-" if "no stop" not in name
+                else "x--", label=name, ms=4)
+    ax.axhline(0, color="k", lw=0.8)
+    ax.set_xlabel("touch on top of the forearm (N)")
+    ax.set_ylabel("min arm-desk clearance (mm)")
+    ax.set_title("Fig. 14 over touch forces: below 0 the retraction hit the desk")
     ax.legend(fontsize=7)
     fig.tight_layout()
     buf = io.BytesIO()

@@ -13,13 +13,18 @@ method x seed (cached in `--out`/tasks, reused by a restarted run):
 
 After every episode the method's TDM is re-trained (warm start, a budget of gradient steps with early
 stopping on a validation split; AUC and calibration recorded per episode) on all its experience so far;
-before any experience there is nothing to modulate with (episode 1 runs unmodulated). Labels are the
-skin's events turned into distance-like soft targets by default (`Learner`), or the paper's binary
-events (`--labels binary`). Writes `tracking.json` (per method/seed/episode: contacts, contact onsets,
-tracking error, fit record; the summary and a `claim` computed from it), `tracking.md` (the table),
-`contacts.png` (Fig. 11e:
-contacts per episode, mean and min-max band over seeds) and `trajectories.png` (Fig. 11b-d:
-end-effector paths with contact points, last episode of the first seed).
+before any experience there is nothing to modulate with (episode 1 runs unmodulated). Labels (`Learner`):
+the paper's binary taxel events (`binary`, the paper's setting) and, as this project's extension, the
+same events turned into distance-like soft targets (`soft`); the full run learns with both on the same
+held-out seeds (10-19; the soft labels were designed on seeds 0-2), vanilla once per seed.
+
+Writes `tracking.json`: per label set (`labels`: `binary`, `soft`) the per method/seed/episode rows
+(contacts, contact onsets, tracking error, fit record), the summary (contact ticks per episode by
+method), the per-seed table and the `claim` computed from them with 95% intervals over seeds; the
+top-level `runs`, `summary` and `claim` are the paper's setting (binary) when it ran. `tracking.md` (the
+tables), `contacts.png` (Fig. 11e: contacts per episode, mean and min-max band over seeds, one panel
+per label set) and `trajectories.png` (Fig. 11b-d: end-effector paths with contact points, last
+episode of the first seed).
 """
 from __future__ import annotations
 
@@ -35,6 +40,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from skinsafe.core.experiments.runner import run_tasks
+from skinsafe.core.experiments.stats import compare, mean_ci, parse_seeds, ratio_ci
 from skinsafe.core.learn.tdm_training import FitConfig, TDMTrainer
 from skinsafe.core.learn.tracking_env import MOVING, TrackingEnv, TrackingScene, TrackingTask
 from skinsafe.core.safety.modulation import ModulationLayer
@@ -50,6 +56,9 @@ from skinsafe.core.safety.tdm import TactileDangerModel
 from skinsafe.core.skin.files import atomic_write
 
 METHODS = ("vanilla", "tdm", "tdm2")
+LABEL_SETS = {"binary": "binary", "soft": "distance"}  # result name -> `TrackingConfig.labels`
+RUN_COST = {"tdm2": 60.0, "tdm": 25.0, "vanilla": 1.0}  # CPU s of a 10-episode task (measured): the longest start first
+HELD_OUT = tuple(range(10, 20))  # the full run's seeds: the soft labels and the scene were developed on 0-2
 STATE = MOVING  # s = (pan, lift, elbow, wrist 1) angles, a = their executed velocities
 
 
@@ -58,8 +67,9 @@ class TrackingConfig(TrackingTask):
     """Every knob of the experiment (the task's and the learning's); `quick()` is the test suite's run."""
 
     episodes: int = 10
-    seeds: tuple = (0, 1, 2)
+    seeds: tuple = HELD_OUT
     methods: tuple = METHODS
+    label_sets: tuple = ("binary", "soft")  # the experiment learns with each (`LABEL_SETS`); a task with one
     hidden: int = 64
     steps: int = 400  # most gradient steps per re-training (warm start, early stopping on a validation split)
     batch_size: int = 128
@@ -82,7 +92,8 @@ class TrackingConfig(TrackingTask):
 
     @staticmethod
     def quick() -> "TrackingConfig":
-        return TrackingConfig(episodes=3, seeds=(0,), pitch=0.02, steps=200, distill_epochs=25, samples=8)
+        return TrackingConfig(episodes=3, seeds=(0,), pitch=0.02, steps=200, distill_epochs=25, samples=8,
+                              label_sets=("soft",))
 
 
 @dataclass
@@ -240,64 +251,137 @@ def run_method(method: str, seed: int, config: dict) -> dict:
 
 def run_experiment(cfg: TrackingConfig, progress: bool = True, cache: str | Path | None = None, address: str | None = None,
                    workers: int | None = None, fresh: bool = False) -> dict:
-    """All methods x seeds (one Ray task each, cached in `cache`); the merged results."""
+    """All methods x seeds x label sets (one Ray task each, cached in `cache`; vanilla, which learns
+    nothing, once per seed); the merged results, per label set in `labels` (module doc)."""
     import tempfile
 
     config = json.loads(json.dumps(asdict(cfg)))
-    task_config = {k: v for k, v in config.items() if k not in ("seeds", "methods")}  # a task is one method x seed
-    tasks = [{"method": m, "seed": s, "config": task_config} for s in cfg.seeds for m in cfg.methods]
+    unknown = [k for k in cfg.label_sets if k not in LABEL_SETS]
+    if unknown or not cfg.label_sets:
+        raise SystemExit(f"tracking: unknown label set(s) {unknown}; choose from {', '.join(LABEL_SETS)}")
+    base = {k: v for k, v in config.items() if k not in ("seeds", "methods", "label_sets")}  # a task: method x seed x labels
+    tasks = []
+    for name in cfg.label_sets:
+        task_config = dict(base, labels=LABEL_SETS[name])
+        tasks += [{"method": m, "seed": s, "config": task_config} for s in cfg.seeds for m in cfg.methods
+                  if m != "vanilla" or name == cfg.label_sets[0]]
     with tempfile.TemporaryDirectory() as tmp:
         out = run_tasks(run_method, tasks, cache or tmp, address=address, workers=workers, progress=progress,
-                        desc="tracking runs", fresh=fresh)
-    results = {"config": config, "runs": {}, "last": {}, "balls": {}, "path_contact_ticks": {}}
-    for r in out:
-        results["runs"].setdefault(r["method"], {})[str(r["seed"])] = r["rows"]
-        results["last"].setdefault(r["method"], {})[str(r["seed"])] = r["last"]
+                        desc="tracking runs", fresh=fresh, cost=lambda t: RUN_COST[t["method"]])
+    results = {"config": config, "labels": {}, "balls": {}, "path_contact_ticks": {},
+               "task_cpu_seconds": float(sum(r["cpu_seconds"] for r in out))}
+    for name in cfg.label_sets:
+        results["labels"][name] = {"runs": {}, "last": {}, "cpu_seconds": {}}
+    for t, r in zip(tasks, out):
+        names = list(cfg.label_sets) if r["method"] == "vanilla" else [n for n in cfg.label_sets if LABEL_SETS[n] == t["config"]["labels"]]
+        for name in names:
+            res = results["labels"][name]
+            res["runs"].setdefault(r["method"], {})[str(r["seed"])] = r["rows"]
+            res["cpu_seconds"].setdefault(r["method"], {})[str(r["seed"])] = r["cpu_seconds"]
+            if r["seed"] == cfg.seeds[0]:  # the trajectories plotted (Fig. 11b-d): the first seed's last episode
+                res["last"].setdefault(r["method"], {})[str(r["seed"])] = r["last"]
         results["balls"][str(r["seed"])] = r["balls"]
         results["path_contact_ticks"][str(r["seed"])] = r["path_contact_ticks"]
         results["n_taxels"] = r["n_taxels"]
-        results.setdefault("cpu_seconds", {}).setdefault(r["method"], {})[str(r["seed"])] = r["cpu_seconds"]
+    primary = results["labels"]["binary" if "binary" in cfg.label_sets else cfg.label_sets[0]]
+    results.update(runs=primary["runs"], last=primary["last"], cpu_seconds=primary["cpu_seconds"])
+    for res in results["labels"].values():
+        del res["last"]  # the plotted set's is `last`
     return results
 
 
+def _late(rows: list[dict]) -> float:
+    """Mean contact ticks over episodes 6-10 (the second half when there are fewer than 10 episodes)."""
+    c = np.array([r["contacts"] for r in rows], float)
+    return float((c[5:10] if len(c) > 5 else c[len(c) // 2:]).mean())
+
+
 def summary(results: dict) -> list[dict]:
-    """Per method: contacts of the first and last episode, over all and over episodes 6-10 (means over
-    seeds), tracking error."""
+    """Per method (flat rows, for tables): contact ticks of the first and last episode, over all and over
+    episodes 6-10 (mean, std and 95% interval over seeds), tracking error."""
     out = []
     for method, by_seed in results["runs"].items():
         c = np.array([[r["contacts"] for r in rows] for rows in by_seed.values()], float)  # (seeds, episodes)
         err = np.array([[r["tracking_error"] for r in rows] for rows in by_seed.values()])
         first_zero = [next((r["episode"] for r in rows if r["contacts"] == 0), None) for rows in by_seed.values()]
-        late = c[:, 5:10] if c.shape[1] > 5 else c[:, c.shape[1] // 2:]
+        late = [_late(rows) for rows in by_seed.values()]
+        lo, hi = mean_ci(late)[1]
         out.append({"method": method, "contacts_first": float(c[:, 0].mean()), "contacts_last": float(c[:, -1].mean()),
-                    "contacts_mean": float(c.mean()), "contacts_ep6_10": float(late.mean()),
-                    "contacts_ep6_10_std": float(late.mean(1).std(ddof=1)) if len(late) > 1 else 0.0,
-                    "tracking_error_mm": float(err.mean() * 1e3), "first_zero_episode": first_zero})
+                    "contacts_mean": float(c.mean()), "contacts_ep6_10": float(np.mean(late)),
+                    "contacts_ep6_10_std": float(np.std(late, ddof=1)) if len(late) > 1 else 0.0,
+                    "contacts_ep6_10_ci95_low": lo, "contacts_ep6_10_ci95_high": hi,
+                    "tracking_error_mm": float(err.mean() * 1e3), "first_zero_episode": first_zero, "seeds": len(late)})
     return out
 
 
-def claim_check(rows: list[dict]) -> dict:
+def contacts_per_episode(results: dict) -> dict:
+    """{method: contact ticks per episode, mean over seeds} (Fig. 11e)."""
+    return {m: np.mean([[r["contacts"] for r in rows] for rows in by_seed.values()], axis=0).tolist()
+            for m, by_seed in results["runs"].items()}
+
+
+def per_seed(results: dict) -> list[dict]:
+    """One row per method and seed: mean contact ticks over episodes 6-10, the last episode's, tracking error."""
+    return [{"method": m, "seed": int(seed), "contacts_ep6_10": _late(rows), "contacts_last": rows[-1]["contacts"],
+             "tracking_error_mm": float(np.mean([r["tracking_error"] for r in rows]) * 1e3)}
+            for m, by_seed in results["runs"].items() for seed, rows in by_seed.items()]
+
+
+def claim_check(rows: list[dict], seeds: list[dict] | None = None) -> dict:
     """Fig. 11e's claim as the issue states it: the 2-step TDM's mean contacts over episodes 6-10 are at
-    most 10% of vanilla's and below the TDM's."""
+    most 10% of vanilla's and below the TDM's. With per-seed rows (`per_seed`) each part is decided on a
+    95% interval over the seeds (paired: a seed is one ball placement): the ratio 2-step / vanilla by a
+    seeded bootstrap, the difference TDM - 2-step by Student's t; "holds" needs the whole ratio interval
+    <= 10% and the whole difference interval > 0, "does not hold" an interval wholly on the wrong side.
+    Without per-seed rows, the means decide."""
     by = {r["method"]: r["contacts_ep6_10"] for r in rows}
     if not {"vanilla", "tdm", "tdm2"} <= set(by):
         return {"holds": None, "statement": "needs vanilla, tdm and tdm2"}
-    ratio = by["tdm2"] / by["vanilla"] if by["vanilla"] > 0 else float("inf")
-    holds = ratio <= 0.1 and by["tdm2"] < by["tdm"]
-    s = (f"Episodes 6-10 (mean contact ticks per episode): vanilla {by['vanilla']:.1f}, TDM {by['tdm']:.1f}, "
-         f"2-step TDM {by['tdm2']:.1f} ({100 * ratio:.1f}% of vanilla). "
-         + ("The paper's claim holds: the 2-step TDM is below 10% of vanilla and below the TDM." if holds else
-            "The paper's claim does not hold here (needs the 2-step TDM <= 10% of vanilla and below the TDM)."))
-    return {"holds": bool(holds), "tdm2_over_vanilla": ratio, "statement": s}
+    x = {m: {p["seed"]: p["contacts_ep6_10"] for p in seeds or [] if p["method"] == m} for m in by}
+    common = sorted(set(x["vanilla"]) & set(x["tdm"]) & set(x["tdm2"]))
+    if len(common) >= 2:
+        v, t, t2 = (np.array([x[m][s] for s in common]) for m in ("vanilla", "tdm", "tdm2"))
+        ratio, rci = ratio_ci(t2, v)
+        diff, dci = mean_ci(t - t2)
+    else:
+        ratio = by["tdm2"] / by["vanilla"] if by["vanilla"] > 0 else float("inf")
+        diff = by["tdm"] - by["tdm2"]
+        rci, dci = [ratio, ratio], [diff, diff]
+    part_ratio = "holds" if rci[1] <= 0.1 else "does not hold" if rci[0] > 0.1 else "not resolved"
+    part_diff = {"lower": "holds", "higher": "does not hold"}.get(compare(dci), "not resolved")
+    holds = part_ratio == "holds" and part_diff == "holds"
+    verdict = ("holds" if holds else "does not hold" if "does not hold" in (part_ratio, part_diff) else "is not resolved")
+    n = max(len(common), 1)
+    s = (f"Episodes 6-10, mean contact ticks per episode over {n} seed{'s' if n > 1 else ''}: vanilla {by['vanilla']:.1f}, "
+         f"TDM {by['tdm']:.1f}, 2-step TDM {by['tdm2']:.1f}; 2-step / vanilla {100 * ratio:.1f}% [95% interval "
+         f"{100 * rci[0]:.1f}, {100 * rci[1]:.1f}] ({part_ratio}: <= 10%), TDM - 2-step {diff:.1f} "
+         f"[{dci[0]:.1f}, {dci[1]:.1f}] ({part_diff}: > 0). The paper's claim {verdict} here.")
+    return {"holds": bool(holds), "verdict": verdict, "tdm2_over_vanilla": ratio, "tdm2_over_vanilla_ci95": rci,
+            "tdm_minus_tdm2": diff, "tdm_minus_tdm2_ci95": dci, "parts": {"ratio": part_ratio, "difference": part_diff},
+            "seeds": common, "statement": s}
 
 
-def markdown_table(table: list[dict], claim: dict) -> str:
-    lines = ["| method | contact ticks, episode 1 | episodes 6-10 (mean ± std over seeds) | last episode | all episodes | "
-             "tracking error (mm) |", "| --- | --- | --- | --- | --- | --- |"]
+def markdown_table(table: list[dict], claim: dict, seeds: list[dict] | None = None, title: str = "") -> str:
+    lines = ([f"### {title}", ""] if title else []) + [
+        "| method | contact ticks, episode 1 | episodes 6-10: mean [95% interval] (std) over seeds | last episode | "
+        "all episodes | tracking error (mm) |", "| --- | --- | --- | --- | --- | --- |"]
     for r in table:
-        lines.append(f"| {r['method']} | {r['contacts_first']:.1f} | {r['contacts_ep6_10']:.1f} ± {r['contacts_ep6_10_std']:.1f} | "
-                     f"{r['contacts_last']:.1f} | {r['contacts_mean']:.1f} | {r['tracking_error_mm']:.0f} |")
-    return "\n".join(lines) + "\n\n" + claim["statement"] + "\n"
+        lo, hi = r.get("contacts_ep6_10_ci95_low", r["contacts_ep6_10"]), r.get("contacts_ep6_10_ci95_high", r["contacts_ep6_10"])
+        lines.append(f"| {r['method']} | {r['contacts_first']:.1f} | {r['contacts_ep6_10']:.1f} [{lo:.1f}, {hi:.1f}] "
+                     f"({r['contacts_ep6_10_std']:.1f}) | {r['contacts_last']:.1f} | {r['contacts_mean']:.1f} | "
+                     f"{r['tracking_error_mm']:.0f} |")
+    text = "\n".join(lines) + "\n\n" + claim["statement"] + "\n"
+    if seeds and len({p["seed"] for p in seeds}) > 1:
+        ids = sorted({p["seed"] for p in seeds})
+        text += ("\nPer seed, mean contact ticks over episodes 6-10:\n\n| method | " + " | ".join(f"seed {i}" for i in ids)
+                 + " |\n| --- |" + " --- |" * len(ids) + "\n")
+        for m in dict.fromkeys(p["method"] for p in seeds):
+            by = {p["seed"]: p["contacts_ep6_10"] for p in seeds if p["method"] == m}
+            text += f"| {m} | " + " | ".join(f"{by[i]:.1f}" if i in by else "-" for i in ids) + " |\n"
+    return text
+
+
+TITLES = {"binary": "The paper's setting: binary taxel labels", "soft": "Extension: soft distance labels"}
 
 
 def plot(results: dict, out_dir: Path) -> list[Path]:
@@ -308,16 +392,19 @@ def plot(results: dict, out_dir: Path) -> list[Path]:
 
     colors = {"vanilla": "tab:red", "tdm": "tab:blue", "tdm2": "tab:green"}
     labels = {"vanilla": "no modulation", "tdm": "TDM modulation", "tdm2": "2-step TDM modulation"}
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for method, by_seed in results["runs"].items():
-        c = np.array([[r["contacts"] for r in rows] for rows in by_seed.values()], float)
-        ep = np.arange(1, c.shape[1] + 1)
-        ax.plot(ep, c.mean(0), "o-", color=colors.get(method), label=labels.get(method, method))
-        ax.fill_between(ep, c.min(0), c.max(0), color=colors.get(method), alpha=0.2)
-    ax.set_xlabel("episode")
-    ax.set_ylabel("contact ticks per episode")
-    ax.set_title(f"UR5 tracking among balls ({len(next(iter(results['runs'].values())))} seeds, min-max band)")
-    ax.legend()
+    sets = results.get("labels") or {"": {"runs": results["runs"]}}
+    fig, axes = plt.subplots(1, len(sets), figsize=(6 * len(sets), 4), squeeze=False, sharey=True)
+    for ax, (name, res) in zip(axes[0], sets.items()):
+        for method, by_seed in res["runs"].items():
+            c = np.array([[r["contacts"] for r in rows] for rows in by_seed.values()], float)
+            ep = np.arange(1, c.shape[1] + 1)
+            ax.plot(ep, c.mean(0), "o-", color=colors.get(method), label=labels.get(method, method))
+            ax.fill_between(ep, c.min(0), c.max(0), color=colors.get(method), alpha=0.2)
+        ax.set_xlabel("episode")
+        ax.set_ylabel("contact ticks per episode")
+        n = len(next(iter(res["runs"].values())))
+        ax.set_title(f"{TITLES.get(name, 'UR5 tracking among balls')} ({n} seeds, min-max band)", fontsize=9)
+        ax.legend()
     fig.tight_layout()
     paths = [out_dir / "contacts.png"]
     _save(fig, paths[0])
@@ -353,12 +440,13 @@ def _save(fig, path: Path) -> None:
 def add_arguments(p) -> None:
     p.add_argument("--out", default="results/tracking", help="folder for tracking.json and the plots")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--full", action="store_true", help="the paper's budget (default): 3 seeds x 10 episodes")
-    g.add_argument("--quick", action="store_true", help="reduced run (1 seed, 3 episodes, coarse skin)")
+    g.add_argument("--full", action="store_true", help="the full run (default): seeds 10-19 x 10 episodes, binary and soft labels")
+    g.add_argument("--quick", action="store_true", help="reduced run (1 seed, 3 episodes, coarse skin, soft labels)")
     p.add_argument("--episodes", type=int, help="episodes per method and seed (default 10)")
-    p.add_argument("--seeds", type=int, nargs="+", help="seeds (default 0 1 2)")
+    p.add_argument("--seeds", nargs="+", help="seeds, a range or a list: 10-19 (default), 11,12,13 or 11 12 13")
     p.add_argument("--methods", nargs="+", choices=METHODS, help="methods to run (default all)")
-    p.add_argument("--labels", choices=("distance", "binary"), help="TDM labels (default distance)")
+    p.add_argument("--labels", choices=("binary", "soft", "distance", "both"),
+                   help="TDM labels: binary (the paper's), soft (= distance, this project's), both (the full run's default)")
     p.add_argument("--tangent-gain", type=float, help="tangential eigenvalue 1 + g f (default 1, the paper)")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="local Ray CPUs (default %(default)s)")
     p.add_argument("--address", default=None, help="join this Ray cluster instead of starting a local Ray")
@@ -373,11 +461,12 @@ def config_from_args(args) -> TrackingConfig:
             raise SystemExit(f"--episodes is {args.episodes}; give at least 1")
         cfg.episodes = args.episodes
     if args.seeds:
-        cfg.seeds = tuple(args.seeds)
+        cfg.seeds = tuple(parse_seeds(args.seeds))
     if args.methods:
         cfg.methods = tuple(args.methods)
-    if getattr(args, "labels", None):
-        cfg.labels = args.labels
+    labels = getattr(args, "labels", None)
+    if labels:
+        cfg.label_sets = ("binary", "soft") if labels == "both" else ("soft",) if labels == "distance" else (labels,)
     if getattr(args, "tangent_gain", None) is not None:
         cfg.tangent_gain = args.tangent_gain
     return cfg
@@ -389,13 +478,18 @@ def run(args) -> int:
     t0 = time.perf_counter()
     results = run_experiment(cfg, progress=not args.no_progress, cache=out / "tasks", address=getattr(args, "address", None),
                              workers=getattr(args, "workers", None), fresh=getattr(args, "fresh", False))
-    table = summary(results)
-    doc = dict(results, summary=table, claim=claim_check(table), seconds=time.perf_counter() - t0)
+    md = []
+    for name, res in results["labels"].items():
+        table, seeds = summary(res), per_seed(res)
+        res.update(summary=table, contacts_per_episode=contacts_per_episode(res), per_seed=seeds, claim=claim_check(table, seeds))
+        md.append(markdown_table(table, res["claim"], seeds, TITLES[name]))
+    primary = results["labels"]["binary" if "binary" in results["labels"] else cfg.label_sets[0]]
+    doc = dict(results, summary=primary["summary"], per_seed=primary["per_seed"], claim=primary["claim"],
+               seconds=time.perf_counter() - t0)
     atomic_write(out / "tracking.json", json.dumps(doc, indent=1))
-    atomic_write(out / "tracking.md", markdown_table(table, doc["claim"]))
+    atomic_write(out / "tracking.md", "\n".join(md))
     paths = plot(results, out)
-    for row in table:
-        print("  ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()))
-    print(doc["claim"]["statement"])
-    print(f"wrote {out / 'tracking.json'}, {out / 'tracking.md'}, " + ", ".join(str(p) for p in paths) + f" in {doc['seconds']:.0f} s")
+    print("\n".join(md))
+    print(f"wrote {out / 'tracking.json'}, {out / 'tracking.md'}, " + ", ".join(str(p) for p in paths)
+          + f" in {doc['seconds']:.0f} s ({doc['task_cpu_seconds']:.0f} CPU s in tasks)")
     return 0

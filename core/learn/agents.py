@@ -7,7 +7,9 @@ action space and `info["cost"]`, `info["taxel_danger"]`): `act(obs) -> action`,
 `observe(obs, action, reward, cost, danger, next_obs, terminated, truncated)`, `end_episode()`,
 and, for the policy filter, `action_probs(features) -> (B, A)`.
 
-Choices that make them learn (issue 16):
+Choices that make them learn (issue 16); each -TDM extra among them can be switched off for the
+ablation of issue 31 (`raw_floor=0`, `unfiltered_entropy=False`, `shrink=False`, `contact_steps=0`;
+`core.experiments.maze.TDM_EXTRAS`):
 
 - The TDM is refitted every `refit_every` environment steps (25 gradient steps, warm started) and after
   every contact event (100, with the new contact in every batch: a uniform batch of thousands of safe
@@ -104,12 +106,12 @@ class TDMShield:
 
     def __init__(self, feat_dim: int, n_actions: int, n_taxels: int, seed: int, refit_every: int = 20,
                  fit: FitConfig | None = None, hidden=(64, 64), unseen_max: float = 0.8, prior_count: float = 0.01,
-                 contact_steps: int = 100):
+                 contact_steps: int = 100, shrink: bool = True):
         self.model = TactileDangerModel(feat_dim, n_actions, n_taxels, hidden)
         self.trainer = TDMTrainer(self.model, fit or FitConfig(steps=25, min_steps=25, batch_size=64, val_fraction=0.1), seed=seed + 7919)
         self.n_actions, self.refit_every, self.contact_steps = n_actions, int(refit_every), int(contact_steps)
         self.counts = VisitCounts(feat_dim, n_actions)
-        self.unseen_max, self.prior_count = float(unseen_max), float(prior_count)
+        self.unseen_max, self.prior_count, self.shrink = float(unseen_max), float(prior_count), bool(shrink)
         self.eye = np.eye(n_actions, dtype=np.float32)
         self.since = 0
 
@@ -118,7 +120,7 @@ class TDMShield:
         self.trainer.add(feat, self.eye[action], danger)
         self.counts.add(feat, action)
         self.since += 1
-        if danger.any():  # a new contact is news: learn it now, with the larger budget, in every batch
+        if danger.any() and self.contact_steps > 0:  # a new contact is news: learn it now, in every batch
             self.fit(self.contact_steps, focus=[self.trainer.last])
         elif self.since >= self.refit_every:
             self.fit()
@@ -129,8 +131,11 @@ class TDMShield:
 
     @torch.no_grad()
     def log_safety(self, feat: torch.Tensor) -> torch.Tensor:
-        """(B, A) log p(not D | s, a) for the filter: the TDM's, shrunk by experience (class doc)."""
+        """(B, A) log p(not D | s, a) for the filter: the TDM's, shrunk by experience (class doc; with
+        `shrink` False the TDM's own)."""
         ls = action_log_safety(self.model, feat, self.n_actions)
+        if not self.shrink:
+            return ls
         n = self.counts(feat)
         w = n / (n + self.prior_count)
         capped = torch.clamp_min(ls, float(np.log1p(-self.unseen_max)))  # p(D) <= unseen_max
@@ -148,16 +153,17 @@ class Agent:
     def __init__(self, obs_dim: int, n_actions: int, n_taxels: int, features=None, seed: int = 0,
                  cost_penalty: float = 0.0, use_tdm: bool = False, gamma: float = 0.97, lr: float = 3e-3,
                  hidden=(64, 64), refit_every: int = 20, fit: FitConfig | None = None, unseen_max: float = 0.8,
-                 prior_count: float = 0.01, raw_floor: float = 0.05):
+                 prior_count: float = 0.01, raw_floor: float = 0.05, unfiltered_entropy: bool = True,
+                 contact_steps: int = 100, shrink: bool = True):
         torch.manual_seed(seed)
         self.rng = np.random.default_rng(seed)
         self.features = features if features is not None else (lambda o: np.atleast_2d(np.asarray(o, np.float32)))
         self.feat_dim = int(self.features(np.zeros(obs_dim, np.float32)).shape[-1])
         self.n_actions, self.gamma, self.lr, self.hidden = n_actions, gamma, lr, hidden
         self.cost_penalty = float(cost_penalty)
-        self.raw_floor = float(raw_floor)
+        self.raw_floor, self.unfiltered_entropy = float(raw_floor), bool(unfiltered_entropy)
         self.shield = (TDMShield(self.feat_dim, n_actions, n_taxels, seed, refit_every, fit, unseen_max=unseen_max,
-                                 prior_count=prior_count) if use_tdm else None)
+                                 prior_count=prior_count, contact_steps=contact_steps, shrink=shrink) if use_tdm else None)
 
     # p(a|s) of the raw policy, on features: the interface `safety.danger.PolicyFilter` wraps.
     @torch.no_grad()
@@ -188,8 +194,8 @@ class Agent:
         """Mean entropy of the unfiltered policy, from its log-probabilities `raw`: with the TDM, the
         actions the filter removes get no gradient from the filtered loss, so without this term their
         logits drift (a raw policy of 0.99 on a filtered action defeats any filter whose safety estimate
-        is not exactly 0)."""
-        if self.shield is None:
+        is not exactly 0). Off with `unfiltered_entropy` False (an ablation)."""
+        if self.shield is None or not self.unfiltered_entropy:
             return torch.zeros(())
         return -(raw.exp() * raw).sum(-1).mean()
 
@@ -241,7 +247,8 @@ class TwinQ(nn.Module):
 
 
 class Replay:
-    """A ring buffer of (s, a, r, c, s', done) for off-policy agents."""
+    """A ring buffer of (s, a, r, c, s', done) for off-policy agents; `sample` can over-sample the
+    transitions with a cost (recovery-rl's `pos_fraction` for its safety critic)."""
 
     def __init__(self, feat_dim: int, capacity: int = 50000):
         self.s = np.zeros((capacity, feat_dim), np.float32)
@@ -251,15 +258,29 @@ class Replay:
         self.c = np.zeros(capacity, np.float32)
         self.done = np.zeros(capacity, np.float32)
         self.capacity, self.n, self.i = capacity, 0, 0
+        self.positives: list[int] = []  # indices of the transitions with a cost
 
-    def add(self, s, a, r, c, s2, done) -> None:
+    def add(self, s, a, r, c, s2, done) -> int:
+        """Store one transition; returns its index."""
         i = self.i
+        if self.n == self.capacity and self.c[i] > 0:  # overwriting a positive
+            self.positives.remove(i)
         self.s[i], self.a[i], self.r[i], self.c[i], self.s2[i], self.done[i] = s, a, r, c, s2, done
+        if c > 0:
+            self.positives.append(i)
         self.i = (i + 1) % self.capacity
         self.n = min(self.n + 1, self.capacity)
+        return i
 
-    def sample(self, rng: np.random.Generator, batch: int):
-        idx = rng.integers(self.n, size=batch)
+    def sample(self, rng: np.random.Generator, batch: int, pos_fraction: float = 0.0, focus=()):
+        """A batch drawn uniformly, except that `pos_fraction` of it comes from the transitions with a
+        cost (while there are any) and the indices in `focus` are appended."""
+        k = int(round(pos_fraction * batch)) if self.positives else 0
+        idx = rng.integers(self.n, size=batch - k)
+        if k:
+            idx = np.concatenate([idx, np.asarray(self.positives)[rng.integers(len(self.positives), size=k)]])
+        if len(focus):
+            idx = np.concatenate([idx, np.asarray(focus, np.int64)])
         return tuple(torch.as_tensor(x[idx]) for x in (self.s, self.a, self.r, self.c, self.s2, self.done))
 
 
@@ -282,9 +303,9 @@ class DiscreteSAC(Agent):
         self.log_alpha = torch.full((1,), self.log_alpha_bounds[1], requires_grad=True)  # explore fully at first
         # one optimiser, one backward pass per update: the critic, actor and temperature losses touch
         # disjoint parameters (the actor's loss sees the critics detached), so summing them is exact
-        self.opt = torch.optim.Adam([{"params": self.q.parameters(), "lr": self.lr},
-                                     {"params": self.actor.parameters(), "lr": actor_lr},
-                                     {"params": [self.log_alpha], "lr": self.lr}], fused=True)
+        # one parameter group per learning rate: fused Adam's cost is per group (4 groups 236 us, 2 groups 123 us)
+        self.opt = torch.optim.Adam([{"params": [*self.q.parameters(), self.log_alpha], "lr": self.lr},
+                                     {"params": self.actor.parameters(), "lr": actor_lr}], fused=True)
         self.buffer = Replay(f)
         self.batch_size, self.tau, self.update_every = batch_size, tau, update_every
         self.targets, self.sources = list(self.q_t.parameters()), list(self.q.parameters())

@@ -4,24 +4,37 @@ Q_risk trained by `c + (1 - c) gamma_safe E_pi Q_risk'`), CPO after OmniSafe's C
 the KL of a categorical policy, conjugate gradients, the dual for (lambda, nu), infeasible-case
 recovery step and a backtracking line search).
 
-Every baseline learns online from scratch, like the -TDM agents: the originals' offline phase (Recovery RL
-pre-trains Q_risk on offline constraint data, SQRL in a safe training environment) is left out. Against
-the reference settings for its maze (scripts/maze.sh: eps_safe 0.15, gamma_safe 0.5, SQRL nu 100 with a
-near-frozen log-nu step) we use eps_risk 0.3 and SQRL's nu from 1 by dual gradient descent: both are
-milder (with nu = 100, seed 1, SQRL turned in place in the start cell for 30 of 30 episodes).
+As their reference specifies (recovery-rl's scripts/maze.sh and arg_utils.py; issue 31):
 
-Why RRL and SQRL rarely reach the goal here (issue 16, seed 1, 30 episodes of 200 macro-actions; the update
-rules match the reference): Q_risk is learned only from executed actions, and a move it rates above
-eps is never executed again, so its over-estimate is never corrected (SQRL: 38 of 210 bump-free
-(cell, heading, action) pairs rejected, none of them ever tried, 34 rated above gamma_safe = 0.5, a
-value no bump-free move can have at the Bellman fixed point). With a sparse +100 and no per-step
-reward, the task policy then settles on proposals that never run: RRL's recovery overrode 48% of the
-steps and from episode 4 on the robot turned back and forth in 1-3 cells. A Q_risk pre-trained offline on
-every transition of the maze (2,000 steps) removed the impossible values (0 above 0.5, 8 pairs over eps) but
-not the loop (RRL: one goal, then 35% overrides in 2-6 cells), so the online Q_risk is one cause, the
-relabelled sparse-reward task policy the other. Seed 0, 60 episodes: RRL 0 goals, 40% overrides, 45 impossible
-values; with the pre-trained Q_risk 3 goals (first in episode 3), then 45% overrides; SQRL 0 goals, 42
-bump-free pairs rejected and never tried.
+- an offline phase before online training (recovery-rl runs it for Recovery RL and for its SQRL, both
+  with a safety critic): `offline_transitions` transitions of random 20-step rollouts from random
+  placements (recovery-rl's `transition_function`; 10,000 there, 20% of its 500 x 100-step budget, here
+  `offline_transitions` = 4,000, 25% of the maze's 80 x 200), Q_risk pre-trained on them for `pretrain_steps` (10,000
+  there, 2,000 here: 32 passes over the data) and kept in its replay. The offline contacts are reported
+  apart from the online ones (`offline_contacts`), as recovery-rl counts them apart;
+- the safety critic's batches hold `pos_fraction` = 30% transitions with a contact;
+- the risk threshold eps = 0.15 and gamma_safe = 0.5 of recovery-rl's maze;
+- SQRL's multiplier nu from 100, updated like the reference's dual: log nu by Adam at a tenth of the
+  learning rate on `log nu (eps - E_pi Q_risk)`.
+
+The tuning protocol (`core.experiments.maze.TUNING`) searches these against milder settings, as many as
+every other method gets. Departures: Q_risk is a network over the maze features with target rate
+tau = 0.05 (recovery-rl: 0.0002), recovery is argmin_a Q_risk (exact for 4 actions), the policies are
+categorical.
+
+The -TDM agents' extras can be given to RRL and SQRL (the ablation of issue 31): `floor` (the uniform
+share mixed into the task policy before rejection or recovery), `shrink` (visit-count shrinkage of
+Q_risk: an untried action's risk is at most eps, so it is never rejected or overridden before it is
+tried, `agents.VisitCounts`) and `contact_steps` (after a contact, that many extra safety-critic steps
+with the contact in every batch).
+
+Why RRL and SQRL rarely reached the goal before the offline phase (issue 16, seed 1, 30 episodes of 200
+macro-actions): Q_risk is learned only from executed actions, and a move it rates above eps is never
+executed again, so its over-estimate is never corrected (SQRL: 38 of 210 bump-free (cell, heading,
+action) pairs rejected, none of them ever tried, 34 rated above gamma_safe = 0.5, a value no bump-free
+move can have at the Bellman fixed point). With a sparse +100 and no per-step reward, the task policy
+then settles on proposals that never run: RRL's recovery overrode 48% of the steps and from episode 4 on
+the robot turned back and forth in 1-3 cells.
 """
 from __future__ import annotations
 
@@ -29,20 +42,23 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from skinsafe.core.learn.agents import ActorCritic, Agent, DiscreteSAC, Replay, mlp
+from skinsafe.core.learn.agents import ActorCritic, Agent, DiscreteSAC, Replay, VisitCounts, mlp
 
 
 class SafetyCritic:
     """Q_risk(s, a): discounted probability of a future constraint violation (recovery-rl's safety critic).
-    Its loss joins the agent's one backward pass (`DiscreteSAC.extra_loss`); `soft_update` follows."""
+    Online its loss joins the agent's one backward pass (`DiscreteSAC.extra_loss`), `soft_update` follows;
+    its own steps (`step`: offline pre-training, contact refits) use its own Adam."""
 
-    def __init__(self, feat_dim: int, n_actions: int, hidden, gamma_safe: float = 0.5, tau: float = 0.05):
+    def __init__(self, feat_dim: int, n_actions: int, hidden, gamma_safe: float = 0.5, tau: float = 0.05,
+                 lr: float = 3e-3):
         self.q = mlp(feat_dim, n_actions, hidden)
         torch.nn.init.constant_(self.q[-1].bias, -3.0)  # start optimistic (risk ~5%), like the TDM's prior
         self.q_t = mlp(feat_dim, n_actions, hidden)
         self.q_t.load_state_dict(self.q.state_dict())
         self.gamma_safe, self.tau = gamma_safe, tau
         self.targets, self.sources = list(self.q_t.parameters()), list(self.q.parameters())
+        self.opt = torch.optim.Adam(self.q.parameters(), lr=lr)
 
     def __call__(self, s: torch.Tensor) -> torch.Tensor:
         return torch.sigmoid(self.q(s))
@@ -53,37 +69,99 @@ class SafetyCritic:
             y = c + (1 - c) * (1 - done) * self.gamma_safe * q2
         return F.binary_cross_entropy(self(s).gather(1, a[:, None]).squeeze(1), y.clamp(0, 1))
 
+    def step(self, s, a, c, s2, done, next_probs: torch.Tensor) -> None:
+        """One gradient step of its own on a batch, then the target update."""
+        loss = self.loss(s, a, c, s2, done, next_probs)
+        self.opt.zero_grad()
+        loss.backward()
+        self.opt.step()
+        self.soft_update()
+
     @torch.no_grad()
     def soft_update(self) -> None:
         torch._foreach_lerp_(self.targets, self.sources, self.tau)
 
 
 class _RiskSAC(DiscreteSAC):
-    """SAC with a safety critic trained on the same batches (or, with `risk_replay`, its own)."""
+    """SAC with a safety critic on its own replay of executed transitions (`risk_replay`), batches with
+    `pos_fraction` contacts, an offline phase (`pretrain`) and the optional -TDM extras (module doc)."""
 
-    def __init__(self, *args, eps_risk: float = 0.3, gamma_safe: float = 0.5, **kw):
+    def __init__(self, *args, eps_risk: float = 0.15, gamma_safe: float = 0.5, pos_fraction: float = 0.3,
+                 offline_transitions: int = 4000, pretrain_steps: int = 2000, floor: float = 0.0,
+                 shrink: bool = False, contact_steps: int = 0, **kw):
         super().__init__(*args, **kw)
-        self.risk = SafetyCritic(self.feat_dim, self.n_actions, self.hidden, gamma_safe)
-        self.opt.add_param_group({"params": self.risk.q.parameters(), "lr": self.lr})
-        self.eps_risk = eps_risk
+        self.risk = SafetyCritic(self.feat_dim, self.n_actions, self.hidden, gamma_safe, lr=self.lr)
+        self.opt.param_groups[0]["params"] += list(self.risk.q.parameters())  # same lr: the same fused group
+        self.eps_risk, self.pos_fraction = float(eps_risk), float(pos_fraction)
+        self.offline_transitions, self.pretrain_steps = int(offline_transitions), int(pretrain_steps)
+        self.floor, self.contact_steps = float(floor), int(contact_steps)
+        self.counts = VisitCounts(self.feat_dim, self.n_actions) if shrink else None
+        self.risk_replay = Replay(self.feat_dim)
+        self._proposed = 0
         self._risk_batch = None
+
+    def _risk_sample(self, focus=()):
+        s, a, _, c, s2, d = self.risk_replay.sample(self.rng, self.batch_size, self.pos_fraction, focus)
+        return s, a, c, s2, d
+
+    def _next_probs(self, s2: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            return torch.softmax(self.actor(s2), -1)
+
+    def pretrain(self, obs, actions, costs, next_obs, terminated) -> None:
+        """The offline phase: store the transitions in the risk replay and fit Q_risk on them."""
+        for o, a, c, o2, t in zip(obs, actions, costs, next_obs, terminated):
+            s = self.features(o)[0]
+            self.risk_replay.add(s, int(a), 0.0, float(c), self.features(o2)[0], float(t))
+            if self.counts is not None:
+                self.counts.add(s, int(a))
+        for _ in range(self.pretrain_steps if self.risk_replay.n else 0):
+            b = self._risk_sample()
+            self.risk.step(*b, self._next_probs(b[3]))
 
     def update(self, s, a, r, c, s2, done) -> None:
-        if self._risk_batch is None:
-            self._risk_batch = (s, a, c, s2, done)
+        self._risk_batch = self._risk_sample()
         super().update(s, a, r, c, s2, done)
         self.risk.soft_update()
-        self._risk_batch = None
 
     def extra_loss(self) -> torch.Tensor:
         s, a, c, s2, done = self._risk_batch
-        with torch.no_grad():
-            next_probs = torch.softmax(self.actor(s2), -1)
-        return self.risk.loss(s, a, c, s2, done, next_probs)
+        return self.risk.loss(s, a, c, s2, done, self._next_probs(s2))
 
     @torch.no_grad()
     def q_risk(self, feat: np.ndarray) -> np.ndarray:
-        return self.risk(torch.as_tensor(feat)).double().numpy()[0]
+        """Q_risk of every action at one state; with `shrink`, an action with no experience nearby has at
+        most eps (w Q + (1 - w) min(Q, eps), w = n / (n + 0.01), as the -TDM shield)."""
+        f = torch.as_tensor(feat)
+        q = self.risk(f).double()  # in double, so that a capped risk compares equal to eps
+        if self.counts is not None:
+            n = self.counts(f).double()
+            w = n / (n + 0.01)
+            q = w * q + (1 - w) * q.clamp_max(self.eps_risk)
+        return q.numpy()[0]
+
+    def task_probs(self, feat: np.ndarray) -> np.ndarray:
+        """The task policy at one state, mixed with `floor` of the uniform one."""
+        p = self.action_probs(feat)[0]
+        return (1 - self.floor) * p + self.floor / self.n_actions if self.floor > 0 else p
+
+    def observe(self, obs, action, reward, cost, danger, next_obs, terminated, truncated) -> None:
+        s, s2 = self.features(obs)[0], self.features(next_obs)[0]
+        # Task transition with the proposed action, risk transition with the executed one.
+        self.buffer.add(s, self._proposed, reward, cost, s2, float(terminated))
+        i = self.risk_replay.add(s, action, 0.0, cost, s2, float(terminated))
+        if self.counts is not None:
+            self.counts.add(s, action)
+        if cost > 0 and self.contact_steps > 0:  # the -TDM's contact refit, given to the safety critic
+            for _ in range(self.contact_steps):
+                b = self._risk_sample(focus=[i])
+                self.risk.step(*b, self._next_probs(b[3]))
+        self.steps += 1
+        if self.buffer.n >= self.batch_size and self.steps % self.update_every == 0:
+            self.update(*self.buffer.sample(self.rng, self.batch_size))
+
+    def stats(self) -> dict:
+        return {**super().stats(), "eps_risk": self.eps_risk}
 
 
 class RecoveryRL(_RiskSAC):
@@ -91,59 +169,64 @@ class RecoveryRL(_RiskSAC):
     recovery policy (here argmin_a Q_risk, exact for discrete actions) acts instead. The task policy
     learns from its proposed action (recovery is part of its environment); Q_risk from the executed one."""
 
-    def __init__(self, *args, **kw):
-        super().__init__(*args, **kw)
-        self.risk_replay = Replay(self.feat_dim)
-        self._proposed = 0
-
     def act(self, obs) -> int:
         feat = self.features(obs)
-        p = self.action_probs(feat)[0]
+        p = self.task_probs(feat)
         proposed = int(self.rng.choice(self.n_actions, p=p / p.sum()))
         risk = self.q_risk(feat)
         self._proposed = proposed
         return int(np.argmin(risk)) if risk[proposed] > self.eps_risk else proposed
 
-    def observe(self, obs, action, reward, cost, danger, next_obs, terminated, truncated) -> None:
-        s, s2 = self.features(obs)[0], self.features(next_obs)[0]
-        # Task transition with the proposed action, risk transition with the executed one.
-        self.buffer.add(s, self._proposed, reward, cost, s2, float(terminated))
-        self.risk_replay.add(s, action, 0.0, cost, s2, float(terminated))
-        self.steps += 1
-        if self.buffer.n >= self.batch_size and self.steps % self.update_every == 0:
-            s_b, a_b, _, c_b, s2_b, d_b = self.risk_replay.sample(self.rng, self.batch_size)
-            self._risk_batch = (s_b, a_b, c_b, s2_b, d_b)
-            self.update(*self.buffer.sample(self.rng, self.batch_size))
-
 
 class SQRL(_RiskSAC):
     """SQRL: actions whose Q_risk exceeds eps are rejected from the policy's distribution (the least
     risky one is taken if none is left), and the actor pays nu (E_pi[Q_risk] - eps) with the multiplier
-    nu >= 0 set by dual gradient descent, nu <- max(0, nu + nu_lr (E_pi[Q_risk] - eps)) (recovery-rl's
-    DGD constraint): a fixed large nu makes the actor minimise risk alone before it ever sees the goal."""
+    nu = exp(log nu) updated by the reference's dual step: Adam on `log nu (eps - E_pi[Q_risk])` at
+    `nu_lr` (default a tenth of the learning rate, as recovery-rl), from `nu` = 100 (its maze setting)."""
 
-    def __init__(self, *args, nu: float = 1.0, nu_lr: float = 0.01, **kw):
+    def __init__(self, *args, nu: float = 100.0, nu_lr: float | None = None, **kw):
         super().__init__(*args, **kw)
-        self.nu, self.nu_lr = nu, nu_lr
+        self.log_nu = float(np.log(nu))
+        self.nu_lr = 0.1 * self.lr if nu_lr is None else float(nu_lr)
+        self._nu_adam = [0.0, 0.0, 0]  # Adam's moments and step count for the one scalar log nu
+
+    @property
+    def nu(self) -> float:
+        return float(np.exp(self.log_nu))
+
+    def _dual_step(self, grad: float, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8) -> None:
+        """One Adam step on log nu (torch.optim.Adam's update in floats: ~1 us instead of ~80 us per step)."""
+        m, v, t = self._nu_adam
+        t += 1
+        m, v = b1 * m + (1 - b1) * grad, b2 * v + (1 - b2) * grad * grad
+        self.log_nu -= self.nu_lr * (m / (1 - b1 ** t)) / (np.sqrt(v / (1 - b2 ** t)) + eps)
+        self._nu_adam = [m, v, t]
 
     def act(self, obs) -> int:
         feat = self.features(obs)
-        p = self.action_probs(feat)[0]
+        p = self.task_probs(feat)
         risk = self.q_risk(feat)
         safe = risk <= self.eps_risk
         if not safe.any():
-            return int(np.argmin(risk))
-        p = np.where(safe, p, 0.0)
-        if p.sum() <= 0:
-            p = safe.astype(float)
-        return int(self.rng.choice(self.n_actions, p=p / p.sum()))
+            action = int(np.argmin(risk))
+        else:
+            p = np.where(safe, p, 0.0)
+            if p.sum() <= 0:
+                p = safe.astype(float)
+            action = int(self.rng.choice(self.n_actions, p=p / p.sum()))
+        self._proposed = action  # the task policy learns the action that ran
+        return action
 
     def actor_extra_loss(self, s, probs) -> torch.Tensor:
         with torch.no_grad():
             risk = self.risk(s)
         expected = (probs * risk).sum(-1).mean()
-        self.nu = max(0.0, self.nu + self.nu_lr * (float(expected.detach()) - self.eps_risk))
-        return self.nu * (expected - self.eps_risk)
+        nu = self.nu
+        self._dual_step(self.eps_risk - float(expected.detach()))  # d/d log nu of log nu (eps - E_pi Q_risk)
+        return nu * (expected - self.eps_risk)
+
+    def stats(self) -> dict:
+        return {**super().stats(), "nu": self.nu}
 
 
 class CPO(Agent):

@@ -168,9 +168,11 @@ class MazeEnv(gym.Env):
 
     # -- gym API -----------------------------------------------------------------------------------
     def reset(self, *, seed=None, options=None):
+        """Back to the start cell facing +x; `options={"start": (row, col, heading)}` starts elsewhere."""
         super().reset(seed=seed)
         self.t = 0
-        return self.place(*self.start, 0), {}
+        start = (options or {}).get("start", (*self.start, 0))
+        return self.place(*start), {}
 
     def step(self, action):
         if not self.action_space.contains(int(action)):
@@ -206,6 +208,37 @@ class MazeEnv(gym.Env):
             if self.data.ncon:
                 danger |= danger_events({"force": self.taxel_forces()}, thr)
         return danger
+
+
+def wall_moves(walls: np.ndarray) -> int:
+    """How many (free cell, heading, forward/backward) moves run into a wall: the contacts a learner
+    that cannot see the walls (the observation is position and heading) makes at least once each
+    before it can know them, unless it never tries them."""
+    n = 0
+    for r, c in np.argwhere(~walls):
+        for dr, dc in ((0, 1), (-1, 0), (0, -1), (1, 0)):  # heading 0..3; forward and backward per heading
+            n += int(walls[r + dr, c + dc]) + int(walls[r - dr, c - dc])
+    return n
+
+
+def random_rollouts(env: MazeEnv, n: int, rng: np.random.Generator, length: int = 20) -> dict:
+    """`n` transitions of uniformly random actions in rollouts of `length` from uniformly random (free
+    cell, heading) placements (recovery-rl's offline `transition_function`). Arrays `obs`, `actions`,
+    `costs`, `next_obs`, `terminated`."""
+    free = np.argwhere(~env.walls)
+    out = {k: [] for k in ("obs", "actions", "costs", "next_obs", "terminated")}
+    while len(out["actions"]) < n:
+        r, c = free[rng.integers(len(free))]
+        obs, _ = env.reset(options={"start": (int(r), int(c), int(rng.integers(4)))})
+        for _ in range(min(length, n - len(out["actions"]))):
+            a = int(rng.integers(env.action_space.n))
+            nxt, _, term, _, info = env.step(a)
+            for k, v in zip(out, (obs, a, info["cost"], nxt, term)):
+                out[k].append(v)
+            obs = nxt
+            if term:
+                break
+    return {k: np.asarray(v) for k, v in out.items()}
 
 
 class MazeFeatures:

@@ -23,10 +23,6 @@ from skinsafe.core.robot.meshes import load_checked
 from skinsafe.core.skin.model import DesignError
 
 URDF_JOINTS = ("revolute", "continuous", "prismatic", "fixed")
-# xacro arguments a description needs for its real inertials, applied to xacro files of that ROS
-# package unless the user gives the argument: franka_description adds <inertial> only for gazebo
-# (without them MuJoCo guesses 92 kg for the 16.7 kg arm from its collision meshes)
-DESCRIPTION_ARGS = {"franka_description": {"gazebo": "true"}}
 MESH_FORMATS = (".stl", ".obj", ".dae", ".ply", ".off", ".glb", ".gltf")
 VISUAL_GROUP = 1
 COLLISION_GROUP = 3
@@ -177,14 +173,6 @@ def check_joints(root: ET.Element, src: str) -> None:
                               f"does not support; use one of {', '.join(URDF_JOINTS)}")
 
 
-def default_args(path: Path, roots: dict[str, Path], args: dict | None) -> dict:
-    """`args` over the DESCRIPTION_ARGS of the ROS package holding `path` (xacro files only)."""
-    for pkg, defaults in DESCRIPTION_ARGS.items():
-        if path.suffix == ".xacro" and pkg in roots and path.is_relative_to(roots[pkg].resolve()):
-            return {**defaults, **(args or {})}
-    return dict(args or {})
-
-
 def links_without_inertia(root: ET.Element) -> list[str]:
     """Moving links whose mass MuJoCo would guess: a link moved by a joint that, with the links
     welded to it by fixed joints, carries geometry but no <inertial>."""
@@ -222,6 +210,41 @@ def xacro_arg_names(path: Path) -> list[str]:
     return list(xacro_args_declared(path))
 
 
+def _moving_links(root: ET.Element) -> set[str]:
+    return {j.find("child").get("link") for j in root.findall("joint")
+            if j.get("type") != "fixed" and j.find("child") is not None}
+
+
+def with_inertials(path: Path, roots: dict[str, Path], args: dict, root: ET.Element) -> ET.Element:
+    """Where a xacro file's expansion leaves moving links without <inertial>, the file is expanded
+    again with each switch it declares off (default 'false') that the user left unset turned on,
+    one at a time; the first that gives every moving link its inertial and moves the same links
+    is taken (the Franka description adds its inertials only with gazebo:=true; without them MuJoCo
+    guesses 92 kg for the 16.7 kg arm); else `root` as it was."""
+    if not links_without_inertia(root):
+        return root
+    for name, default in xacro_args_declared(path).items():
+        if default != "false" or name in args:
+            continue
+        try:
+            other = _urdf_root(path, roots, {**args, name: "true"})
+        except DesignError:
+            continue
+        if not links_without_inertia(other) and _moving_links(other) == _moving_links(root):
+            return other
+    return root
+
+
+def _urdf_root(path: Path, roots: dict[str, Path], args: dict) -> ET.Element:
+    try:
+        root = ET.fromstring(expand(path, roots, args))
+    except ET.ParseError as e:
+        raise DesignError(f"robot file '{path}': not valid XML ({e}); check the file") from None
+    if root.tag != "robot":
+        raise DesignError(f"robot file '{path}': top element is <{root.tag}>, expected <robot>; is it a URDF?")
+    return root
+
+
 def urdf_spec(path: str | Path, package_dirs=(), args: dict | None = None) -> tuple[mujoco.MjSpec, dict, list[str]]:
     """An MjSpec of a URDF/xacro with every mesh loaded and validated here; also the URDF's joint
     velocity limits by name and the moving links without <inertial> (`links_without_inertia`)."""
@@ -230,12 +253,7 @@ def urdf_spec(path: str | Path, package_dirs=(), args: dict | None = None) -> tu
         raise DesignError(f"robot: file '{path}' not found; check the path")
     roots = package_roots(package_dirs)
     roots.setdefault(path.parent.name, path.parent)
-    try:
-        root = ET.fromstring(expand(path, roots, default_args(path, roots, args)))
-    except ET.ParseError as e:
-        raise DesignError(f"robot file '{path}': not valid XML ({e}); check the file") from None
-    if root.tag != "robot":
-        raise DesignError(f"robot file '{path}': top element is <{root.tag}>, expected <robot>; is it a URDF?")
+    root = with_inertials(path, roots, dict(args or {}), _urdf_root(path, roots, dict(args or {})))
     check_joints(root, str(path))
     guessed = links_without_inertia(root)
     meshes = []  # (link, kind, index, file, scale, pos, quat)

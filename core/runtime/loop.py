@@ -108,11 +108,13 @@ class Runtime:
             self.latency.append(now - r.t)
         self.ticks += 1
         self.work.append(now - start)
-        self.tap.publish(Frame(t, q, self._force, v, retracting, pool, info.flags, ""))
+        frame = Frame(t, q, self._force, v, retracting, pool, info.flags, "", planned, d.pool if retracting else None,
+                      self.stack.last_f, speed_factor(v, planned), r.board_age_s, r.frames_lost)
+        self.tap.publish(frame)
         if self.recorder is not None:
             self.recorder.put((time.time_ns(), self.ticks, t, dt, q, qd, self._force if new else None, float(r.seq),
                                planned, v, info.flags, retracting, pool, r.board_age_s, r.frames_lost,
-                               self.command.age(), 1.0))
+                               self.command.age(), 1.0, frame.potential, frame.speed_factor, frame.pool_taxels))
         return v
 
     def _watch(self, state, r) -> tuple[str, str]:
@@ -142,7 +144,8 @@ class Runtime:
         """The stop's tick for the tap and the record: zero velocity, the stack not ticked."""
         self._stopped = True
         zero = np.zeros(len(state.q))
-        self.tap.publish(Frame(state.t, state.q, self._force, zero, False, 0, (), reason))
+        self.tap.publish(Frame(state.t, state.q, self._force, zero, False, 0, (), reason, None, None, 0.0, 0.0,
+                               r.board_age_s, r.frames_lost))
         if self.recorder is not None:
             self.recorder.put((time.time_ns(), self.ticks + 1, state.t, 0.0, state.q, state.qd, None,
                                float(r.seq), zero, zero, ("stop",), False, 0, r.board_age_s, r.frames_lost,
@@ -197,6 +200,12 @@ class Runtime:
                 "work_ms_p99": float(np.percentile(work, 99)), "work_ms_max": float(work.max()),
                 "latency_samples": len(self.latency), "latency_ms_p50": float(np.median(lat)),
                 "latency_ms_p99": float(np.percentile(lat, 99)), "latency_ms_max": float(lat.max())}
+
+
+def speed_factor(v: np.ndarray, planned: np.ndarray | None) -> float:
+    """|v| / |planned| (1 for a plan at rest): how much the layers slowed the plan this tick (> 1: a retraction)."""
+    p = float(np.sqrt(planned @ planned)) if planned is not None else 0.0
+    return float(np.sqrt(v @ v)) / p if p > 1e-12 else 1.0
 
 
 def warm_up(stack, q: np.ndarray, thresholds: np.ndarray, dt: float, ticks: int = 20) -> None:

@@ -9,6 +9,9 @@ Topics (log time: host wall clock; header stamps: the robot's clock):
   tare; excluded taxels 0), whenever a new reading arrived; float64 so a replay is exact;
 - `/skinsafe/tick` (std_msgs/msg/Float64MultiArray): per tick [robot t, measured dt, reading seq, tick,
   1 if the stack ticked (0: the stop)];
+- `/skinsafe/layers` (std_msgs/msg/Float64MultiArray): per tick [danger potential f, speed factor
+  |command| / |planned|, 1 if retracting, K, then the K retracting taxels, highest priority first]
+  (what the live view shows of the layers; absent from records of older versions);
 - `/diagnostics` (diagnostic_msgs/msg/DiagnosticArray): layers (retracting, pool, flags), skin (board
   ages, frames lost), command (source age) at 10 Hz and on every change of the layers' flags; the
   watchdog's stop (level ERROR, its reason) once at the end.
@@ -53,7 +56,8 @@ SCHEMAS = {"sensor_msgs/msg/JointState": JOINT_STATE, "std_msgs/msg/Float64Multi
            "diagnostic_msgs/msg/DiagnosticArray": DIAGNOSTIC_ARRAY}
 TOPICS = {"/joint_states": "sensor_msgs/msg/JointState", "/skinsafe/command": "sensor_msgs/msg/JointState",
           "/skinsafe/planned": "sensor_msgs/msg/JointState", "/skinsafe/taxels": "std_msgs/msg/Float64MultiArray",
-          "/skinsafe/tick": "std_msgs/msg/Float64MultiArray", "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray"}
+          "/skinsafe/tick": "std_msgs/msg/Float64MultiArray", "/skinsafe/layers": "std_msgs/msg/Float64MultiArray",
+          "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray"}
 CDR_LE = b"\x00\x01\x00\x00"
 DIAG_EVERY_S = 0.1
 OK, WARN, ERROR = 0, 1, 2
@@ -155,10 +159,11 @@ class Recorder:
         self.thread = threading.Thread(target=self._work, name="recorder", daemon=True)
         self.thread.start()
 
-    def put(self, item: tuple) -> None:
-        """Enqueue one tick (see `_tick`); dropped and counted when the writer is behind."""
+    def put(self, item: tuple, wait: bool = False) -> None:
+        """Enqueue one tick (see `_tick`); dropped and counted when the writer is behind, unless `wait` (a
+        writer with no loop to keep: core/runtime/sim_record.py)."""
         try:
-            self.q.put_nowait(item)
+            self.q.put(item, block=wait)
         except queue.Full:
             self.dropped += 1
 
@@ -195,7 +200,7 @@ class Recorder:
         self.written += 1
 
     def _tick(self, ns, tick, t, dt, q, qd, force, reading_seq, planned, command, flags, retracting, pool,
-              ages, lost, command_age, ticked) -> None:
+              ages, lost, command_age, ticked, potential=0.0, factor=1.0, pool_taxels=None) -> None:
         """One tick; `ticked` 0.0: a stop (the stack was not ticked, zero velocity sent)."""
         self._raw("/joint_states", self.joints(t, q, qd), ns)
         self._raw("/skinsafe/planned", self.joints(t, (), planned), ns)
@@ -203,6 +208,11 @@ class Recorder:
         if force is not None:
             self._raw("/skinsafe/taxels", encode_float64_array(force), ns)
         self._raw("/skinsafe/tick", encode_float64_array(np.array([t, dt, reading_seq, tick, ticked], float)), ns)
+        k = 0 if pool_taxels is None else len(pool_taxels)
+        layers = np.empty(4 + k)
+        layers[:4] = potential, factor, float(retracting), k
+        layers[4:] = () if pool_taxels is None else pool_taxels
+        self._raw("/skinsafe/layers", encode_float64_array(layers), ns)
         if flags != self._flags or t - self._diag_t >= DIAG_EVERY_S:
             self._flags, self._diag_t = flags, t
             layers = [("retracting", str(retracting)), ("pool", str(pool)), ("flags", ",".join(flags))]

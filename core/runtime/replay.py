@@ -34,8 +34,9 @@ def decode_float64_array(data: bytes) -> np.ndarray:
     return np.frombuffer(data, "<f8", n, 20 if n else 16).copy()
 
 
-def read_record(path: str | Path):
-    """(config dict, iterator of (topic, message)) of a record; JointStates decoded by mcap-ros2-support."""
+def read_record(path: str | Path, diagnostics: bool = False):
+    """(config dict, iterator of (topic, message)) of a record; JointStates (and, with `diagnostics`, the
+    DiagnosticArrays) decoded by mcap-ros2-support."""
     path = Path(path)
     try:
         f = open(path, "rb")
@@ -56,9 +57,9 @@ def read_record(path: str | Path):
         decoders = {}
         with f:
             for schema, channel, msg in reader.iter_messages(log_time_order=False):
-                if channel.topic in ("/skinsafe/taxels", "/skinsafe/tick"):
+                if channel.topic in ("/skinsafe/taxels", "/skinsafe/tick", "/skinsafe/layers"):
                     yield channel.topic, decode_float64_array(msg.data)
-                elif channel.topic != "/diagnostics":
+                elif diagnostics or channel.topic != "/diagnostics":
                     if schema.id not in decoders:
                         decoders[schema.id] = DecoderFactory().decoder_for(channel.message_encoding, schema)
                     yield channel.topic, decoders[schema.id](msg.data)
@@ -70,6 +71,9 @@ def replay(path: str | Path, stack_from_config, map_path: str | Path | None = No
     from skinsafe.core.skin.taxel_map import load
 
     config, messages = read_record(path)
+    if config.get("source") == "experiment":
+        raise ReplayError(f"{path}: a record of the {config.get('experiment') or 'an'} experiment: its controller is "
+                          "not the runtime's stack, so there is nothing to replay; see it with `skinsafe view`")
     mp = Path(map_path or config["map"])
     try:
         digest = hashlib.sha256(mp.read_bytes()).hexdigest()

@@ -20,6 +20,12 @@ class Frame(NamedTuple):
     pool: int  # retracting taxels
     flags: tuple  # the layers' flags of this tick
     stop: str  # the stop reason once the robot was stopped, else ""
+    planned: np.ndarray | None = None  # the command source's velocity
+    pool_taxels: np.ndarray | None = None  # the retracting taxels, highest priority first
+    potential: float = 0.0  # the TDM's danger potential f the modulation saw (0 without --tdm)
+    speed_factor: float = 1.0  # |command| / |planned|: how much the layers slowed the plan (1: not at all)
+    board_age_s: dict | None = None  # per board uid: seconds since its last frame
+    frames_lost: int = 0
 
 
 class Tap:

@@ -9,10 +9,18 @@ retracts, its severity is the peak `alpha_s * reading_s` over the stimuli above 
 Jacobians are computed. The maths is in `retraction.py` (eq. 10-13) and `qp.py` (the
 prioritised QP with the no-push constraints); the limits in `limits.py`.
 
+Viability (`viability.py`): besides the no-push rows at this tick's q, every command must leave
+the arm able to brake, within its acceleration limits, without moving a contacted taxel into its
+contact: the QP's hard rows (`rows`) are the no-push rows `A`, `b` and the viability rows `V`,
+`c`, those that some command within the tick's limits could break.
+
 Fail safe. A tick whose clock, q, planned command or dt is not finite gets the safe command
 (`limits.brake`: every joint slows to zero at its acceleration limit) and a counted flag
 (`flags`), never the plan; a non-finite reading is ignored for new events and blocks the plan
 (the ongoing retraction goes on, its own inputs being finite; otherwise the safe command).
+Missing data is a fault, never "no contact": a stimulus the skin reports (a key of `thresholds`)
+that is absent from the readings (an empty dict, a missing key) or whose array is not one value
+per taxel (a board's block cut off) is flagged `missing` and treated like a non-finite reading.
 Nothing latches: the next finite tick starts from the safe command as its previous command. A
 clock that goes backwards resets the pool. Every tick's outcome is in `info` (`TickInfo`).
 """
@@ -34,6 +42,7 @@ from skinsafe.core.safety.retraction import (
     profile_rate,
     retract_qdot,
 )
+from skinsafe.core.safety.viability import check_joints, hard_rows
 
 MAX_TASKS = 64
 """At most this many of the highest-priority contacts are retraction tasks (a 6- or 7-DoF arm has
@@ -42,7 +51,8 @@ no freedom left for more); every contacted taxel of the pool is still a no-push 
 
 @dataclass
 class TickInfo:
-    """What one tick did. `nonfinite`: the inputs that were not finite; `safe`: the safe command
+    """What one tick did. `nonfinite`: the inputs that were not finite; `missing`: the stimuli the
+    skin reports that the readings lacked (absent, or not one value per taxel); `safe`: the safe command
     (brake) was sent; `limited`/`blocked`: a joint limit / another contact's no-push constraint
     held the dominant retraction back (`blocked` is the opposing-pinch case: the dominant taxel
     retracts less rather than push another one into its contact); `infeasible`: no command within
@@ -54,6 +64,7 @@ class TickInfo:
     smallest command meeting every constraint was sent)."""
 
     nonfinite: tuple = ()
+    missing: tuple = ()
     safe: bool = False
     clock_reset: bool = False
     retracting: bool = False
@@ -72,10 +83,16 @@ class DefensivenessLayer:
     """Reflexive retraction from tactile danger events, for one robot and its skin."""
 
     def __init__(self, kin: TaxelKinematics, thresholds: dict[str, np.ndarray], vel_limits, acc_limits,
-                 params: RetractionParams | None = None, dt: float = 0.002):
+                 params: RetractionParams | None = None, dt: float | None = None):
+        """`dt`: the control period (s) the layer ticks at; required (the acceleration limits and
+        the braking horizon scale with it; a tick may pass its own measured dt)."""
         self.kin = kin
         self.params = params or RetractionParams()
         nv = kin.model.nv
+        if dt is None:
+            raise ValueError("DefensivenessLayer: give dt, the control period (s) the layer ticks at (the scene's "
+                             "or the robot's control rate); it is never assumed")
+        check_joints(kin.model)
         try:
             self.limits = JointLimits(np.broadcast_to(np.asarray(vel_limits, dtype=float), (nv,)),
                                       np.broadcast_to(np.asarray(acc_limits, dtype=float), (nv,)), dt)
@@ -118,6 +135,8 @@ class DefensivenessLayer:
         self.retracted = np.zeros(0)  # distance retracted so far along -z(tau), aligned with `pool`
         nv = self.kin.model.nv
         self.A, self.b = np.zeros((0, nv)), np.zeros(0)  # no-push rows A qd >= b of the pool, this tick
+        self.V, self.c = self.A, self.b  # viability rows V qd >= c that can bind, this tick
+        self.rows = (self.A, self.b)  # the hard rows that can bind this tick: no-push rows, then V, c
         self.last = np.zeros(nv)
         self._t = -np.inf
         self.info = TickInfo()
@@ -146,16 +165,20 @@ class DefensivenessLayer:
         if q.shape != (self.kin.model.nq,):
             raise ValueError(f"DefensivenessLayer.tick: q has shape {q.shape}; pass the robot's {self.kin.model.nq} "
                              "joint positions")
-        bad, clean = [], {}
-        for name, value in readings.items():
-            value = np.asarray(value, dtype=float)
-            if value.shape != (self.kin.n,):
-                raise ValueError(f"DefensivenessLayer.tick: readings['{name}'] has shape {value.shape}; "
-                                 f"pass one (N,) array per stimulus with N = {self.kin.n}")
+        bad, clean, missing = [], {}, []
+        readings = {} if readings is None else readings
+        for name in self.thresholds:
+            value = readings.get(name)
+            value = None if value is None else np.asarray(value, dtype=float)
+            if value is None or value.shape != (self.kin.n,):  # a silent board: a fault, never "no contact"
+                missing.append(name)
+                continue
             if not finite(value):
                 bad.append(f"readings:{name}")
                 value = np.where(np.isfinite(value), value, -np.inf)  # a non-finite reading never triggers
             clean[name] = value
+        bad += [f"readings:{name}" for name, value in readings.items()
+                if name not in self.thresholds and not finite(value)]
         plan = None if qdot_planned is None else np.asarray(qdot_planned, dtype=float)
         if plan is not None and not finite(plan):
             bad.append("command")
@@ -167,7 +190,8 @@ class DefensivenessLayer:
             prev = last
             self.flags["clock_reset"] += 1
         if fatal:
-            return self._finish(brake(prev, self.limits), TickInfo(nonfinite=tuple(fatal + bad), safe=True), prev)
+            return self._finish(brake(prev, self.limits), TickInfo(nonfinite=tuple(fatal + bad), missing=tuple(missing),
+                                                                   safe=True), prev)
         self._t = t
         st = self._state
         if len(st):
@@ -180,12 +204,15 @@ class DefensivenessLayer:
             if name in self.thresholds:
                 _mark_over(value, self.thresholds[name], self._in_pool, len(st) > 0, events)
         new = np.flatnonzero(events)
+        faulty = bool(bad or missing)
         if len(st) + len(new) == 0:
             self._state, self.priorities, self.retracted = st, np.zeros(0), np.zeros(0)
             self.A, self.b = np.zeros((0, nv)), np.zeros(0)
-            info = TickInfo(nonfinite=tuple(bad), safe=bool(bad), clock_reset=clock_reset)
-            if bad:
-                return self._finish(brake(prev, self.limits), info, prev)
+            self.V, self.c = self.A, self.b
+            self.rows = (self.A, self.b)
+            info = TickInfo(nonfinite=tuple(bad), missing=tuple(missing), safe=faulty, clock_reset=clock_reset)
+            if faulty:
+                return self._finish(brake(prev, self.limits, dt), info, prev)
             return self._finish(scale_into(np.zeros(nv) if plan is None else plan, prev, self.limits, dt),
                                 info, prev)
         idx = np.concatenate([st[:, 0].astype(np.intp), new])
@@ -200,12 +227,16 @@ class DefensivenessLayer:
         order, w, done, speed, self.A, self.b, Jt, rt = _rank(st, pos, self._severity_now(clean, idx), t, p.T,
                                                               p.max_distance, J, six, p.recovery_gain, MAX_TASKS)
         self._state, self.priorities, self.retracted = st[order], w, done
-        info = TickInfo(nonfinite=tuple(bad), clock_reset=clock_reset, retracting=True)
+        info = TickInfo(nonfinite=tuple(bad), missing=tuple(missing), clock_reset=clock_reset, retracting=True)
         if p.merge != "qp":  # the closed-form references, limited as before (uniform scaling)
+            self.V, self.c = self.A[:0], self.b[:0]
+            self.rows = (self.A, self.b)
             return self._finish(scale_into(self._merged(J[order], -self._state[:, 6:9], speed), prev, self.limits, dt),
                                 info, prev)
         lo, hi = self.limits.box(prev, dt)
-        A, b = _distinct_rows(self.A, self.b) if len(self.A) > MAX_TASKS else (self.A, self.b)
+        A, b, n_push = hard_rows(J, order, self._state, self.A, self.b, prev, lo, hi, self.limits.acc, dt)
+        self.rows, self.V, self.c = (A, b), A[n_push:], b[n_push:]
+        A, b = _distinct_rows(A, b) if len(A) > MAX_TASKS else (A, b)
         sol = prioritised(Jt, rt, A, b, lo, hi, self.limits.vel, p.damping, p.sv_threshold, p.rank_tol)
         for name in ("limited", "blocked", "infeasible", "recovery_dropped", "damped", "dominant_residual",
                      "solver_failed"):
@@ -214,6 +245,7 @@ class DefensivenessLayer:
 
     def _finish(self, out: np.ndarray, info: TickInfo, prev: np.ndarray) -> np.ndarray:
         flags = [f"nonfinite:{n}" for n in info.nonfinite] + (["nonfinite"] if info.nonfinite else [])
+        flags += [f"missing:{n}" for n in info.missing] + (["missing"] if info.missing else [])
         flags += [n for n in ("safe", "infeasible", "recovery_dropped", "blocked", "solver_failed") if getattr(info, n)]
         if flags:
             self.flags.update(flags)

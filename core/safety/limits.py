@@ -16,6 +16,9 @@ command of the safety stack goes through `final_command`:
 `brake(prev)` is the safe command for a tick whose inputs cannot be trusted: every joint slows
 toward zero at its acceleration limit (zero at once when it is within one tick of zero), never
 the planned command.
+
+`dt` is never assumed: `JointLimits` needs the control period it is built for, and `brake`,
+`scale_into` and `final_command` take the tick's own (measured) dt where it is known.
 """
 from __future__ import annotations
 
@@ -30,12 +33,13 @@ from skinsafe.core.safety import qp
 
 @dataclass(frozen=True)
 class JointLimits:
-    """Per-joint velocity (rad/s or m/s) and acceleration limits, and the control period dt (s).
-    `acc` may be +inf (no acceleration limit); everything else must be positive and finite."""
+    """Per-joint velocity (rad/s or m/s) and acceleration limits, and the control period dt (s)
+    they are applied at (no default: a wrong dt scales every acceleration limit). `acc` may be
+    +inf (no acceleration limit); everything else must be positive and finite."""
 
     vel: np.ndarray
     acc: np.ndarray
-    dt: float = 0.002
+    dt: float
 
     def __post_init__(self):
         vel = np.array(self.vel, dtype=float, ndmin=1)
@@ -48,7 +52,7 @@ class JointLimits:
             raise ValueError(f"JointLimits: 'vel' must be positive finite numbers, one per joint; got {vel}")
         if not np.all((acc > 0) & ~np.isnan(acc)):
             raise ValueError(f"JointLimits: 'acc' must be positive (inf for none), one per joint; got {acc}")
-        if not (np.isfinite(self.dt) and self.dt > 0):
+        if not (isinstance(self.dt, (int, float, np.floating)) and np.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"JointLimits: 'dt' is {self.dt!r}; it must be the positive control period in s")
         vel.flags.writeable = acc.flags.writeable = False
         object.__setattr__(self, "vel", vel)
@@ -90,9 +94,10 @@ def _all_finite(x):
     return s == 0.0
 
 
-def brake(prev: np.ndarray, limits: JointLimits) -> np.ndarray:
-    """The safe command: each joint's speed reduced toward 0 by at most its acc * dt."""
-    step = limits.acc * limits.dt
+def brake(prev: np.ndarray, limits: JointLimits, dt: float | None = None) -> np.ndarray:
+    """The safe command: each joint's speed reduced toward 0 by at most its acc * dt (`dt`: this
+    tick's, where known and valid; else the limits' control period)."""
+    step = limits.acc * (limits.dt if dt is None else dt)
     return np.where(np.isfinite(prev), prev - np.clip(prev, -step, step), 0.0)
 
 
@@ -130,15 +135,17 @@ class Projection:
 
 
 def final_command(v: np.ndarray, prev: np.ndarray, limits: JointLimits, A: np.ndarray | None = None,
-                  b: np.ndarray | None = None, tol: float = 1e-9) -> Projection:
-    """The command to send: `v` limited (module docstring). `A` (K, nv) and `b` (K,) are the
-    no-push constraints `A qd >= b` of the contacted taxels (None or K = 0: none)."""
+                  b: np.ndarray | None = None, tol: float = 1e-9, dt: float | None = None) -> Projection:
+    """The command to send: `v` limited (module docstring), `dt` seconds after `prev` (default: the
+    limits' control period). `A` (K, nv) and `b` (K,) are the no-push (and viability) constraints
+    `A qd >= b` of the contacted taxels (None or K = 0: none)."""
+    dt = limits.dt if dt is None else float(dt)
     if A is None or len(A) == 0:
-        out = scale_into(v, prev, limits)
+        out = scale_into(v, prev, limits, dt)
         return Projection(out, changed=not np.array_equal(out, v))
     v = np.asarray(v, dtype=np.float64)
     inside, lo, hi, C, lower, upper = _projection(v, np.asarray(prev, dtype=np.float64), limits.vel, limits.acc,
-                                                  limits.dt, np.ascontiguousarray(A, dtype=np.float64),
+                                                  dt, np.ascontiguousarray(A, dtype=np.float64),
                                                   np.ascontiguousarray(b, dtype=np.float64), tol)
     if inside:
         return Projection(np.minimum(np.maximum(v, lo), hi))
@@ -151,7 +158,7 @@ def final_command(v: np.ndarray, prev: np.ndarray, limits: JointLimits, A: np.nd
         lower[n:] = bb
         x, ok, _ = qp.solve(H, f, C, lower, upper)
     if not ok:  # cannot happen for bounds from relaxed_bounds; stay safe anyway
-        return Projection(brake(prev, limits), True, True)
+        return Projection(brake(prev, limits, dt), True, True)
     return Projection(np.minimum(np.maximum(x, lo), hi), True, bool((bb < 0).any()))
 
 

@@ -16,6 +16,12 @@ the paper is silent (all tested in tests/test_modulation_*.py):
   amplifying "tangential" motion can drive the robot into danger faster - seen in the desk scene).
 - **f outside [0, 1]** is clipped; a **non-finite f** counts as f = 1 with no direction (stop);
   a non-finite normal counts as no direction.
+- **A retraction and the obstacles the potential knows** (`stop`, used by `SafetyStack`): the
+  paper's M only slows the normal component, and a learned potential's level sets do not follow
+  an obstacle's surface exactly, so a retraction (which outranks the plan) could slide along a
+  level set into the obstacle. With `stop` set, a retraction is slowed as a whole (direction
+  kept) so that the arm can brake, within its acceleration limits, before the potential rises
+  to `stop`: the danger level where the potential knows the obstacle (module `stack`).
 """
 from __future__ import annotations
 
@@ -113,12 +119,19 @@ class ModulationLayer:
     `layer(s, v, a=None)` -> (modulated v, f) for one state (d,) or a batch (B, d); the action
     passed to the potential defaults to the velocity itself (velocity-command actions). Networks
     of Linear/ReLU/Tanh layers are evaluated by `FastPotential` (call `set_potential` again after
-    training), others by autograd.
+    training), others by autograd. `stop`: the danger level a retraction may not carry the arm
+    past (module docstring; None: the paper's modulation alone).
     """
 
-    def __init__(self, potential, eps_grad: float = EPS_GRAD, keep_away: bool = True, tangent_gain: float = 1.0):
+    def __init__(self, potential, eps_grad: float = EPS_GRAD, keep_away: bool = True, tangent_gain: float = 1.0,
+                 stop: float | None = None):
         self.eps_grad, self.keep_away, self.tangent_gain = float(eps_grad), bool(keep_away), float(tangent_gain)
+        if stop is not None and not 0.0 < stop <= 1.0:
+            raise ValueError(f"ModulationLayer: 'stop' is {stop!r}; give the danger level in (0, 1] a retraction may "
+                             "not carry the arm past (or None)")
+        self.stop = None if stop is None else float(stop)
         self.finite = True
+        self.normal = np.zeros(0)  # n = df/ds of the last call
         self.set_potential(potential)
 
     def set_potential(self, potential) -> None:
@@ -137,5 +150,6 @@ class ModulationLayer:
         a = v if a is None else a
         f, n = self._eval(s, a)
         self.finite = finite(f) and finite(n)
+        self.normal = n
         out = modulate(v, f, n, self.eps_grad, self.keep_away, self.tangent_gain)
         return (out, float(f[0])) if single else (out, f)

@@ -14,22 +14,48 @@ the body model in `skinsafe.core.sim.body_regions` (the person in a scene reads 
 - Highest safe approach speed (ISO/TS 15066 eq. A.6):
   `v_max = F_T / sqrt(mu k)`, `mu = (1/m_H + 1/m_R)^-1`, written as `F_T / sqrt(k) * sqrt(1/m_H + 1/m_R)`
   so a taxel that cannot move along its normal (`1/m_R = 0`) needs no division.
+- Pressure (ISO/TS 15066 A.3.3): with the contact area A a taxel stands for (`area`, e.g. its
+  cell, `body_regions.contact_areas`), the force a contact may reach is also `p_max A`, so
+  `F_T = min(F_T, p_T A)` per taxel.
+- Clamping (ISO/TS 15066 5.5.5.4: quasi-static, the body part cannot recoil): a taxel that faces a
+  fixed surface (`fixtures`, half-spaces) within `clamp_gap` can trap a body part against it. The
+  part then cannot move away (m_H drops out) and is compressed by the robot's kinetic energy,
+  `v sqrt(m_R / k)`, plus what the robot covers while the stack reacts, `v stop_s`; within the
+  quasi-static limit `F_Q = min(F_qs, p_qs A)` (compression `F_Q / k`) that gives
+  `v_max = (F_Q / k) / (sqrt(m_R / k) + stop_s)`.
 - `PFLCap`: each taxel's velocity along its outward normal, `a_i . qdot`, capped at the smallest
   `v_max` over the scene's regions (the most sensitive one), times a margin `factor`. The command
   is scaled as a whole (direction kept, so a planned path stays the path); a non-finite joint
-  state, command or mass gives a stop and a counted flag.
+  state, command or mass gives a stop and a counted flag. Where the person is known
+  (`observe(Person)`, body parts as capsules with their velocities), a taxel is capped only by the
+  parts within `reach` in front of it (its normal within 45 degrees of the part: a taxel facing
+  elsewhere is not where the part would be met), and by the relative velocity: the taxel's normal speed
+  minus the part's along the same normal, `a_i . qdot - n_i . v_part <= v_max`. A region with no
+  transient contact allowed (skull, face: `v_max = 0`) is avoided, not frozen at: a taxel may
+  approach it at `avoid_gain (d - keep_out)`, d its distance, and must back away inside
+  `keep_out`. A taxel touching a part (within `TOUCHING`) gives way: it separates from the part at
+  `give_way` m/s, relative (pressing on is a push, not the impact v_max is made for; a part the
+  person presses onto the robot is yielded to, not resisted). When any bound is negative (a part closing in faster than allowed, or inside the
+  keep-out) scaling cannot meet it: the command is the nearest one that does (a small QP,
+  DAQP), i.e. the robot retreats.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import mujoco
 import numba
 import numpy as np
 
 from skinsafe.core.robot.kinematics import TaxelKinematics
+from skinsafe.core.safety import qp
 from skinsafe.core.sim.body_regions import REGIONS, Region, region
 
+FACING = np.cos(np.pi / 4)  # a part constrains a taxel whose normal points within 45 degrees of it
+TOUCHING = 0.0  # m: a taxel this close to a part (inside it: in contact) gives way (a push, not an impact)
+
 __all__ = ["REGIONS", "Region", "region", "v_max", "NormalRows", "inverse_effective_mass",
-           "effective_mass", "taxel_speed_limits", "PFLCap"]
+           "effective_mass", "taxel_speed_limits", "Person", "PFLCap"]
 
 
 def v_max(reg: Region | str, inv_m_r) -> np.ndarray:
@@ -103,18 +129,38 @@ def taxel_speed_limits(kin: TaxelKinematics, regions, q: np.ndarray | None = Non
     return {name: v_max(name, inv) for name in regions}
 
 
+@dataclass
+class Person:
+    """Where the person is, for `PFLCap.observe`: per body part its region name, its core as a
+    segment `a`-`b` (world, m; a = b for a ball), its `radius` and its `velocity` (world, m/s)."""
+
+    regions: tuple
+    a: np.ndarray  # (P, 3)
+    b: np.ndarray  # (P, 3)
+    radius: np.ndarray  # (P,)
+    velocity: np.ndarray  # (P, 3)
+
+
 class PFLCap:
     """The PFL speed cap for the safety stack: `cap(q, qdot) -> qdot` with every taxel's velocity
-    along its outward normal at most `factor * v_max` of the most sensitive of `regions`.
+    along its outward normal at most `factor * v_max` of the most sensitive of `regions` (module
+    docstring: pressure through `area` (N,) m^2, clamping against `fixtures` [(point, outward
+    normal)], the person's parts and velocities through `observe`).
 
     Per tick: one body Jacobian per skinned body gives `G_b` (6, nv) (`NormalRows`), `mj_solveM`
     gives `M^-1 G_b^T`, so each taxel's `1/m_R = w^T (G_b M^-1 G_b^T) w` and normal speed
     `w . (G_b qdot)` with its constant wrench w: a 6x6 quadratic form per taxel in one compiled
-    pass, no (N, nv) arrays. After a call: `last_scale` (1 = untouched), `last_taxel` (the taxel
-    that bound, -1 none), `vmax` and `vn` (N,: each taxel's cap and normal speed), `flags` (count of non-finite inputs answered with a stop).
+    pass, no (N, nv) arrays. After a call: `last_scale` (1 = untouched, 0 = stopped or retreating),
+    `last_taxel` (the taxel that bound, -1 none), `last_mode` ("free", "scaled", "retreat", "stop"),
+    `vmax` and `vn` (N,: each taxel's cap and normal speed), `bound` (N,: the cap on its normal
+    speed, the part's velocity included; inf where no part is near), `clamp` (N,: facing a
+    fixture), `flags` (non-finite inputs answered with a stop), `retreats` (ticks that needed
+    one) and `failed` (retreats with no command meeting every bound: a stop).
     """
 
-    def __init__(self, kin: TaxelKinematics, regions=("hand",), factor: float = 1.0):
+    def __init__(self, kin: TaxelKinematics, regions=("hand",), factor: float = 1.0, area=None, fixtures=(),
+                 clamp_gap: float = 0.12, stop_s: float = 0.02, reach: float = 0.3, keep_out: float = 0.1,
+                 avoid_gain: float = 2.0, give_way: float = 0.2):
         self.kin = kin
         names = (regions,) if isinstance(regions, str) else tuple(regions)
         if not names:
@@ -122,20 +168,49 @@ class PFLCap:
         regs = [region(r) for r in names]
         if not (np.isfinite(factor) and 0 < factor <= 1):
             raise ValueError(f"PFLCap: factor is {factor}; give a margin in (0, 1] (1 = the ISO limit)")
+        for name, value in (("clamp_gap", clamp_gap), ("stop_s", stop_s), ("reach", reach), ("keep_out", keep_out),
+                            ("avoid_gain", avoid_gain), ("give_way", give_way)):
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"PFLCap: {name} is {value}; give a finite number >= 0")
         self.regions, self.factor = names, float(factor)
-        # v_max = c * sqrt(1/m_H + 1/m_R), per region
-        self._c = np.array([factor * r.transient_limit() / np.sqrt(r.k_N_per_m) for r in regs])
-        self._inv_mh = np.array([1.0 / r.mass_kg for r in regs])
+        # per region: transient / quasi-static force (N) and pressure (N/m^2), 1/m_H, k
+        self._reg = np.array([[r.transient_limit(), r.quasi_static_N, 1e4 * r.pressure_limit("transient"),
+                               1e4 * r.pressure_limit("quasi_static"), 1.0 / r.mass_kg, r.k_N_per_m] for r in regs])
+        area = np.full(kin.n, np.inf) if area is None else np.asarray(area, float)
+        if area.shape != (kin.n,) or not np.all(area > 0):
+            raise ValueError(f"PFLCap: area has shape {area.shape}; give one positive contact area (m^2) per taxel")
+        self.area = np.ascontiguousarray(area)
+        fx = np.array([np.r_[np.asarray(o, float), np.asarray(u, float) / np.linalg.norm(u)] for o, u in fixtures])
+        self._fixtures = fx.reshape(-1, 6)
+        self._opts = np.array([clamp_gap, stop_s, reach, keep_out, avoid_gain, give_way])
         self.wrench = normal_wrenches(kin)
+        self.local_normal = np.ascontiguousarray(kin.local_frames[:, :, 2])
         self.bodies = np.unique(kin.body_id)
         self.slot = np.searchsorted(self.bodies, kin.body_id).astype(np.int64)
         nv, nb = kin.model.nv, len(self.bodies)
         self._G = np.zeros((nb, 6, nv))
         self._J = np.zeros((6, nv))
         self._MG = np.zeros((nb * 6, nv))
-        self.last_scale, self.last_taxel, self.flags = 1.0, -1, 0
-        self.vmax = np.zeros(kin.n)
-        self.vn = np.zeros(kin.n)
+        self.last_scale, self.last_taxel, self.last_mode = 1.0, -1, "free"
+        self.flags = self.retreats = self.failed = 0
+        self.vmax, self.vn, self.bound = np.zeros(kin.n), np.zeros(kin.n), np.zeros(kin.n)
+        self.clamp = np.zeros(kin.n, bool)
+        self.observe(None)
+
+    def observe(self, person: Person | None) -> None:
+        """Where the person is (until the next call); None: unknown (every region everywhere, at
+        rest: a region with no transient contact allowed then stops the robot)."""
+        if person is None:
+            self._parts = np.zeros((0, 11))
+            return
+        idx = []
+        for r in person.regions:
+            if r not in self.regions:
+                raise ValueError(f"PFLCap.observe: region '{r}' is not one of the cap's {self.regions}")
+            idx.append(self.regions.index(r))
+        cols = [np.asarray(idx, float)[:, None], np.asarray(person.a, float), np.asarray(person.b, float),
+                np.asarray(person.radius, float)[:, None], np.asarray(person.velocity, float)]
+        self._parts = np.ascontiguousarray(np.hstack(cols))
 
     def _body_terms(self, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """H_b = G_b M^-1 G_b^T (nb, 6, 6) and G_b qdot (nb, 6) at q."""
@@ -157,27 +232,74 @@ class PFLCap:
     def __call__(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
         v = np.asarray(v, dtype=float)
         q = np.asarray(q, dtype=float)
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v)) and np.all(np.isfinite(self._parts))):
             return self._stop(v)
         H, gv = self._body_terms(q, v)
-        scale, k = _cap_pass(self.wrench, self.slot, H, gv, self._c, self._inv_mh, self.vmax, self.vn)
-        if not np.isfinite(scale):
+        d = self.kin.data
+        Rb = np.ascontiguousarray(d.xmat[self.bodies].reshape(-1, 3, 3))
+        Xb = np.ascontiguousarray(d.xpos[self.bodies])
+        ok = _bounds(self.wrench, self.slot, H, gv, Rb, Xb, self.kin.local_pos, self.local_normal, self.area,
+                     self._reg, self.factor, self._fixtures, self._opts, self._parts, self.vmax, self.vn, self.bound,
+                     self.clamp)
+        if not ok:
             return self._stop(v)
-        self.last_scale, self.last_taxel = float(scale), int(k)
-        return v * scale if k >= 0 else v
+        near = np.isfinite(self.bound)
+        if np.all(self.bound[near] >= 0):  # scaling meets every bound (a stop does): keep the path
+            over = near & (self.vn > self.bound + 1e-12)
+            if not over.any():
+                self.last_scale, self.last_taxel, self.last_mode = 1.0, -1, "free"
+                return v
+            ratio = np.where(over, self.bound / np.where(over, self.vn, 1.0), np.inf)
+            k = int(np.argmin(ratio))
+            self.last_scale, self.last_taxel, self.last_mode = float(ratio[k]), k, "scaled"
+            return v * ratio[k]
+        return self._retreat(v, np.flatnonzero(near))
+
+    def _retreat(self, v: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """The command nearest to v meeting every bound (some are negative: the robot must move
+        the taxels away); a stop (and `failed`) where none does."""
+        self.retreats += 1
+        A = np.einsum("ij,ijk->ik", self.wrench[rows], self._G[self.slot[rows]])
+        n = len(v)
+        x, ok, _ = qp.solve(np.eye(n), -v, np.ascontiguousarray(A), np.full(len(rows), -qp.BIG),
+                            np.ascontiguousarray(self.bound[rows]))
+        if not ok:
+            self.failed += 1
+            self.last_scale, self.last_taxel, self.last_mode = 0.0, -1, "stop"
+            return np.zeros(n)
+        k = rows[int(np.argmin(self.bound[rows]))]
+        self.last_scale, self.last_taxel, self.last_mode = 0.0, int(k), "retreat"
+        return x
 
     def _stop(self, v: np.ndarray) -> np.ndarray:
         self.flags += 1
-        self.last_scale, self.last_taxel = 0.0, -1
+        self.last_scale, self.last_taxel, self.last_mode = 0.0, -1, "stop"
         return np.zeros(np.shape(v))
 
 
 @numba.njit(cache=True, nogil=True)
-def _cap_pass(wrench, slot, H, gv, c, inv_mh, vmax, vn):
-    """Per taxel: 1/m_R = w^T H w, normal speed w . gv, v_max (min over regions); returns the
-    largest scale in [0, 1] keeping every taxel within its v_max and the taxel that binds (-1:
-    none); a NaN scale when a mass or speed is not finite."""
-    scale, best = 1.0, -1
+def _limit(reg, r, factor, inv, area, clamp, dist, opts):
+    """v_max of region row `reg[r]` for a taxel (module docstring): clamping, transient or avoidance."""
+    ft, fq, pt, pq, inv_mh, k = reg[r]
+    if clamp:
+        f = min(fq, pq * area)
+        if inv <= 0.0:
+            return 0.0
+        return factor * (f / k) / (1.0 / np.sqrt(inv * k) + opts[1])
+    if ft > 0.0:
+        return factor * min(ft, pt * area) / np.sqrt(k) * np.sqrt(inv_mh + inv)
+    if np.isfinite(dist):
+        return opts[4] * (dist - opts[3])
+    return 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _bounds(wrench, slot, H, gv, Rb, Xb, lpos, lnrm, area, reg, factor, fixtures, opts, parts, vmax, vn, bound, clamp):
+    """Per taxel: 1/m_R = w^T H w, normal speed w . gv, world pose, whether it faces a fixture,
+    v_max (min over the regions or the near parts) and the bound on its normal speed (v_max plus
+    the near parts' velocity along its normal; inf where no part is near). False when a mass or
+    speed is not finite. Scalar arithmetic only (no temporaries per taxel)."""
+    p, n = np.empty(3), np.empty(3)
     for i in range(wrench.shape[0]):
         b = slot[i]
         inv, s = 0.0, 0.0
@@ -188,12 +310,50 @@ def _cap_pass(wrench, slot, H, gv, c, inv_mh, vmax, vn):
             inv += wrench[i, r] * hw
             s += wrench[i, r] * gv[b, r]
         if not (np.isfinite(inv) and np.isfinite(s)):
-            return np.nan, -1
+            return False
         inv = max(inv, 0.0)
-        vm = np.inf
-        for k in range(c.shape[0]):
-            vm = min(vm, c[k] * np.sqrt(inv_mh[k] + inv))
-        vmax[i], vn[i] = vm, s
-        if s > vm + 1e-12 and vm < scale * s:
-            scale, best = vm / s, i
-    return scale, best
+        vn[i] = s
+        if parts.shape[0] == 0 and fixtures.shape[0] == 0:  # the plain cap: the regions everywhere
+            vm = np.inf
+            for r in range(reg.shape[0]):
+                vm = min(vm, _limit(reg, r, factor, inv, area[i], False, np.inf, opts))
+            vmax[i], bound[i], clamp[i] = vm, vm, False
+            continue
+        for r in range(3):
+            p[r] = Xb[b, r] + Rb[b, r, 0] * lpos[i, 0] + Rb[b, r, 1] * lpos[i, 1] + Rb[b, r, 2] * lpos[i, 2]
+            n[r] = Rb[b, r, 0] * lnrm[i, 0] + Rb[b, r, 1] * lnrm[i, 1] + Rb[b, r, 2] * lnrm[i, 2]
+        c = False
+        for f in range(fixtures.shape[0]):
+            h, nu = 0.0, 0.0
+            for r in range(3):
+                h += (p[r] - fixtures[f, r]) * fixtures[f, 3 + r]
+                nu += n[r] * fixtures[f, 3 + r]
+            if nu < -0.5 and -1e-9 <= h <= opts[0]:
+                c = True
+        clamp[i] = c
+        vm, bd = np.inf, np.inf
+        if parts.shape[0] == 0:
+            for r in range(reg.shape[0]):
+                vm = min(vm, _limit(reg, r, factor, inv, area[i], c, np.inf, opts))
+            bd = vm
+        for k in range(parts.shape[0]):
+            L, u = 0.0, 0.0
+            for r in range(3):
+                ab = parts[k, 4 + r] - parts[k, 1 + r]
+                L += ab * ab
+                u += (p[r] - parts[k, 1 + r]) * ab
+            u = 0.0 if L <= 0.0 else min(max(u / L, 0.0), 1.0)
+            d2, front, vpn = 0.0, 0.0, 0.0
+            for r in range(3):
+                cp = parts[k, 1 + r] + u * (parts[k, 4 + r] - parts[k, 1 + r])
+                d2 += (p[r] - cp) ** 2
+                front += (cp - p[r]) * n[r]
+                vpn += n[r] * parts[k, 8 + r]
+            dist = np.sqrt(d2) - parts[k, 7]
+            if dist > opts[2] or front < FACING * np.sqrt(d2):
+                continue  # out of reach, or not in front of the taxel (it cannot be where the part is met)
+            lim = -opts[5] if dist <= TOUCHING else _limit(reg, int(parts[k, 0]), factor, inv, area[i], c, dist, opts)
+            vm = min(vm, lim)
+            bd = min(bd, lim + vpn)
+        vmax[i], bound[i] = vm, bd
+    return True

@@ -13,15 +13,20 @@ A command source is anything callable as `source(t, q) -> qdot_planned (nv,)`: a
    first, and the strategy filter only on ticks without a retraction, whose plan is used);
 3. modulation (III-B): whatever comes out - plan or retraction - is modulated by the danger
    potential (`ModulationLayer`; a retraction leaving danger keeps its speed, one heading into
-   danger, e.g. toward a desk, is slowed). With a strategy filter over the same TDM, both share
-   one evaluator (`FastPotential`): scoring the candidates is one forward pass over the TDM's
-   head that keeps its sigmoids, and the modulation of the chosen one needs only the backward
-   pass (the planned command unlimited until step 4); a retraction's modulation is one fused
-   pass;
+   danger, e.g. toward a desk, is slowed). With the modulation's `stop` level, a retraction never
+   carries the arm into an obstacle the potential knows: while the potential's rise along the
+   brake from this command (`S n.v`, S the braking horizon of `viability.braking_horizon`) would
+   pass `stop - f`, the retraction is scaled down as a whole (direction kept), so the arm stops
+   before the potential reaches `stop` rather than sliding along a level set. With a strategy
+   filter over the same TDM, both share one evaluator (`FastPotential`): scoring the candidates
+   is one forward pass over the TDM's head that keeps its sigmoids, and the modulation of the
+   chosen one needs only the backward pass (the planned command unlimited until step 4); a
+   retraction's modulation is one fused pass;
 4. limits (`limits.final_command`) on the final command: velocity and acceleration limits from
-   the last command sent; while taxels are retracting, also their no-push constraints (the
-   modulated command is projected, so modulation can never push a contacted taxel into its
-   contact and the acceleration limit never makes one move into it).
+   the last command sent; while taxels are retracting, also their no-push and viability rows
+   (the modulated command is projected, so modulation can never push a contacted taxel into its
+   contact, the acceleration limit never makes one move into it, and the arm can always brake
+   without pushing one: `viability.py`).
 
 Measured velocity: `tick(..., qdot=measured)` takes the robot's measured joint velocity, distinct
 from the planned command: the acceleration limits (and the brake) then start from it rather than
@@ -32,6 +37,12 @@ Fail safe: a tick with a non-finite clock, q, dt, measured velocity, planned com
 potential sends the safe command (`limits.brake`) or, where its own inputs are finite, the
 ongoing retraction (unmodulated when the potential is the bad input), never the plan, and counts
 the input in `flags`; `info` says what happened. A clock that goes backwards resets the layers.
+Missing readings (no readings, a stimulus the skin reports left out, an array that is not one
+value per taxel) are a fault of the same kind where the stack has a defensiveness layer (flag
+`missing`): never "no contact".
+
+dt: the stack is built for a control period (`dt`, required, equal to its defensiveness layer's)
+and every tick passes its own measured dt, which the acceleration limits and the brake use.
 
 Each layer is optional. The potential and the TDM see the state `s = q[joints]` and the action
 `a = qdot[joints]` (`joints` default: all).
@@ -46,6 +57,7 @@ import numpy as np
 from skinsafe.core.safety.defensiveness import TickInfo
 from skinsafe.core.safety.limits import JointLimits, brake, final_command, finite
 from skinsafe.core.safety.modulation import ModulationLayer
+from skinsafe.core.safety.viability import braking_horizon
 
 CommandSource = Callable[[float, np.ndarray], np.ndarray]
 
@@ -141,16 +153,22 @@ class StrategyFilter:
 class SafetyStack:
     """Strategy filter -> defensiveness -> modulation -> limits, for one robot and its skin.
 
-    `acc_limits` and `dt` default to the defensiveness layer's (no acceleration limit without
-    one); `vel_limits` are the robot's."""
+    `dt` is the control period the stack ticks at (s): required, never assumed, and equal to the
+    defensiveness layer's. `acc_limits` default to the defensiveness layer's (no acceleration
+    limit without one); `vel_limits` are the robot's."""
 
     def __init__(self, vel_limits, defensiveness=None, modulation: ModulationLayer | None = None,
                  strategy: StrategyFilter | None = None, joints=None, acc_limits=None, dt: float | None = None,
                  pfl=None):
         vel = np.asarray(vel_limits, dtype=float)
         d = defensiveness
+        if dt is None:
+            raise ValueError("SafetyStack: give dt, the control period (s) the stack ticks at (the scene's or the "
+                             "robot's control rate); it is never assumed")
+        if d is not None and not np.isclose(dt, d.limits.dt, rtol=1e-9, atol=0.0):
+            raise ValueError(f"SafetyStack: dt is {dt} s but the defensiveness layer was built for {d.limits.dt} s; "
+                             "build both for the period the scene runs at")
         acc = (d.limits.acc if d is not None else np.inf) if acc_limits is None else acc_limits
-        dt = (d.limits.dt if d is not None else 0.002) if dt is None else dt
         self.limits = JointLimits(vel, np.broadcast_to(np.asarray(acc, dtype=float), vel.shape), dt)
         if d is not None and d.kin.model.nv != len(vel):
             raise ValueError(f"SafetyStack: 'vel_limits' has {len(vel)} values, the defensiveness layer's robot "
@@ -181,12 +199,13 @@ class SafetyStack:
 
     def tick(self, t: float, q: np.ndarray, readings: dict[str, np.ndarray] | None, command: np.ndarray,
              dt: float, qdot: np.ndarray | None = None) -> np.ndarray:
-        """The joint velocity to send now (module docstring). `qdot`: the robot's measured joint
-        velocity, if known; the limits then start from it instead of the last command."""
+        """The joint velocity to send now (module docstring), `dt` seconds (measured) after the last
+        tick. `qdot`: the robot's measured joint velocity, if known; the limits then start from it
+        instead of the last command."""
         j, d, prev = self.joints, self.defensiveness, self.last
         q = np.asarray(q, dtype=float)
         v = np.array(command, dtype=float)
-        checks = [("clock", t), ("q", q), ("dt", dt), ("command", v)]
+        checks = [("clock", t), ("q", q), ("dt", dt if finite(dt) and dt > 0 else np.nan), ("command", v)]
         if qdot is not None:
             qdot = np.asarray(qdot, dtype=float)
             if qdot.shape != prev.shape:
@@ -200,7 +219,8 @@ class SafetyStack:
             self.last = prev
             self.flags["clock_reset"] += 1
         if {"clock", "q", "dt", "qdot"} & set(bad):
-            return self._send(brake(prev, self.limits), TickInfo(nonfinite=tuple(bad), safe=True))
+            return self._send(brake(prev, self.limits, None if "dt" in bad else dt),
+                              TickInfo(nonfinite=tuple(bad), safe=True))
         self._t = t
         if qdot is not None:
             prev = qdot
@@ -208,7 +228,7 @@ class SafetyStack:
         s = q[j]
         info = TickInfo(nonfinite=tuple(bad))
         if d is not None:
-            vd = d.tick(t, q, readings or {}, None, dt, prev=prev)
+            vd = d.tick(t, q, readings, None, dt, prev=prev)
             info = d.info
             info.nonfinite = tuple(bad + [n for n in info.nonfinite if n not in bad])
             if info.safe:
@@ -224,7 +244,7 @@ class SafetyStack:
                     info.nonfinite = info.nonfinite + ("tdm",)
                     plan_ok = False
             if not plan_ok:
-                return self._send(brake(prev, self.limits), TickInfo(nonfinite=info.nonfinite, safe=True))
+                return self._send(brake(prev, self.limits, dt), TickInfo(nonfinite=info.nonfinite, safe=True))
         if self.modulation is not None:
             w = v.copy()
             w[j], f = self.modulation(s, v[j])
@@ -232,20 +252,31 @@ class SafetyStack:
             if not (self.modulation.finite and finite(w)):
                 info.nonfinite = info.nonfinite + ("potential",)
                 if not retracting:
-                    return self._send(brake(prev, self.limits), TickInfo(nonfinite=info.nonfinite, safe=True))
+                    return self._send(brake(prev, self.limits, dt), TickInfo(nonfinite=info.nonfinite, safe=True))
             else:
                 v = w
+                if retracting and self.modulation.stop is not None:
+                    v = self._stop_short(v, prev, f, dt)
         if self.pfl is not None:
             v = self.pfl(q, v)
-        A, b = (d.A, d.b) if retracting else (None, None)
-        proj = final_command(v, prev, self.limits, A, b)
+        A, b = d.rows if retracting else (None, None)
+        proj = final_command(v, prev, self.limits, A, b, dt=dt)
         info.infeasible = info.infeasible or proj.infeasible
         if qdot is not None and retracting:  # the robot is moving a contacted taxel into its contact now
-            info.pushing = bool(np.any(A @ qdot < -1e-9))
+            info.pushing = bool(np.any(d.A @ qdot < -1e-9))
         return self._send(proj.v, info)
+
+    def _stop_short(self, v: np.ndarray, prev: np.ndarray, f: float, dt: float) -> np.ndarray:
+        """The retraction `v`, scaled down as a whole so that the potential's rise along the brake
+        from it, `S n.v`, stays within `stop - f` (module docstring, step 3)."""
+        rise = float(np.asarray(self.modulation.normal, dtype=float).reshape(-1) @ v[self.joints])
+        room = max(self.modulation.stop - float(f), 0.0)
+        S = braking_horizon(prev, self.limits.acc, dt)
+        return v * (room / (rise * S)) if rise * S > room else v
 
     def _send(self, v: np.ndarray, info: TickInfo) -> np.ndarray:
         flags = [f"nonfinite:{n}" for n in info.nonfinite] + (["nonfinite"] if info.nonfinite else [])
+        flags += [f"missing:{n}" for n in info.missing] + (["missing"] if info.missing else [])
         flags += [n for n in ("safe", "infeasible", "pushing") if getattr(info, n)]
         if flags:
             self.flags.update(flags)

@@ -13,8 +13,14 @@ from skinsafe.core.robot.models import Robot
 from skinsafe.core.sim.scene import Obstacle, SceneOptions, build_scene, taxel_cell
 
 BASE_PITCH, BASE_COUNT = 0.01, 2149  # the UR5 sample skin at 1 cm pitch has 2,149 taxels
-PROBE_BODIES = ["upper_arm_link", "forearm_link", "wrist_1_link"]
 PROBE_R, DEPTH, SLIDE, SLIDE_HZ = 0.015, 0.005, 0.02, 1.0
+
+
+def probe_bodies(design, n: int = 3) -> list[str]:
+    """The `n` skinned links with the most taxels (ties to the link listed first): on the UR5
+    sample skin at any pitch, upper_arm_link, forearm_link and wrist_1_link."""
+    counts = np.bincount(design.taxels.body, minlength=len(design.bodies))
+    return [design.bodies[i] for i in np.argsort(-counts, kind="stable")[:n] if counts[i]]
 
 
 def design_for(n_target: int):
@@ -23,15 +29,15 @@ def design_for(n_target: int):
 
 
 class Probes:
-    """Mocap probes pressing into the top of some skinned links and sliding along them."""
+    """Mocap probes pressing into the top of skinned links (`bodies`, default `probe_bodies`) and sliding along them."""
 
-    def __init__(self, design, robot: Robot, bodies=PROBE_BODIES):
+    def __init__(self, design, robot: Robot, bodies=None):
 
         self.q = settled(robot)
         kin = TaxelKinematics(robot.model, design)
         pos, frames = kin.poses(self.q)
         self.centres, self.axes = [], []
-        for b in bodies:
+        for b in bodies or probe_bodies(design):
             on = np.flatnonzero(np.asarray(design.bodies)[design.taxels.body] == b)
             up = on[np.argsort(-frames[on, 2, 2], kind="stable")[:64]]  # the most upward-facing taxels
             inside = _inside(pos[on], pos[up], frames[up, :, 1])

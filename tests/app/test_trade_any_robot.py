@@ -40,3 +40,15 @@ def test_map_sweeps_use_the_map_pitch_and_refuse_ur5_only_knobs(skin, tmp_path):
     assert main(["trade", "--map", str(tmp_path / "missing.json"), "--knobs", "timestep",
                  "--out", str(tmp_path / "t")]) == 2
     assert not (tmp_path / "t").exists()
+
+
+def test_robot_by_catalogue_name_designs_first(tmp_path):
+    """`--robot NAME` of a public description designs on that description (its package folders and
+    xacro arguments from the catalogue) before sweeping."""
+    import argparse
+
+    layout = tmp_path / "layout.json"
+    layout.write_text(json.dumps({"module": {"rows": 2, "cols": 2, "pitch": 0.012}, "bodies": ["link3"]}))
+    ns = argparse.Namespace(robot="xarm7", package_dir=[], xacro_arg=[], layout=str(layout), out=str(tmp_path / "t"))
+    saved = json.loads(Path(trade.design_first(ns)).read_text())
+    assert saved["robot"]["path"].endswith("xarm7.urdf") and saved["bodies"] == ["link3"]

@@ -1,9 +1,10 @@
 """Experiments as Ray tasks: one task per method x seed, finished tasks reused by a restarted run."""
 import json
 
+import numpy as np
 import pytest
 
-from skinsafe.core.experiments import runner
+from skinsafe.core.experiments import maze, runner
 from skinsafe.core.experiments.maze import run_one
 
 
@@ -27,12 +28,12 @@ def test_tasks_run_on_ray_are_cached_and_reused(tmp_path, monkeypatch):
     changed = dict(tasks[0], max_steps=7)
     assert runner.cached(tmp_path, changed) is None and runner.cached(tmp_path, tasks[0]) == again[0]
     # a result run by other code is not taken either: every loaded skinsafe source is recorded
-    doc = json.loads((tmp_path / "AC_s1.json").read_text())
+    doc = json.loads(runner.task_file(tmp_path, tasks[1]).read_text())
     assert {"core/learn/agents.py", "core/learn/maze_env.py", "core/experiments/maze.py"} <= set(doc["sources"])
     doc["sources"]["core/learn/agents.py"] = "0" * 40
-    (tmp_path / "AC_s1.json").write_text(json.dumps(doc))
+    runner.task_file(tmp_path, tasks[1]).write_text(json.dumps(doc))
     assert runner.cached(tmp_path, tasks[1]) is None and runner.cached(tmp_path, tasks[2]) == again[2]
-    (tmp_path / "AC_s0.json").write_text("{not json")  # a half-written file counts as missing
+    runner.task_file(tmp_path, tasks[0]).write_text("{not json")  # a half-written file counts as missing
     assert runner.cached(tmp_path, tasks[0]) is None
     monkeypatch.setattr(runner.time, "sleep", lambda s: None)
     with pytest.raises(SystemExit, match="must not start Ray"):  # a missing task does start Ray (retried, then named)
@@ -57,8 +58,9 @@ def test_agent_overrides_get_their_own_task_file_and_reach_the_agent(tmp_path):
     plain = {"method": "AC-TDM", "seed": 0, "episodes": 1, "max_steps": 5}
     tuned = dict(plain, agent_kw=kw)
     assert runner.task_file(tmp_path, plain).name == "AC-TDM_s0.json"
-    assert runner.task_file(tmp_path, tuned).name.startswith("AC-TDM_s0_") and runner.task_file(tmp_path, tuned) != runner.task_file(
-        tmp_path, dict(plain, agent_kw={"unseen_max": 0.5}))
+    names = {runner.task_file(tmp_path, t).name for t in (tuned, dict(plain, agent_kw={"unseen_max": 0.5}),
+                                                          dict(plain, config={"labels": "binary"}), dict(plain, config={"labels": "distance"}))}
+    assert len(names) == 4 and all(n.startswith("AC-TDM_s0_") for n in names)  # configurations never share a file
     r = run_one(**tuned)
     assert r["stats"]["tdm"]["fits"] >= 1 and all(f["steps"] in (7, 100) for f in r["tdm_fits"])
 
@@ -78,3 +80,93 @@ def test_a_ray_that_cannot_start_is_retried_then_named(tmp_path, monkeypatch):
         runner.run_tasks(run_one, [{"method": "AC", "seed": 0, "episodes": 1, "max_steps": 2}], tmp_path, workers=1,
                          progress=False)
     assert calls == ["local"] * 3
+
+
+def test_seeds_are_named_never_counted():
+    from skinsafe.core.experiments.stats import parse_seeds
+
+    assert parse_seeds("10-19") == list(range(10, 20))
+    assert parse_seeds("11,12,13") == parse_seeds(["11", "12 13"]) == [11, 12, 13]
+    assert parse_seeds("3") == [3]  # seed 3, not three seeds
+    for bad in ("19-10", "a", ""):
+        with pytest.raises(SystemExit, match="seeds"):
+            parse_seeds(bad)
+
+
+def test_intervals_and_verdicts():
+    from scipy import stats as sps
+
+    from skinsafe.core.experiments.stats import compare, diff_ci, mean_ci
+
+    x, y = [1.0, 2.0, 3.0, 4.0], [10.0, 12.0, 9.0, 15.0, 11.0]
+    m, (lo, hi) = mean_ci(x)
+    assert m == 2.5 and hi - m == pytest.approx(sps.t.ppf(0.975, 3) * np.std(x, ddof=1) / 2)
+    d, ci = diff_ci(x, y)
+    ref = sps.ttest_ind(y, x, equal_var=False).confidence_interval(0.95)
+    assert d == pytest.approx(np.mean(y) - 2.5) and ci == pytest.approx([ref.low, ref.high])
+    assert compare(ci) == "lower" and compare([-ci[1], -ci[0]]) == "higher" and compare([-1.0, 2.0]) == "not resolved"
+
+
+def test_tuning_chooses_by_one_criterion_for_every_method():
+    rows = [{"total_contacts_mean": 50.0, "goal_rate_last_mean": 0.7}, {"total_contacts_mean": 90.0, "goal_rate_last_mean": 0.9},
+            {"total_contacts_mean": 70.0, "goal_rate_last_mean": 0.85}]
+    assert maze.choose(rows) == 2  # fewest contacts among those reaching the goal, not the fewest overall
+    for r in rows:
+        r["goal_rate_last_mean"] = 0.5
+    rows[1]["goal_rate_last_mean"] = 0.6
+    assert maze.choose(rows) == 1  # none reaches it: the highest goal rate
+    assert len({len(c) for c in maze.TUNING.values()}) == 1 and set(maze.TUNING) == set(maze.METHODS)
+    chosen = {"SAC-TDM": {"prior_count": 0.5}, "RRL": {}, "SAC": {}}
+    abl = maze.ablation_tasks(chosen, ["SAC-TDM", "RRL", "SAC"], {"episodes": 3, "max_steps": 5}, [10, 11])
+    variants = sorted({h["variant"] for h, _ in abl})
+    # the prior count is already 0.5: that variant is the chosen configuration itself and is left out
+    assert variants == sorted([f"SAC-TDM - {w.split(' (')[0]}" for w, _ in maze.TDM_EXTRAS[:4]]
+                              + [f"RRL + {w.split(' (')[0]}" for w, _ in maze.BASELINE_EXTRAS])
+    assert {t["seed"] for _, t in abl} == {10, 11} and all(h["agent_kw"] == t["agent_kw"] for h, t in abl)
+
+
+def test_full_protocol_tunes_evaluates_on_held_out_seeds_and_ablates(tmp_path):
+    import argparse
+
+    p = argparse.ArgumentParser()
+    maze.add_arguments(p)
+    args = p.parse_args(["--out", str(tmp_path), "--methods", "AC-TDM,CPO", "--configs", "2", "--tuning-seeds", "0",
+                         "--seeds", "10-11", "--episodes", "2", "--tuning-episodes", "1", "--max-steps", "8", "--ablation-seeds", "10-11",
+                         "--ablation-episodes", "1", "--workers", "1", "--no-progress"])
+    assert maze.run(args) == 0
+    doc = json.loads((tmp_path / "maze_results.json").read_text())
+    assert doc["eval_seeds"] == [10, 11]
+    for m in ("AC-TDM", "CPO"):
+        rec = doc["tuning"][m]
+        assert rec["tuning_seeds"] == [0] and len(rec["configs"]) == 2 and rec["chosen"] in [c["config"] for c in rec["configs"]]
+        assert rec["chosen"] == rec["configs"][maze.choose(rec["configs"])]["config"]
+    assert {(r["method"], r["seed"]) for r in doc["per_seed"]} == {(m, s) for m in ("AC-TDM", "CPO") for s in (10, 11)}
+    assert all({"method", "seed", "total_contacts", "goal_rate"} <= set(r) for r in doc["per_seed"])
+    for r in doc["runs"]:  # the evaluation runs are the chosen configurations on the held-out seeds
+        assert r["seed"] in (10, 11) and len(r["costs"]) == 2
+    rows = {r["variant"]: r for r in doc["ablation"]}
+    assert "AC-TDM (chosen configuration)" in rows and "AC-TDM - visit-count shrinkage" in rows
+    for r in rows.values():
+        assert {"variant", "removed", "total_contacts_mean", "ci95"} <= set(r) and r["ci95"][0] <= r["total_contacts_mean"] <= r["ci95"][1]
+    per = [p["total_contacts"] for p in rows["AC-TDM - visit-count shrinkage"]["per_seed"]]
+    assert rows["AC-TDM - visit-count shrinkage"]["total_contacts_mean"] == pytest.approx(np.mean(per))
+    # each variant against the same (first) episodes of its method's evaluation runs
+    ref = rows["AC-TDM (chosen configuration)"]
+    assert ref["episodes"] == 1 and [p["total_contacts"] for p in ref["per_seed"]] == [
+        r["costs"][0] for r in doc["runs"] if r["method"] == "AC-TDM"]
+    cpo = doc["summary"]["methods"]["CPO"]["agent_kw"]
+    assert cpo == {**doc["tuning"]["CPO"]["chosen"], "cost_limit": pytest.approx(68 / 2)}  # wall-facing moves over the run's episodes
+    assert doc["tuning"]["CPO"]["configs"][0]["agent_kw"]["cost_limit"] == pytest.approx(68 / 1)  # tuning ran 1 episode
+    assert "Ablation" in (tmp_path / "maze_contacts.md").read_text()
+    with pytest.raises(SystemExit, match="held-out"):
+        maze.run(p.parse_args(["--out", str(tmp_path), "--tuning-seeds", "0-1", "--seeds", "1-3"]))
+
+
+@pytest.mark.parametrize("method, kw", [("AC-TDM", None), ("SAC-TDM", None), ("SQRL", {"offline_transitions": 60, "pretrain_steps": 5})])
+def test_a_shorter_run_is_the_start_of_a_longer_one(method, kw):
+    """The ablation compares its shorter runs with the first episodes of the evaluation runs: that needs
+    a run's first episodes not to depend on how many follow."""
+    long, short = (run_one(method, 3, n, 12, kw) for n in (3, 2))
+    for k in ("costs", "returns", "steps", "goals"):
+        assert short[k] == long[k][:2]
+    assert maze.first_episodes(long, 2)["costs"] == short["costs"]

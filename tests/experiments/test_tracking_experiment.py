@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 import torch
 
-from skinsafe.core.experiments.tracking import TrackingConfig, claim_check, run_episode, run_experiment, summary
+from skinsafe.core.experiments.tracking import (
+    TrackingConfig,
+    claim_check,
+    contacts_per_episode,
+    per_seed,
+    run_episode,
+    run_experiment,
+    summary,
+)
 from skinsafe.core.learn.tracking_env import TrackingEnv
 from skinsafe.core.safety.modulation import ModulationLayer
 from skinsafe.core.safety.stack import SafetyStack, StrategyFilter, TeleopStream, TrajectorySource
@@ -16,12 +24,24 @@ from skinsafe.core.safety.tdm import TactileDangerModel
 @pytest.fixture(scope="module")
 def quick_results():
     cfg = TrackingConfig.quick()
+    cfg.label_sets = ("binary", "soft")  # the paper's labels and the soft extension, on the same seed
     return cfg, run_experiment(cfg, progress=False, workers=1)
+
+
+def test_both_label_sets_learn_apart_on_one_vanilla_run(quick_results):
+    cfg, res = quick_results
+    b, s = res["labels"]["binary"]["runs"], res["labels"]["soft"]["runs"]
+    assert res["runs"] is b  # the top level is the paper's setting
+    assert b["vanilla"] == s["vanilla"] and len(res["labels"]["binary"]["cpu_seconds"]["vanilla"]) == 1
+    # the labels reach the learner: the same first re-training data give other models, other episodes
+    fb, fs = b["tdm"]["0"][0]["fit"], s["tdm"]["0"][0]["fit"]
+    assert fb["val_loss"] != fs["val_loss"]
+    assert [r["contacts"] for r in b["tdm"]["0"][1:]] != [r["contacts"] for r in s["tdm"]["0"][1:]]
 
 
 def test_quick_tracking_run_modulated_contacts_fewer_than_vanilla(quick_results):
     cfg, res = quick_results
-    runs = res["runs"]
+    runs = res["labels"]["soft"]["runs"]
     assert set(runs) == {"vanilla", "tdm", "tdm2"}
     c = {m: np.array([r["contacts"] for r in runs[m]["0"]]) for m in runs}
     assert all(len(v) == cfg.episodes for v in c.values())
@@ -30,8 +50,9 @@ def test_quick_tracking_run_modulated_contacts_fewer_than_vanilla(quick_results)
     assert c["tdm"][0] == c["vanilla"][0] == c["tdm2"][0]
     # after learning, the modulated runs touch less than vanilla over the learned episodes
     assert c["tdm2"][1:].sum() < c["vanilla"][1:].sum()
-    rows = {r["method"]: r for r in summary(res)}
+    rows = {r["method"]: r for r in summary(res["labels"]["soft"])}
     assert rows["vanilla"]["tracking_error_mm"] < 60  # vanilla follows the path
+    assert contacts_per_episode(res["labels"]["soft"])["tdm2"] == c["tdm2"].tolist()  # one seed: its own
 
 
 def test_episode_logs_are_consistent(quick_results):
@@ -56,6 +77,26 @@ def test_claim_check_from_numbers():
     assert not claim_check(rows)["holds"]
 
 
+def test_claim_check_decides_on_intervals_over_seeds():
+    """The same means decide differently with the seeds' spread: 9 of 150 everywhere holds; 0 on nine
+    seeds and 90 on one (mean 9) is not resolved; 20 everywhere does not hold."""
+    def seeds(tdm2):
+        return [{"method": m, "seed": i, "contacts_ep6_10": v} for i, t2 in enumerate(tdm2)
+                for m, v in (("vanilla", 150.0 + i), ("tdm", 40.0), ("tdm2", t2))]
+
+    def rows(ps):
+        return [{"method": m, "contacts_ep6_10": float(np.mean([p["contacts_ep6_10"] for p in ps if p["method"] == m]))}
+                for m in ("vanilla", "tdm", "tdm2")]
+
+    for tdm2, verdict in (([9.0] * 10, "holds"), ([0.0] * 9 + [90.0], "is not resolved"), ([20.0] * 10, "does not hold")):
+        ps = seeds(tdm2)
+        c = claim_check(rows(ps), ps)
+        assert c["verdict"] == verdict and c["holds"] == (verdict == "holds") and c["seeds"] == list(range(10))
+        assert c["tdm2_over_vanilla_ci95"][0] <= c["tdm2_over_vanilla"] <= c["tdm2_over_vanilla_ci95"][1]
+    assert per_seed({"runs": {"tdm": {"3": [{"contacts": k, "tracking_error": 0.01} for k in range(10)]}}}) == [
+        {"method": "tdm", "seed": 3, "contacts_ep6_10": 7.0, "contacts_last": 9, "tracking_error_mm": pytest.approx(10.0)}]
+
+
 def test_tracking_cli_writes_outputs(tmp_path, quick_results, monkeypatch):
     from skinsafe.core.experiments import tracking as et
 
@@ -65,6 +106,12 @@ def test_tracking_cli_writes_outputs(tmp_path, quick_results, monkeypatch):
     assert et.run(args) == 0
     doc = json.loads((tmp_path / "tracking.json").read_text())
     assert {r["method"] for r in doc["summary"]} == {"vanilla", "tdm", "tdm2"}
+    for name in ("binary", "soft"):  # both label sets, each with its contact ticks per episode by method
+        lab = doc["labels"][name]
+        assert {m: len(v) for m, v in lab["contacts_per_episode"].items()} == dict.fromkeys(et.METHODS, cfg.episodes)
+        assert all(not isinstance(v, (list, dict)) for r in lab["summary"] for k, v in r.items() if k != "first_zero_episode")
+        assert lab["claim"]["statement"] in (tmp_path / "tracking.md").read_text()
+    assert doc["claim"] == doc["labels"]["binary"]["claim"] and "paper's setting" in (tmp_path / "tracking.md").read_text()
     assert doc["claim"]["holds"] in (True, False) and "vanilla" in doc["claim"]["statement"]
     for rows in doc["runs"]["vanilla"].values():  # per-episode contacts and tracking error
         assert all({"contacts", "tracking_error"} <= set(r) for r in rows)
@@ -73,6 +120,10 @@ def test_tracking_cli_writes_outputs(tmp_path, quick_results, monkeypatch):
         assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
     with pytest.raises(SystemExit, match="episodes"):
         et.config_from_args(argparse.Namespace(quick=True, episodes=0, seeds=None, methods=None))
+    full = et.config_from_args(argparse.Namespace(quick=False, episodes=None, seeds=["11,12", "15-16"], methods=None, labels="both"))
+    assert full.seeds == (11, 12, 15, 16) and full.label_sets == ("binary", "soft") and et.TrackingConfig().seeds == et.HELD_OUT
+    with pytest.raises(SystemExit, match="range"):
+        et.config_from_args(argparse.Namespace(quick=False, episodes=None, seeds=["12-10"], methods=None))
 
 
 def test_stack_filters_planner_and_teleop_sources():
@@ -80,7 +131,7 @@ def test_stack_filters_planner_and_teleop_sources():
     targets = np.stack([np.sin(times), np.zeros_like(times)], 1)
     stream = TeleopStream(times, targets, latency=0.1, gain=0.0)
     planner = TrajectorySource(lambda t: (np.array([np.sin(t - 0.1), 0.0]), np.array([np.cos(t - 0.1), 0.0])), gain=0.0)
-    stack = SafetyStack(np.array([1.0, 1.0]))
+    stack = SafetyStack(np.array([1.0, 1.0]), dt=0.01)
     q = np.zeros(2)
     a = stack.run(stream, 0.5, q, None, 0.01)
     b = stack.run(planner, 0.5, q, None, 0.01)
@@ -106,7 +157,8 @@ def test_strategy_filter_slows_down_into_learned_danger():
     assert np.allclose(f(s, np.array([0.05, 0.0])), [0.05, 0.0])  # safe: the command itself
     assert np.allclose(f(s, np.array([1.0, 0.0])), [0.0, 0.0])  # certain danger: stop
     assert np.allclose(f(s, np.array([-1.0, 0.0])), [-1.0, 0.0])  # moving away is safe
-    stack = SafetyStack(np.ones(2), strategy=f, modulation=ModulationLayer(lambda s_, a_: torch.zeros(len(s_)) + 0 * s_.sum(1)))
+    stack = SafetyStack(np.ones(2), strategy=f, modulation=ModulationLayer(lambda s_, a_: torch.zeros(len(s_)) + 0 * s_.sum(1)),
+                        dt=0.01)
     assert np.allclose(stack.tick(0.0, s, None, np.array([1.0, 0.0]), 0.01), 0.0)
 
 
@@ -134,11 +186,15 @@ def test_scenes_run_and_report(tmp_path, scene):
     from skinsafe.core.experiments import scenes as es
 
     args = argparse.Namespace(command_name=scene, out=str(tmp_path), pitch=0.02, duration=1.0 if scene == "desk" else 2.0,
-                              gap=0.1, samples=600, steps=300, tangent_gain=0.0, seed=0, no_progress=True)
+                              gap=0.1, samples=600, steps=300, tangent_gain=0.0, seed=0, no_progress=True, touch=300.0,
+                              forces=[300.0], margin=0.02)
     assert es.run(args) == 0
     res = json.loads((tmp_path / f"{scene}.json").read_text())
     assert (tmp_path / f"{scene}.png").read_bytes()[:4] == b"\x89PNG"
     if scene == "desk":
-        r = res["runs"]["no modulation"]
-        assert r["min_clearance_mm"] < 5  # the retraction reaches the desk without modulation
-        assert min(res["runs"][k]["min_clearance_mm"] for k in res["runs"]) >= -20
+        assert (tmp_path / "desk_sweep.png").read_bytes()[:4] == b"\x89PNG"
+        worst = {r["stack"]: r["min_clearance_mm"] for r in res["sweep_worst"]}
+        assert worst["no modulation"] < 0  # a 300 N touch: the retraction hits the desk without modulation
+        assert worst["TDM modulation, no stop"] < worst["TDM modulation"]  # the stop level keeps it off the desk
+        assert worst["TDM modulation"] > 0 and worst["2-step TDM modulation"] > 0
+        assert all(abs(r["touch_N"] - 300) < 30 for r in res["sweep"])  # the probe presses with the force asked

@@ -139,7 +139,12 @@ def test_quick_experiment_writes_plots_table_and_claim(tmp_path):
     assert (tmp_path / "maze_curves.png").read_bytes()[:4] == b"\x89PNG"
     md = (tmp_path / "maze_contacts.md").read_text()
     assert "| SAC-TDM |" in md and s["claim"]["statement"] in md
-    assert sorted(p.name for p in (tmp_path / "tasks").glob("*.json")) == sorted(f"{m}_s0.json" for m in QUICK_METHODS)
+    # one task file per run; CPO's configuration (the maze's cost budget) adds a digest to its name
+    names = sorted(p.name for p in (tmp_path / "tasks").glob("*.json"))
+    assert len(names) == len(QUICK_METHODS) and all(f"{m}_s0.json" in names for m in QUICK_METHODS if m != "CPO")
+    assert s["methods"]["CPO"]["agent_kw"] == {"cost_limit": pytest.approx(68 / experiment_maze.QUICK["episodes"])}
+    assert data["eval_seeds"] == [0] and data["tuning"] == {} and data["ablation"] == []
+    assert [(p["method"], p["seed"]) for p in data["per_seed"]] == [(m, 0) for m in QUICK_METHODS]
 
 
 def test_claim_check_reports_both_ways():
@@ -243,19 +248,32 @@ def test_visit_counts_are_local_to_the_state_and_the_action():
 
 
 def test_sqrl_multiplier_follows_the_risk_constraint():
-    """Dual gradient descent: nu falls while E_pi[Q_risk] is under eps and rises while it is over."""
+    """The reference's dual step: log nu falls while E_pi[Q_risk] is under eps and rises while it is over,
+    by Adam at a tenth of the learning rate, from nu = 100 (recovery-rl's maze)."""
     env, agent = _maze_agent("SQRL")
+    assert agent.nu == pytest.approx(100.0) and agent.nu_lr == pytest.approx(0.1 * agent.lr)
+    log_nu = torch.tensor([np.log(100.0)], dtype=torch.float64, requires_grad=True)  # the float Adam is torch's Adam
+    adam = torch.optim.Adam([log_nu], lr=agent.nu_lr)
+    for g in (0.1, -0.3, 0.05):
+        log_nu.grad = torch.tensor([g], dtype=torch.float64)
+        adam.step()
+        agent._dual_step(g)
+    assert agent.log_nu == pytest.approx(float(log_nu.detach()), abs=1e-6)
+    agent.log_nu, agent._nu_adam = float(np.log(100.0)), [0.0, 0.0, 0]
     s = MazeFeatures(env.walls)(env.reset()[0])[0]
     for _ in range(64):
         agent.buffer.add(s, 0, 0.0, 0.0, s, 0.0)
+        agent.risk_replay.add(s, 0, 0.0, 0.0, s, 0.0)
     for _ in range(20):
         agent.update(*agent.buffer.sample(agent.rng, 64))
-    assert agent.nu < 1.0
+    assert agent.nu < 100.0 * np.exp(-19 * agent.nu_lr)  # ~lr per Adam step on log nu
     low = agent.nu
-    agent.buffer = type(agent.buffer)(agent.feat_dim)
+    for buf in ("buffer", "risk_replay"):
+        setattr(agent, buf, type(agent.buffer)(agent.feat_dim))
     for a in range(4):  # every action touches: the safety critic learns risk -> 1
         for _ in range(16):
             agent.buffer.add(s, a, 0.0, 1.0, s, 0.0)
+            agent.risk_replay.add(s, a, 0.0, 1.0, s, 0.0)
     for _ in range(150):
         agent.update(*agent.buffer.sample(agent.rng, 64))
     assert float(agent.risk(torch.as_tensor(s[None])).min().detach()) > agent.eps_risk and agent.nu > low
@@ -334,3 +352,71 @@ def test_one_bump_is_enough_for_the_filter_to_trust_the_tdm_but_an_untried_move_
     assert safe[FORWARD] == pytest.approx(w * 0.001 + (1 - w) * (1 - shield.unseen_max), rel=1e-3)
     assert safe[FORWARD] < 0.005  # with a prior worth half a try it was 0.067: a saturated raw policy bumped again
     assert np.allclose(safe[[BACKWARD, LEFT, RIGHT]], 1 - shield.unseen_max, atol=1e-5)
+
+
+def test_wall_moves_are_the_moves_that_bump_and_a_reset_can_start_anywhere():
+    """`wall_moves` (CPO's budget) counts exactly the forward/backward moves that cost a contact in MuJoCo."""
+    from skinsafe.core.learn.maze_env import wall_moves
+
+    env = MazeEnv(max_steps=5)
+    bumps = 0
+    for r, c in np.argwhere(~env.walls):
+        for h in range(4):
+            for a in (FORWARD, BACKWARD):
+                obs, _ = env.reset(options={"start": (int(r), int(c), h)})
+                assert env.cell == (r, c) and env.heading == h and env.t == 0
+                bumps += int(env.step(a)[4]["cost"])
+    assert bumps == wall_moves(env.walls) == 68
+    assert experiment_maze.cpo_budget(200) == pytest.approx(68 / 200)
+
+
+def test_the_tdm_extras_can_each_be_removed():
+    """The ablation's switches: no floor, no entropy on the unfiltered policy, no shrinkage (the TDM's own
+    safety), no contact refit."""
+    env = MazeEnv(max_steps=30)
+    feats = MazeFeatures(env.walls)
+    s = torch.as_tensor(feats(env.reset()[0]))
+    full = make_agent("AC-TDM", 4, 4, env.n_taxels, feats, seed=0)
+    bare = make_agent("AC-TDM", 4, 4, env.n_taxels, feats, seed=0, raw_floor=0.0, unfiltered_entropy=False,
+                      shrink=False, contact_steps=0)
+    from skinsafe.core.safety.danger import action_log_safety
+
+    with torch.no_grad():
+        raw = torch.log_softmax(full._logits(s), -1)
+        for agent in (full, bare):  # a TDM sure that every move is dangerous (each taxel at 50%)
+            agent.shield.model.head.bias.zero_()
+        tdm_own = action_log_safety(bare.shield.model, s, 4)
+    assert float(full.raw_entropy(raw)) > 1.0 and float(bare.raw_entropy(raw)) == 0.0
+    torch.testing.assert_close(bare.shield.log_safety(s), tdm_own)
+    assert float(tdm_own.max()) < np.log(1e-3)
+    torch.testing.assert_close(full.shield.log_safety(s), torch.full_like(tdm_own, float(np.log(0.2))))  # untried: capped
+    torch.testing.assert_close(bare.executed_log_probs(raw, s), torch.log_softmax(raw + tdm_own, -1))
+    env.place(1, 1, 1)
+    danger = env.step(FORWARD)[4]["taxel_danger"]
+    for agent in (full, bare):
+        agent.shield.add(feats(env.place(1, 1, 1))[0], FORWARD, danger)
+    assert full.shield.stats()["grad_steps"] == 100 and bare.shield.stats()["fits"] == 0
+
+
+def test_claim_is_decided_on_intervals_over_seeds_and_names_the_seeds_that_break_it():
+    def per_seed(tdm, rrl, rrl_goal=1.0, offline=0.0):
+        return ([{"method": "SAC-TDM", "seed": i, "total_contacts": t, "online_contacts": t, "goal_rate_last": 1.0}
+                 for i, t in enumerate(tdm)]
+                + [{"method": "RRL", "seed": i, "total_contacts": t + offline, "online_contacts": t, "goal_rate_last": rrl_goal}
+                   for i, t in enumerate(rrl)])
+
+    def rows(ps):
+        return {m: {"goal_rate_last_mean": float(np.mean([p["goal_rate_last"] for p in ps if p["method"] == m])),
+                    "seeds": sum(p["method"] == m for p in ps)} for m in ("SAC-TDM", "RRL")}
+
+    ps = per_seed([60, 62, 64, 66], [100, 110, 105, 95])
+    c = experiment_maze.claim_check(rows(ps), ps)
+    assert c["verdict"] == "holds" and c["pairs"]["SAC-TDM vs RRL"]["ci95"][0] > 0 and c["seeds_beaten"] == []
+    ps = per_seed([60, 62, 64, 66], [40, 150, 45, 160])  # RRL lower on two seeds, higher on two: wide interval
+    c = experiment_maze.claim_check(rows(ps), ps)
+    assert c["verdict"] == "not resolved" and not c["holds"] and c["holds_on_means"]
+    assert [(b["seed"], b["total_contacts"]) for b in c["seeds_beaten"]] == [(0, 40), (2, 45)] and "seed 0: 40" in c["statement"]
+    ps = per_seed([60, 62, 64, 66], [30, 31, 29, 30], offline=900)  # online fewer, but the offline phase counts
+    c = experiment_maze.claim_check(rows(ps), ps)
+    online = experiment_maze.claim_check(rows(ps), ps, key="online_contacts")
+    assert c["verdict"] == "holds" and online["verdict"] == "does not hold" and "does not hold" in online["statement"]

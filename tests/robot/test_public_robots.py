@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from skinsafe.core.app.cli import main
-from skinsafe.core.app.design import design_robot
 from skinsafe.core.bench.robot_import import bare_points
 from skinsafe.core.design.surface import body_surface
 from skinsafe.core.robot.catalog import description
@@ -17,48 +16,45 @@ from skinsafe.core.robot.models import load_robot
 from skinsafe.core.sim.scene import build_scene
 from skinsafe.core.sim.skin_collision import point_clearance, taxel_clearance
 from skinsafe.core.skin.model import DesignError, RobotRef
-from skinsafe.core.skin.taxel_map import save
 
-# two links each, the Gen3's forearm_link among them (its name once sent poke down a UR5-only branch)
-LINKS = {"ur5e": ["forearm_link", "wrist_1_link"], "gen3": ["half_arm_2_link", "forearm_link"],
-         "xarm7": ["link3", "link4"]}
 # the xArm7's home is its zero pose, stretched straight up: a singular pose where no retraction
 # within the joint speed limits gets far (10% of eq. 10's distance), so its slope is not checked
 SINGULAR_HOME = {"xarm7"}
 
 
-@pytest.fixture(scope="module", params=sorted(LINKS))
-def robot_skin(request, tmp_path_factory):
-    ref = description(request.param)
-    robot = load_robot(ref)
-    spec = {"module": {"rows": 3, "cols": 3, "pitch": 0.012}, "bodies": LINKS[request.param]}
-    design = design_robot(robot, ref, spec)[0]
-    path = save(design, tmp_path_factory.mktemp(request.param) / "skin.json")
+@pytest.fixture(scope="module", params=["gen3", "ur5e", "xarm7"])  # conftest.PUBLIC_LINKS
+def robot_skin(request, public_skin):
+    robot, design, path = public_skin(request.param)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no taxel farther than 1 mm from the contact surface
         scene = build_scene(design, robot)
     return robot, design, path, scene
 
 
-def test_design_sits_on_the_visual_surface(robot_skin):
+def test_design_sits_on_the_visual_surface(robot_skin, public_skin):
     robot, design, _, _ = robot_skin
-    assert sorted(design.bodies) == sorted(LINKS[robot.name]) and design.n_taxels >= 2 * 9
+    assert sorted(design.bodies) == sorted(public_skin.links[robot.name]) and design.n_taxels >= 2 * 9
     for bi, b in enumerate(design.bodies):
         full = body_surface(robot.model, b, budget=10 ** 9)
         assert full.closest(design.taxels.positions[design.taxels.body == bi])[3].max() < 1e-4
 
 
 def test_collision_where_the_surface_is_skinned_or_not(robot_skin):
-    """Every link without skin collides within 4 mm of its exposed surface (the descriptions' own
-    collision shapes stood 9-50 mm off it), and every taxel is within 1 mm of the contact surface."""
+    """Every link collides within 4 mm of its exposed surface, a skinned link's outside its taxel
+    cells within 5 mm (the descriptions' own collision shapes stood 9-50 mm off it; skinned links
+    kept them, shrunk under the skin), and every taxel is within 1 mm of the contact surface."""
     robot, design, _, scene = robot_skin
-    gaps = point_clearance(scene, bare_points(robot.model, design, robot.home, n=200), robot.home)
-    assert len(gaps) >= 4 and not set(gaps) & set(design.bodies)
-    worst = {b: float(np.abs(d).max()) for b, d in gaps.items()}
-    assert max(worst.values()) < 4e-3, worst
+    bare = bare_points(robot.model, design, robot.home, n=200)
+    skinned = bare_points(robot.model, design, robot.home, n=200, skinned=True)
+    assert len(bare) >= 4 and not set(bare) & set(design.bodies) and set(skinned) == set(design.bodies)
+    for points, limit in ((bare, 4e-3), (skinned, 5e-3)):
+        gaps = point_clearance(scene, points, robot.home)
+        worst = {b: float(np.abs(d).max()) for b, d in gaps.items()}
+        assert max(worst.values()) < limit, worst
     assert np.abs(taxel_clearance(scene, design, robot.home)).max() <= 1e-3
-    raw = point_clearance(robot.spec, bare_points(robot.model, design, robot.home, n=200), robot.home)
-    assert max(float(np.abs(d).max()) for d in raw.values()) > 10e-3  # what the descriptions' shapes gave
+    raw = point_clearance(robot.spec, {**bare, **skinned}, robot.home)
+    assert min(float(np.abs(raw[b]).max()) for b in design.bodies) > 10e-3  # what the descriptions' shapes gave
+    assert max(float(np.abs(d).max()) for d in raw.values()) > 10e-3
 
 
 def test_export_and_home_keyframe(robot_skin, tmp_path):

@@ -22,7 +22,8 @@ from skinsafe.core.runtime.leader import stream
 from skinsafe.core.skin.taxel_map import save
 
 LINK_LATENCY = 0.5  # s: the host's serial input may be this late before a board is named silent
-TOPICS = {"/joint_states", "/skinsafe/command", "/skinsafe/planned", "/skinsafe/taxels", "/skinsafe/tick", "/diagnostics"}
+TOPICS = {"/joint_states", "/skinsafe/command", "/skinsafe/planned", "/skinsafe/taxels", "/skinsafe/tick",
+          "/skinsafe/layers", "/diagnostics"}
 
 
 @pytest.fixture(scope="module")
@@ -77,6 +78,12 @@ def test_a_poke_is_retracted_and_the_record_replays_exactly(skin, tmp_path):
     assert np.abs(cmd[times > w["onset_t"]]).max() > 0.05  # then the retraction
     taxels = [m for t, m in msgs if t == "/skinsafe/taxels"]
     assert len(taxels[0].data) == s["taxels"] and max(max(m.data) for m in taxels) > 2.0
+    layers = [np.asarray(m.data) for t, m in msgs if t == "/skinsafe/layers"]
+    assert len(layers) == len(cmd)  # one per tick: [f, speed factor, retracting, K, K taxels]
+    assert all(len(x) == 4 + int(x[3]) for x in layers)
+    on = [x for x in layers if x[2] == 1.0]
+    assert on and all(x[3] >= 1 for x in on)  # the retraction names its taxels
+    assert not any(x[2] for x, tt in zip(layers, times) if tt < w["onset_t"])
     r = skinsafe("replay", record, "--json")
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)

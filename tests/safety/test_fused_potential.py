@@ -62,8 +62,9 @@ def test_stack_reads_the_head_once_per_tick_where_the_first_candidate_wins_or_it
         tdm.head.bias.fill_(-12.0)  # little danger: the commanded candidate wins
     calls = []
     for prior in (PRIOR, np.ones(3)):
-        d = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits)
-        stack = SafetyStack(robot.vel_limits, d, ModulationLayer(DangerPotential(tdm)), StrategyFilter(tdm, prior=prior))
+        d = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits, dt=0.002)
+        stack = SafetyStack(robot.vel_limits, d, ModulationLayer(DangerPotential(tdm)), StrategyFilter(tdm, prior=prior),
+                            dt=0.002)
         fp = stack.strategy.fast
         assert fp is stack.modulation._eval
         count = {"rows": 0, "backward": 0, "fused": 0}

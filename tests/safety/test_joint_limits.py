@@ -56,11 +56,12 @@ def test_brake_slows_every_joint_at_its_limit_and_stops():
 
 
 @pytest.mark.parametrize("kw,match", [
-    ({"vel": [1.0, -1.0], "acc": [1.0, 1.0]}, "'vel' must be positive"),
-    ({"vel": [1.0, 1.0], "acc": [0.0, 1.0]}, "'acc' must be positive"),
-    ({"vel": [1.0, 1.0], "acc": [1.0, 1.0, 1.0]}, "one value per joint"),
+    ({"vel": [1.0, -1.0], "acc": [1.0, 1.0], "dt": 0.002}, "'vel' must be positive"),
+    ({"vel": [1.0, 1.0], "acc": [0.0, 1.0], "dt": 0.002}, "'acc' must be positive"),
+    ({"vel": [1.0, 1.0], "acc": [1.0, 1.0, 1.0], "dt": 0.002}, "one value per joint"),
     ({"vel": [1.0, 1.0], "acc": [1.0, 1.0], "dt": 0.0}, "'dt' is 0.0"),
-    ({"vel": [np.inf, 1.0], "acc": [1.0, 1.0]}, "'vel' must be positive finite"),
+    ({"vel": [1.0, 1.0], "acc": [1.0, 1.0], "dt": None}, "'dt' is None; it must be the positive control period"),
+    ({"vel": [np.inf, 1.0], "acc": [1.0, 1.0], "dt": 0.002}, "'vel' must be positive finite"),
 ])
 def test_limits_refused_with_what_to_change(kw, match):
     with pytest.raises(ValueError, match=match):

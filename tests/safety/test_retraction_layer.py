@@ -15,7 +15,7 @@ from skinsafe.core.safety.retraction import RetractionParams
 ROBOT = build_ur5()
 DESIGN = make_sample_design("ur5", robot=ROBOT)
 KIN = TaxelKinematics(ROBOT.model, DESIGN)
-N = DESIGN.n_taxels
+N, DT = DESIGN.n_taxels, 0.002
 # UR5 singular configurations: stretched up (shoulder + elbow + wrist at once), elbow straight,
 # wrist_2 = 0 (wrist 1 and 3 axes aligned), wrist centre on the shoulder axis.
 SINGULAR = {
@@ -28,7 +28,8 @@ SINGULAR = {
 
 
 def layer(**kw):
-    return DefensivenessLayer(KIN, DESIGN.taxels.thresholds, ROBOT.vel_limits, ROBOT.acc_limits, RetractionParams(**kw))
+    return DefensivenessLayer(KIN, DESIGN.taxels.thresholds, ROBOT.vel_limits, ROBOT.acc_limits, RetractionParams(**kw),
+                              DT)
 
 
 def taxel_on(body: str, k: int = 0) -> int:
@@ -143,7 +144,7 @@ def test_extremes_stay_finite_limited_and_retract(config, force, T, alpha, eps, 
     idx = _trigger_set(kind, k, rng)
     acc_limits = ROBOT.acc_limits if acc == "robot" else np.full(6, 1e12)
     L = DefensivenessLayer(KIN, DESIGN.taxels.thresholds, ROBOT.vel_limits, acc_limits,
-                           RetractionParams(alpha=alpha, T=T, epsilon=eps, form=form))
+                           RetractionParams(alpha=alpha, T=T, epsilon=eps, form=form), DT)
     f = np.zeros(N)
     f[idx] = np.maximum(force * rng.uniform(0.5, 1.0, len(idx)), 2.5)  # all above the 2 N threshold
     dt, q, prev = 0.002, q0.copy(), np.zeros(6)
@@ -170,7 +171,7 @@ def test_ten_thousand_triggered_taxels():
     kin = TaxelKinematics(robot.model, design)
     for eps in (0.0, 1.0):
         L = DefensivenessLayer(kin, design.taxels.thresholds, robot.vel_limits, robot.acc_limits,
-                               RetractionParams(epsilon=eps, T=0.1))
+                               RetractionParams(epsilon=eps, T=0.1), DT)
         f = {"force": np.linspace(3.0, 1e6, 10_000)}
         q = SINGULAR["all"].copy()
         for t in (0.0, 0.02, 0.04):
@@ -182,22 +183,27 @@ def test_ten_thousand_triggered_taxels():
 
 def test_bad_input_is_named():
     with pytest.raises(ValueError, match="thresholds\\['force'\\] has shape \\(3,\\)"):
-        DefensivenessLayer(KIN, {"force": np.ones(3)}, ROBOT.vel_limits, ROBOT.acc_limits)
+        DefensivenessLayer(KIN, {"force": np.ones(3)}, ROBOT.vel_limits, ROBOT.acc_limits, dt=DT)
     with pytest.raises(ValueError, match="'vel' must be positive finite numbers.*6 joints"):
-        DefensivenessLayer(KIN, DESIGN.taxels.thresholds, -ROBOT.vel_limits, ROBOT.acc_limits)
-    L = layer()
-    with pytest.raises(ValueError, match="N = %d" % N):
-        L.tick(0.0, ROBOT.home, {"force": np.zeros(5)})
+        DefensivenessLayer(KIN, DESIGN.taxels.thresholds, -ROBOT.vel_limits, ROBOT.acc_limits, dt=DT)
+    with pytest.raises(ValueError, match="give dt, the control period"):
+        DefensivenessLayer(KIN, DESIGN.taxels.thresholds, ROBOT.vel_limits, ROBOT.acc_limits)
     with pytest.raises(ValueError, match="T = 0.01 s is under 10 control periods"):
-        DefensivenessLayer(KIN, DESIGN.taxels.thresholds, ROBOT.vel_limits, ROBOT.acc_limits, RetractionParams(T=0.01))
-    assert np.array_equal(L.tick(0.0, ROBOT.home, {}), np.zeros(6))  # no readings: no contact
-    assert np.array_equal(L.tick(0.002, ROBOT.home, {"pressure": np.ones(N)}), np.zeros(6))  # no threshold: ignored
+        DefensivenessLayer(KIN, DESIGN.taxels.thresholds, ROBOT.vel_limits, ROBOT.acc_limits, RetractionParams(T=0.01),
+                           DT)
+    L = layer()
+    plan = np.full(6, 0.5)
+    assert np.array_equal(L.tick(0.0, ROBOT.home, {"force": np.zeros(N)}, plan), np.full(6, 15.0 * DT))
+    # no force readings, or a cut-off array: missing data brakes (from 0.03 rad/s) and is flagged, never "no contact"
+    for k, r in enumerate([{}, {"force": np.zeros(5)}, {"pressure": np.zeros(N)}], 1):
+        assert np.allclose(L.tick(k * DT, ROBOT.home, r, plan), 0.0) and L.info.missing == ("force",) and L.info.safe
+    assert L.flags["missing:force"] == L.flags["missing"] == 3
 
 
 def test_other_stimuli_trigger_with_their_own_gain():
     i = taxel_on("wrist_1_link", 2)
     th = dict(DESIGN.taxels.thresholds, temperature=np.full(N, 45.0))
-    L = DefensivenessLayer(KIN, th, ROBOT.vel_limits, ROBOT.acc_limits, RetractionParams())
+    L = DefensivenessLayer(KIN, th, ROBOT.vel_limits, ROBOT.acc_limits, RetractionParams(), DT)
     temp = np.full(N, 25.0)
     temp[i] = 60.0
     L.tick(0.0, ROBOT.home, {"force": np.zeros(N), "temperature": temp})

@@ -3,19 +3,21 @@ import json
 
 from skinsafe.core.app.cli import main
 
-KEYS = {"robot", "contacts", "cases", "feasible", "into_contact_mm_worst", "dominant_ratio_min", "vel_limit_violations",
-        "acc_limit_violations", "nonfinite_cases", "fail_open", "ms_median", "ms_worst"}
+KEYS = {"robot", "contacts", "cases", "feasible", "into_contact_mm_worst", "into_contact_mm_worst_all", "infeasible_cases",
+        "dominant_ratio_min", "vel_limit_violations", "acc_limit_violations", "nonfinite_cases", "missing_cases",
+        "fail_open", "ms_median", "ms_worst"}
 
 
 def test_audit_rows_small_run(capsys):
-    assert main(["bench", "safety", "--json", "--cases", "2", "--nonfinite", "4", "--contacts", "1,3", "--workers", "0"]) == 0
+    assert main(["bench", "safety", "--json", "--cases", "2", "--nonfinite", "12", "--contacts", "1,3", "--workers", "0"]) == 0
     rows = json.loads(capsys.readouterr().out)
     assert [(r["robot"], r["contacts"]) for r in rows] == [("ur5", 1), ("ur5", 3), ("panda", 1), ("panda", 3)]
     for r in rows:
-        assert KEYS <= set(r) and r["cases"] == 2 and r["nonfinite_cases"] == 4
+        assert KEYS <= set(r) and r["cases"] == 2 and r["nonfinite_cases"] == 12
         assert r["vel_limit_violations"] == r["acc_limit_violations"] == r["fail_open"] == 0
-        assert r["into_contact_mm_worst"] <= 0.5
+        assert r["into_contact_mm_worst"] <= 0.5 and r["into_contact_mm_worst_all"] <= 2.0
         assert r["dominant_ratio_min"] is None or r["dominant_ratio_min"] > 0.95
+    assert sum(r["missing_cases"] for r in rows) >= 8  # 4 of the 11 injection kinds are missing readings
 
 
 def test_eq2_rows_show_the_bias(capsys):

@@ -5,7 +5,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from skinsafe.core.bench.robot_import import design_arm, pokes, self_contacts
+from skinsafe.core.app.design import design_robot
+from skinsafe.core.bench.robot_import import pokes, self_contacts
+from skinsafe.core.design.surface import cached_surfaces
 from skinsafe.core.robot.models import load_robot
 from skinsafe.core.sim.scene import Obstacle, SceneOptions, build_scene
 from skinsafe.core.sim.skin_collision import taxel_clearance
@@ -17,7 +19,9 @@ ASSET = Path(__file__).resolve().parents[2] / "blend_assets" / "franka_descripti
 def test_skin_sits_on_the_contact_surface_and_feels_pokes():
     ref = RobotRef("urdf", "franka", str(ASSET / "robots/panda/panda.urdf.xacro"), (str(ASSET),))
     robot = load_robot(ref)
-    design, surfaces = design_arm(robot, ref, bodies=["panda_link2", "panda_link4"])
+    bodies = ["panda_link2", "panda_link4"]
+    design = design_robot(robot, ref, {"module": {"rows": 4, "cols": 4, "pitch": 0.012}, "bodies": bodies})[0]
+    surfaces = cached_surfaces(robot.model, bodies)
     assert design.n_taxels >= 64
     # the robot's own collision shapes stand far above the skin: a warning says so
     with warnings.catch_warnings(record=True) as caught:

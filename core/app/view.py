@@ -1,0 +1,179 @@
+"""`skinsafe view SOURCE`: the live view in a browser (viser), of a running `skinsafe run --view` or a record.
+
+SOURCE is `HOST:PORT` (a view stream: `skinsafe run --view` publishes one, core/runtime/view_stream.py) or
+`FILE.mcap` (a `run --record` record, or an experiment's: core/runtime/sim_record.py; read by core/runtime/
+recording.py). `--tracking RESULT.json` runs an episode of the tracking experiment again into a record
+first (core/app/experiment_view.py). The page (core/app/view_page.py) runs in this process, apart from the
+control loop: a live view takes the newest tick at `--fps` and drops the rest; a record gets a timeline
+(slider, play, next contact). `--publish [HOST:]PORT` also replays a record as a view stream, following
+the timeline (Blender's add-on attaches to it as to a live run, or opens the record itself).
+"""
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from skinsafe.core.runtime.recording import Recording
+from skinsafe.core.runtime.replay import ReplayError
+from skinsafe.core.runtime.tap import Tap
+from skinsafe.core.runtime.view_stream import DEFAULT_PORT, StreamError, ViewClient, ViewPublisher, hello
+
+
+def add_arguments(p) -> None:
+    p.add_argument("source", nargs="?", help="HOST:PORT of a live view stream (`skinsafe run --view`), or a record "
+                   "FILE.mcap")
+    p.add_argument("--host", default="127.0.0.1", help="address the page is served on (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8080, help="the page's port (default 8080)")
+    p.add_argument("--fps", type=float, default=20.0, help="page updates per second at most (live; default 20)")
+    p.add_argument("--vmax", type=float, help="top of the colour scale, N (default: twice the largest threshold)")
+    p.add_argument("--map", help="the taxel map (default: the one the source names)")
+    p.add_argument("--publish", metavar="[HOST:]PORT", help="record: also publish it as a view stream (for Blender), "
+                   "following the timeline")
+    p.add_argument("--seconds", type=float, help="serve this long, then exit (default: until Ctrl-C)")
+    g = p.add_argument_group("an experiment's episode (run again into a record, then viewed)")
+    g.add_argument("--tracking", metavar="RESULT.json", help="a `skinsafe experiment tracking` result (tracking.json)")
+    g.add_argument("--method", default="vanilla", help="--tracking: vanilla | tdm | tdm2 (default vanilla)")
+    g.add_argument("--seed", type=int, default=0, help="--tracking: the seed (default 0)")
+    g.add_argument("--episode", type=int, default=0, help="--tracking: the episode (default 0)")
+    g.add_argument("--record", metavar="FILE.mcap", help="--tracking: where to write the record (default: beside "
+                   "RESULT.json); `skinsafe view FILE.mcap` opens it again")
+    p.add_argument("--until-ended", action="store_true", help="live: exit when the stream ends (as the page "
+                   "`run --view` starts does, so it never outlives its run)")
+
+
+def _load_design(map_path: str, override: str | None):
+    from skinsafe.core.robot.models import load_robot
+    from skinsafe.core.skin.taxel_map import load
+
+    mp = Path(override or map_path)
+    try:
+        design = load(mp)
+    except OSError as e:
+        raise StreamError(f"the taxel map {mp} cannot be read ({e.strerror or e}); give it with --map") from None
+    robot = load_robot(design.robot, base_dir=mp.parent)
+    return load(mp, robot.body_names), robot
+
+
+def _endpoint(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:
+    host, _, port = text.rpartition(":")
+    try:
+        return host or default_host, int(port)
+    except ValueError:
+        raise StreamError(f"{text!r}: give HOST:PORT (e.g. 127.0.0.1:{DEFAULT_PORT}) or a record FILE.mcap") from None
+
+
+def serve_live(args, stop: threading.Event) -> int:
+    from skinsafe.core.app.view_page import Page
+
+    client = ViewClient(*_endpoint(args.source))
+    h = client.hello
+    design, robot = _load_design(h["map"], args.map)
+    if design.n_taxels != h["n_taxels"]:
+        raise StreamError(f"the stream has {h['n_taxels']} taxels, the map {design.n_taxels}; give the run's map with --map")
+    page = Page(design, robot.model, args.host, args.port, args.vmax, "skinsafe live", h["boards"], q0=robot.home,
+                board_period_s=h.get("board_period_s", 0.0))
+    print(f"skinsafe view: live from {args.source} ({h['n_taxels']} taxels) at {page.url}", flush=True)
+    try:
+        while not stop.is_set() and not client.closed:
+            newest = client.poll()
+            if newest is not None:
+                page.show(*newest, live=True)
+            stop.wait(1.0 / args.fps)
+        if client.closed:
+            print("skinsafe view: the stream ended (the run stopped)", file=sys.stderr)
+            if not args.until_ended:
+                stop.wait()  # the page keeps the last tick until Ctrl-C / --seconds
+    finally:
+        client.close()
+        page.close()
+    return 0
+
+
+def serve_record(args, stop: threading.Event) -> int:
+    from skinsafe.core.app.view_page import Page
+
+    rec = Recording(args.source)
+    cfg = rec.config
+    design, robot = _load_design(cfg["map"], args.map)
+    if design.n_taxels != rec.forces.shape[1]:
+        raise StreamError(f"{args.source}: {rec.forces.shape[1]} taxels recorded, the map {design.n_taxels}; give "
+                          "the run's map with --map")
+    state = {"i": 0}
+    tap = Tap()
+
+    def on_time(t):
+        state["i"] = rec.index(t)
+        page.show(*rec.frame(state["i"]))
+        tap.publish(rec.tap_frame(state["i"]))
+
+    step = float(cfg.get("period_s") or np.median(np.diff(rec.t)) if len(rec.t) > 1 else 0.01)
+    page = Page(design, robot.model, args.host, args.port, args.vmax, f"skinsafe {Path(args.source).name}",
+                {b.uid: b.name for b in design.boards}, (float(rec.t[0]), float(rec.t[-1]), step), on_time,
+                rec.next_contact, cfg.get("obstacles", ()), rec.q[0], cfg.get("board_period_s", 0.0))
+    page.plot_series(rec.t, rec.retracting, rec.speed_factor, rec.potential)
+    on_time(rec.t[0])
+    pub = None
+    if args.publish:
+        host, port = _endpoint(args.publish)
+        pub = ViewPublisher(tap.latest, hello(design.n_taxels, design.taxels.ids, cfg["joint_names"],
+                                              {b.uid: b.name for b in design.boards}, cfg["map"],
+                                              cfg.get("map_sha256", ""), cfg.get("period_s", 0.0), "record",
+                                              cfg.get("board_period_s", 0.0)),
+                            host, port)
+        print(f"skinsafe view: publishing the record's timeline at {pub.address[0]}:{pub.address[1]}", flush=True)
+    print(f"skinsafe view: {args.source}: {len(rec.t)} ticks, {rec.t[-1] - rec.t[0]:.2f} s, {design.n_taxels} taxels "
+          f"at {page.url}", flush=True)
+    try:
+        last = time.monotonic()
+        while not stop.wait(0.05):
+            now = time.monotonic()
+            if page.slider is not None and page.playing:
+                t = float(page.slider.value) + (now - last)
+                if t >= rec.t[-1]:
+                    t, page.playing = float(rec.t[-1]), False
+                page.goto(t)
+            last = now
+    finally:
+        if pub is not None:
+            pub.close()
+        page.close()
+    return 0
+
+
+def _tracking_record(args) -> str:
+    from skinsafe.core.app.experiment_view import record_tracking
+
+    out = Path(args.record or Path(args.tracking).with_name(f"tracking_{args.method}_s{args.seed}_e{args.episode}.mcap"))
+    print(f"skinsafe view: running {args.method} seed {args.seed} episode {args.episode} of {args.tracking} again "
+          f"into {out}", flush=True)
+    r = record_tracking(args.tracking, out, args.method, args.seed, args.episode)
+    same = "as" if r["contacts"] == r["contacts_in_result"] else "NOT as"
+    print(f"skinsafe view: {r['ticks']} ticks, {r['contacts']} contact ticks ({same} in the result: "
+          f"{r['contacts_in_result']})", flush=True)
+    return str(out)
+
+
+def run(args) -> int:
+    stop = threading.Event()
+    if args.seconds is not None:
+        timer = threading.Timer(args.seconds, stop.set)
+        timer.daemon = True
+        timer.start()
+    try:
+        if args.tracking:
+            args.source = _tracking_record(args)
+        if not args.source:
+            raise ValueError("give HOST:PORT, a record FILE.mcap, or --tracking RESULT.json")
+        if args.source.endswith(".mcap"):
+            return serve_record(args, stop)
+        return serve_live(args, stop)
+    except (StreamError, ReplayError, ValueError, OSError) as e:
+        print(f"skinsafe view: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        stop.set()
+        return 130

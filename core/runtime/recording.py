@@ -1,0 +1,107 @@
+"""A record (`skinsafe run --record`, or an experiment's: core/runtime/sim_record.py) as arrays for a viewer:
+each tick's time, q, command, forces and layers' states, any tick in the view stream's frame format, the
+next contact after a time. Used by `skinsafe view FILE.mcap` and Blender's live link (mcap and
+mcap-ros2-support read it; no mujoco)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from skinsafe.core.runtime.replay import ReplayError, read_record
+from skinsafe.core.runtime.tap import Frame
+
+
+class Recording:
+    """A record's ticks as arrays (time on the robot's clock) and the view-stream frame of any tick."""
+
+    def __init__(self, path: str | Path):
+        self.config, messages = read_record(path, diagnostics=True)
+        t, q, cmd, planned, force_at, layers, diag = [], [], [], [], [], [], []
+        forces, cur = [], {}
+        for topic, msg in messages:
+            if topic == "/joint_states":
+                cur["q"] = np.asarray(msg.position, float)
+            elif topic == "/skinsafe/command":
+                cur["command"] = np.asarray(msg.velocity, float)
+            elif topic == "/skinsafe/planned":
+                cur["planned"] = np.asarray(msg.velocity, float)
+            elif topic == "/skinsafe/taxels":
+                forces.append(msg.astype(np.float32))
+            elif topic == "/skinsafe/layers":
+                cur["layers"] = msg
+            elif topic == "/skinsafe/tick":
+                t.append(msg[0])
+                q.append(cur.get("q"))
+                cmd.append(cur.get("command"))
+                planned.append(cur.get("planned"))
+                force_at.append(len(forces) - 1)
+                layers.append(cur.pop("layers", None))
+            elif topic == "/diagnostics":
+                diag.append((t[-1] if t else 0.0, _diagnostics(msg)))
+        if not t or q[0] is None:
+            raise ReplayError(f"{path}: no tick recorded (the robot never moved)")
+        self.t = np.asarray(t)
+        self.q, self.command = np.array(q), np.array(cmd)
+        self.planned = planned
+        self.forces = np.array(forces) if forces else np.zeros((1, 0), np.float32)
+        self.force_at = np.asarray(force_at)
+        none = np.array([0.0, 1.0, 0.0, 0.0])
+        self.layers = [x if x is not None else none for x in layers]
+        self.potential = np.array([x[0] for x in self.layers])
+        self.speed_factor = np.array([x[1] for x in self.layers])
+        self.retracting = np.array([x[2] for x in self.layers])
+        self.diag_t = np.array([d[0] for d in diag])
+        self.diag = [d[1] for d in diag]
+        self.stop = next((d["skinsafe/watchdog"]["message"] for _, d in diag[::-1] if "skinsafe/watchdog" in d), "")
+        peak = np.array([np.nanmax(f) if f.size else 0.0 for f in self.forces])
+        self.peak = np.where(self.force_at >= 0, peak[np.maximum(self.force_at, 0)], 0.0)
+        # a contact: a retraction (a run), or a taxel over the threshold (an experiment: no retraction layer)
+        self.active = (self.peak > self.config["threshold_N"] if self.config.get("source") == "experiment"
+                       else self.retracting > 0).astype(float)
+
+    def index(self, t: float) -> int:
+        """The tick nearest to time t."""
+        i = int(np.clip(np.searchsorted(self.t, t), 1, max(1, len(self.t) - 1)))
+        return i - 1 if len(self.t) < 2 or t - self.t[i - 1] <= self.t[i] - t else i
+
+    def frame(self, i: int) -> tuple[dict, np.ndarray]:
+        """Tick i in the view stream's frame format (header, forces)."""
+        k = self.force_at[i]
+        force = self.forces[k].astype(float) if k >= 0 else np.full(self.forces.shape[1], np.nan)
+        lay = self.layers[i]
+        d = self.diag[max(0, int(np.searchsorted(self.diag_t, self.t[i], side="right")) - 1)] if self.diag else {}
+        layers = d.get("skinsafe/layers", {}).get("values", {})
+        skin = d.get("skinsafe/skin", {}).get("values", {})
+        ages = {k.split()[1]: float(v) for k, v in skin.items() if k.startswith("board ")}
+        last = i == len(self.t) - 1
+        h = {"kind": "frame", "seq": i + 1, "t": float(self.t[i]), "q": self.q[i].tolist(),
+             "command": self.command[i].tolist(), "planned": None if self.planned[i] is None else self.planned[i].tolist(),
+             "retracting": bool(lay[2]), "pool": [int(x) for x in lay[4:]], "potential": float(lay[0]),
+             "speed_factor": float(lay[1]), "flags": [f for f in layers.get("flags", "").split(",") if f],
+             "stop": self.stop if last else "", "board_age_ms": {str(int(u, 16)): a for u, a in ages.items()},
+             "frames_lost": int(skin.get("frames_lost", 0))}
+        return h, force
+
+    def next_contact(self, t: float) -> float | None:
+        """The time of the largest reading of the next contact (`active`) after `t` (None: no more)."""
+        i = self.index(t)
+        on = np.flatnonzero((self.active[i + 1:] > 0) & (self.active[i:-1] == 0)) + i + 1 if i + 1 < len(
+            self.t) else np.zeros(0, int)
+        if not len(on):
+            return None
+        start = int(on[0])
+        end = start + int(np.argmax(self.active[start:] == 0)) if (self.active[start:] == 0).any() else len(self.t)
+        return float(self.t[start + int(np.argmax(self.peak[start:end]))])
+
+    def tap_frame(self, i: int) -> Frame:
+        """Tick i as the runtime's tap frame (for `--publish`)."""
+        h, force = self.frame(i)
+        return Frame(h["t"], self.q[i], force, self.command[i], h["retracting"], len(h["pool"]), tuple(h["flags"]),
+                     h["stop"], self.planned[i], np.array(h["pool"]), h["potential"], h["speed_factor"],
+                     {int(k): v / 1e3 for k, v in h["board_age_ms"].items()}, h["frames_lost"])
+
+
+def _diagnostics(msg) -> dict:
+    return {s.name: {"level": int(s.level), "message": s.message, "values": {kv.key: kv.value for kv in s.values}}
+            for s in msg.status}

@@ -1,0 +1,58 @@
+"""A simulated run (an experiment's episode) written as a runtime record: the same MCAP topics and
+metadata as `skinsafe run --record` (core/runtime/record.py), so `skinsafe view FILE.mcap` and Blender's
+live link show an experiment as they show a run.
+
+`SimRecord(path, design, joint_names, period_s, ...)` saves the design as the record's taxel map
+(`FILE.skin.json` beside it), then `tick(...)` once per control tick and `close()`. The runtime's
+Recorder writes it, waiting for its writer instead of dropping ticks (no loop to keep here). Its
+metadata says `"source": "experiment"` (a replay refuses it: the experiment's controller is not the
+runtime's stack) and carries the scene's obstacles (spheres) for the view.
+"""
+from __future__ import annotations
+
+import hashlib
+import time
+from pathlib import Path
+
+import numpy as np
+
+from skinsafe.core.runtime.record import Recorder
+
+
+class SimRecord:
+    def __init__(self, path: str | Path, design, joint_names, period_s: float, experiment: str = "",
+                 obstacles: list[dict] = (), meta: dict | None = None):
+        from skinsafe.core.skin.taxel_map import save
+
+        self.path = Path(path)
+        self.map = save(design, self.path.with_suffix(".skin.json")).resolve()
+        config = {"source": "experiment", "experiment": experiment, "map": str(self.map),
+                  "map_sha256": hashlib.sha256(self.map.read_bytes()).hexdigest(), "joint_names": list(joint_names),
+                  "period_s": float(period_s), "obstacles": list(obstacles),
+                  "threshold_N": float(np.max(design.taxels.thresholds.get("force", [np.inf]))), **(meta or {})}
+        self.rec = Recorder(self.path, list(joint_names), config)
+        self.n = design.n_taxels
+        self.t0_ns, self.ticks, self.prev = time.time_ns(), 0, None
+
+    def tick(self, t: float, q, command, planned=None, force=None, potential: float = 0.0, retracting: bool = False,
+             pool_taxels=(), flags=()) -> None:
+        """One control tick at time t (s): measured q, the command sent, the controller's plan (None: the
+        command), the taxel forces (N, design order), the layers' states."""
+        q, command = np.asarray(q, float), np.asarray(command, float)
+        planned = command if planned is None else np.asarray(planned, float)
+        dt = t - self.prev[0] if self.prev else 0.0
+        qd = (q - self.prev[1]) / dt if self.prev and dt > 0 else np.zeros_like(q)
+        norm = float(np.linalg.norm(planned))
+        factor = float(np.linalg.norm(command)) / norm if norm > 1e-12 else 1.0
+        pool = np.asarray(pool_taxels, float)
+        self.ticks += 1
+        self.rec.put((self.t0_ns + int(t * 1e9), self.ticks, float(t), dt, q, qd,
+                      None if force is None else np.asarray(force, float), float(self.ticks), planned, command,
+                      tuple(flags), bool(retracting), len(pool), {}, 0, 0.0, 1.0, float(potential), factor, pool),
+                     wait=True)
+        self.prev = (t, q)
+
+    def close(self, reason: str = "the episode ended") -> dict:
+        t = self.prev[0] if self.prev else 0.0
+        return self.rec.close({"reason": reason, "kind": "end", "t": t, "ns": self.t0_ns + int(t * 1e9),
+                               "ticks": self.ticks, "dropped": self.rec.dropped})
