@@ -10,6 +10,7 @@ the timeline (Blender's add-on attaches to it as to a live run, or opens the rec
 """
 from __future__ import annotations
 
+import json
 import sys
 import threading
 import time
@@ -37,7 +38,7 @@ def add_arguments(p) -> None:
     g = p.add_argument_group("an experiment's episode (run again into a record, then viewed)")
     g.add_argument("--tracking", metavar="RESULT.json", help="a `skinsafe experiment tracking` result (tracking.json)")
     g.add_argument("--method", default="vanilla", help="--tracking: vanilla | tdm | tdm2 (default vanilla)")
-    g.add_argument("--seed", type=int, default=0, help="--tracking: the seed (default 0)")
+    g.add_argument("--seed", type=int, default=None, help="--tracking: the seed (default: the result's first)")
     g.add_argument("--episode", type=int, default=0, help="--tracking: the episode (default 0)")
     g.add_argument("--record", metavar="FILE.mcap", help="--tracking: where to write the record (default: beside "
                    "RESULT.json); `skinsafe view FILE.mcap` opens it again")
@@ -147,6 +148,9 @@ def serve_record(args, stop: threading.Event) -> int:
 def _tracking_record(args) -> str:
     from skinsafe.core.app.experiment_view import record_tracking
 
+    if args.seed is None:
+        seeds = json.loads(Path(args.tracking).read_text()).get("runs", {}).get(args.method, {})
+        args.seed = min((int(k) for k in seeds), default=0)
     out = Path(args.record or Path(args.tracking).with_name(f"tracking_{args.method}_s{args.seed}_e{args.episode}.mcap"))
     print(f"skinsafe view: running {args.method} seed {args.seed} episode {args.episode} of {args.tracking} again "
           f"into {out}", flush=True)

@@ -104,7 +104,10 @@ def clone(tmp_path_factory):
             (dst / f).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(ROOT / f, dst / f)
     (dst / ".venv").symlink_to(Path(sys.prefix))
-    os.utime(dst / "pyproject.toml", (0, 0))  # older than the venv's stamp: `make` never reinstalls into this venv
+    if (ROOT / ".venv-franky").is_dir():  # franky-sim's environment, which `make test` builds before the suite
+        (dst / ".venv-franky").symlink_to(ROOT / ".venv-franky")
+    for f in ("pyproject.toml", "Makefile"):  # older than the venvs' stamps: `make` never reinstalls into them
+        os.utime(dst / f, (0, 0))
     return dst
 
 
