@@ -48,7 +48,6 @@ import numba
 import numpy as np
 
 from skinsafe.core.robot.kinematics import TaxelKinematics
-from skinsafe.core.safety import qp
 from skinsafe.core.sim.body_regions import REGIONS, Region, region
 
 FACING = np.cos(np.pi / 4)  # a part constrains a taxel whose normal points within 45 degrees of it
@@ -258,6 +257,8 @@ class PFLCap:
     def _retreat(self, v: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """The command nearest to v meeting every bound (some are negative: the robot must move
         the taxels away); a stop (and `failed`) where none does."""
+        from skinsafe.core.safety import qp  # DAQP only where a retreat is needed: the add-on's map never loads it
+
         self.retreats += 1
         A = np.einsum("ij,ijk->ik", self.wrench[rows], self._G[self.slot[rows]])
         n = len(v)
