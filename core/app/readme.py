@@ -176,23 +176,42 @@ def _short(s: str) -> str:
 
 
 def maze_grid(root: Path) -> str:
-    """The full maze grid: contacts per method (mean ± std, per seed), goal rates per seed."""
+    """The full maze grid on the held-out seeds: contacts per method (mean and 95% interval, online and
+    offline apart, per seed), goal rates per seed, the configuration tuning chose."""
     data = load(root, "results/maze/maze_results.json")
-    summary, runs = data["summary"], data["runs"]
+    summary, tuning = data["summary"], data.get("tuning", {})
     tdm = {m for m in summary["methods"] if m.endswith("-TDM")}
-    n = summary["config"]["seeds"]
-    last = summary["config"].get("last", 20)
-    lines = [f"| method | total contact events (mean ± std, {n} seeds) | per seed | goal rate, last {last} episodes "
-             "(per seed) |", "| --- | ---: | --- | --- |"]
+    seeds = data["eval_seeds"]
+    lines = [f"| method | total contacts, mean [95% CI] over seeds {seeds[0]}-{seeds[-1]} | online / offline | per seed "
+             "(total) | goal rate, last 20 episodes (per seed) | tuned configuration |",
+             "| --- | ---: | ---: | --- | --- | --- |"]
     for method, s in summary["methods"].items():
-        mine = sorted((r for r in runs if r["method"] == method), key=lambda r: r["seed"])
-        per_seed = " / ".join(fmt(int(sum(r["costs"]))) for r in mine)
-        rates = [sum(r["goals"][-last:]) / len(r["goals"][-last:]) for r in mine]
+        mine = sorted((r for r in data["per_seed"] if r["method"] == method), key=lambda r: r["seed"])
+        per_seed = " / ".join(fmt(int(r["total_contacts"])) for r in mine)
+        rates = [r["goal_rate_last"] for r in mine]
         goal = "1.00 (all)" if all(g == 1 for g in rates) else \
             f"{s['goal_rate_last_mean']:.2f} ({', '.join(fmt(round(g, 2)) for g in rates)})"
-        cell = f"{s['total_contacts_mean']:,.1f} ± {s['total_contacts_std']:,.1f}"
+        lo, hi = s["total_contacts_ci95"]
+        cell = f"{s['total_contacts_mean']:,.1f} [{max(lo, 0):,.1f}, {hi:,.1f}]"
+        split = f"{s['online_contacts_mean']:,.1f} / {s['offline_contacts_mean']:,.1f}"
+        chosen = tuning.get(method, {}).get("chosen")
+        chosen = "—" if chosen is None else (", ".join(f"{k} {v}" for k, v in chosen.items()) or "defaults")
         name = f"**{method}**" if method in tdm else method
-        lines.append(f"| {name} | {'**' + cell + '**' if method in tdm else cell} | {per_seed} | {goal} |")
+        lines.append(f"| {name} | {'**' + cell + '**' if method in tdm else cell} | {split} | {per_seed} | {goal} | {chosen} |")
+    return "\n".join(lines)
+
+
+def maze_ablation(root: Path) -> str:
+    """Each -TDM extra removed in turn, and given to the baselines where it applies."""
+    rows = load(root, "results/maze/maze_results.json")["ablation"]
+    lines = ["| variant | seeds | total contacts, mean [95% CI] | vs its method's chosen configuration [95% CI] | "
+             "goal rate, last 20 |", "| --- | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        lo, hi = r["ci95"]
+        diff = "—" if r.get("difference_to_chosen") is None else \
+            f"{r['difference_to_chosen']:+,.1f} [{r['difference_ci95'][0]:+,.1f}, {r['difference_ci95'][1]:+,.1f}]"
+        lines.append(f"| {r['variant']} | {r['seeds']} | {r['total_contacts_mean']:,.1f} [{max(lo, 0):,.1f}, {hi:,.1f}] | "
+                     f"{diff} | {r['goal_rate_last_mean']:.2f} |")
     return "\n".join(lines)
 
 
@@ -213,6 +232,13 @@ def safety_audit(root: Path) -> str:
             f"{_opt(r, 'missing_cases', ',')} | {r['fail_open']} | "
             f"{r.get('solver_failed', '—')} | {r['ms_median']:.2f} | {r['ms_p999']:.1f} | {r['ms_worst']:.0f} |")
     return "\n".join(lines)
+
+
+def _against(claim: dict) -> str:
+    """The pairs a -TDM variant does not beat, as '; not below: A vs B (difference [CI])'."""
+    lost = [f"{k} ({v['difference']:+.1f} [{v['ci95'][0]:+.1f}, {v['ci95'][1]:+.1f}])"
+            for k, v in claim.get("pairs", {}).items() if v["verdict"] != "lower"]
+    return f"; not below: {', '.join(lost)}" if lost else ""
 
 
 def _opt(row: dict, key: str, spec: str) -> str:
@@ -263,9 +289,11 @@ def paper_results(root: Path) -> str:
          f"the 6-D task achieves a median {forms['6d']['achieved_median']:.0%} of the commanded −z distance, a 3-D "
          f"task {forms['3d']['achieved_median']:.0%}: we default to 3-D", "`skinsafe poke --out results/poke`"),
         ("Fig. 9", "-TDM variants have the lowest total collisions",
-         f"**{'yes' if maze['claim']['holds'] else 'no'}** ({maze['config']['seeds']} seeds x "
-         f"{maze['config']['episodes']} episodes, all {len(m)} methods; verdict computed in `maze_results.json`): "
-         f"total contacts {totals}; {', '.join(learned)} reach the goal in >= 80% of the last 20 episodes",
+         f"**{'yes' if maze['claim']['holds'] else 'no'}** ({maze['config']['seeds']} held-out seeds x "
+         f"{maze['config']['episodes']} episodes, all {len(m)} methods tuned alike; verdict from 95% intervals in "
+         f"`maze_results.json`): total contacts {totals}{_against(maze['claim'])}; among the methods that reach the "
+         f"goal it {'holds' if maze['claim'].get('holds_among_goal_reaching') else 'does not hold'}; "
+         f"{', '.join(learned)} reach the goal in >= 80% of the last 20 episodes",
          "`skinsafe experiment maze`"),
         ("Fig. 11", "vanilla most contacts; TDM reduces but doesn't improve; 2-step ≈ 0 after 6 episodes",
          f"**{'holds' if track['claim']['holds'] else 'does not hold'}** ({len(track['config']['seeds'])} seeds x "
@@ -315,7 +343,7 @@ def collaboration_sweep(root: Path) -> str:
     return sweep_table(load(root, COLLAB))
 
 
-FIGURES = {"maze-grid": maze_grid, "safety-audit": safety_audit, "paper-results": paper_results,
+FIGURES = {"maze-grid": maze_grid, "maze-ablation": maze_ablation, "safety-audit": safety_audit, "paper-results": paper_results,
            "collaboration": collaboration, "collaboration-sweep": collaboration_sweep}
 
 
