@@ -110,7 +110,8 @@ def test_run_view_live_then_the_record_scrubs_to_the_poke_and_the_taxel_turns_ho
     # runs until Ctrl-C: the live phase takes as long as this machine needs to draw the page, no longer
     run = cli("run", skin, "--boards", "emulate", "--command", "hold", "--rate", 10, "--tare-frames", 10,
               "--contact", f"poke:at={POKE_S},taxel={taxel}", "--seconds", 120, "--record", record, "--view",
-              "--view-port", 8391, "--view-stream", "127.0.0.1:0")
+              "--view-port", 8391, "--view-stream", "127.0.0.1:0",
+              "--link-latency", 0.5)  # the host's serial input may be this late on a loaded machine (README)
     try:
         page = browser.new_page(viewport={"width": W, "height": H})
         for line in run.stderr:  # the page is served before the robot moves
