@@ -159,7 +159,8 @@ def stage_maze(ctx) -> Section:
     third = ("the -TDM variants against the safe-RL baselines of this run" if grid is None or
              any(b in res["methods"] for b in figs.BASELINES) else
              "the -TDM variants against the safe-RL baselines at the paper's budget, from the committed full grid "
-             "(results/maze, which this demo does not re-run)")
+             "(results/maze, which this demo does not re-run; online contacts: RRL's and SQRL's offline phase is in their "
+             "totals, not drawn)")
     return Section("Strategy layer: the maze (paper Fig. 9)", text,
                    images=[(str(figs.save(figs.maze(results, grid), out / "report_maze.png")),
                             f"Left and middle: each method's episode return and contact events per episode in this run "

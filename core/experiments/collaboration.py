@@ -936,5 +936,11 @@ def plot(res: dict):
     ax.set_xlabel("sweep cell (number: damping x attachment x timestep)")
     ax.set_ylabel("peak with full+pfl / without safety (ratio)")
     ax.set_title("person moving into the still robot")
+    if not res["sweep"]:  # a nominal-only run (--no-sweep): say so instead of drawing empty axes
+        for ax in axes[1, 1:]:
+            ax.cla()
+            ax.set_axis_off()
+            ax.text(0.5, 0.5, "sweep not run here (--no-sweep);\nthe full run: skinsafe experiment collaboration",
+                    ha="center", va="center", fontsize=9, transform=ax.transAxes)
     fig.tight_layout()
     return fig
