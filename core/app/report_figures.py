@@ -4,12 +4,11 @@ title and axis labels with units; bands never leave the range the seeds span (a 
 band is drawn only from 3 seeds up, fewer are drawn one line per seed)."""
 from __future__ import annotations
 
-import io
 from pathlib import Path
 
 import numpy as np
 
-from skinsafe.core.skin.files import atomic_write
+from skinsafe.core.skin.files import write_png
 
 SCENE_DT = 0.01  # s: the desk and collaboration scenes' control period (their traces are one value per tick)
 LABELS = {"vanilla": "no modulation", "tdm": "TDM modulation", "tdm2": "2-step TDM modulation"}
@@ -27,10 +26,7 @@ def _plt():
 
 def save(fig, path: Path) -> Path:
     """PNG through a temporary file, cropped to what is drawn (no label cut off at the edge)."""
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    _plt().close(fig)
-    return atomic_write(path, buf.getvalue())
+    return write_png(fig, path, bbox_inches="tight")
 
 
 def _smooth(y: np.ndarray, window: int) -> np.ndarray:

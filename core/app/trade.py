@@ -29,7 +29,6 @@ stops at the end.
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import sys
 from pathlib import Path
@@ -37,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from skinsafe.core.app.knobs import KNOBS
-from skinsafe.core.skin.files import atomic_write
+from skinsafe.core.skin.files import atomic_write, write_png
 
 # --- Pareto front ---------------------------------------------------------------------------
 
@@ -198,10 +197,7 @@ def plot(rows: list[dict], path: Path, title: str = "Speed vs accuracy: each kno
         ax.axis("off")
     fig.suptitle(title)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
-    plt.close(fig)
-    return atomic_write(path, buf.getvalue())
+    return write_png(fig, path, dpi=100, bbox_inches="tight")
 
 
 def write_outputs(rows: list[dict], out: Path) -> list[Path]:

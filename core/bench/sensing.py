@@ -26,7 +26,6 @@ beside the robot. Rows (one per setting):
 """
 from __future__ import annotations
 
-import io
 import sys
 import tempfile
 import time
@@ -286,7 +285,7 @@ def plot(rows: list[dict], path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from skinsafe.core.skin.files import atomic_write
+    from skinsafe.core.skin.files import write_png
 
     present = [k for k in ("taxels", "collision", "timestep") if any(r["sweep"] == k for r in rows)]
     present[1:1] = ["accuracy"] if present[:1] == ["taxels"] else []
@@ -333,10 +332,7 @@ def plot(rows: list[dict], path: str) -> None:
         a3.set_ylabel("real-time factor (blue)")
         ax["timestep"].legend(fontsize=8, loc="upper left")
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    atomic_write(path, buf.getvalue())
+    write_png(fig, path)
 
 
 def rows(args) -> list[dict]:

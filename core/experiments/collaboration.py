@@ -37,7 +37,6 @@ attachment stiffness x physics timestep, for every scenario, the `--sweep-stacks
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import time
 from dataclasses import dataclass
@@ -878,15 +877,11 @@ def _save_plot(res: dict, path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    from skinsafe.core.skin.files import atomic_write
+    from skinsafe.core.skin.files import write_png
 
     fig = plot(res)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    atomic_write(path, buf.getvalue())
+    write_png(fig, path)
 
 
 def plot(res: dict):

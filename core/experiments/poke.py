@@ -17,7 +17,6 @@ Outputs in `--out`: `poke_force_distance.png` (retraction distance vs peak force
 """
 from __future__ import annotations
 
-import io
 import json
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -32,7 +31,7 @@ from skinsafe.core.robot.models import Robot, build_ur5, load_robot
 from skinsafe.core.safety.defensiveness import DefensivenessLayer
 from skinsafe.core.safety.retraction import MERGES, RetractionParams, profile
 from skinsafe.core.skin import taxel_map
-from skinsafe.core.skin.files import atomic_write
+from skinsafe.core.skin.files import atomic_write, write_png
 from skinsafe.core.skin.model import SkinDesign
 
 PROBE_RADIUS = 0.012  # m
@@ -268,16 +267,6 @@ def compare_forms(design, robot, params, stride: int = 25, force: float = 40.0) 
     return out
 
 
-def _save_png(fig, path: Path) -> Path:
-    """Write the figure atomically, close it, return the path."""
-    import matplotlib.pyplot as plt
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    return atomic_write(path, buf.getvalue())
-
-
 def plots(sweep: dict, multi: list[dict], params: RetractionParams, out: Path) -> list[Path]:
     import matplotlib
 
@@ -297,7 +286,7 @@ def plots(sweep: dict, multi: list[dict], params: RetractionParams, out: Path) -
     ax.set_title("Retraction vs poke force (Fig. 8/12)")
     ax.legend()
     fig.tight_layout()
-    paths.append(_save_png(fig, out / "poke_force_distance.png"))
+    paths.append(write_png(fig, out / "poke_force_distance.png"))
 
     fig, ax = plt.subplots(figsize=(5, 4))
     for tt, disp, fp in sweep["curves"]:
@@ -309,7 +298,7 @@ def plots(sweep: dict, multi: list[dict], params: RetractionParams, out: Path) -
     ax.set_title("Displacement vs eq. 10 (dotted)")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    paths.append(_save_png(fig, out / "poke_displacement.png"))
+    paths.append(write_png(fig, out / "poke_displacement.png"))
 
     if not multi:  # a skin on one link: no multi-contact figure
         return paths
@@ -329,7 +318,7 @@ def plots(sweep: dict, multi: list[dict], params: RetractionParams, out: Path) -
         ax.set_ylabel("achieved / own retraction distance")
         ax.legend(fontsize=7)
     fig.tight_layout()
-    paths.append(_save_png(fig, out / "poke_multicontact.png"))
+    paths.append(write_png(fig, out / "poke_multicontact.png"))
     return paths
 
 

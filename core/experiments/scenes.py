@@ -15,7 +15,6 @@ readings from `SkinReadout`, and the layers through `SafetyStack`.
 """
 from __future__ import annotations
 
-import io
 import json
 import time
 from pathlib import Path
@@ -38,7 +37,7 @@ from skinsafe.core.safety.potential import (
 )
 from skinsafe.core.safety.stack import SafetyStack
 from skinsafe.core.safety.tdm import TactileDangerModel
-from skinsafe.core.skin.files import atomic_write
+from skinsafe.core.skin.files import atomic_write, write_png
 
 # ------------------------------------------------------------------------------------------ desk
 
@@ -291,10 +290,7 @@ def _plot(name: str, res: dict, path: Path) -> None:
     ax.set_title("Fig. 14: retraction toward a desk")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    atomic_write(path, buf.getvalue())
+    write_png(fig, path)
     if name == "desk" and res.get("sweep"):
         _plot_desk_sweep(res, path.with_name("desk_sweep.png"))
 
@@ -314,7 +310,4 @@ def _plot_desk_sweep(res: dict, path: Path) -> None:
     ax.set_title("Fig. 14 over touch forces: below 0 the retraction hit the desk")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    atomic_write(path, buf.getvalue())
+    write_png(fig, path)

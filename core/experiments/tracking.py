@@ -53,7 +53,7 @@ from skinsafe.core.safety.potential import (
     single_thread_blas,
 )
 from skinsafe.core.safety.tdm import TactileDangerModel
-from skinsafe.core.skin.files import atomic_write
+from skinsafe.core.skin.files import atomic_write, write_png
 
 METHODS = ("vanilla", "tdm", "tdm2")
 LABEL_SETS = {"binary": "binary", "soft": "distance"}  # result name -> `TrackingConfig.labels`
@@ -407,7 +407,7 @@ def plot(results: dict, out_dir: Path) -> list[Path]:
         ax.legend()
     fig.tight_layout()
     paths = [out_dir / "contacts.png"]
-    _save(fig, paths[0])
+    write_png(fig, paths[0])
     seed = next(iter(results["balls"]))
     methods = list(results["last"])
     fig = plt.figure(figsize=(5 * len(methods), 4.5))
@@ -424,17 +424,8 @@ def plot(results: dict, out_dir: Path) -> list[Path]:
         ax.legend(fontsize=7)
     fig.tight_layout()
     paths.append(out_dir / "trajectories.png")
-    _save(fig, paths[1])
-    plt.close("all")
+    write_png(fig, paths[1])
     return paths
-
-
-def _save(fig, path: Path) -> None:
-    import io
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    atomic_write(path, buf.getvalue())
 
 
 def add_arguments(p) -> None:

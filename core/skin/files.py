@@ -25,3 +25,15 @@ def atomic_write(path: str | os.PathLike, data: str | bytes) -> Path:
             os.unlink(tmp)
         raise
     return path
+
+
+def write_png(fig, path: str | os.PathLike, dpi: int = 110, **savefig) -> Path:
+    """A matplotlib figure written as PNG through `atomic_write`, then closed; returns the path."""
+    import io
+
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, **savefig)
+    plt.close(fig)
+    return atomic_write(path, buf.getvalue())
