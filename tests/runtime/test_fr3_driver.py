@@ -13,6 +13,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
+from cli_run import start_run
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader
@@ -58,19 +59,8 @@ def run_fr3(fr3_map, world, tmp_path, seconds, when_moving=None):
     args = ["run", fr3_map, "--robot", "fr3", "--host", world.host, "--boards", "emulate", "--feed", world.feed,
             "--command", f"trajectory:{still}", "--seconds", seconds, "--link-latency", LINK_LATENCY,
             "--tare-frames", 20, "--record", record, "--stats", stats]
-    proc = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", *map(str, args)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    err = []
-    for line in proc.stderr:
-        err.append(line)
-        if "Ctrl-C stops it" in line:
-            if when_moving is not None:
-                when_moving(proc)
-            break
-    out, rest = proc.communicate(timeout=120)
-    err = "".join(err) + rest
-    assert "Traceback" not in err, err
-    return proc.returncode, err, json.loads(stats.read_text()), record
+    code, _, err = start_run(args, when_moving, timeout=120)
+    return code, err, json.loads(stats.read_text()), record
 
 
 def topics(record):

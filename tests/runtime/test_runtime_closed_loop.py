@@ -13,6 +13,7 @@ import threading
 
 import numpy as np
 import pytest
+from cli_run import start_run
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
@@ -43,18 +44,8 @@ def run(skin, tmp_path, *extra, command="hold", seconds=1.5, when_moving=None):
     stats, record = tmp_path / "stats.json", tmp_path / "run.mcap"
     args = ["run", skin, "--robot", "sim", "--boards", "emulate", "--command", command, "--link-latency", LINK_LATENCY, "--tare-frames", 10,
             "--seconds", seconds, "--record", record, "--stats", stats, *extra]
-    proc = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", *map(str, args)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    err = []
-    for line in proc.stderr:
-        err.append(line)
-        if "Ctrl-C stops it" in line:
-            if when_moving is not None:
-                when_moving(proc)
-            break
-    out, rest = proc.communicate(timeout=60)
-    p = subprocess.CompletedProcess(args, proc.returncode, out, "".join(err) + rest)
-    assert "Traceback" not in p.stderr, p.stderr
+    code, out, err = start_run(args, when_moving)
+    p = subprocess.CompletedProcess(args, code, out, err)
     return p, (json.loads(stats.read_text()) if stats.exists() else None), record
 
 
