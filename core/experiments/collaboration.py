@@ -57,6 +57,7 @@ ROBOT_DRIVEN = ("delivery", "clamp")
 SWEEP = {"damping_ratio": (0.0, 0.25, 0.5), "attachment_N_m": (1500.0, 3000.0), "dt_ms": (2.0, 1.0, 0.5)}
 NOMINAL = {"damping_ratio": 0.1, "attachment_N_m": 1500.0, "dt_ms": 2.0}
 TABLE = "table"  # the UR5 model's table top (z = 0): the fixture a hand can be clamped against
+PERSON_SPREAD = 0.15  # rad: the person-driven scenario's TDM samples around the held pose (see `layout`)
 FIST = 0.02  # m: the radius of a hand (a fist) resting on the table (a flat box rocks at a 2 ms step)
 CLAMP_AT = np.array([-0.45, -0.12])  # m: where on the table the hand rests and the flange comes down
 CLAMP_DEPTH = 0.015  # m: the placing motion ends this far into the resting hand (4 cm thick)
@@ -227,8 +228,10 @@ def layout(scenario: str, kin, cfg: dict) -> Layout:
         return [p + side * s for p in (arm0, hand0)]
 
     present = [arm0 + side * (dist - 0.09), hand0 + side * (dist - 0.09)]  # the hand against the wrist
+    # the TDM's samples span where the retraction takes the held arm (~0.3 rad of pan), not only the held pose:
+    # from 0.05 rad it extrapolated a rising danger along the retraction, and the modulation slowed it
     return Layout(scenario, parts, targets, lambda t: (q, np.zeros(6)), present,
-                  lambda rng, n: q + np.c_[rng.normal(0, 0.05, (n, 4)), np.zeros((n, 2))],
+                  lambda rng, n: q + np.c_[rng.normal(0, PERSON_SPREAD, (n, 4)), np.zeros((n, 2))],
                   t_end=t_back + dist / speed + 0.5, plan_end=0.0, goal=None, regions=("lower_arm", "hand"))
 
 
@@ -588,8 +591,8 @@ def cell(method: str, seed: int, scenario: str, damping_ratio: float, attachment
     """One scenario at one (damping, attachment, timestep) with each stack: its contact events, and
     with `detail` the force and pan traces and the task times (with and without the person)."""
     from skinsafe.core.robot.kinematics import TaxelKinematics
-    from skinsafe.core.safety.potential import single_thread_blas
     from skinsafe.core.skin.taxel_map import load
+    from skinsafe.core.timing import single_thread_blas
 
     torch.set_num_threads(1)
     single_thread_blas()
