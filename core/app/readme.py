@@ -268,6 +268,15 @@ def _against(claim: dict) -> str:
     return f"; not below: {', '.join(lost)}" if lost else ""
 
 
+def _online(claim: dict) -> str:
+    """The verdict with only the online contacts counted (recovery-rl's accounting), where the result has it."""
+    online = claim.get("online_only")
+    if not online:
+        return ""
+    return (f". Online contacts only (recovery-rl's accounting): **{online['verdict']}**"
+            + _against(online).replace("; not below", ", not below"))
+
+
 def _opt(row: dict, key: str, spec: str) -> str:
     """A row's value formatted, or a dash where the row predates the key."""
     return "—" if row.get(key) is None else format(row[key], spec)
@@ -320,7 +329,7 @@ def paper_results(root: Path) -> str:
          f"{maze['config']['episodes']} episodes, all {len(m)} methods tuned alike; verdict from 95% intervals in "
          f"`maze_results.json`): total contacts {totals}{_against(maze['claim'])}; among the methods that reach the "
          f"goal it {'holds' if maze['claim'].get('holds_among_goal_reaching') else 'does not hold'}; "
-         f"{', '.join(learned)} reach the goal in >= 80% of the last 20 episodes",
+         f"{', '.join(learned)} reach the goal in >= 80% of the last 20 episodes" + _online(maze["claim"]),
          "`skinsafe experiment maze`"),
         ("Fig. 11", "vanilla most contacts; TDM reduces but doesn't improve; 2-step ≈ 0 after 6 episodes",
          f"**{track['claim'].get('verdict', 'holds' if track['claim']['holds'] else 'does not hold')}** with the "
