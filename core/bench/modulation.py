@@ -33,11 +33,10 @@ from skinsafe.core.safety.potential import (
     nstep_targets,
     nstep_trade,
     potential_and_normal,
-    single_thread_blas,
 )
 from skinsafe.core.safety.stack import PRIOR, SafetyStack, StrategyFilter
 from skinsafe.core.safety.tdm import TactileDangerModel
-from skinsafe.core.timing import interleaved_ms, median_ms
+from skinsafe.core.timing import interleaved_ms, median_ms, single_thread_blas
 
 DT = 0.002  # s: the control period of the benched ticks (a 500 Hz robot)
 

@@ -33,11 +33,11 @@ from skinsafe.core.safety.potential import (
     UniformPolicy,
     distill_nstep,
     potential_and_normal,
-    single_thread_blas,
 )
 from skinsafe.core.safety.stack import SafetyStack
 from skinsafe.core.safety.tdm import TactileDangerModel
 from skinsafe.core.skin.files import atomic_write, write_png
+from skinsafe.core.timing import single_thread_blas
 
 # ------------------------------------------------------------------------------------------ desk
 

@@ -50,10 +50,10 @@ from skinsafe.core.safety.potential import (
     NStepConfig,
     UniformPolicy,
     distill_nstep,
-    single_thread_blas,
 )
 from skinsafe.core.safety.tdm import TactileDangerModel
 from skinsafe.core.skin.files import atomic_write, write_png
+from skinsafe.core.timing import single_thread_blas
 
 METHODS = ("vanilla", "tdm", "tdm2")
 LABEL_SETS = {"binary": "binary", "soft": "distance"}  # result name -> `TrackingConfig.labels`

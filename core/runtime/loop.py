@@ -185,7 +185,7 @@ class Runtime:
 
     def timing(self) -> dict:
         """Loop rate, period jitter (host clock; `_robot`: the robot's clock), work per tick and contact latency
-        (ms) over the run."""
+        (ms) over the run; `latency_ms_all`: every latency sample (a bench pools several runs')."""
         period = np.diff(self.starts) * 1e3 if len(self.starts) > 1 else np.zeros(1)
         robot = np.diff(self.clock) * 1e3 if len(self.clock) > 1 else np.zeros(1)
         lat = np.array(self.latency) * 1e3 if self.latency else np.full(1, np.nan)
@@ -199,7 +199,8 @@ class Runtime:
                 "work_ms_p50": float(np.median(work)),
                 "work_ms_p99": float(np.percentile(work, 99)), "work_ms_max": float(work.max()),
                 "latency_samples": len(self.latency), "latency_ms_p50": float(np.median(lat)),
-                "latency_ms_p99": float(np.percentile(lat, 99)), "latency_ms_max": float(lat.max())}
+                "latency_ms_p99": float(np.percentile(lat, 99)), "latency_ms_max": float(lat.max()),
+                "latency_ms_all": [round(float(x), 4) for x in lat] if self.latency else []}
 
 
 def speed_factor(v: np.ndarray, planned: np.ndarray | None) -> float:

@@ -253,27 +253,6 @@ def _rows_times(x: np.ndarray, w: np.ndarray) -> np.ndarray:
     return out
 
 
-def single_thread_blas() -> bool:
-    """Pin numpy's OpenBLAS to one thread (for control ticks of single-row products: on a busy
-    machine its worker threads make a 0.3 ms tick take 15 ms). True if a BLAS was found."""
-    import ctypes
-
-    try:
-        with open("/proc/self/maps") as f:
-            paths = {line.split()[-1] for line in f if "openblas" in line.lower() and line.strip().endswith(".so")
-                     or "openblas" in line.lower() and ".so" in line.split()[-1]}
-    except OSError:
-        return False
-    done = False
-    for path in paths:
-        lib = ctypes.CDLL(path)
-        for name in ("openblas_set_num_threads64_", "openblas_set_num_threads", "scipy_openblas_set_num_threads64_"):
-            if hasattr(lib, name):
-                getattr(lib, name)(1)
-                done = True
-    return done
-
-
 # ---------------------------------------------------------------- n-step potential (eq. 8)
 
 class UniformPolicy:
