@@ -36,8 +36,11 @@ from skinsafe.core.runtime.view_stream import DEFAULT_PORT
 from skinsafe.core.safety.retraction import RetractionParams
 from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.model import DesignError
+from skinsafe.core.timing import single_thread_blas
 
-RT_PRIORITY = 10
+RT_PRIORITY = 10  # this process and what it starts (the boards' reader, the emulator)
+LOOP_PRIORITY = RT_PRIORITY + 1  # the loop's thread while the robot moves: above everything it started
+EMULATOR_PRIORITY = RT_PRIORITY - 1  # emulated boards: below the host's reader and loop
 SWITCH_S = 0.0005  # the interpreter's thread switch interval while the robot moves (default 5 ms)
 EXIT_CODES = {0: "ran as planned, robot stopped", 1: "a watchdog or the driver stopped the robot (named)",
               2: "bad input", 3: "pre-flight refused (the robot never moved)", 130: "Ctrl-C", 143: "SIGTERM"}
@@ -212,6 +215,7 @@ def _ports(args, design, stack: contextlib.ExitStack, feed) -> dict[int, str]:
     if args.boards == ["emulate"]:
         flash = stack.enter_context(tempfile.TemporaryDirectory(prefix="skinsafe-flash-"))
         em = stack.enter_context(EmulatorProcess([], flash, "--map", str(args.map), "--feed", feed.name))
+        _below_host(em.proc.pid)
         ports = {b.id: em.ports[b.uid] for b in design.boards}
         bad = [r.line() for r in deploy(design, ports) if not r.ok]
         if bad:
@@ -225,36 +229,98 @@ def _ports(args, design, stack: contextlib.ExitStack, feed) -> dict[int, str]:
     return ports
 
 
-def _view(args, stack: contextlib.ExitStack, tap, design, driver, map_path: Path, map_hash: bytes) -> None:
-    """Publish the tap as a view stream (a thread reading it off the loop) and start the web page in its own
-    process at a lower priority (`skinsafe view HOST:PORT`), ready before the robot moves; both end with the run."""
+def _view(args, stack: contextlib.ExitStack, design, driver, map_path: Path, map_hash: bytes) -> Tap:
+    """The loop's tap for a live view: it shares the newest tick (`SharedTap`); the view stream's publisher and the
+    web page (`skinsafe view HOST:PORT`) run in their own processes at a lower priority, ready before the robot
+    moves; all end with the run."""
     import subprocess
 
-    from skinsafe.core.runtime.view_stream import ViewPublisher, hello
+    from skinsafe.core.runtime.view_stream import SharedFrames, SharedTap, hello, start_publisher
 
     host, _, port = args.view_stream.rpartition(":")
     msg = hello(design.n_taxels, design.taxels.ids, driver.joint_names, {b.uid: b.name for b in design.boards},
                 str(map_path.resolve()), map_hash.hex(), driver.period_s, board_period_s=1.0 / args.rate)
-    pub = ViewPublisher(tap.latest, msg, host or "127.0.0.1", int(port))
-    stack.callback(pub.close)
-    where = f"{pub.address[0]}:{pub.address[1]}"
+    frames = SharedFrames.create(design.n_taxels)
+    stack.callback(frames.close)
+    pub, address = start_publisher(frames, msg, host or "127.0.0.1", int(port), preexec=_background)
+    stack.callback(_end, pub)
+    where = f"{address[0]}:{address[1]}"
     print(f"skinsafe run: view stream at {where} (Blender: Skin > Live > Attach)", file=sys.stderr)
-    if not args.view_port:
+    if args.view_port:
+        page = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", "view", where, "--port",
+                                 str(args.view_port), "--until-ended"],
+                                stdout=subprocess.PIPE, text=True, preexec_fn=_background)
+        stack.callback(_end, page)
+        line = "-"
+        while line and not line.startswith("skinsafe view:"):  # the page says where it is once it serves
+            line = page.stdout.readline()
+        if not line:
+            raise ValueError(f"the view page did not start (exit {page.wait()})")
+        print(f"skinsafe run: the view page at {line.split(' at ')[-1].strip()}", file=sys.stderr)
+    return SharedTap(frames)
+
+
+def _below_host(pid: int) -> None:
+    """The emulated boards stand for hardware outside this computer: at real-time priority (if this process has
+    it) they run below the boards' reader and the loop, never in their way (every thread of process `pid`)."""
+    if os.sched_getscheduler(0) != os.SCHED_FIFO:
         return
-    page = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", "view", where, "--port", str(args.view_port),
-                             "--until-ended"],
-                            stdout=subprocess.PIPE, text=True, preexec_fn=_background)
-    stack.callback(_end, page)
-    line = "-"
-    while line and not line.startswith("skinsafe view:"):  # the page says where it is once it serves
-        line = page.stdout.readline()
-    if not line:
-        raise ValueError(f"the view page did not start (exit {page.wait()})")
-    print(f"skinsafe run: the view page at {line.split(' at ')[-1].strip()}", file=sys.stderr)
+    for tid in _threads(pid):
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(EMULATOR_PRIORITY))
+
+
+@contextlib.contextmanager
+def _loop_priority(rt: str):
+    """While the robot moves: the loop's thread (only it: Linux schedules threads) above the reader and emulator
+    processes, so a tick is never queued behind their frames, as a robot controller's thread is; with two cores
+    or more, the loop keeps the first of them and the processes it started move to the others. Restored after
+    (an in-process caller runs again)."""
+    if not rt.startswith("real-time"):
+        yield
+        return
+    cpus = os.sched_getaffinity(0)
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(LOOP_PRIORITY))
+    if len(cpus) >= 2:
+        first, *rest = sorted(cpus)
+        os.sched_setaffinity(0, {first})
+        for pid in _children():
+            for tid in _threads(pid):
+                with contextlib.suppress(OSError):
+                    os.sched_setaffinity(tid, set(rest))
+    try:
+        yield
+    finally:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RT_PRIORITY))
+        os.sched_setaffinity(0, cpus)
+
+
+def _children() -> list[int]:
+    """This process's child processes (every thread's)."""
+    out = []
+    for tid in _threads(os.getpid()):
+        with contextlib.suppress(OSError), open(f"/proc/{os.getpid()}/task/{tid}/children") as f:
+            out += [int(p) for p in f.read().split()]
+    return out
+
+
+def _threads(pid: int) -> list[int]:
+    try:
+        return [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+    except OSError:
+        return []
+
+
+def _one_thread() -> None:
+    """The loop's numerical libraries on its own thread: BLAS (and torch with --tdm) worker threads would wait for the
+    cores the boards' reader and the emulator run on, and a tick's small products with them."""
+    single_thread_blas()
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(1)
 
 
 def _background() -> None:
-    """In the page's process before it starts: the normal scheduler (not the run's real-time one, which a
+    """In the view's processes before they start: the normal scheduler (not the run's real-time one, which a
     child inherits: a page at SCHED_FIFO starved the emulated boards, stopped as silent) at nice 10."""
     if hasattr(os, "sched_setscheduler"):
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
@@ -346,7 +412,7 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
         tap = Tap()
         if args.view:
             try:
-                _view(args, stack, tap, design, driver, map_path, map_hash)
+                tap = _view(args, stack, design, driver, map_path, map_hash)
             except (OSError, ValueError) as e:
                 return fail(2, f"--view: {e}")
         runtime = Runtime(driver, source, layers, command, source.excluded, design.taxels.thresholds["force"],
@@ -370,10 +436,12 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
             on_moving(runtime)
         switch = sys.getswitchinterval()
         sys.setswitchinterval(SWITCH_S)
+        _one_thread()
         gc.freeze()  # no collector pause while the robot moves (what the loop allocates is freed by refcount)
         gc.disable()
         try:
-            outcome = runtime.run()
+            with _loop_priority(rt):
+                outcome = runtime.run()
         finally:
             gc.enable()
             sys.setswitchinterval(switch)

@@ -79,10 +79,12 @@ def serve_live(args, stop: threading.Event) -> int:
                 board_period_s=h.get("board_period_s", 0.0))
     print(f"skinsafe view: live from {args.source} ({h['n_taxels']} taxels) at {page.url}", flush=True)
     try:
+        latest = None
         while not stop.is_set() and not client.closed:
-            newest = client.poll()
-            if newest is not None:
-                page.show(*newest, live=True)
+            latest = client.poll() or latest
+            if latest is not None and page.watched():  # nobody looking: nothing drawn (the machine is the robot's)
+                page.show(*latest, live=True)
+                latest = None
             stop.wait(1.0 / args.fps)
         if client.closed:
             print("skinsafe view: the stream ended (the run stopped)", file=sys.stderr)

@@ -179,6 +179,10 @@ class Page:
         self.plot.data = tuple(np.asarray(x, float) for x in (t, retracting, np.minimum(factor, 2.0), potential))
 
     # -- one tick --------------------------------------------------------------------------------
+    def watched(self) -> bool:
+        """A browser has the page open."""
+        return bool(self.server.get_clients())
+
     def show(self, h: dict, force: np.ndarray, live: bool = False) -> None:
         """Draw one tick (`h`: a view-stream frame header; `force`: (N,) taxel forces)."""
         with self._lock, self.server.atomic():

@@ -96,15 +96,20 @@ class ForceFeed:
     def close(self) -> None:
         """Detach (and, in the creator, remove the block)."""
         self.forces = self._head = self._t = self._seq = None
-        self.shm.close()
-        if self.owner:
-            try:
-                self.shm.unlink()
-            except FileNotFoundError:
-                pass
+        release(self.shm, self.owner)
 
     def __enter__(self) -> "ForceFeed":
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def release(shm: shared_memory.SharedMemory, owner: bool) -> None:
+    """Detach from a shared-memory block; its creator (`owner`) also removes it."""
+    shm.close()
+    if owner:
+        try:
+            shm.unlink()
+        except FileNotFoundError:
+            pass
