@@ -21,6 +21,8 @@ stopped it; its reason is named. numpy and pylibfranka only (never mujoco, torch
 """
 from __future__ import annotations
 
+import contextlib
+import os
 import sys
 import threading
 from dataclasses import dataclass, field
@@ -100,7 +102,8 @@ class FrankaDriver:
         self._pf = pf
         rt = realtime_kernel() if realtime is None else realtime
         try:
-            self._robot = pf.Robot(host, pf.RealtimeConfig.kEnforce if rt else pf.RealtimeConfig.kIgnore)
+            with _own_scheduling():
+                self._robot = pf.Robot(host, pf.RealtimeConfig.kEnforce if rt else pf.RealtimeConfig.kIgnore)
         except (pf.NetworkException, pf.RealtimeException, pf.InvalidOperationException,
                 pf.FrankaException, RuntimeError) as e:
             raise FrankaError(f"fr3: cannot connect to {host}: {' '.join(str(e).split())}; check the robot's "
@@ -137,7 +140,8 @@ class FrankaDriver:
         previous = sys.getswitchinterval()
         sys.setswitchinterval(SWITCH_S)
         try:
-            return self._run(control)
+            with _own_scheduling():
+                return self._run(control)
         finally:
             sys.setswitchinterval(previous)
 
@@ -218,6 +222,19 @@ class FrankaDriver:
     def close(self) -> None:
         """Disconnect (libfranka closes the connection when the robot object goes)."""
         self._robot = None
+
+
+@contextlib.contextmanager
+def _own_scheduling():
+    """libfranka raises the calling thread to SCHED_FIFO 99 (its control loop's priority) and leaves it there:
+    the caller's scheduling comes back after (a process that goes on, e.g. to start a browser, must not
+    hand it that priority)."""
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, policy, param)
 
 
 def _command(control, state: FrankaState) -> tuple[str | None, np.ndarray | None]:

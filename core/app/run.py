@@ -235,7 +235,8 @@ def _view(args, stack: contextlib.ExitStack, design, driver, map_path: Path, map
     moves; all end with the run."""
     import subprocess
 
-    from skinsafe.core.runtime.view_stream import SharedFrames, SharedTap, hello, start_publisher
+    from skinsafe.core.runtime.view_share import SharedFrames, SharedTap, start_publisher
+    from skinsafe.core.runtime.view_stream import hello
 
     host, _, port = args.view_stream.rpartition(":")
     msg = hello(design.n_taxels, design.taxels.ids, driver.joint_names, {b.uid: b.name for b in design.boards},

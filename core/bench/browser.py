@@ -16,8 +16,10 @@ def chromium() -> str | None:
 
 
 def niced(folder: str | Path, exe: str, nice: int = 19) -> str:
-    """A launcher in `folder` that runs chromium `exe` at `nice` (playwright's executable_path)."""
+    """A launcher in `folder` that runs chromium `exe` at the normal scheduler and `nice` (playwright's
+    executable_path): a browser started from a real-time process would inherit its priority."""
     path = Path(folder) / "chromium"
-    path.write_text(f'#!/bin/sh\nexec nice -n {nice} "{exe}" "$@"\n')
+    path.write_text(f'#!/bin/sh\ncommand -v chrt >/dev/null && exec chrt -o 0 nice -n {nice} "{exe}" "$@"\n'
+                    f'exec nice -n {nice} "{exe}" "$@"\n')
     path.chmod(0o755)
     return str(path)

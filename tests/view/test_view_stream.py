@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from skinsafe.core.runtime.tap import Frame
-from skinsafe.core.runtime.view_stream import SharedFrames, SharedTap, ViewClient, hello, start_publisher
+from skinsafe.core.runtime.view_share import SharedFrames, SharedTap, start_publisher
+from skinsafe.core.runtime.view_stream import ViewClient, hello
 
 N = 5000
 
