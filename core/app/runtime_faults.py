@@ -74,6 +74,7 @@ def _stop_boards(ports: dict[int, str]) -> None:
     for port in ports.values():
         try:
             with BoardClient(port, timeout=1.0, retries=4) as c:  # behind a backlog of frames a loaded host passes slowly
+                c.identify()  # the frame size first: a streaming board's frames are longer than a short answer
                 c.stop_stream()
         except BoardError:
             pass
