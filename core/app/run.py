@@ -264,11 +264,8 @@ def _view(args, stack: contextlib.ExitStack, design, driver, map_path: Path, map
 def _below_host(pid: int) -> None:
     """The emulated boards stand for hardware outside this computer: at real-time priority (if this process has
     it) they run below the boards' reader and the loop, never in their way (every thread of process `pid`)."""
-    if os.sched_getscheduler(0) != os.SCHED_FIFO:
-        return
-    for tid in _threads(pid):
-        with contextlib.suppress(OSError):
-            os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(EMULATOR_PRIORITY))
+    if os.sched_getscheduler(0) == os.SCHED_FIFO:
+        _each_thread(pid, os.sched_setscheduler, os.SCHED_FIFO, os.sched_param(EMULATOR_PRIORITY))
 
 
 @contextlib.contextmanager
@@ -280,19 +277,17 @@ def _loop_priority(rt: str):
     if not rt.startswith("real-time"):
         yield
         return
-    cpus = os.sched_getaffinity(0)
+    cpus, policy, param = os.sched_getaffinity(0), os.sched_getscheduler(0), os.sched_getparam(0)
     os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(LOOP_PRIORITY))
     if len(cpus) >= 2:
         first, *rest = sorted(cpus)
         os.sched_setaffinity(0, {first})
         for pid in _children():
-            for tid in _threads(pid):
-                with contextlib.suppress(OSError):
-                    os.sched_setaffinity(tid, set(rest))
+            _each_thread(pid, os.sched_setaffinity, set(rest))
     try:
         yield
     finally:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RT_PRIORITY))
+        os.sched_setscheduler(0, policy, param)
         os.sched_setaffinity(0, cpus)
 
 
@@ -310,6 +305,13 @@ def _threads(pid: int) -> list[int]:
         return [int(t) for t in os.listdir(f"/proc/{pid}/task")]
     except OSError:
         return []
+
+
+def _each_thread(pid: int, call, *args) -> None:
+    """`call(tid, *args)` for every thread of process `pid` (one that ended meanwhile is skipped)."""
+    for tid in _threads(pid):
+        with contextlib.suppress(OSError):
+            call(tid, *args)
 
 
 def _one_thread() -> None:
