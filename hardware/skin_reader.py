@@ -56,6 +56,7 @@ class _Board:
     crc_seen: int = 0
     dead: str = ""  # why the link is gone
     excluded: np.ndarray | None = None  # of its rows, those the health policy excluded
+    baseline: np.ndarray | None = None  # of its rows, the tare's baseline
     silent_at: float = 0.0  # host time it was named silent (0: it is not)
     offset: float = np.inf  # least (host read time - board stamp): the board clock's offset plus the least delay
     lags: deque = field(default_factory=lambda: deque(maxlen=100_000))  # per read: host read time - board stamps, s
@@ -81,6 +82,7 @@ class BoardsReader:
         self._named: set[str] = set()
         self.silences: list[dict] = []
         self.gaps: deque = deque(maxlen=1_000_000)  # s between the reader's passes (its own wake-ups)
+        self.held: deque = deque(maxlen=1_000_000)  # s from the newest frame's arrival to its readings' publication
         self.t_newest = 0.0  # host time of the newest frame
         self._epoll = None
         self._rx_registered = False
@@ -122,7 +124,7 @@ class BoardsReader:
         self.baseline = np.where(self.excluded, 0.0, base)
         report["baseline_max_N"] = float(self.baseline.max()) if len(self.baseline) else 0.0
         for b in self.boards.values():
-            b.excluded = self.excluded[b.rows]
+            b.excluded, b.baseline = np.flatnonzero(self.excluded[b.rows]), self.baseline[b.rows]
         self.vec = np.zeros(1 + len(self.boards) + self.n_taxels)  # the published state (module docstring)
         self.arrived, self.force = self.vec[1:1 + len(self.boards)], self.vec[1 + len(self.boards):]
         self.force[:] = np.where(self.excluded, np.nan, np.maximum(frames[-1] - self.baseline, 0.0))
@@ -170,11 +172,16 @@ class BoardsReader:
             now = time.monotonic()
             for bid, forces in got:
                 b = self.boards[bid]
-                self.force[b.rows] = np.where(b.excluded, np.nan, np.maximum(forces[-1] - self.baseline[b.rows], 0.0))
+                f = forces[-1] - b.baseline
+                np.maximum(f, 0.0, out=f)
+                f[b.excluded] = np.nan
+                self.force[b.rows] = f
             named = self._silent(now)
             if got or named:
                 self.t_newest = max([self.boards[b].arrived for b, _ in got], default=self.t_newest)
                 self._publish(state)
+                if got:
+                    self.held.append(time.monotonic() - self.t_newest)
             for text in self._take_faults():
                 tx.send(("fault", text))
             if rx.poll(0):
@@ -238,12 +245,14 @@ class BoardsReader:
         lags = [np.concatenate(b.lags) - b.offset for b in self.boards.values() if b.lags]
         lag = np.concatenate(lags) * 1e3 if lags else np.zeros(0)
         gaps = np.array(self.gaps) * 1e3
+        held = np.array(self.held) * 1e3
 
         def pct(a, p):
             return round(float(np.percentile(a, p)), 2) if len(a) else None
         return {"frame_delay_ms_p50": pct(lag, 50), "frame_delay_ms_p99": pct(lag, 99), "frame_delay_ms_max": pct(lag, 100),
                 "frames_over_silence": int((lag > self.silence_s * 1e3 - self.frame_period_s * 1e3).sum()),
                 "reader_gap_ms_p99": pct(gaps, 99), "reader_gap_ms_max": pct(gaps, 100),
+                "publish_ms_p50": pct(held, 50), "publish_ms_p99": pct(held, 99), "publish_ms_max": pct(held, 100),
                 "silences_host": sum(x["cause"].startswith("host") for x in self.silences),
                 "silences_board": sum(x["cause"].startswith("board") for x in self.silences),
                 "silences": self.silences[:20]}
@@ -261,8 +270,8 @@ class BoardsReader:
         return out
 
     def _read(self, wait: float, rx: Connection | None = None) -> list[tuple[int, np.ndarray]]:
-        """Wait up to `wait` for data (or a word from the parent), then read every board: [(board id, forces
-        (F, rows))] of good frames.
+        """Wait up to `wait` for data (or a word from the parent), then read the boards that have some (every board
+        when the wait timed out): [(board id, forces (F, rows))] of good frames.
 
         The wait is an edge-triggered epoll, registered once: a tty's own poll (select, poll, level-triggered
         epoll) waits, when no input is there, for the kernel's pending tty work to finish (n_tty_poll ->
@@ -275,13 +284,15 @@ class BoardsReader:
         if rx is not None and not self._rx_registered:
             self._epoll.register(rx.fileno(), select.EPOLLIN | select.EPOLLET)
             self._rx_registered = True
-        live = [s for s in self.stream.boards if not self.boards[s.board_id].dead]
         try:
             events = dict(self._epoll.poll(wait))
         except OSError:
             events = {}
+        # the boards the wait says have news (each is drained, so an edge comes with its next bytes); after a wait
+        # that ended with none, every board (its bytes cannot be missed either way)
+        ready = [s for s in self.stream.boards if s.client.ser.fileno() in events] or self.stream.boards
         out = []
-        for s in live:
+        for s in (s for s in ready if not self.boards[s.board_id].dead):
             b = self.boards[s.board_id]
             try:
                 if events.get(s.client.ser.fileno(), 0) & (select.EPOLLHUP | select.EPOLLERR):

@@ -125,6 +125,15 @@ class BoardState:
         ahead of what the board can have sent by `now` at `rate_hz` since `t_start` (when both are known);
         both count as `replayed`, never as sent or lost."""
         last = self.sent - 1  # the last counter taken, unwrapped (-1: none yet)
+        if len(samples) == 1 and now is None:  # a reader's usual pass: one frame, in plain integers
+            c = int(samples[0])
+            step = (c - last) % COUNTER
+            u = last + (step - COUNTER if step >= COUNTER // 2 else step)
+            if u > last:
+                self.sent, self.last_sample, self.frames = u + 1, c, self.frames + 1
+            else:
+                self.replayed, self.last_counter = self.replayed + 1, c
+            return np.array([u > last])
         step = (samples.astype(np.int64) - last) % COUNTER
         u = last + np.where(step >= COUNTER // 2, step - COUNTER, step)
         take = np.ones(len(u), bool)

@@ -7,18 +7,29 @@ into it. Per row, over `--repeats` runs (worst case where it says so):
 - loop_hz_p50 (median of the runs' medians), period_ms_p99 (worst): the loop's rate and jitter;
 - latency_ms_p50 / p99 (over every contact frame of every run, pooled) / max (worst): a frame holding a
   contact complete on the host -> its command leaves for the robot (per_run_latency_ms_p99: each run's own);
+  split into latency_wait_ms (the frame complete -> the tick that uses it begins: the reader's decoding and
+  publication, `publish_ms_p99` (worst run), then the wait for the robot's next period) and latency_tick_ms
+  (that tick's work up to the command);
 - reaction_ms (worst): contact onset in the sim -> the touched taxel's measured motion points out of
   the contact (MuJoCo's clock);
-- peak_N, into_contact_mm_worst (worst): the post's largest contact force, and how far the taxel went
-  into the post after the onset; `peak_N_in_process` is the same contact with the stack fed straight
-  from the sim's readout (no boards, no serial; same code, `SimDriver(realtime=False)`);
+- peak_N, into_contact_mm_worst (worst): the first contact's largest force (from the onset until the
+  post lets go: the contact `reaction_ms` is of), and how far the taxel went into the post after the
+  onset; `peak_N_in_process` is the same contact with the stack fed straight from the sim's readout (no
+  boards, no serial; same code, `SimDriver(realtime=False)`); `peak_N_run` (and `_in_process`): the
+  largest force of the whole run, the arm's later approaches included (after each retraction the
+  trajectory catches up and sweeps the arm into the post again, at a speed that depends on how the
+  retraction went: these are not the same contact in the two runs);
 - stale_stops: runs a staleness watchdog (silent board, robot state, command) stopped with nothing
   injected (the shared machine's stalls), or a board was silent before the robot moved; such a run is run
   again (up to RETRIES times) and the row's figures are those of the runs that went to the end;
   frames_lost: frames sent that never arrived.
-`--view off page browser`: a row per mode (key `view`), the modes' runs alternating so they share the
-machine's load: without the live view, with `run --view` (its stream and page process), and with a headless
-Chromium on the page too; per_run_* list each run's loop figures (the spread).
+`--view off page browser`: a row per mode (key `view`), the modes' runs alternating (each repeat in an order
+turned by one) so they share the machine's load: without the live view, with `run --view` (its stream and page process), and with a headless
+Chromium on the page too; per_run_* list each run's loop figures (the spread); period_ms_p99_pooled and
+latency_ms_p99_pooled over every tick / contact frame of the mode's runs (latency_tick_ms_p99_pooled: the
+frames' tick part), `*_p99_vs_off` their change against the runs without the view, `within_5pct` (all within
+5%), `not_slower_5pct` (none more than 5% above), and the noise floor: `off_spread`, how far the
+runs without the view differ from themselves (even runs against odd), `resolvable` when that is within 5%.
 `--faults`: the fault storm (core/app/runtime_faults.py) in its own process, one row: runs, faults
 (runs the fault stopped), stopped_within_2_periods (fraction: zero velocity sent within 2 control
 periods of the detection), unnamed, tracebacks, records_readable (fraction), and named_as_injected.
@@ -226,14 +237,16 @@ def rows(args) -> list[dict]:
             ref = reference(design, robot, traj, args.period, seconds)
             runs, stale = {v: [] for v in args.view}, {v: 0 for v in args.view}
             for k in range(args.repeats):  # a run a false staleness stop cut short is counted, then run again
-                for v in args.view:  # alternating: the modes share the machine's load
+                m = k % len(args.view)  # alternating, each repeat starting one mode later: the modes share the
+                for v in args.view[m:] + args.view[:m]:  # machine's load, and none always follows another
                     r, cut = _retried(lambda: _run(args, tmp / f"skin{n}.json", f"trajectory:{traj}",
                                                    tmp / f"stats{n}_{v}_{k}.json", seconds, "--robot", "sim", "--contact",
                                                    CONTACT, "--period", str(args.period), view=v))
                     runs[v].append(r)
                     stale[v] += cut
+            rows_n = {v: _row(design, runs[v], stale[v], ref, args) for v in args.view}
             for v in args.view:
-                out.append(_row(design, runs[v], stale[v], ref, args) | ({"view": v} if args.view != ["off"] else {}))
+                out.append(rows_n[v] | (_vs_off(runs, v) if args.view != ["off"] else {}))
     return out
 
 
@@ -241,29 +254,83 @@ def _row(design, runs: list[dict], stale: int, ref: dict, args) -> dict:
     w = [r["world"] for r in runs]
     worst = lambda key: float(np.nanmax([r[key] for r in runs]))  # noqa: E731
     lat = np.concatenate([r["latency_ms_all"] for r in runs])  # every contact frame of every run
+    wait = np.concatenate([r["latency_wait_ms_all"] for r in runs])
     return {
         "robot": "ur5", "driver": "sim", "boards": len(design.boards), "taxels": design.n_taxels,
         "ticks": int(sum(r["ticks"] for r in runs)), "rate_hz": args.rate, "period_ms": args.period * 1e3,
         "link_latency_ms": args.link_latency * 1e3, "runs": len(runs),
         "loop_hz_p50": float(np.median([r["loop_hz_p50"] for r in runs])), "period_ms_p99": worst("period_ms_p99"),
-        "latency_ms_p50": float(np.median(lat)) if len(lat) else float("nan"),
-        "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else float("nan"),
+        "latency_ms_p50": _pct(lat, 50), "latency_ms_p99": _pct(lat, 99),
         "latency_ms_max": worst("latency_ms_max"),
         "reaction_ms": float(np.nanmax([_ms(x, "reaction_t") for x in w])),
-        "peak_N": float(max(x["peak_N"] for x in w)),
+        "peak_N": float(max(x["first_peak_N"] for x in w)),
         "into_contact_mm_worst": float(max(x["into_contact_m"] for x in w)) * 1e3,
         "stale_stops": stale,
         "frames_lost": int(sum(r["frames_lost"] for r in runs)),
-        "peak_N_in_process": float(ref["peak_N"]), "reaction_ms_in_process": _ms(ref, "reaction_t"),
+        "peak_N_in_process": float(ref["first_peak_N"]), "reaction_ms_in_process": _ms(ref, "reaction_t"),
         "into_contact_mm_in_process": float(ref["into_contact_m"]) * 1e3,
-        "peak_vs_in_process": float(max(x["peak_N"] for x in w) / ref["peak_N"]) if ref["peak_N"] else float("nan"),
+        "peak_vs_in_process": float(max(x["first_peak_N"] for x in w) / ref["first_peak_N"]) if ref["first_peak_N"] else
+        float("nan"),
+        "peak_N_run": float(max(x["peak_N"] for x in w)), "peak_N_run_in_process": float(ref["peak_N"]),
         "work_ms_p99": worst("work_ms_p99"), "work_ms_max": worst("work_ms_max"),
+        "latency_wait_ms_p50": _pct(wait, 50), "latency_wait_ms_p99": _pct(wait, 99),
+        "latency_tick_ms_p50": _pct(lat - wait, 50), "latency_tick_ms_p99": _pct(lat - wait, 99),
+        "publish_ms_p99": float(max(r["skin"].get("publish_ms_p99") or 0.0 for r in runs)),
         "latency_samples": int(sum(r["latency_samples"] for r in runs)),
         "frame_delay_ms_max": float(max(r["skin"].get("frame_delay_ms_max") or 0.0 for r in runs)),
         "stops": ";".join(sorted({r["kind"] + (":" + r["watchdog"] if r["watchdog"] else "") for r in runs})),
         "per_run_loop_hz_p50": [round(r["loop_hz_p50"], 3) for r in runs],
         "per_run_period_ms_p99": [round(r["period_ms_p99"], 4) for r in runs],
-        "per_run_latency_ms_p99": [round(r["latency_ms_p99"], 4) for r in runs]}
+        "per_run_latency_ms_p99": [round(r["latency_ms_p99"], 4) for r in runs],
+        "per_run_peak_N": [round(x["first_peak_N"], 2) for x in w]}
+
+
+def _pooled(runs: list[dict], key: str, p: float = 99) -> float:
+    """Percentile `p` of every sample `key` of the runs together: a `*_all` list, or "latency_tick_ms_all" (each
+    latency less its wait: the part the phase between the boards' frames and the loop's ticks does not set)."""
+    def samples(r):
+        if key == "latency_tick_ms_all":
+            return np.asarray(r["latency_ms_all"], float) - np.asarray(r["latency_wait_ms_all"], float)
+        return np.asarray(r[key], float)
+    return _pct(np.concatenate([samples(r) for r in runs]) if runs else np.zeros(0), p)
+
+
+VIEW_KEYS = (("period", "period_ms_all"), ("latency", "latency_ms_all"), ("latency_tick", "latency_tick_ms_all"))
+VIEW_TOLERANCE = 0.05
+
+
+def _vs_off(runs: dict[str, list[dict]], view: str) -> dict:
+    """A view mode's loop tails against the runs without the view: each pooled over every tick (period) and every
+    contact frame (latency, and its tick's part) of the mode's runs, as a ratio to off's; and the same ratio between
+    off's own two halves (its even and odd runs: the same code, so what the machine alone makes of it).
+    `within_5pct`: every ratio of the mode within 5%; `not_slower_5pct`: none more than 5% above off's;
+    `resolvable`: off's halves within 5% of each other."""
+    out = {"view": view}
+    if "off" not in runs:
+        return out
+    off = runs["off"]
+    halves = (off[0::2], off[1::2])
+    spread = []
+    for name, key in VIEW_KEYS:
+        base = _pooled(off, key)
+        out[f"{name}_ms_p99_pooled"] = _pooled(runs[view], key)
+        if len(off) >= 2:
+            spread.append(abs(_pooled(halves[0], key) / _pooled(halves[1], key) - 1))
+            out[f"off_halves_{name}_p99"] = [round(_pooled(h, key), 4) for h in halves]
+        if view != "off":
+            out[f"{name}_p99_vs_off"] = out[f"{name}_ms_p99_pooled"] / base - 1
+    if view != "off":
+        change = [out[f"{name}_p99_vs_off"] for name, _ in VIEW_KEYS]
+        out["within_5pct"] = all(abs(c) <= VIEW_TOLERANCE for c in change)
+        out["not_slower_5pct"] = all(c <= VIEW_TOLERANCE for c in change)
+    if spread:
+        out["off_spread"] = max(spread)
+        out["resolvable"] = max(spread) <= VIEW_TOLERANCE
+    return out
+
+
+def _pct(a: np.ndarray, p: float) -> float:
+    return float(np.percentile(a, p)) if len(a) else float("nan")
 
 
 def write_still(path: Path, joints: list[str], q) -> Path:

@@ -6,7 +6,8 @@
    that went back, a link lost), the robot's state not updating (its `seq` unchanged for
    `state_periods` ticks), a stale command source (`age() > stale_s`), then anything non-finite
    (robot clock, q, qd, a reading of a taxel that is not excluded, the planned command);
-2. the readings (excluded taxels as 0 N), the command source's planned velocity at the robot's clock
+2. the readings (excluded taxels as 0 N, read after the plan so that a frame arriving while it was
+   computed is used), the command source's planned velocity at the robot's clock
    since the start, and the MEASURED dt and qd go through `SafetyStack.tick`; a non-finite result
    is a stop too;
 3. the command goes back to the driver; the recorder and the tap get the tick (never waited on).
@@ -56,6 +57,7 @@ class Runtime:
         self.clock: list[float] = []  # the robot's clock at each tick
         self.work: list[float] = []  # s each tick took
         self.latency: list[float] = []  # s from a frame holding a contact to its command leaving
+        self.waited: list[float] = []  # s of each such latency before the tick that used the frame began
         self._t0 = self._prev_t = self._seq = None
         self._repeats = 0
         self._reading_seq = None
@@ -67,12 +69,13 @@ class Runtime:
     def control(self, state) -> np.ndarray:
         start = time.monotonic()
         self.starts.append(start)
-        r = self.source.newest()
         q, qd, t = state.q, state.qd, state.t
         self.clock.append(t)
         if self._t0 is None:
             self._t0 = self._prev_t = t
             self.command.start(q)
+        planned, unplanned = self._plan(t, q)
+        r = self.source.newest()  # after the plan: a frame that arrived meanwhile is this tick's
         self._state = (state, r)
         watchdog, why = self._watch(state, r)
         new = r.seq != self._reading_seq
@@ -82,15 +85,8 @@ class Runtime:
             if not finite(self._force):
                 bad = np.flatnonzero(~np.isfinite(self._force))
                 watchdog, why = "nonfinite", f"non-finite reading on {len(bad)} taxel(s), first taxel {bad[0]}"
-        planned = None
-        if not watchdog:
-            try:
-                planned = np.asarray(self.command(t - self._t0, q), float)
-            except StopRobot as e:
-                watchdog, why = "nonfinite", str(e)
-            else:
-                if not finite(planned):
-                    watchdog, why = "nonfinite", f"command: {self.command.spec} planned a non-finite velocity"
+        if not watchdog and unplanned:
+            watchdog, why, planned = "nonfinite", unplanned, None
         if not watchdog and self.seconds is not None and t - self._t0 >= self.seconds:
             self._stop(state, r, start, "end", "", f"the run ended after {self.seconds:g} s (--seconds)")
         if watchdog:
@@ -106,6 +102,7 @@ class Runtime:
         now = time.monotonic()
         if new and (self._force > self.thresholds).any():
             self.latency.append(now - r.t)
+            self.waited.append(start - r.t)
         self.ticks += 1
         self.work.append(now - start)
         frame = Frame(t, q, self._force, v, retracting, pool, info.flags, "", planned, d.pool if retracting else None,
@@ -116,6 +113,16 @@ class Runtime:
                                planned, v, info.flags, retracting, pool, r.board_age_s, r.frames_lost,
                                self.command.age(), 1.0, frame.potential, frame.speed_factor, frame.pool_taxels))
         return v
+
+    def _plan(self, t: float, q: np.ndarray) -> tuple[np.ndarray | None, str]:
+        """The command source's planned velocity, or (None, why it has none)."""
+        try:
+            planned = np.asarray(self.command(t - self._t0, q), float)
+        except StopRobot as e:
+            return None, str(e)
+        if not finite(planned):
+            return None, f"command: {self.command.spec} planned a non-finite velocity"
+        return planned, ""
 
     def _watch(self, state, r) -> tuple[str, str]:
         if r.faults:
@@ -185,7 +192,8 @@ class Runtime:
 
     def timing(self) -> dict:
         """Loop rate, period jitter (host clock; `_robot`: the robot's clock), work per tick and contact latency
-        (ms) over the run; `latency_ms_all`: every latency sample (a bench pools several runs')."""
+        (ms) over the run; `latency_ms_all`, `latency_wait_ms_all` (its part before the tick began) and `period_ms_all`:
+        every sample (a bench pools several runs')."""
         period = np.diff(self.starts) * 1e3 if len(self.starts) > 1 else np.zeros(1)
         robot = np.diff(self.clock) * 1e3 if len(self.clock) > 1 else np.zeros(1)
         lat = np.array(self.latency) * 1e3 if self.latency else np.full(1, np.nan)
@@ -200,7 +208,9 @@ class Runtime:
                 "work_ms_p99": float(np.percentile(work, 99)), "work_ms_max": float(work.max()),
                 "latency_samples": len(self.latency), "latency_ms_p50": float(np.median(lat)),
                 "latency_ms_p99": float(np.percentile(lat, 99)), "latency_ms_max": float(lat.max()),
-                "latency_ms_all": [round(float(x), 4) for x in lat] if self.latency else []}
+                "latency_ms_all": [round(float(x), 4) for x in lat] if self.latency else [],
+                "latency_wait_ms_all": [round(float(x) * 1e3, 4) for x in self.waited],
+                "period_ms_all": [round(float(x), 4) for x in period]}
 
 
 def speed_factor(v: np.ndarray, planned: np.ndarray | None) -> float:

@@ -151,12 +151,13 @@ def final_command(v: np.ndarray, prev: np.ndarray, limits: JointLimits, A: np.nd
         return Projection(np.minimum(np.maximum(v, lo), hi))
     n = len(v)
     H, f = _EYE[n] if n < len(_EYE) else np.eye(n), -v
-    x, ok, _ = qp.solve(H, f, C, lower, upper)
+    x, ok, _ = (None, False, None) if qp.unreachable(A, b, lo, hi) else qp.solve(H, f, C, lower, upper)
     bb = b
     if not ok:
         bb = qp.relaxed_bounds(A, b, lo, hi)
         lower[n:] = bb
-        x, ok, _ = qp.solve(H, f, C, lower, upper)
+        # v meets the relaxed rows (the retraction's command, limited by the same rows): it is its own projection
+        x, ok, _ = (v, True, None) if qp.meets(C, v, lower, upper) else qp.solve(H, f, C, lower, upper)
     if not ok:  # cannot happen for bounds from relaxed_bounds; stay safe anyway
         return Projection(brake(prev, limits, dt), True, True)
     return Projection(np.minimum(np.maximum(x, lo), hi), True, bool((bb < 0).any()))

@@ -65,11 +65,12 @@ def solve(H, f, C, lower, upper):
     if flag < 1:  # H's condition reaches 1e9 near singularities: retried with a little more regularisation
         x, _, flag, info = daqp.solve(H + RETRY_REG * np.eye(len(H)), f, C, upper, lower, sense, primal_tol=1e-9)
     x = np.asarray(x)
-    return x, flag >= 1 and _meets(C, x, lower, upper), info["lam"]
+    return x, flag >= 1 and meets(C, x, lower, upper), info["lam"]
 
 
 @numba.njit(cache=True, nogil=True)
-def _meets(C, x, lower, upper):
+def meets(C, x, lower, upper):
+    """x finite and `lower <= C x <= upper` to the tolerance `solve` accepts."""
     for i in range(x.shape[0]):
         if not np.isfinite(x[i]):
             return False
@@ -305,7 +306,8 @@ def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: fl
                                                                reg, x, Z, k, levels, first, z, null, lam)
         if k >= K:
             break
-        z, ok, lam = solve(H, f, C, lower, upper)
+        doomed = levels == 0 and unreachable(A, b, lo, hi)  # x = 0, Z = I: the level's rows are A's and the box
+        z, ok, lam = (_NONE, False, _NONE) if doomed else solve(H, f, C, lower, upper)
         if not ok and levels == 0:  # fallback chain (module docstring); x = 0 here
             pushing = bool(np.any(b > 0))
             b = relaxed_bounds(A, b, lo, hi)
@@ -339,24 +341,71 @@ _NONE, _NONE2 = np.zeros(0), np.zeros((0, 0))
 
 
 def relaxed_bounds(A, b, lo, hi) -> np.ndarray:
-    """The largest lower bounds b' <= b such that `A qd >= b'` meets the box: b' = max(b, 0)
+    """The largest lower bounds b' <= b such that `A qd >= b'` meets the box: b' = min(b, 0)
     where that is feasible, else the least violation: `b' = min(b, 0) - s` with s >= 0 the
     slack of `min |s|^2 s.t. A qd + s >= min(b, 0), lo <= qd <= hi` (a tiny margin keeps the
-    next solve feasible)."""
+    next solve feasible).
+
+    A tick asks twice with the same rows and box (the retraction's first level, then the final
+    command's projection): the last answer is kept and given again for identical inputs. Feasibility
+    needs no QP where a point shows it (the box's point nearest 0 meets every row) or one row shows
+    the opposite (its largest value over the box is below its bound); one row has the slack in
+    closed form (s = its bound minus that largest value)."""
+    global _last_relaxed
+    A, b, lo, hi = (np.ascontiguousarray(a, dtype=np.float64) for a in (A, b, lo, hi))
+    key = (A.shape, A.tobytes(), b.tobytes(), lo.tobytes(), hi.tobytes())
+    if _last_relaxed[0] == key:
+        return _last_relaxed[1].copy()
+    out = _relaxed(A, b, lo, hi)
+    _last_relaxed = (key, out)
+    return out.copy()
+
+
+def _relaxed(A, b, lo, hi) -> np.ndarray:
     n, K = A.shape[1], len(A)
     b0 = np.minimum(b, 0.0)
-    x, ok, _ = solve(np.eye(n), np.zeros(n), np.ascontiguousarray(np.vstack([np.eye(n), A])), np.r_[lo, b0],
-                     np.r_[hi, np.full(K, BIG)])
-    if ok:
+    reach = _box_max(A, lo, hi)
+    alone = bool((reach >= b0).all())  # every row can be met on its own
+    if alone and (K == 1 or (A @ np.clip(0.0, lo, hi) >= b0).all()):
         return b0
-    H = np.diag(np.r_[np.full(n, 1e-9), np.ones(K)])
+    if not alone and K == 1:
+        return reach - _margin(A)  # b0 - s with s = b0 - reach
+    if alone:
+        C = np.zeros((n + K, n))
+        C[:n] = np.eye(n)
+        C[n:] = A
+        _, ok, _ = solve(np.eye(n), np.zeros(n), C, np.concatenate([lo, b0]), np.concatenate([hi, np.full(K, BIG)]))
+        if ok:
+            return b0
+    H = np.diag(np.concatenate([np.full(n, 1e-9), np.ones(K)]))
     C = np.zeros((n + 2 * K, n + K))
     C[:n, :n] = np.eye(n)
     C[n:n + K, :n], C[n:n + K, n:] = A, np.eye(K)
     C[n + K:, n:] = np.eye(K)
-    xs, ok, _ = solve(H, np.zeros(n + K), C, np.r_[lo, b0, np.zeros(K)], np.r_[hi, np.full(2 * K, BIG)])
+    xs, ok, _ = solve(H, np.zeros(n + K), C, np.concatenate([lo, b0, np.zeros(K)]),
+                      np.concatenate([hi, np.full(2 * K, BIG)]))
     s = xs[n:] if ok else np.maximum(b0 - A @ np.clip(0.0, lo, hi), 0.0)  # the box's point nearest 0
     return b0 - s - _margin(A)
+
+
+_last_relaxed: tuple = (None, None)  # (inputs, answer) of the last `relaxed_bounds`
+
+
+@numba.njit(cache=True, nogil=True)
+def _box_max(A, lo, hi):
+    """(K,) the largest value of each row `a_k . qd` over the box lo <= qd <= hi."""
+    K, n = A.shape
+    out = np.zeros(K)
+    for k in range(K):
+        for j in range(n):
+            out[k] += max(A[k, j] * lo[j], A[k, j] * hi[j])
+    return out
+
+
+def unreachable(A, b, lo, hi) -> bool:
+    """True when some row `a_k . qd >= b_k` cannot be met anywhere in the box, not even to `solve`'s
+    tolerance (so a QP over the rows and the box could only fail)."""
+    return bool(len(b)) and bool((_box_max(A, lo, hi) < b - 1e-7 * (1 + np.abs(b))).any())
 
 
 def _margin(A) -> np.ndarray:

@@ -87,7 +87,8 @@ class SimFaults:
 @dataclass
 class WorldStats:
     onset_t: float | None = None  # sim time of the first contact force on the touched obstacle
-    peak_N: float = 0.0  # largest contact force between the arm and the obstacle
+    peak_N: float = 0.0  # largest contact force between the arm and the obstacle, over the run (every contact)
+    first_peak_N: float = 0.0  # largest contact force of the first contact (the onset until the force is first 0 again)
     into_contact_m: float = 0.0  # furthest the touched taxel moved along its normal from the onset to the reaction
     reaction_t: float | None = None  # first time after the onset its measured motion pointed out of the contact
     ticks: int = 0
@@ -174,6 +175,7 @@ class SimDriver:
         self._stop: str | None = None
         self._seq = 0
         self._contact_p0 = None
+        self._first = False  # the first contact goes on
         self._moving = False  # until `run`, the arm stands still and its skin keeps streaming (pre-flight, tare)
         self._idle = threading.Thread(target=self._stand_still, name="sim-idle", daemon=True) if feed is not None else None
         if self._idle is not None:
@@ -301,8 +303,11 @@ class SimDriver:
             return
         J, pos, _ = self.kin.jacobians_of(np.array([self.taxel]), self.data.qpos[:self.nq])
         if s.onset_t is None:
-            s.onset_t, self._contact_p0 = float(self.data.time), pos[0].copy()
+            s.onset_t, self._contact_p0, self._first = float(self.data.time), pos[0].copy(), True
         s.peak_N = max(s.peak_N, f)
+        self._first = self._first and f > 0
+        if self._first:
+            s.first_peak_N = max(s.first_peak_N, f)
         if s.reaction_t is None:  # how far into the contact before the motion turned out of it
             s.into_contact_m = max(s.into_contact_m, float((pos[0] - self._contact_p0) @ self.normal))
         v_n = float(self.normal @ (J[0, :3] @ self.data.qvel[:self.nq]))

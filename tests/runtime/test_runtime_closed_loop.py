@@ -61,6 +61,9 @@ def test_a_poke_is_retracted_and_the_record_replays_exactly(skin, tmp_path):
     assert p.returncode == 0, p.stderr
     w = s["world"]
     assert w["onset_t"] is not None and w["reaction_t"] is not None and w["peak_N"] > 2.0  # above the 2 N threshold
+    assert 2.0 < w["first_peak_N"] <= w["peak_N"]  # the first contact's peak: one of the run's
+    lat, wait = np.array(s["latency_ms_all"]), np.array(s["latency_wait_ms_all"])
+    assert len(lat) == s["latency_samples"] > 0 and (0 <= wait).all() and (wait < lat).all()  # a part, before the tick
     msgs = messages(record)
     assert {t for t, _ in msgs} == TOPICS
     times = np.array([m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for t, m in msgs if t == "/skinsafe/command"])

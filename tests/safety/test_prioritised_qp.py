@@ -163,3 +163,45 @@ def test_a_qp_without_a_solution_sends_zero_within_the_box_and_says_so(monkeypat
     monkeypatch.setattr(qp, "solve", lambda H, f, C, lower, upper: (np.zeros(len(H)), False, np.zeros(len(lower))))
     sol = prioritised(J, r, A, b, lo, hi, np.full(6, 3.0), 0.05, 0.05)
     assert sol.solver_failed and np.allclose(sol.qd, 0.1)
+
+
+def _relaxed_by_qp(A, b, lo, hi):
+    """The QP-only answer (no shortcut): the feasibility QP, else the least-violation QP."""
+    from skinsafe.core.safety import qp
+
+    n, K = A.shape[1], len(A)
+    b0 = np.minimum(b, 0.0)
+    _, ok, _ = qp.solve(np.eye(n), np.zeros(n), np.vstack([np.eye(n), A]), np.r_[lo, b0], np.r_[hi, np.full(K, qp.BIG)])
+    if ok:
+        return b0
+    H = np.diag(np.r_[np.full(n, 1e-9), np.ones(K)])
+    C = np.zeros((n + 2 * K, n + K))
+    C[:n, :n], C[n:n + K, :n], C[n:n + K, n:], C[n + K:, n:] = np.eye(n), A, np.eye(K), np.eye(K)
+    xs, ok, _ = qp.solve(H, np.zeros(n + K), C, np.r_[lo, b0, np.zeros(K)], np.r_[hi, np.full(2 * K, qp.BIG)])
+    assert ok
+    return b0 - xs[n:] - qp._margin(A)
+
+
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), K=st.integers(1, 6), n=st.sampled_from([6, 7]),
+       box=st.sampled_from(["around0", "away", "thin"]))
+def test_relaxed_bounds_shortcuts_give_the_qps_answer(seed, K, n, box):
+    """The certificate (the box's point nearest 0), the one-row infeasibility test and the one-row closed form give
+    what the QPs give, to solver tolerance; a repeated call with other rows or box is never served the last answer."""
+    from skinsafe.core.safety import qp
+
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(K, n))
+    b = rng.normal(scale=2.0, size=K)
+    centre = {"around0": 0.0, "away": rng.normal(scale=3.0), "thin": rng.normal()}[box]
+    half = 1e-3 if box == "thin" else rng.uniform(0.1, 2.0)
+    lo, hi = centre + rng.uniform(-1, 0, n) * half - half, centre + rng.uniform(0, 1, n) * half + half
+    got = qp.relaxed_bounds(A, b, lo, hi)
+    want = _relaxed_by_qp(A, b, lo, hi)
+    assert np.allclose(got, want, atol=1e-6, rtol=1e-6)
+    assert (got <= np.minimum(b, 0.0) + 1e-12).all()
+    _, ok, _ = qp.solve(np.eye(n), np.zeros(n), np.vstack([np.eye(n), A]), np.r_[lo, got], np.r_[hi, np.full(K, qp.BIG)])
+    assert ok  # the relaxed rows meet the box
+    other = b + 1.0
+    assert np.allclose(qp.relaxed_bounds(A, other, lo, hi), _relaxed_by_qp(A, other, lo, hi), atol=1e-6, rtol=1e-6)
+    assert np.array_equal(qp.relaxed_bounds(A, b, lo, hi), got)  # the same inputs again: the same answer

@@ -1,0 +1,36 @@
+"""The runtime bench's view comparison: pooled tails, their ratio to the runs without the view, the noise floor."""
+import numpy as np
+
+from skinsafe.core.bench.runtime import _vs_off
+
+
+def _run(periods, latencies, waits=None):
+    waits = np.zeros(len(latencies)) if waits is None else waits
+    return {"period_ms_all": list(periods), "latency_ms_all": list(latencies), "latency_wait_ms_all": list(waits)}
+
+
+def test_view_rows_pool_every_sample_and_compare_with_off_and_off_with_itself():
+    rng = np.random.default_rng(0)
+    flat = [_run(np.full(1000, 1.0), np.full(100, 2.0)) for _ in range(4)]
+    off = flat[:3] + [_run(np.r_[np.full(970, 1.0), np.full(30, 1.5)], np.full(100, 2.0))]  # one run with a tail
+    page = [_run(np.full(1000, 1.02), rng.uniform(2.0, 2.04, 100)) for _ in range(4)]
+    row = _vs_off({"off": off, "page": page}, "page")
+    # pooled over 4,000 ticks the tail of 30 slow ticks (0.75%) is below the p99: 1.0 against 1.02
+    assert np.isclose(row["period_ms_p99_pooled"], 1.02) and np.isclose(row["period_p99_vs_off"], 0.02)
+    assert 0 < row["latency_p99_vs_off"] <= 0.02 and row["within_5pct"]
+    # off's halves (runs 0, 2 against 1, 3): in the slow run's half the 30 are 1.5% of the ticks, its p99 1.5
+    assert row["off_halves_period_p99"] == [1.0, 1.5]
+    assert np.isclose(row["off_spread"], 1 / 3) and not row["resolvable"]  # |1.0 / 1.5 - 1|
+    slow = [_run(np.full(1000, 1.1), np.full(100, 2.0)) for _ in range(4)]
+    far = _vs_off({"off": flat, "slow": slow}, "slow")
+    assert np.isclose(far["period_p99_vs_off"], 0.1) and not far["within_5pct"] and far["resolvable"]
+    assert not far["not_slower_5pct"]
+    fast = _vs_off({"off": slow, "page": flat}, "page")  # the view's runs 9% faster: not within, not slower
+    assert not fast["within_5pct"] and fast["not_slower_5pct"]
+    # the tick's part: each latency less its wait (here the frames waited 1.5 ms with the view, 1.0 without)
+    waited = [_run(np.full(1000, 1.0), np.full(100, 2.5), np.full(100, 1.5)) for _ in range(4)]
+    base = [_run(np.full(1000, 1.0), np.full(100, 2.0), np.full(100, 1.0)) for _ in range(4)]
+    tick = _vs_off({"off": base, "page": waited}, "page")
+    assert np.isclose(tick["latency_tick_ms_p99_pooled"], 1.0) and np.isclose(tick["latency_tick_p99_vs_off"], 0.0)
+    assert np.isclose(tick["latency_p99_vs_off"], 0.25)
+    assert _vs_off({"page": page}, "page") == {"view": "page"}  # nothing to compare without off
