@@ -177,13 +177,13 @@ class BoardsReader:
                 f[b.excluded] = np.nan
                 self.force[b.rows] = f
             named = self._silent(now)
+            for text in self._take_faults():  # before the readings they explain (a silent board's NaN): the loop
+                tx.send(("fault", text))  # that reads those finds its name waiting
             if got or named:
                 self.t_newest = max([self.boards[b].arrived for b, _ in got], default=self.t_newest)
                 self._publish(state)
                 if got:
                     self.held.append(time.monotonic() - self.t_newest)
-            for text in self._take_faults():
-                tx.send(("fault", text))
             if rx.poll(0):
                 try:
                     if rx.recv() == "stop":
@@ -207,7 +207,8 @@ class BoardsReader:
             self._fault(f"board '{b.name}' (uid {b.uid:#x}): silent for {(now - b.arrived) * 1e3:.1f} ms, more than "
                         f"{self.silent_periods:g} frame periods ({self.silent_periods * self.frame_period_s * 1e3:.1f} "
                         f"ms){allowance}"
-                        + (f"; {corrupt} corrupt frames since its last good one (a CRC storm)" if corrupt else ""))
+                        + (f"; {corrupt} corrupt frames since its last good one (a CRC storm)" if corrupt else ""),
+                        again=True)
             self.silences.append(b.silence)
             named = True
         return named
@@ -260,8 +261,11 @@ class BoardsReader:
     def frames_lost(self) -> int:
         return sum(s.stats().lost for s in self.stream.boards) if self.stream is not None else 0
 
-    def _fault(self, text: str) -> None:
-        if text not in self._named:
+    def _fault(self, text: str, again: bool = False) -> None:
+        """Name a fault to the loop, each text once (a CRC storm or a foreign uid is seen on every pass), or every time
+        with `again` (each silence is news: one named before the robot moved, which the loop lets pass, must not
+        hide a later one of the same length)."""
+        if again or text not in self._named:
             self._named.add(text)
             self._faults.append(text)
 

@@ -1,0 +1,29 @@
+"""The boards' reader names every silence to the loop, each time, together with the NaN readings it causes."""
+import numpy as np
+
+from skinsafe.hardware.flat_design import flat_design
+from skinsafe.hardware.skin_reader import BoardsReader, _Board
+
+
+def test_a_second_silence_of_the_same_length_is_named_again():
+    """A board named silent before the robot moved (the loop lets that pass) and silent again later for the same
+    40.3 ms: the second silence reaches the loop by name, not only as NaN readings (the fault storm's
+    misnamed frame delays: the reader named each text once)."""
+    d = flat_design(64, 2)
+    reader = BoardsReader(d, {}, 50, 0.25, 0.02, 2.0, 0.0, 5, {})
+    rows = [np.flatnonzero(d.taxels.board == b.id) for b in d.boards]
+    reader.boards = {b.id: _Board(b.uid, b.name, rows[k], k) for k, b in enumerate(d.boards)}
+    reader.force = np.zeros(d.n_taxels)
+    names = []
+    for t0 in (10.0, 20.0):  # the board's last frame; named 40.3 ms later, both times
+        b = reader.boards[d.boards[0].id]
+        b.arrived, b.silent_at, b.silence = t0, 0.0, None
+        reader.boards[d.boards[1].id].arrived = t0 + 0.04
+        reader.force[:] = 0.0
+        assert reader._silent(t0 + 0.0403)
+        assert np.isnan(reader.force[rows[0]]).all() and not np.isnan(reader.force[rows[1]]).any()
+        names.append(reader._take_faults())
+    assert names[0] == names[1] and len(names[1]) == 1 and "silent for 40.3 ms" in names[1][0]
+    reader._fault("CRC storm on board0")
+    reader._fault("CRC storm on board0")  # a fault seen on every pass is still named once
+    assert reader._take_faults() == ["CRC storm on board0"]
