@@ -27,6 +27,7 @@ from skinsafe.core.runtime.tap import Frame, Tap
 from skinsafe.core.safety.limits import finite
 
 STALE_KINDS = ("skin-silent", "robot-state", "command-stale")
+ALL_PERIODS = 300_000  # a run's every period goes into its figures up to this many (5 min at 1 kHz); a longer one's: none
 
 
 @dataclass
@@ -192,8 +193,8 @@ class Runtime:
 
     def timing(self) -> dict:
         """Loop rate, period jitter (host clock; `_robot`: the robot's clock), work per tick and contact latency
-        (ms) over the run; `latency_ms_all`, `latency_wait_ms_all` (its part before the tick began) and `period_ms_all`:
-        every sample (a bench pools several runs')."""
+        (ms) over the run; `latency_ms_all`, `latency_wait_ms_all` (its part before the tick began) and `period_ms_all`
+        (up to ALL_PERIODS ticks): every sample (a bench pools several runs')."""
         period = np.diff(self.starts) * 1e3 if len(self.starts) > 1 else np.zeros(1)
         robot = np.diff(self.clock) * 1e3 if len(self.clock) > 1 else np.zeros(1)
         lat = np.array(self.latency) * 1e3 if self.latency else np.full(1, np.nan)
@@ -210,7 +211,7 @@ class Runtime:
                 "latency_ms_p99": float(np.percentile(lat, 99)), "latency_ms_max": float(lat.max()),
                 "latency_ms_all": [round(float(x), 4) for x in lat] if self.latency else [],
                 "latency_wait_ms_all": [round(float(x) * 1e3, 4) for x in self.waited],
-                "period_ms_all": [round(float(x), 4) for x in period]}
+                "period_ms_all": [round(float(x), 4) for x in period] if len(period) <= ALL_PERIODS else []}
 
 
 def speed_factor(v: np.ndarray, planned: np.ndarray | None) -> float:
