@@ -253,14 +253,12 @@ def rows(args) -> list[dict]:
 def _row(design, runs: list[dict], stale: int, ref: dict, args) -> dict:
     w = [r["world"] for r in runs]
     worst = lambda key: float(np.nanmax([r[key] for r in runs]))  # noqa: E731
-    lat = np.concatenate([r["latency_ms_all"] for r in runs])  # every contact frame of every run
-    wait = np.concatenate([r["latency_wait_ms_all"] for r in runs])
     return {
         "robot": "ur5", "driver": "sim", "boards": len(design.boards), "taxels": design.n_taxels,
         "ticks": int(sum(r["ticks"] for r in runs)), "rate_hz": args.rate, "period_ms": args.period * 1e3,
         "link_latency_ms": args.link_latency * 1e3, "runs": len(runs),
         "loop_hz_p50": float(np.median([r["loop_hz_p50"] for r in runs])), "period_ms_p99": worst("period_ms_p99"),
-        "latency_ms_p50": _pct(lat, 50), "latency_ms_p99": _pct(lat, 99),
+        "latency_ms_p50": _pooled(runs, "latency", 50), "latency_ms_p99": _pooled(runs, "latency"),
         "latency_ms_max": worst("latency_ms_max"),
         "reaction_ms": float(np.nanmax([_ms(x, "reaction_t") for x in w])),
         "peak_N": float(max(x["first_peak_N"] for x in w)),
@@ -273,8 +271,8 @@ def _row(design, runs: list[dict], stale: int, ref: dict, args) -> dict:
         float("nan"),
         "peak_N_run": float(max(x["peak_N"] for x in w)), "peak_N_run_in_process": float(ref["peak_N"]),
         "work_ms_p99": worst("work_ms_p99"), "work_ms_max": worst("work_ms_max"),
-        "latency_wait_ms_p50": _pct(wait, 50), "latency_wait_ms_p99": _pct(wait, 99),
-        "latency_tick_ms_p50": _pct(lat - wait, 50), "latency_tick_ms_p99": _pct(lat - wait, 99),
+        "latency_wait_ms_p50": _pooled(runs, "latency_wait", 50), "latency_wait_ms_p99": _pooled(runs, "latency_wait"),
+        "latency_tick_ms_p50": _pooled(runs, "latency_tick", 50), "latency_tick_ms_p99": _pooled(runs, "latency_tick"),
         "publish_ms_p99": float(max(r["skin"].get("publish_ms_p99") or 0.0 for r in runs)),
         "latency_samples": int(sum(r["latency_samples"] for r in runs)),
         "frame_delay_ms_max": float(max(r["skin"].get("frame_delay_ms_max") or 0.0 for r in runs)),
@@ -285,17 +283,21 @@ def _row(design, runs: list[dict], stale: int, ref: dict, args) -> dict:
         "per_run_peak_N": [round(x["first_peak_N"], 2) for x in w]}
 
 
-def _pooled(runs: list[dict], key: str, p: float = 99) -> float:
-    """Percentile `p` of every sample `key` of the runs together: a `*_all` list, or "latency_tick_ms_all" (each
-    latency less its wait: the part the phase between the boards' frames and the loop's ticks does not set)."""
-    def samples(r):
-        if key == "latency_tick_ms_all":
-            return np.asarray(r["latency_ms_all"], float) - np.asarray(r["latency_wait_ms_all"], float)
-        return np.asarray(r[key], float)
-    return _pct(np.concatenate([samples(r) for r in runs]) if runs else np.zeros(0), p)
+SAMPLES = {  # a run's samples of each pooled figure (ms): every tick's period, every contact frame's latency
+    "period": lambda r: np.asarray(r["period_ms_all"], float),
+    "latency": lambda r: np.asarray(r["latency_ms_all"], float),
+    "latency_wait": lambda r: np.asarray(r["latency_wait_ms_all"], float),
+    # the latency less its wait for the tick: the part the phase of the boards' frames to the ticks does not set
+    "latency_tick": lambda r: SAMPLES["latency"](r) - SAMPLES["latency_wait"](r),
+}
 
 
-VIEW_KEYS = (("period", "period_ms_all"), ("latency", "latency_ms_all"), ("latency_tick", "latency_tick_ms_all"))
+def _pooled(runs: list[dict], name: str, p: float = 99) -> float:
+    """Percentile `p` of the runs' samples of `name` (SAMPLES) together."""
+    return _pct(np.concatenate([SAMPLES[name](r) for r in runs]) if runs else np.zeros(0), p)
+
+
+VIEW_KEYS = ("period", "latency", "latency_tick")
 VIEW_TOLERANCE = 0.05
 
 
@@ -311,16 +313,16 @@ def _vs_off(runs: dict[str, list[dict]], view: str) -> dict:
     off = runs["off"]
     halves = (off[0::2], off[1::2])
     spread = []
-    for name, key in VIEW_KEYS:
-        base = _pooled(off, key)
-        out[f"{name}_ms_p99_pooled"] = _pooled(runs[view], key)
+    for name in VIEW_KEYS:
+        out[f"{name}_ms_p99_pooled"] = _pooled(runs[view], name)
         if len(off) >= 2:
-            spread.append(abs(_pooled(halves[0], key) / _pooled(halves[1], key) - 1))
-            out[f"off_halves_{name}_p99"] = [round(_pooled(h, key), 4) for h in halves]
+            a, b = (_pooled(h, name) for h in halves)
+            spread.append(abs(a / b - 1))
+            out[f"off_halves_{name}_p99"] = [round(a, 4), round(b, 4)]
         if view != "off":
-            out[f"{name}_p99_vs_off"] = out[f"{name}_ms_p99_pooled"] / base - 1
+            out[f"{name}_p99_vs_off"] = out[f"{name}_ms_p99_pooled"] / _pooled(off, name) - 1
     if view != "off":
-        change = [out[f"{name}_p99_vs_off"] for name, _ in VIEW_KEYS]
+        change = [out[f"{name}_p99_vs_off"] for name in VIEW_KEYS]
         out["within_5pct"] = all(abs(c) <= VIEW_TOLERANCE for c in change)
         out["not_slower_5pct"] = all(c <= VIEW_TOLERANCE for c in change)
     if spread:
