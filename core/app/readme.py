@@ -14,7 +14,7 @@ FILE is relative to the repository (a `results/...` JSON); KEY.PATH walks its di
 list (`force.max`: min, max, sum, mean, len)
 and scales (`slope*100`, `params.alpha*100/12`); a table's rows are the file itself when it is a list,
 or its `rows`. FORMAT is a Python format spec (`.3f`, `+.1f`, `.0%`), `mins` (seconds as "3 min 39 s") or
-`code` (as inline code: a command); without one, numbers keep 3 significant digits and thousands get separators.
+`code` (as inline code: a command), each item of a list (an interval: `[-1.2%, +3.4%]`); without one, numbers keep 3 significant digits and thousands get separators.
 
 Markers inside fenced code blocks are examples, left alone. `skinsafe readme` rewrites README.md; `--check` changes nothing and exits 1 naming every figure
 whose text is not what its results file says (tests/app/test_readme_figures.py runs it).
@@ -74,6 +74,8 @@ def fmt(v, spec: str = "") -> str:
         return "—"
     if isinstance(v, bool):
         return "yes" if v else "no"
+    if isinstance(v, list):  # e.g. an interval
+        return "[" + ", ".join(fmt(x, spec) for x in v) + "]"
     if spec == "code":
         return f"`{v}`"
     if isinstance(v, (int, float)) and spec == "mins":

@@ -65,7 +65,8 @@ def add_arguments(p) -> None:
                         "holds serial input for tens to hundreds of ms (README, 'Running a robot')")
     p.add_argument("--realtime", choices=("auto", "off"), default="auto",
                    help="auto: run the loop, the skin reader and the emulated boards at real-time priority "
-                        "(SCHED_FIFO 10) where the system allows it, as libfranka does (default)")
+                        "(SCHED_FIFO 10), and keep idle cores out of their sleep states while the robot moves "
+                        "(/dev/cpu_dma_latency 0), where the system allows it, as libfranka's hosts do (default)")
     p.add_argument("--baud", type=int, default=1_000_000, help="board link speed (real boards)")
     p.add_argument("--tare-frames", type=int, default=100, help="frames per board for the tare and health checks")
     p.add_argument("--noise-fraction", type=float, default=0.25,
@@ -272,8 +273,8 @@ def _below_host(pid: int) -> None:
 def _loop_priority(rt: str):
     """While the robot moves: the loop's thread (only it: Linux schedules threads) above the reader and emulator
     processes, so a tick is never queued behind their frames, as a robot controller's thread is; with two cores
-    or more, the loop keeps the first of them and the processes it started move to the others. Restored after
-    (an in-process caller runs again)."""
+    or more, the loop keeps the first of them and the processes it started move to the others; idle cores stay
+    awake (`_cpus_awake`). Restored after (an in-process caller runs again)."""
     if not rt.startswith("real-time"):
         yield
         return
@@ -284,11 +285,31 @@ def _loop_priority(rt: str):
         os.sched_setaffinity(0, {first})
         for pid in _children():
             _each_thread(pid, os.sched_setaffinity, set(rest))
+    awake = _cpus_awake()
     try:
         yield
     finally:
+        if awake is not None:
+            os.close(awake)
         os.sched_setscheduler(0, policy, param)
         os.sched_setaffinity(0, cpus)
+
+
+def _cpus_awake() -> int | None:
+    """Ask the kernel to keep idle cores out of their sleep states while the file stays open (the PM QoS
+    request of /dev/cpu_dma_latency at 0 us, as cyclictest and real-time robot hosts do): a core woken from a
+    sleep state (on a virtual machine: the host's HLT exit) starts a tick or reads a frame tens to hundreds of
+    microseconds late, and more so the quieter the machine. The open descriptor, or None where not allowed."""
+    try:
+        fd = os.open("/dev/cpu_dma_latency", os.O_WRONLY)
+    except OSError:
+        return None
+    try:
+        os.write(fd, (0).to_bytes(4, sys.byteorder))
+    except OSError:
+        os.close(fd)
+        return None
+    return fd
 
 
 def _children() -> list[int]:

@@ -23,13 +23,15 @@ into it. Per row, over `--repeats` runs (worst case where it says so):
   injected (the shared machine's stalls), or a board was silent before the robot moved; such a run is run
   again (up to RETRIES times) and the row's figures are those of the runs that went to the end;
   frames_lost: frames sent that never arrived.
-`--view off page browser`: a row per mode (key `view`), the modes' runs alternating (each repeat in an order
-turned by one) so they share the machine's load: without the live view, with `run --view` (its stream and page process), and with a headless
-Chromium on the page too; per_run_* list each run's loop figures (the spread); period_ms_p99_pooled and
+`--view off page browser browser-shared`: a row per mode (key `view`), the modes' runs alternating (each repeat
+in an order turned by one) so they share the machine's load: without the live view, with `run --view` (its
+stream and page process), and with a headless Chromium on the page too, off the loop's core or on any; per_run_* list each run's loop figures (the spread); period_ms_p99_pooled and
 latency_ms_p99_pooled over every tick / contact frame of the mode's runs (latency_tick_ms_p99_pooled: the
 frames' tick part), `*_p99_vs_off` their change against the runs without the view, `within_5pct` (all within
-5%), `not_slower_5pct` (none more than 5% above), and the noise floor: `off_spread`, how far the
-runs without the view differ from themselves (even runs against odd), `resolvable` when that is within 5%.
+5%), `not_slower_5pct` (none more than 5% above), `*_p99_vs_off_ci95` (the change's 95% interval, the repeats
+resampled as pairs of runs made next to each other) with `shown_within_5pct` / `shown_not_slower_5pct` (the whole
+intervals), and the noise floor: `off_spread`, how far the runs without the view differ from themselves (even
+runs against odd), `resolvable` when that is within 5%.
 `--faults`: the fault storm (core/app/runtime_faults.py) in its own process, one row: runs, faults
 (runs the fault stopped), stopped_within_2_periods (fraction: zero velocity sent within 2 control
 periods of the detection), unnamed, tracebacks, records_readable (fraction), and named_as_injected.
@@ -38,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -86,9 +89,10 @@ def add_arguments(p) -> None:
     p.add_argument("--fault-rate", type=int, default=50, help="--faults: board frames per second (a board is silent "
                    "after 2 frame periods: 40 ms, so a 50 ms delay trips it and the machine's stalls mostly do not)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--view", nargs="+", default=["off"], choices=("off", "page", "browser"),
+    p.add_argument("--view", nargs="+", default=["off"], choices=("off", "page", "browser", "browser-shared"),
                    help="rows without the live view (off), with `run --view` (page: the stream and its page process), "
-                   "and also with a headless Chromium showing the page (browser); the runs alternate between them")
+                   "and also with a headless Chromium showing the page, kept off the loop's core (browser) or free to "
+                   "use it (browser-shared); the runs alternate between them")
 
 
 def sample_skin(n: int, capacity: int, robot=None) -> SkinDesign:
@@ -153,15 +157,16 @@ def reference(design, robot, traj: Path, period: float = 0.002, seconds: float =
 
 def _run(args, map_path: Path, command: str, stats: Path, seconds: float, *extra: str, view: str = "off") -> dict:
     """One `skinsafe run` in its own process: its figures. `view`: "page" with `--view` (the stream and its page
-    process), "browser" also with a headless Chromium (nice 19) showing the page while the robot moves."""
+    process), "browser" also with a headless Chromium (nice 19) showing the page while the robot moves, off the
+    loop's core ("browser-shared": on any core)."""
     cmd = [sys.executable, "-m", "skinsafe.core.app.cli", "run", str(map_path), "--boards", "emulate", "--command", command,
            "--seconds", str(seconds), "--rate", str(args.rate), "--link-latency", str(args.link_latency),
            "--stats", str(stats), *extra]
     if view != "off":
         cmd += ["--view", "--view-port", str(VIEW_PORT), "--view-stream", "127.0.0.1:0"]
     stats.unlink(missing_ok=True)
-    if view == "browser":
-        p = _with_browser(cmd)
+    if view.startswith("browser"):
+        p = _with_browser(cmd, shared=view == "browser-shared")
     else:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=600 + 20 * seconds)
     if not stats.exists():
@@ -183,8 +188,10 @@ def _retried(run) -> tuple[dict, int]:
     return r, RETRIES
 
 
-def _with_browser(cmd: list[str]) -> subprocess.CompletedProcess:
-    """`cmd` (a `run --view`) with a headless Chromium (Debian's, nice 19) on its page from before the robot moves."""
+def _with_browser(cmd: list[str], shared: bool = False) -> subprocess.CompletedProcess:
+    """`cmd` (a `run --view`) with a headless Chromium (Debian's, nice 19) on its page from before the robot moves;
+    on the cores `run` leaves to what it starts (all but the first, its loop's: as an operator keeps a browser
+    off a robot PC's control core, README 'The loop with the view attached'), or with `shared` on any."""
     from playwright.sync_api import Error as PlaywrightError
     from playwright.sync_api import sync_playwright
 
@@ -194,7 +201,8 @@ def _with_browser(cmd: list[str]) -> subprocess.CompletedProcess:
     if exe is None:
         raise RuntimeError("bench runtime --view browser: no chromium (`apt-get install -y chromium`)")
     with tempfile.TemporaryDirectory() as tmp, sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=niced(tmp, exe), args=CHROMIUM_ARGS)
+        others = None if shared else set(sorted(os.sched_getaffinity(0))[1:]) or None
+        browser = pw.chromium.launch(executable_path=niced(tmp, exe, cpus=others), args=CHROMIUM_ARGS)
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         err = []
         for line in proc.stderr:
@@ -223,12 +231,15 @@ def rows(args) -> list[dict]:
         return link_rows(args.seconds or 30.0)
     if args.robot == "fr3":
         return fr3_rows(args)
+    from tqdm import tqdm
+
     from skinsafe.core.skin.taxel_map import save
 
     seconds = args.seconds or SECONDS
     robot = build_ur5()
     out = []
-    with tempfile.TemporaryDirectory(prefix="skinsafe-bench-runtime-") as tmp:
+    bar = tqdm(total=len(args.taxels) * args.repeats * len(args.view), desc="bench runtime", unit="run", file=sys.stderr)
+    with bar, tempfile.TemporaryDirectory(prefix="skinsafe-bench-runtime-") as tmp:
         tmp = Path(tmp)
         traj = write_trajectory(tmp / "pan.csv", robot, seconds)
         for n in args.taxels:
@@ -244,6 +255,8 @@ def rows(args) -> list[dict]:
                                                    CONTACT, "--period", str(args.period), view=v))
                     runs[v].append(r)
                     stale[v] += cut
+                    bar.set_postfix_str(f"{design.n_taxels:,} taxels, view {v}")
+                    bar.update()
             rows_n = {v: _row(design, runs[v], stale[v], ref, args) for v in args.view}
             for v in args.view:
                 out.append(rows_n[v] | (_vs_off(runs, v) if args.view != ["off"] else {}))
@@ -299,20 +312,25 @@ def _pooled(runs: list[dict], name: str, p: float = 99) -> float:
 
 VIEW_KEYS = ("period", "latency", "latency_tick")
 VIEW_TOLERANCE = 0.05
+BOOTSTRAP = 2000  # resamples of the repeats for the confidence interval of each view-vs-off change
 
 
-def _vs_off(runs: dict[str, list[dict]], view: str) -> dict:
+def _vs_off(runs: dict[str, list[dict]], view: str, seed: int = 0) -> dict:
     """A view mode's loop tails against the runs without the view: each pooled over every tick (period) and every
     contact frame (latency, and its tick's part) of the mode's runs, as a ratio to off's; and the same ratio between
     off's own two halves (its even and odd runs: the same code, so what the machine alone makes of it).
-    `within_5pct`: every ratio of the mode within 5%; `not_slower_5pct`: none more than 5% above off's;
-    `resolvable`: off's halves within 5% of each other."""
+    `*_p99_vs_off_ci95`: the change's 95% interval over the repeats resampled as pairs (repeat k's run of the mode
+    with repeat k's run without the view, run next to it: a pair shares the machine's load of its minute).
+    `within_5pct`: every change within 5%; `not_slower_5pct`: none more than 5% above off's; `shown_within_5pct` /
+    `shown_not_slower_5pct`: the same of the whole intervals; `resolvable`: off's halves within 5% of each other."""
     out = {"view": view}
     if "off" not in runs:
         return out
     off = runs["off"]
     halves = (off[0::2], off[1::2])
     spread = []
+    pairs = min(len(off), len(runs[view]))
+    draws = np.random.default_rng(seed).integers(0, pairs, (BOOTSTRAP, pairs)) if pairs >= 2 else None
     for name in VIEW_KEYS:
         out[f"{name}_ms_p99_pooled"] = _pooled(runs[view], name)
         if len(off) >= 2:
@@ -321,14 +339,30 @@ def _vs_off(runs: dict[str, list[dict]], view: str) -> dict:
             out[f"off_halves_{name}_p99"] = [round(a, 4), round(b, 4)]
         if view != "off":
             out[f"{name}_p99_vs_off"] = out[f"{name}_ms_p99_pooled"] / _pooled(off, name) - 1
+            if draws is not None:
+                out[f"{name}_p99_vs_off_ci95"] = _paired_interval(runs[view][:pairs], off[:pairs], name, draws)
     if view != "off":
         change = [out[f"{name}_p99_vs_off"] for name in VIEW_KEYS]
         out["within_5pct"] = all(abs(c) <= VIEW_TOLERANCE for c in change)
         out["not_slower_5pct"] = all(c <= VIEW_TOLERANCE for c in change)
+        if draws is not None:
+            ci = [out[f"{name}_p99_vs_off_ci95"] for name in VIEW_KEYS]
+            out["shown_within_5pct"] = all(-VIEW_TOLERANCE <= lo and hi <= VIEW_TOLERANCE for lo, hi in ci)
+            out["shown_not_slower_5pct"] = all(hi <= VIEW_TOLERANCE for _, hi in ci)
     if spread:
         out["off_spread"] = max(spread)
         out["resolvable"] = max(spread) <= VIEW_TOLERANCE
     return out
+
+
+def _paired_interval(mode: list[dict], off: list[dict], name: str, draws: np.ndarray) -> list[float]:
+    """The 2.5 and 97.5 percentiles of (pooled p99 of the mode's runs / off's - 1) over `draws` (rows of repeat
+    indices drawn with replacement, the same for both: the pairs are resampled)."""
+    a, b = [SAMPLES[name](r) for r in mode], [SAMPLES[name](r) for r in off]
+    ratio = [_pct(np.concatenate([a[k] for k in d]), 99) / _pct(np.concatenate([b[k] for k in d]), 99) - 1
+             for d in draws]
+    lo, hi = np.percentile(ratio, [2.5, 97.5])
+    return [round(float(lo), 4), round(float(hi), 4)]
 
 
 def _pct(a: np.ndarray, p: float) -> float:

@@ -24,10 +24,10 @@ import numpy as np
 
 from skinsafe.core.runtime.protocol import StopRobot
 from skinsafe.core.runtime.tap import Frame, Tap
+from skinsafe.core.runtime.tick_figures import Figure
 from skinsafe.core.safety.limits import finite
 
 STALE_KINDS = ("skin-silent", "robot-state", "command-stale")
-ALL_PERIODS = 300_000  # a run's every period goes into its figures up to this many (5 min at 1 kHz); a longer one's: none
 
 
 @dataclass
@@ -54,12 +54,12 @@ class Runtime:
         self.state_periods, self.stale_s = int(state_periods), stale_s if stale_s is not None else command.stale_s
         self.outcome: Outcome | None = None
         self.ticks = 0
-        self.starts: list[float] = []  # host time each tick began
-        self.clock: list[float] = []  # the robot's clock at each tick
-        self.work: list[float] = []  # s each tick took
-        self.latency: list[float] = []  # s from a frame holding a contact to its command leaving
-        self.waited: list[float] = []  # s of each such latency before the tick that used the frame began
-        self._t0 = self._prev_t = self._seq = None
+        self.period = Figure()  # s between the starts of consecutive ticks (host clock)
+        self.robot_period = Figure()  # the same on the robot's clock
+        self.work = Figure()  # s each tick took
+        self.latency = Figure()  # s from a frame holding a contact to its command leaving
+        self.waited = Figure()  # s of each such latency before the tick that used the frame began
+        self._t0 = self._prev_t = self._seq = self._start = self._last_t = None
         self._repeats = 0
         self._reading_seq = None
         self._force = None
@@ -69,12 +69,14 @@ class Runtime:
     # -- the callback ----------------------------------------------------------------------------
     def control(self, state) -> np.ndarray:
         start = time.monotonic()
-        self.starts.append(start)
         q, qd, t = state.q, state.qd, state.t
-        self.clock.append(t)
         if self._t0 is None:
             self._t0 = self._prev_t = t
             self.command.start(q)
+        else:
+            self.period.add(start - self._start)
+            self.robot_period.add(t - self._last_t)
+        self._start, self._last_t = start, t
         planned, unplanned = self._plan(t, q)
         r = self.source.newest()  # after the plan: a frame that arrived meanwhile is this tick's
         self._state = (state, r)
@@ -102,10 +104,10 @@ class Runtime:
         retracting, pool = bool(d is not None and d.active), int(len(d.pool)) if d is not None else 0
         now = time.monotonic()
         if new and (self._force > self.thresholds).any():
-            self.latency.append(now - r.t)
-            self.waited.append(start - r.t)
+            self.latency.add(now - r.t)
+            self.waited.add(start - r.t)
         self.ticks += 1
-        self.work.append(now - start)
+        self.work.add(now - start)
         frame = Frame(t, q, self._force, v, retracting, pool, info.flags, "", planned, d.pool if retracting else None,
                       self.stack.last_f, speed_factor(v, planned), r.board_age_s, r.frames_lost)
         self.tap.publish(frame)
@@ -194,24 +196,26 @@ class Runtime:
     def timing(self) -> dict:
         """Loop rate, period jitter (host clock; `_robot`: the robot's clock), work per tick and contact latency
         (ms) over the run; `latency_ms_all`, `latency_wait_ms_all` (its part before the tick began) and `period_ms_all`
-        (up to ALL_PERIODS ticks): every sample (a bench pools several runs')."""
-        period = np.diff(self.starts) * 1e3 if len(self.starts) > 1 else np.zeros(1)
-        robot = np.diff(self.clock) * 1e3 if len(self.clock) > 1 else np.zeros(1)
-        lat = np.array(self.latency) * 1e3 if self.latency else np.full(1, np.nan)
-        work = np.array(self.work) * 1e3 if self.work else np.zeros(1)
-        return {"ticks": self.ticks, "loop_hz_p50": float(1e3 / np.median(period)) if period.any() else 0.0,
-                "period_ms_p50": float(np.median(period)), "period_ms_p99": float(np.percentile(period, 99)),
-                "period_ms_max": float(period.max()),
-                "loop_hz_robot_p50": float(1e3 / np.median(robot)) if robot.any() else 0.0,
-                "period_ms_robot_p99": float(np.percentile(robot, 99)), "period_ms_robot_max": float(robot.max()),
-                "robot_s": float(self.clock[-1] - self.clock[0]) if self.clock else 0.0,
-                "work_ms_p50": float(np.median(work)),
-                "work_ms_p99": float(np.percentile(work, 99)), "work_ms_max": float(work.max()),
-                "latency_samples": len(self.latency), "latency_ms_p50": float(np.median(lat)),
-                "latency_ms_p99": float(np.percentile(lat, 99)), "latency_ms_max": float(lat.max()),
-                "latency_ms_all": [round(float(x), 4) for x in lat] if self.latency else [],
-                "latency_wait_ms_all": [round(float(x) * 1e3, 4) for x in self.waited],
-                "period_ms_all": [round(float(x), 4) for x in period] if len(period) <= ALL_PERIODS else []}
+        (while a run has at most `tick_figures.KEEP` of them): every sample (a bench pools several runs')."""
+        period, robot, work, lat = self.period, self.robot_period, self.work, self.latency
+
+        def ms(f: Figure, p: float, empty: float = 0.0) -> float:
+            return f.percentile(p) * 1e3 if f.n else empty
+
+        def every(f: Figure) -> list[float]:
+            x = f.exact()
+            return [] if x is None else [round(float(v), 4) for v in x * 1e3]
+        return {"ticks": self.ticks, "loop_hz_p50": 1e3 / ms(period, 50) if period.n else 0.0,
+                "period_ms_p50": ms(period, 50), "period_ms_p99": ms(period, 99),
+                "period_ms_max": period.max * 1e3 if period.n else 0.0,
+                "loop_hz_robot_p50": 1e3 / ms(robot, 50) if robot.n and ms(robot, 50) > 0 else 0.0,
+                "period_ms_robot_p99": ms(robot, 99), "period_ms_robot_max": robot.max * 1e3 if robot.n else 0.0,
+                "robot_s": float(self._last_t - self._t0) if self._t0 is not None else 0.0,
+                "work_ms_p50": ms(work, 50), "work_ms_p99": ms(work, 99),
+                "work_ms_max": work.max * 1e3 if work.n else 0.0,
+                "latency_samples": lat.n, "latency_ms_p50": ms(lat, 50, np.nan),
+                "latency_ms_p99": ms(lat, 99, np.nan), "latency_ms_max": lat.max * 1e3 if lat.n else np.nan,
+                "latency_ms_all": every(lat), "latency_wait_ms_all": every(self.waited), "period_ms_all": every(period)}
 
 
 def speed_factor(v: np.ndarray, planned: np.ndarray | None) -> float:

@@ -51,6 +51,7 @@ def test_paths_reduce_scale_and_format():
     assert lookup(data, "s.alpha*100/12") == pytest.approx(0.08333333)
     assert [fmt(v) for v in (0.07123, 93.94, 1234.5, 21000, None, False)] == ["0.0712", "93.9", "1,234", "21,000", "—", "no"]
     assert fmt(389.6, "mins") == "6 min 30 s" and fmt(0.978, ".0%") == "98%" and fmt("a b", "code") == "`a b`"
+    assert fmt([-0.0123, 0.0456], "+.1%") == "[-1.2%, +4.6%]"
 
 
 def test_skinsafe_readme_check_exits_1_on_a_stale_readme(tmp_path, capsys):

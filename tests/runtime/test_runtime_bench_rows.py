@@ -34,3 +34,23 @@ def test_view_rows_pool_every_sample_and_compare_with_off_and_off_with_itself():
     assert np.isclose(tick["latency_tick_ms_p99_pooled"], 1.0) and np.isclose(tick["latency_tick_p99_vs_off"], 0.0)
     assert np.isclose(tick["latency_p99_vs_off"], 0.25)
     assert _vs_off({"page": page}, "page") == {"view": "page"}  # nothing to compare without off
+
+
+def test_view_change_interval_resamples_the_repeats_as_pairs():
+    rng = np.random.default_rng(1)
+
+    def runs(scale, load):  # repeat k's tail is set by the machine's load in minute k, for every mode alike
+        return [_run(np.r_[np.full(980, 1.0), np.full(20, scale * x)], np.full(100, scale * x)) for x in load]
+    load = rng.uniform(1.0, 1.5, 10)  # the runs' own tails differ by up to 50% with the same code
+    near = _vs_off({"off": runs(1.0, load), "page": runs(1.02, load)}, "page")
+    for name in ("period", "latency"):  # paired, the load cancels: +2% exactly, in every resample
+        assert np.allclose(near[f"{name}_p99_vs_off_ci95"], 0.02, atol=1e-9)
+    assert near["shown_within_5pct"] and near["shown_not_slower_5pct"]
+    slow = _vs_off({"off": runs(1.0, load), "page": runs(1.1, load)}, "page")
+    assert np.allclose(slow["period_p99_vs_off_ci95"], 0.1) and not slow["shown_not_slower_5pct"]
+    # unpaired loads (the view's runs in other minutes): the interval is wide, covers the point, shows nothing
+    other = _vs_off({"off": runs(1.0, load), "page": runs(1.0, rng.permutation(load))}, "page")
+    lo, hi = other["period_p99_vs_off_ci95"]
+    assert lo <= other["period_p99_vs_off"] <= hi and hi - lo > 0.1
+    assert not other["shown_within_5pct"]
+    assert "period_p99_vs_off_ci95" not in _vs_off({"off": runs(1.0, load[:1]), "page": runs(1.0, load[:1])}, "page")

@@ -163,3 +163,24 @@ def test_health_policy_finds_exactly_the_faulty_taxels(seed, frames, n):
     assert np.array_equal(found["pressed"], pressed)
     ok = kinds == "ok"
     assert np.allclose(base[ok], np.median(x[:, ok], axis=0))
+
+
+def test_while_the_robot_moves_idle_cores_are_kept_awake_then_released():
+    import os
+
+    from skinsafe.core.app.run import _loop_priority
+
+    def target() -> int:  # the kernel's CPU latency target (PM QoS), us
+        with open("/dev/cpu_dma_latency", "rb") as f:
+            return int.from_bytes(f.read(4), sys.byteorder)
+    if not os.access("/dev/cpu_dma_latency", os.R_OK | os.W_OK):
+        pytest.skip("/dev/cpu_dma_latency is not open to this user (the run goes on without it)")
+    before = target()
+    with _loop_priority("normal priority"):
+        assert target() == before  # only a real-time run asks
+    try:
+        with _loop_priority("real-time priority SCHED_FIFO 10"):
+            assert target() == 0
+    except PermissionError:
+        pytest.skip("real-time priority not allowed here")
+    assert target() == before > 0
