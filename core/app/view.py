@@ -2,10 +2,10 @@
 
 SOURCE is `HOST:PORT` (a view stream: `skinsafe run --view` publishes one, core/runtime/view_stream.py) or
 `FILE.mcap` (a `run --record` record, or an experiment's: core/runtime/sim_record.py; read by core/runtime/
-recording.py). `--tracking RESULT.json` runs an episode of the tracking experiment again into a record
-first (core/app/experiment_view.py). The page (core/app/view_page.py) runs in this process, apart from the
-control loop: a live view takes the newest tick at `--fps` and drops the rest; a record gets a timeline
-(slider, play, next contact). `--publish [HOST:]PORT` also replays a record as a view stream, following
+recording.py). `--tracking RESULT.json` / `--collaboration RESULT.json` run an episode of the tracking or
+the collaboration experiment again into a record first (core/app/experiment_view.py). The page
+(core/app/view_page.py) runs in this process, apart from the control loop: a live view takes the newest
+tick at `--fps` and drops the rest; a record gets a timeline (slider, play, next contact). `--publish [HOST:]PORT` also replays a record as a view stream, following
 the timeline (Blender's add-on attaches to it as to a live run, or opens the record itself).
 """
 from __future__ import annotations
@@ -40,8 +40,13 @@ def add_arguments(p) -> None:
     g.add_argument("--method", default="vanilla", help="--tracking: vanilla | tdm | tdm2 (default vanilla)")
     g.add_argument("--seed", type=int, default=None, help="--tracking: the seed (default: the result's first)")
     g.add_argument("--episode", type=int, default=0, help="--tracking: the episode (default 0)")
-    g.add_argument("--record", metavar="FILE.mcap", help="--tracking: where to write the record (default: beside "
-                   "RESULT.json); `skinsafe view FILE.mcap` opens it again")
+    g.add_argument("--collaboration", metavar="RESULT.json", help="a `skinsafe experiment collaboration` result "
+                   "(collaboration.json, its collaboration_skin.json beside it): a nominal episode")
+    g.add_argument("--scenario", default="delivery", help="--collaboration: delivery | clamp | person (default delivery)")
+    g.add_argument("--stack", default="full+pfl", help="--collaboration: none | retraction | full | full+pfl "
+                   "(default full+pfl)")
+    g.add_argument("--record", metavar="FILE.mcap", help="--tracking/--collaboration: where to write the record "
+                   "(default: beside RESULT.json); `skinsafe view FILE.mcap` opens it again")
     p.add_argument("--until-ended", action="store_true", help="live: exit when the stream ends (as the page "
                    "`run --view` starts does, so it never outlives its run)")
 
@@ -163,6 +168,21 @@ def _tracking_record(args) -> str:
     return str(out)
 
 
+def _collaboration_record(args) -> str:
+    from skinsafe.core.app.experiment_view import contact_summary, record_collaboration
+
+    out = Path(args.record or Path(args.collaboration).with_name(f"collaboration_{args.scenario}_{args.stack}.mcap"))
+    print(f"skinsafe view: running the nominal {args.scenario}/{args.stack} episode of {args.collaboration} again "
+          f"into {out}", flush=True)
+    r = record_collaboration(args.collaboration, out, args.scenario, args.stack)
+    print(f"skinsafe view: {r['ticks']} ticks; contacts (peak, ratio to the ISO/TS 15066 limit): "
+          f"{contact_summary(r['contacts'])}", flush=True)
+    print(f"skinsafe view: the result's {args.scenario}/{args.stack} contacts: {contact_summary(r['contacts_in_result'])}"
+          + (" (the same episode)" if r["same"] else " -- NOT the same: the code, the skin or the machine differs "
+             "from the run that wrote the result"), flush=True)
+    return str(out)
+
+
 def run(args) -> int:
     stop = threading.Event()
     if args.seconds is not None:
@@ -170,10 +190,14 @@ def run(args) -> int:
         timer.daemon = True
         timer.start()
     try:
+        if args.tracking and args.collaboration:
+            raise ValueError("give --tracking or --collaboration, not both")
         if args.tracking:
             args.source = _tracking_record(args)
+        if args.collaboration:
+            args.source = _collaboration_record(args)
         if not args.source:
-            raise ValueError("give HOST:PORT, a record FILE.mcap, or --tracking RESULT.json")
+            raise ValueError("give HOST:PORT, a record FILE.mcap, --tracking RESULT.json or --collaboration RESULT.json")
         if args.source.endswith(".mcap"):
             return serve_record(args, stop)
         return serve_live(args, stop)

@@ -5,7 +5,9 @@ The geometry is the robot's MuJoCo model (each body's visual surface, `core/desi
 meshes and primitives as the scene has them) with the skin's taxels as one point cloud per body, in the
 body frame: a frame moves only the bodies (poses from MuJoCo kinematics at the measured q) and sends
 the colours of the bodies whose taxels changed. `show(header, forces)` draws one tick of the view
-stream's format (core/runtime/view_stream.py); the caller decides which and how often.
+stream's format (core/runtime/view_stream.py); the caller decides which and how often. A record's
+obstacles (MuJoCo primitives: an experiment's balls, a person's parts) are drawn where its metadata puts
+them, and moved to a tick's `obstacles` poses where the header has them (a person who moves).
 
 Colour scale (labelled on the page): force in N from 0 to `vmax` (default twice the largest taxel
 threshold), dark blue -> red at the threshold -> yellow; grey: no fresh reading (excluded, silent board).
@@ -20,12 +22,14 @@ import mujoco
 import numpy as np
 import viser
 
-from skinsafe.core.design.surface import body_surface
+from skinsafe.core.design.surface import body_surface, tessellate_geom
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.runtime.view_scale import COLOURS, STOPS, colours, default_vmax
 
 ROBOT_RGB = (185, 188, 195)
 ARROW_RGB = (0, 200, 220)
+OBSTACLE_RGB = (230, 150, 60)
+PRIMITIVES = ("sphere", "capsule", "ellipsoid", "cylinder", "box")  # the obstacle kinds the page draws
 ARROW_M = 0.06  # length of a retracting taxel's arrow, m
 HISTORY_S = 10.0
 VIEW_DIR = np.array([0.55, -0.7, 0.45])  # the page's first view: from the front right, above
@@ -112,10 +116,7 @@ class Page:
                                         point_size=self.point_size,
                                         point_shape="circle", precision="float32")
                 self.clouds[b] = (pc, taxels, None)
-        for i, ob in enumerate(obstacles):
-            if ob.get("kind") == "sphere":
-                sc.add_icosphere(f"/world/obstacle{i}", radius=float(ob["size"][0]), color=(230, 150, 60),
-                                 position=tuple(ob["pos"]), opacity=0.6)
+        self.obstacles = [self._obstacle(i, ob) for i, ob in enumerate(obstacles)]  # handles (None: not drawn)
         self.arrows = None
         self._lock = threading.Lock()
         self._history = deque()  # (t, retracting, speed factor, potential) of the live stream
@@ -124,6 +125,15 @@ class Page:
         self.server.initial_camera.position, self.server.initial_camera.look_at = tuple(eye), tuple(at)
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
         self._gui(timeline, on_time, on_next_contact)
+
+    def _obstacle(self, i: int, ob: dict):
+        if ob.get("kind") not in PRIMITIVES:
+            return None
+        gtype = getattr(mujoco.mjtGeom, f"mjGEOM_{ob['kind'].upper()}")
+        v, tri, _ = tessellate_geom(gtype, np.asarray(ob["size"], float), tol=5e-4, max_edge=0.02)
+        return self.server.scene.add_mesh_simple(f"/world/obstacle{i}", v.astype(np.float32), tri.astype(np.uint32),
+                                                 color=OBSTACLE_RGB, opacity=0.6, position=tuple(ob["pos"]),
+                                                 wxyz=tuple(ob.get("quat", (1.0, 0.0, 0.0, 0.0))))
 
     # -- the panel -------------------------------------------------------------------------------
     def _gui(self, timeline, on_time, on_next_contact) -> None:
@@ -198,6 +208,9 @@ class Page:
                 if last is None or not np.array_equal(c, last):
                     pc.colors = c
                     self.clouds[b] = (pc, idx, c)
+            for node, pose in zip(self.obstacles, h.get("obstacles") or ()):
+                if node is not None:
+                    node.position, node.wxyz = tuple(pose[:3]), tuple(pose[3:])
             self._arrows(h, q)
             self._panel(h, force)
             if live:

@@ -273,9 +273,10 @@ def make_stack(sc, stack: str, pot, cfg: dict, regions):
     return sc.stack(defens, mod, cap), cap
 
 
-def episode(sc, lay: Layout, stack: str, pot, cfg: dict, person: bool = True) -> dict:
+def episode(sc, lay: Layout, stack: str, pot, cfg: dict, person: bool = True, on_tick=None) -> dict:
     """One run of a scenario with one stack: the person trace (physics steps), the layers that acted
-    per tick, the robot's pan joint and the task time."""
+    per tick, the robot's pan joint and the task time. `on_tick(t, source, force, v, st, cap)`, if
+    given, sees every control tick after the stack ran (to record the episode for the view)."""
     from skinsafe.core.safety.stack import TeleopStream, TrajectorySource
 
     st, cap = make_stack(sc, stack, pot, cfg, lay.regions)
@@ -305,6 +306,8 @@ def episode(sc, lay: Layout, stack: str, pot, cfg: dict, person: bool = True) ->
         d = st.defensiveness
         acted.append(((d is not None and d.active), cap is not None and cap.last_mode != "free",
                       st.modulation is not None and st.last_f >= MODULATED))
+        if on_tick is not None:
+            on_tick(t, source, force, v, st, cap)
         if done is None and lay.goal is not None and t >= lay.plan_end and np.max(np.abs(sc.q - lay.goal)) < GOAL_TOL:
             done = t
             if not person:

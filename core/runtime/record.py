@@ -12,6 +12,9 @@ Topics (log time: host wall clock; header stamps: the robot's clock):
 - `/skinsafe/layers` (std_msgs/msg/Float64MultiArray): per tick [danger potential f, speed factor
   |command| / |planned|, 1 if retracting, K, then the K retracting taxels, highest priority first]
   (what the live view shows of the layers; absent from records of older versions);
+- `/skinsafe/obstacles` (std_msgs/msg/Float64MultiArray): per tick, the pose [x, y, z, qw, qx, qy, qz]
+  of each of the metadata's `obstacles`, in order, where they move (an experiment's person, written by
+  core/runtime/sim_record.py); absent from runs and older records (their obstacles stand still);
 - `/diagnostics` (diagnostic_msgs/msg/DiagnosticArray): layers (retracting, pool, flags), skin (board
   ages, frames lost), command (source age) at 10 Hz and on every change of the layers' flags; the
   watchdog's stop (level ERROR, its reason) once at the end.
@@ -58,6 +61,7 @@ TOPICS = {"/joint_states": "sensor_msgs/msg/JointState", "/skinsafe/command": "s
           "/skinsafe/planned": "sensor_msgs/msg/JointState", "/skinsafe/taxels": "std_msgs/msg/Float64MultiArray",
           "/skinsafe/tick": "std_msgs/msg/Float64MultiArray", "/skinsafe/layers": "std_msgs/msg/Float64MultiArray",
           "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray"}
+OBSTACLES = "/skinsafe/obstacles"  # registered with its first message: a run's record has no such channel
 CDR_LE = b"\x00\x01\x00\x00"
 DIAG_EVERY_S = 0.1
 OK, WARN, ERROR = 0, 1, 2
@@ -144,9 +148,9 @@ class Recorder:
         self.file = open(self.part, "wb")
         self.writer = Writer(self.file, compression=CompressionType.LZ4)
         self.writer.start(profile=Profile.ROS2, library="skinsafe")
-        schemas = {name: self.writer.register_schema(name, SchemaEncoding.ROS2, text.encode())
-                   for name, text in SCHEMAS.items()}
-        self.channels = {topic: self.writer.register_channel(topic, MessageEncoding.CDR, schemas[name])
+        self.schemas = {name: self.writer.register_schema(name, SchemaEncoding.ROS2, text.encode())
+                        for name, text in SCHEMAS.items()}
+        self.channels = {topic: self.writer.register_channel(topic, MessageEncoding.CDR, self.schemas[name])
                          for topic, name in TOPICS.items()}
         self.writer.add_metadata("skinsafe", {"config": json.dumps(config)})
         self.joints = JointStateEncoder(joint_names)
@@ -200,13 +204,19 @@ class Recorder:
         self.written += 1
 
     def _tick(self, ns, tick, t, dt, q, qd, force, reading_seq, planned, command, flags, retracting, pool,
-              ages, lost, command_age, ticked, potential=0.0, factor=1.0, pool_taxels=None) -> None:
-        """One tick; `ticked` 0.0: a stop (the stack was not ticked, zero velocity sent)."""
+              ages, lost, command_age, ticked, potential=0.0, factor=1.0, pool_taxels=None, obstacles=None) -> None:
+        """One tick; `ticked` 0.0: a stop (the stack was not ticked, zero velocity sent); `obstacles`: their
+        (P, 7) poses, or None (they stand still)."""
         self._raw("/joint_states", self.joints(t, q, qd), ns)
         self._raw("/skinsafe/planned", self.joints(t, (), planned), ns)
         self._raw("/skinsafe/command", self.joints(t, (), command), ns)
         if force is not None:
             self._raw("/skinsafe/taxels", encode_float64_array(force), ns)
+        if obstacles is not None:
+            if OBSTACLES not in self.channels:
+                self.channels[OBSTACLES] = self.writer.register_channel(
+                    OBSTACLES, MessageEncoding.CDR, self.schemas["std_msgs/msg/Float64MultiArray"])
+            self._raw(OBSTACLES, encode_float64_array(np.ravel(obstacles)), ns)
         self._raw("/skinsafe/tick", encode_float64_array(np.array([t, dt, reading_seq, tick, ticked], float)), ns)
         k = 0 if pool_taxels is None else len(pool_taxels)
         layers = np.empty(4 + k)

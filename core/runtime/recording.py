@@ -1,7 +1,7 @@
 """A record (`skinsafe run --record`, or an experiment's: core/runtime/sim_record.py) as arrays for a viewer:
-each tick's time, q, command, forces and layers' states, any tick in the view stream's frame format, the
-next contact after a time. Used by `skinsafe view FILE.mcap` and Blender's live link (mcap and
-mcap-ros2-support read it; no mujoco)."""
+each tick's time, q, command, forces, layers' states and (an experiment's moving person) obstacle poses,
+any tick in the view stream's frame format, the next contact after a time. Used by `skinsafe view
+FILE.mcap` and Blender's live link (mcap and mcap-ros2-support read it; no mujoco)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -17,7 +17,7 @@ class Recording:
 
     def __init__(self, path: str | Path):
         self.config, messages = read_record(path, diagnostics=True)
-        t, q, cmd, planned, force_at, layers, diag = [], [], [], [], [], [], []
+        t, q, cmd, planned, force_at, layers, poses, diag = [], [], [], [], [], [], [], []
         forces, cur = [], {}
         for topic, msg in messages:
             if topic == "/joint_states":
@@ -28,15 +28,18 @@ class Recording:
                 cur["planned"] = np.asarray(msg.velocity, float)
             elif topic == "/skinsafe/taxels":
                 forces.append(msg.astype(np.float32))
-            elif topic == "/skinsafe/layers":
-                cur["layers"] = msg
+            elif topic == "/skinsafe/obstacles":
+                cur["obstacles"] = np.asarray(msg.data, float).reshape(-1, 7)
+            elif topic == "/skinsafe/layers":  # written after its tick's /skinsafe/tick
+                layers[-1] = msg
             elif topic == "/skinsafe/tick":
                 t.append(msg[0])
                 q.append(cur.get("q"))
                 cmd.append(cur.get("command"))
                 planned.append(cur.get("planned"))
                 force_at.append(len(forces) - 1)
-                layers.append(cur.pop("layers", None))
+                layers.append(None)
+                poses.append(cur.pop("obstacles", None))
             elif topic == "/diagnostics":
                 diag.append((t[-1] if t else 0.0, _diagnostics(msg)))
         if not t or q[0] is None:
@@ -51,6 +54,8 @@ class Recording:
         self.potential = np.array([x[0] for x in self.layers])
         self.speed_factor = np.array([x[1] for x in self.layers])
         self.retracting = np.array([x[2] for x in self.layers])
+        # (ticks, P, 7) poses of the metadata's obstacles, or None: they stand still (runs, older records)
+        self.obstacles = np.array(poses) if all(p is not None for p in poses) else None
         self.diag_t = np.array([d[0] for d in diag])
         self.diag = [d[1] for d in diag]
         self.stop = next((d["skinsafe/watchdog"]["message"] for _, d in diag[::-1] if "skinsafe/watchdog" in d), "")
@@ -81,6 +86,8 @@ class Recording:
              "speed_factor": float(lay[1]), "flags": [f for f in layers.get("flags", "").split(",") if f],
              "stop": self.stop if last else "", "board_age_ms": {str(int(u, 16)): a for u, a in ages.items()},
              "frames_lost": int(skin.get("frames_lost", 0))}
+        if self.obstacles is not None:
+            h["obstacles"] = self.obstacles[i].tolist()
         return h, force
 
     def next_contact(self, t: float) -> float | None:

@@ -6,7 +6,8 @@ live link show an experiment as they show a run.
 (`FILE.skin.json` beside it), then `tick(...)` once per control tick and `close()`. The runtime's
 Recorder writes it, waiting for its writer instead of dropping ticks (no loop to keep here). Its
 metadata says `"source": "experiment"` (a replay refuses it: the experiment's controller is not the
-runtime's stack) and carries the scene's obstacles (spheres) for the view.
+runtime's stack) and carries the scene's obstacles for the view (`{"kind": a MuJoCo primitive, "size": its
+MuJoCo size, "pos", "quat" (w x y z; default unturned)}`); obstacles that move (a person) get poses every tick.
 """
 from __future__ import annotations
 
@@ -35,9 +36,10 @@ class SimRecord:
         self.t0_ns, self.ticks, self.prev = time.time_ns(), 0, None
 
     def tick(self, t: float, q, command, planned=None, force=None, potential: float = 0.0, retracting: bool = False,
-             pool_taxels=(), flags=()) -> None:
+             pool_taxels=(), flags=(), obstacles=None) -> None:
         """One control tick at time t (s): measured q, the command sent, the controller's plan (None: the
-        command), the taxel forces (N, design order), the layers' states."""
+        command), the taxel forces (N, design order), the layers' states, the obstacles' poses ((P, 7):
+        position, quaternion w x y z; None: where the metadata puts them)."""
         q, command = np.asarray(q, float), np.asarray(command, float)
         planned = command if planned is None else np.asarray(planned, float)
         dt = t - self.prev[0] if self.prev else 0.0
@@ -48,8 +50,8 @@ class SimRecord:
         self.ticks += 1
         self.rec.put((self.t0_ns + int(t * 1e9), self.ticks, float(t), dt, q, qd,
                       None if force is None else np.asarray(force, float), float(self.ticks), planned, command,
-                      tuple(flags), bool(retracting), len(pool), {}, 0, 0.0, 1.0, float(potential), factor, pool),
-                     wait=True)
+                      tuple(flags), bool(retracting), len(pool), {}, 0, 0.0, 1.0, float(potential), factor, pool,
+                      None if obstacles is None else np.array(obstacles, float)), wait=True)
         self.prev = (t, q)
 
     def close(self, reason: str = "the episode ended") -> dict:
