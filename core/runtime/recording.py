@@ -30,7 +30,7 @@ class Recording:
                 forces.append(msg.astype(np.float32))
             elif topic == "/skinsafe/obstacles":
                 cur["obstacles"] = np.asarray(msg.data, float).reshape(-1, 7)
-            elif topic == "/skinsafe/layers":  # written after its tick's /skinsafe/tick
+            elif topic == "/skinsafe/layers" and layers:  # written after its tick's /skinsafe/tick
                 layers[-1] = msg
             elif topic == "/skinsafe/tick":
                 t.append(msg[0])
