@@ -54,6 +54,12 @@ def interleaved_ms(fns: list[Callable[[], object]], repeat: int = 200, warmup: i
     return [np.array(t) * 1e3 for t in times]
 
 
+def loop_cores(cpus) -> tuple[set[int], set[int]]:
+    """`cpus` split into the control loop's core (the first) and the rest, for everything else."""
+    first, *rest = sorted(cpus)
+    return {first}, set(rest)
+
+
 def single_thread_blas() -> bool:
     """Pin numpy's OpenBLAS to one thread (for control ticks of single-row products: on a busy
     machine its worker threads make a 0.3 ms tick take 15 ms). True if a BLAS was found."""

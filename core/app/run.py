@@ -36,7 +36,7 @@ from skinsafe.core.runtime.view_stream import DEFAULT_PORT
 from skinsafe.core.safety.retraction import RetractionParams
 from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.model import DesignError
-from skinsafe.core.timing import single_thread_blas
+from skinsafe.core.timing import loop_cores, single_thread_blas
 
 RT_PRIORITY = 10  # this process and what it starts (the boards' reader, the emulator)
 LOOP_PRIORITY = RT_PRIORITY + 1  # the loop's thread while the robot moves: above everything it started
@@ -281,10 +281,10 @@ def _loop_priority(rt: str):
     cpus, policy, param = os.sched_getaffinity(0), os.sched_getscheduler(0), os.sched_getparam(0)
     os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(LOOP_PRIORITY))
     if len(cpus) >= 2:
-        first, *rest = sorted(cpus)
-        os.sched_setaffinity(0, {first})
+        loop, rest = loop_cores(cpus)
+        os.sched_setaffinity(0, loop)
         for pid in _children():
-            _each_thread(pid, os.sched_setaffinity, set(rest))
+            _each_thread(pid, os.sched_setaffinity, rest)
     awake = _cpus_awake()
     try:
         yield

@@ -5,8 +5,9 @@ SOURCE is `HOST:PORT` (a view stream: `skinsafe run --view` publishes one, core/
 recording.py). `--tracking RESULT.json` / `--collaboration RESULT.json` run an episode of the tracking or
 the collaboration experiment again into a record first (core/app/experiment_view.py). The page
 (core/app/view_page.py) runs in this process, apart from the control loop: a live view takes the newest
-tick at `--fps` and drops the rest; a record gets a timeline (slider, play, next contact). `--publish [HOST:]PORT` also replays a record as a view stream, following
-the timeline (Blender's add-on attaches to it as to a live run, or opens the record itself).
+tick at `--fps` and drops the rest; a record gets a timeline (slider, play, next contact). `--publish
+[HOST:]PORT` also replays a record as a view stream, following the timeline (Blender's add-on attaches to it
+as to a live run, or opens the record itself).
 """
 from __future__ import annotations
 

@@ -25,13 +25,14 @@ into it. Per row, over `--repeats` runs (worst case where it says so):
   frames_lost: frames sent that never arrived.
 `--view off page browser browser-shared`: a row per mode (key `view`), the modes' runs alternating (each repeat
 in an order turned by one) so they share the machine's load: without the live view, with `run --view` (its
-stream and page process), and with a headless Chromium on the page too, off the loop's core or on any; per_run_* list each run's loop figures (the spread); period_ms_p99_pooled and
-latency_ms_p99_pooled over every tick / contact frame of the mode's runs (latency_tick_ms_p99_pooled: the
-frames' tick part), `*_p99_vs_off` their change against the runs without the view, `within_5pct` (all within
-5%), `not_slower_5pct` (none more than 5% above), `*_p99_vs_off_ci95` (the change's 95% interval, the repeats
-resampled as pairs of runs made next to each other) with `shown_within_5pct` / `shown_not_slower_5pct` (the whole
-intervals), and the noise floor: `off_spread`, how far the runs without the view differ from themselves (even
-runs against odd), `resolvable` when that is within 5%.
+stream and page process), and with a headless Chromium on the page too, off the loop's core or on any;
+per_run_* list each run's loop figures (the spread); period_ms_p99_pooled and latency_ms_p99_pooled over every
+tick / contact frame of the mode's runs (latency_tick_ms_p99_pooled: the frames' tick part), `*_p99_vs_off`
+their change against the runs without the view, `within_5pct` (all within 5%), `not_slower_5pct` (none more
+than 5% above), `*_p99_vs_off_ci95` (the change's 95% interval, the repeats resampled as pairs of runs made
+next to each other) with `shown_within_5pct` / `shown_not_slower_5pct` (the whole intervals), and the noise
+floor: `off_spread`, how far the runs without the view differ from themselves (even runs against odd),
+`resolvable` when that is within 5%.
 `--faults`: the fault storm (core/app/runtime_faults.py) in its own process, one row: runs, faults
 (runs the fault stopped), stopped_within_2_periods (fraction: zero velocity sent within 2 control
 periods of the detection), unnamed, tracebacks, records_readable (fraction), and named_as_injected.
@@ -196,12 +197,14 @@ def _with_browser(cmd: list[str], shared: bool = False) -> subprocess.CompletedP
     from playwright.sync_api import sync_playwright
 
     from skinsafe.core.bench.browser import CHROMIUM_ARGS, chromium, niced
+    from skinsafe.core.timing import loop_cores
 
     exe = chromium()
     if exe is None:
         raise RuntimeError("bench runtime --view browser: no chromium (`apt-get install -y chromium`)")
     with tempfile.TemporaryDirectory() as tmp, sync_playwright() as pw:
-        others = None if shared else set(sorted(os.sched_getaffinity(0))[1:]) or None
+        cpus = os.sched_getaffinity(0)
+        others = None if shared or len(cpus) < 2 else loop_cores(cpus)[1]
         browser = pw.chromium.launch(executable_path=niced(tmp, exe, cpus=others), args=CHROMIUM_ARGS)
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         err = []
