@@ -99,8 +99,8 @@ def _heat_range(modules) -> float:
     return top
 
 
-def add_key(path: Path, vmax: float = 0.0, label: str = "", swatches=()) -> None:
-    """Put a key beside the picture at `path` (rewritten in place): a viridis colour bar from 0 to
+def add_key(path: Path, vmax: float = 0.0, label: str = "", swatches=(), cmap="viridis") -> None:
+    """Put a key beside the picture at `path` (rewritten in place): a colour bar (`cmap`) from 0 to
     `vmax` named `label`, or a legend of (sRGB colour, text) `swatches`."""
     import matplotlib
 
@@ -116,7 +116,7 @@ def add_key(path: Path, vmax: float = 0.0, label: str = "", swatches=()) -> None
     ax.axis("off")
     if vmax > 0:
         cax = fig.add_axes((0.86, 0.15, 0.025, 0.7))
-        cb = fig.colorbar(matplotlib.cm.ScalarMappable(matplotlib.colors.Normalize(0, vmax), "viridis"), cax=cax)
+        cb = fig.colorbar(matplotlib.cm.ScalarMappable(matplotlib.colors.Normalize(0, vmax), cmap), cax=cax)
         cb.set_label(label, fontsize=15)
         cb.ax.tick_params(labelsize=13)
     if swatches:
@@ -128,10 +128,12 @@ def add_key(path: Path, vmax: float = 0.0, label: str = "", swatches=()) -> None
     tmp.replace(path)
 
 
-def render(scene, path: Path, color: str = "heat", size: int = 1000, view=(0.6, -1.0, 0.7)) -> Path:
+def render(scene, path: Path, color: str = "heat", size: int = 1000, view=(0.6, -1.0, 0.7),
+           vmax: float | None = None) -> Path:
     """A Workbench picture of the whole robot and its skin (orthographic, fitted to every vertex).
 
-    color "heat": the modules' heat-map colour attribute; "board": a colour per interface board.
+    color "heat": the modules' heat-map colour attribute; "board": a colour per interface board; "live": the
+    live link's force colours (addon/live.py), keyed on the view's scale up to `vmax` N.
     The taxels are drawn as hexagonal dots as wide as their cells, lifted off the link (see `_CellTiles`).
     """
     robot_objs = [o for o in scene.objects if o.type == "MESH" and not o.skinsafe_module.is_module
@@ -151,7 +153,11 @@ def render(scene, path: Path, color: str = "heat", size: int = 1000, view=(0.6, 
     scene.view_settings.view_transform = "Standard"  # the colours as given, not tone-mapped pale
     sh = scene.display.shading
     sh.light = "STUDIO"
-    sh.color_type = "VERTEX" if color == "heat" else "OBJECT"
+    sh.color_type = "OBJECT" if color == "board" else "VERTEX"
+    for o in modules:  # the colour attribute shown: "heat" or "live" (addon/live.py makes its own the active one)
+        attrs = o.data.color_attributes
+        if attrs.get(color) is not None:
+            attrs.active_color = attrs[color]
     sh.show_cavity = True
     sh.show_object_outline = True
     for o in robot_objs:
@@ -166,11 +172,22 @@ def render(scene, path: Path, color: str = "heat", size: int = 1000, view=(0.6, 
         scene.skinsafe.auto_regenerate = live
     if color == "heat" and _heat_range(modules) > 0:
         add_key(path, _heat_range(modules), "retractability |J_p^T z|, m/s per rad/s")
+    if color == "live":
+        add_key(path, vmax, "force, N (the live view's scale)", cmap=_view_scale())
     if color == "board":
         t = design.taxels
         add_key(path, swatches=[(PALETTE[b.id % len(PALETTE)], f"{b.name}: {int((t.board == b.id).sum())} taxels")
                                 for b in design.boards])
     return path
+
+
+def _view_scale():
+    """The live view's colour scale (core/runtime/view_scale.py) as a matplotlib colour map."""
+    from matplotlib.colors import LinearSegmentedColormap
+
+    from skinsafe.core.runtime.view_scale import COLOURS, STOPS
+
+    return LinearSegmentedColormap.from_list("skinsafe_view", list(zip(STOPS, COLOURS / 255.0)))
 
 
 def run(blend: Path, out: Path) -> dict:

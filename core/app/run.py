@@ -242,7 +242,7 @@ def _view(args, stack: contextlib.ExitStack, design, driver, map_path: Path, map
     host, _, port = args.view_stream.rpartition(":")
     msg = hello(design.n_taxels, design.taxels.ids, driver.joint_names, {b.uid: b.name for b in design.boards},
                 str(map_path.resolve()), map_hash.hex(), driver.period_s, board_period_s=1.0 / args.rate)
-    frames = SharedFrames.create(design.n_taxels)
+    frames = SharedFrames.create(design.n_taxels, len(driver.joint_names), [b.uid for b in design.boards])
     stack.callback(frames.close)
     pub, address = start_publisher(frames, msg, host or "127.0.0.1", int(port), preexec=_background)
     stack.callback(_end, pub)

@@ -33,6 +33,11 @@ than 5% above), `*_p99_vs_off_ci95` (the change's 95% interval, the repeats resa
 next to each other) with `shown_within_5pct` / `shown_not_slower_5pct` (the whole intervals), and the noise
 floor: `off_spread`, how far the runs without the view differ from themselves (even runs against odd),
 `resolvable` when that is within 5%.
+`--view alternating alternating-pinned` (core/bench/view_pause.py): the comparison inside each run instead, the
+view attached throughout and its processes paused and resumed every `--block` s: `*_p99_vs_paused` (and `_ci95`,
+the pairs of neighbouring blocks resampled), `view_cpu_per_working_s`, `shown_within_5pct`; with `--sweep S` (the
+arm into the post and back every S s) and `--block S`, each block holds one whole sweep: the same contacts.
+`--tap`: the live view's cost inside the loop (core/bench/view_tap.py).
 `--faults`: the fault storm (core/app/runtime_faults.py) in its own process, one row: runs, faults
 (runs the fault stopped), stopped_within_2_periods (fraction: zero velocity sent within 2 control
 periods of the detection), unnamed, tracebacks, records_readable (fraction), and named_as_injected.
@@ -86,14 +91,23 @@ def add_arguments(p) -> None:
     p.add_argument("--links", action="store_true", help="instead: how late the host's serial input arrives through "
                    "pseudo-terminals and pipes, waiting with poll and epoll (core/bench/links.py; --seconds each, "
                    "default 30)")
+    p.add_argument("--tap", action="store_true", help="instead: the live view's cost inside the loop per shared tick, "
+                   "the tick's arrays copied against the stream message encoded (core/bench/view_tap.py; --seconds "
+                   "each, default 2)")
     p.add_argument("--runs", type=int, default=204, help="--faults: runs (one fault each)")
     p.add_argument("--fault-rate", type=int, default=50, help="--faults: board frames per second (a board is silent "
                    "after 2 frame periods: 40 ms, so a 50 ms delay trips it and the machine's stalls mostly do not)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--view", nargs="+", default=["off"], choices=("off", "page", "browser", "browser-shared"),
+    p.add_argument("--view", nargs="+", default=["off"],
+                   choices=("off", "page", "browser", "browser-shared", "alternating", "alternating-pinned"),
                    help="rows without the live view (off), with `run --view` (page: the stream and its page process), "
                    "and also with a headless Chromium showing the page, kept off the loop's core (browser) or free to "
-                   "use it (browser-shared); the runs alternate between them")
+                   "use it (browser-shared); the runs alternate between them. alternating (-pinned): browser-shared "
+                   "(browser) with the view's processes paused and resumed every --block s, the ticks compared inside "
+                   "each run (core/bench/view_pause.py)")
+    p.add_argument("--sweep", type=float, metavar="S", help="the arm into the post and back every S seconds (contacts "
+                   "all run long) instead of the pan on into it")
+    p.add_argument("--block", type=float, default=0.5, help="--view alternating: seconds the view works, then is paused")
 
 
 def sample_skin(n: int, capacity: int, robot=None) -> SkinDesign:
@@ -119,12 +133,13 @@ def sample_skin(n: int, capacity: int, robot=None) -> SkinDesign:
     return design
 
 
-def write_trajectory(path: Path, robot, seconds: float = SECONDS) -> Path:
-    """The shoulder pan turning positive at PAN_SPEED from home (into the post), the other joints still."""
+def write_trajectory(path: Path, robot, seconds: float = SECONDS, sweep: float | None = None) -> Path:
+    """The shoulder pan turning positive at PAN_SPEED from home (into the post), the other joints still; with
+    `sweep` (s), into the post and back every `sweep` seconds instead (a cosine, PAN_SPEED at its fastest)."""
     names = [robot.model.joint(j).name for j in range(robot.model.nv)]
-    t = np.linspace(0.0, seconds, int(seconds * 10) + 1)
+    t = np.linspace(0.0, seconds, int(seconds * (100 if sweep else 10)) + 1)
     q = np.repeat(robot.home[None], len(t), 0)
-    q[:, 0] += PAN_SPEED * t
+    q[:, 0] += PAN_SPEED * t if sweep is None else PAN_SPEED * sweep / np.pi * (1 - np.cos(2 * np.pi * t / sweep)) / 2
     path.write_text("t," + ",".join(names) + "\n" + "\n".join(",".join(f"{x:.9g}" for x in (a, *b)) for a, b in zip(t, q)))
     return path
 
@@ -159,20 +174,24 @@ def reference(design, robot, traj: Path, period: float = 0.002, seconds: float =
 def _run(args, map_path: Path, command: str, stats: Path, seconds: float, *extra: str, view: str = "off") -> dict:
     """One `skinsafe run` in its own process: its figures. `view`: "page" with `--view` (the stream and its page
     process), "browser" also with a headless Chromium (nice 19) showing the page while the robot moves, off the
-    loop's core ("browser-shared": on any core)."""
+    loop's core ("browser-shared": on any core); "alternating" ("-pinned"): as "browser-shared" ("browser"), the
+    view's processes paused and resumed every `args.block` s."""
     cmd = [sys.executable, "-m", "skinsafe.core.app.cli", "run", str(map_path), "--boards", "emulate", "--command", command,
            "--seconds", str(seconds), "--rate", str(args.rate), "--link-latency", str(args.link_latency),
            "--stats", str(stats), *extra]
     if view != "off":
         cmd += ["--view", "--view-port", str(VIEW_PORT), "--view-stream", "127.0.0.1:0"]
     stats.unlink(missing_ok=True)
-    if view.startswith("browser"):
-        p = _with_browser(cmd, shared=view == "browser-shared")
+    pause = {}
+    if view not in ("off", "page"):
+        alternating = view.startswith("alternating")
+        p = _with_browser(cmd, shared=view in ("browser-shared", "alternating"), block=args.block if alternating else None,
+                          pause=pause)
     else:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=600 + 20 * seconds)
     if not stats.exists():
         raise RuntimeError(f"bench runtime: `skinsafe run` exited {p.returncode} without figures: {p.stderr[-800:]}")
-    return json.loads(stats.read_text())
+    return json.loads(stats.read_text()) | pause
 
 
 def _cut_short(r: dict) -> bool:
@@ -189,14 +208,18 @@ def _retried(run) -> tuple[dict, int]:
     return r, RETRIES
 
 
-def _with_browser(cmd: list[str], shared: bool = False) -> subprocess.CompletedProcess:
+def _with_browser(cmd: list[str], shared: bool = False, block: float | None = None,
+                  pause: dict | None = None) -> subprocess.CompletedProcess:
     """`cmd` (a `run --view`) with a headless Chromium (Debian's, nice 19) on its page from before the robot moves;
     on the cores `run` leaves to what it starts (all but the first, its loop's: as an operator keeps a browser
-    off a robot PC's control core, README 'The loop with the view attached'), or with `shared` on any."""
+    off a robot PC's control core, README 'The loop with the view attached'), or with `shared` on any. `block`:
+    the view's processes paused and resumed every `block` s once the page is open, its `switches` and the view's
+    `view_cpu_s` put in `pause` (core/bench/view_pause.py)."""
     from playwright.sync_api import Error as PlaywrightError
     from playwright.sync_api import sync_playwright
 
     from skinsafe.core.bench.browser import CHROMIUM_ARGS, chromium, niced
+    from skinsafe.core.bench.view_pause import Pauser
     from skinsafe.core.timing import loop_cores
 
     exe = chromium()
@@ -207,7 +230,7 @@ def _with_browser(cmd: list[str], shared: bool = False) -> subprocess.CompletedP
         others = None if shared or len(cpus) < 2 else loop_cores(cpus)[1]
         browser = pw.chromium.launch(executable_path=niced(tmp, exe, cpus=others), args=CHROMIUM_ARGS)
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        err = []
+        err, pauser = [], None
         for line in proc.stderr:
             err.append(line)
             if "the view page at" in line:
@@ -215,8 +238,14 @@ def _with_browser(cmd: list[str], shared: bool = False) -> subprocess.CompletedP
                     browser.new_page().goto(line.rsplit(" at ", 1)[1].strip())
                 except PlaywrightError:  # the run already stopped (a false staleness stop) and its page with it
                     pass
+                if block:
+                    pauser = Pauser(os.getpid(), exe, block)
+                    pauser.start()
                 break
         out, rest = proc.communicate(timeout=600)
+        if pauser is not None:
+            pauser.stop()
+            pause |= {"switches": pauser.switches, "view_cpu_s": pauser.cpu_s}
         browser.close()
     return subprocess.CompletedProcess(cmd, proc.returncode, out, "".join(err) + rest)
 
@@ -232,6 +261,10 @@ def rows(args) -> list[dict]:
         from skinsafe.core.bench.links import rows as link_rows
 
         return link_rows(args.seconds or 30.0)
+    if args.tap:
+        from skinsafe.core.bench.view_tap import rows as tap_rows
+
+        return tap_rows(args.taxels, args.seconds or 2.0)
     if args.robot == "fr3":
         return fr3_rows(args)
     from tqdm import tqdm
@@ -244,7 +277,7 @@ def rows(args) -> list[dict]:
     bar = tqdm(total=len(args.taxels) * args.repeats * len(args.view), desc="bench runtime", unit="run", file=sys.stderr)
     with bar, tempfile.TemporaryDirectory(prefix="skinsafe-bench-runtime-") as tmp:
         tmp = Path(tmp)
-        traj = write_trajectory(tmp / "pan.csv", robot, seconds)
+        traj = write_trajectory(tmp / "pan.csv", robot, seconds, args.sweep)
         for n in args.taxels:
             design = sample_skin(n, args.capacity, robot)
             save(design, tmp / f"skin{n}.json")
@@ -262,7 +295,8 @@ def rows(args) -> list[dict]:
                     bar.update()
             rows_n = {v: _row(design, runs[v], stale[v], ref, args) for v in args.view}
             for v in args.view:
-                out.append(rows_n[v] | (_vs_off(runs, v) if args.view != ["off"] else {}))
+                out.append(rows_n[v] | (_vs_off(runs, v) if args.view != ["off"] else {}) |
+                           (_vs_paused(runs[v], args.block) if v.startswith("alternating") else {}))
     return out
 
 
@@ -355,6 +389,23 @@ def _vs_off(runs: dict[str, list[dict]], view: str, seed: int = 0) -> dict:
     if spread:
         out["off_spread"] = max(spread)
         out["resolvable"] = max(spread) <= VIEW_TOLERANCE
+    return out
+
+
+def _vs_paused(runs: list[dict], block: float) -> dict:
+    """--view alternating: the ticks while the view worked against those of the same runs while it was paused
+    (core/bench/view_pause.py), with `shown_within_5pct` / `shown_not_slower_5pct` of the whole intervals."""
+    from skinsafe.core.bench.view_pause import compare, pair_blocks
+
+    pairs = pair_blocks([(r, r["switches"]) for r in runs if r.get("switches")])
+    if len(pairs) < 2:
+        return {"blocks": 2 * len(pairs)}
+    working = sum((b - a) for r in runs for (a, p), (b, _) in zip(r["switches"], r["switches"][1:]) if not p)
+    out = compare(pairs, VIEW_KEYS) | {"block_s": block,
+                                       "view_cpu_per_working_s": sum(r["view_cpu_s"] for r in runs) / working}
+    ci = [out[f"{name}_p99_vs_paused_ci95"] for name in VIEW_KEYS]
+    out["shown_within_5pct"] = all(-VIEW_TOLERANCE <= lo and hi <= VIEW_TOLERANCE for lo, hi in ci)
+    out["shown_not_slower_5pct"] = all(hi <= VIEW_TOLERANCE for _, hi in ci)
     return out
 
 

@@ -59,7 +59,8 @@ class Runtime:
         self.work = Figure()  # s each tick took
         self.latency = Figure()  # s from a frame holding a contact to its command leaving
         self.waited = Figure()  # s of each such latency before the tick that used the frame began
-        self._t0 = self._prev_t = self._seq = self._start = self._last_t = None
+        self.latency_at = Figure()  # the index of each such latency's tick
+        self._t0 = self._prev_t = self._seq = self._start = self._last_t = self._first_start = None
         self._repeats = 0
         self._reading_seq = None
         self._force = None
@@ -71,7 +72,7 @@ class Runtime:
         start = time.monotonic()
         q, qd, t = state.q, state.qd, state.t
         if self._t0 is None:
-            self._t0 = self._prev_t = t
+            self._t0, self._prev_t, self._first_start = t, t, start
             self.command.start(q)
         else:
             self.period.add(start - self._start)
@@ -106,6 +107,7 @@ class Runtime:
         if new and (self._force > self.thresholds).any():
             self.latency.add(now - r.t)
             self.waited.add(start - r.t)
+            self.latency_at.add(self.ticks)
         self.ticks += 1
         self.work.add(now - start)
         frame = Frame(t, q, self._force, v, retracting, pool, info.flags, "", planned, d.pool if retracting else None,
@@ -195,8 +197,10 @@ class Runtime:
 
     def timing(self) -> dict:
         """Loop rate, period jitter (host clock; `_robot`: the robot's clock), work per tick and contact latency
-        (ms) over the run; `latency_ms_all`, `latency_wait_ms_all` (its part before the tick began) and `period_ms_all`
-        (while a run has at most `tick_figures.KEEP` of them): every sample (a bench pools several runs')."""
+        (ms) over the run; `latency_ms_all`, `latency_wait_ms_all` (its part before the tick began), `period_ms_all`
+        (while a run has at most `tick_figures.KEEP` of them): every sample (a bench pools several runs'), with
+        `latency_tick_all` (each latency's tick) and `start_mono` (the first tick's start, time.monotonic): tick k
+        began at start_mono + the sum of the first k periods."""
         period, robot, work, lat = self.period, self.robot_period, self.work, self.latency
 
         def ms(f: Figure, p: float, empty: float = 0.0) -> float:
@@ -215,7 +219,9 @@ class Runtime:
                 "work_ms_max": work.max * 1e3 if work.n else 0.0,
                 "latency_samples": lat.n, "latency_ms_p50": ms(lat, 50, np.nan),
                 "latency_ms_p99": ms(lat, 99, np.nan), "latency_ms_max": lat.max * 1e3 if lat.n else np.nan,
-                "latency_ms_all": every(lat), "latency_wait_ms_all": every(self.waited), "period_ms_all": every(period)}
+                "latency_ms_all": every(lat), "latency_wait_ms_all": every(self.waited), "period_ms_all": every(period),
+                "latency_tick_all": [] if self.latency_at.exact() is None else self.latency_at.exact().astype(int).tolist(),
+                "start_mono": self._first_start}
 
 
 def speed_factor(v: np.ndarray, planned: np.ndarray | None) -> float:

@@ -1,14 +1,16 @@
 """The live view's publisher outside the control loop's process (`skinsafe run --view`).
 
 A publisher thread in the loop's process would share its interpreter lock and real-time priority. The
-loop's tap (`SharedTap`) encodes the newest tick at the view's rate into shared memory (`SharedFrames`, a
-seqlock as core/skin/force_feed.py's: nobody waits), and the publisher process (`python -m
-skinsafe.core.runtime.view_share`, started by `start_publisher`) sends it on as the view stream
-(core/runtime/view_stream.py).
+loop's tap (`SharedTap`) copies the newest tick's arrays at the view's rate into shared memory
+(`SharedFrames`, a seqlock as core/skin/force_feed.py's: nobody waits), and the publisher process (`python -m
+skinsafe.core.runtime.view_share`, started by `start_publisher`) encodes it and sends it on as the view stream
+(core/runtime/view_stream.py). Encoding the message in the loop, as before, grew with the retracting pool (its
+JSON list: milliseconds with thousands of taxels); the copy does not (`skinsafe bench runtime --tap`).
 """
 from __future__ import annotations
 
 import os
+import struct
 import subprocess
 import sys
 import time
@@ -16,72 +18,112 @@ from multiprocessing import resource_tracker, shared_memory
 
 import numpy as np
 
-from skinsafe.core.runtime.tap import Tap
-from skinsafe.core.runtime.view_stream import ViewPublisher, frame_message
+from skinsafe.core.runtime.tap import Frame, Tap
+from skinsafe.core.runtime.view_stream import ViewPublisher, decode
 from skinsafe.core.skin.force_feed import release
 
 
 class SharedFrames:
-    """The newest encoded frame message in a named shared-memory block: `u64 seq | u64 length | message`. The
-    writer makes `seq` odd, writes, makes it even; a reader copies and retries while it was odd or changed."""
+    """The newest tick in a named shared-memory block, as arrays (no encoding in the loop): a seqlock as
+    core/skin/force_feed.py's (nobody waits). The writer makes `seq` odd, copies, makes it even; a reader copies
+    and retries while it was odd or changed.
 
-    HEADER = 16
+    Layout: `u64 seq | u64 n_pool | u64 text_len | f64 [t, retracting, pool, potential, speed_factor,
+    frames_lost, planned?] | f64 q, command, planned (n_joints each) | f64 board ages (the boards' order, NaN:
+    none) | f32 forces (n_taxels) | i32 pool | text: the stop reason and the flags, U+001E between them`."""
 
-    def __init__(self, shm: shared_memory.SharedMemory, owner: bool):
+    HEADER, SCALARS, TEXT = 3, 7, 4096
+
+    def __init__(self, shm: shared_memory.SharedMemory, owner: bool, n_taxels: int, n_joints: int, boards):
         self.shm, self.owner, self.name = shm, owner, shm.name
-        self.capacity = shm.size - self.HEADER
-        self._word = np.ndarray((2,), np.uint64, shm.buf)
-        self._data = np.ndarray((self.capacity,), np.uint8, shm.buf, self.HEADER)
-        self._seen, self._msg = 0, None
+        self.n, self.nj, self.boards = n_taxels, n_joints, [int(b) for b in boards]
+        nf = self.SCALARS + 3 * n_joints + len(self.boards)
+        at = 8 * (self.HEADER + nf)
+        self._word = np.ndarray((self.HEADER,), np.uint64, shm.buf)
+        self._f64 = np.ndarray((nf,), np.float64, shm.buf, 8 * self.HEADER)
+        self._force = np.ndarray((n_taxels,), np.float32, shm.buf, at)
+        self._pool = np.ndarray((n_taxels,), np.int32, shm.buf, at + 4 * n_taxels)
+        self._text = np.ndarray((self.TEXT,), np.uint8, shm.buf, at + 8 * n_taxels)
+        self._pack = struct.Struct(f"<{nf}d").pack_into
+        self._none = (0.0,) * n_joints
+        self._seen, self._frame = 0, None
         if owner:
             self._word[:] = 0
 
     @classmethod
-    def create(cls, n_taxels: int) -> "SharedFrames":
-        """A block for the frames of `n_taxels` taxels (their forces, a pool of all of them, the rest of a header)."""
-        size = cls.HEADER + 4 * n_taxels + 12 * n_taxels + (64 << 10)
-        return cls(shared_memory.SharedMemory(f"skinsafe-view-{os.getpid()}-{os.urandom(4).hex()}", True, size), True)
+    def size(cls, n_taxels: int, n_joints: int, n_boards: int) -> int:
+        return 8 * (cls.HEADER + cls.SCALARS + 3 * n_joints + n_boards) + 8 * n_taxels + cls.TEXT
 
     @classmethod
-    def attach(cls, name: str) -> "SharedFrames":
+    def create(cls, n_taxels: int, n_joints: int, boards=()) -> "SharedFrames":
+        """A block for the ticks of `n_taxels` taxels, `n_joints` joints and the boards of these uids."""
+        name = f"skinsafe-view-{os.getpid()}-{os.urandom(4).hex()}"
+        shm = shared_memory.SharedMemory(name, True, cls.size(n_taxels, n_joints, len(boards)))
+        return cls(shm, True, n_taxels, n_joints, boards)
+
+    @classmethod
+    def attach(cls, name: str, n_taxels: int, n_joints: int, boards=()) -> "SharedFrames":
         shm = shared_memory.SharedMemory(name, create=False)
         resource_tracker.unregister(shm._name, "shared_memory")  # only the creator removes the block
-        return cls(shm, owner=False)
+        return cls(shm, False, n_taxels, n_joints, boards)
 
-    def write(self, msg: bytes) -> bool:
-        """Publish `msg`; False (nothing written) when it does not fit."""
-        if len(msg) > self.capacity:
+    def write(self, f: Frame) -> bool:
+        """Publish the tick `f`; False (nothing written) when it does not fit the block (a pool longer than the
+        taxels, other joints, flags over TEXT bytes)."""
+        pool = () if f.pool_taxels is None else f.pool_taxels
+        text = "\x1e".join((f.stop, *f.flags)).encode()
+        if len(pool) > self.n or len(f.q) != self.nj or len(f.command) != self.nj or len(text) > self.TEXT:
             return False
+        if (f.force is not None and len(f.force) != self.n) or (f.planned is not None and len(f.planned) != self.nj):
+            return False
+        ages = f.board_age_s or {}
+        ages = list(ages.values()) if list(ages) == self.boards else [ages.get(b, np.nan) for b in self.boards]
+        planned = f.planned if f.planned is not None else self._none
         w = self._word
         w[0] += np.uint64(1)
-        self._data[:len(msg)] = np.frombuffer(msg, np.uint8)
-        w[1] = len(msg)
+        self._pack(self.shm.buf, 8 * self.HEADER, f.t, f.retracting, f.pool, f.potential, f.speed_factor,
+                   f.frames_lost, f.planned is not None, *f.q, *f.command, *planned, *ages)
+        if f.force is None:
+            self._force[:] = np.nan
+        else:
+            self._force[:] = f.force
+        self._pool[:len(pool)] = pool
+        self._text[:len(text)] = np.frombuffer(text, np.uint8)
+        w[1], w[2] = len(pool), len(text)
         w[0] += np.uint64(1)
         return True
 
-    def newest(self) -> bytes | None:
-        """The newest message (the same object until a newer one is written), None before the first."""
+    def newest(self) -> Frame | None:
+        """The newest tick (the same object until a newer one is written), None before the first."""
         w = self._word
         for _ in range(1000):
             s1 = int(w[0])
             if s1 == self._seen or s1 == 0:
-                return self._msg
+                return self._frame
             if not s1 & 1:
-                msg = self._data[:int(w[1])].tobytes()
+                f = self._read(int(w[1]), int(w[2]))
                 if int(w[0]) == s1:
-                    self._seen, self._msg = s1, msg
-                    return msg
+                    self._seen, self._frame = s1, f
+                    return f
             time.sleep(0)
-        return self._msg  # the writer stopped mid-write: keep the last whole one
+        return self._frame  # the writer stopped mid-write: keep the last whole one
+
+    def _read(self, n_pool: int, n_text: int) -> Frame:
+        v, nj, k = self._f64.copy(), self.nj, self.SCALARS
+        stop, *flags = self._text[:n_text].tobytes().decode(errors="replace").split("\x1e")
+        ages = {b: float(a) for b, a in zip(self.boards, v[k + 3 * nj:]) if a == a}
+        return Frame(float(v[0]), v[k:k + nj], self._force.copy(), v[k + nj:k + 2 * nj], bool(v[1]), int(v[2]),
+                     tuple(flags), stop, v[k + 2 * nj:k + 3 * nj] if v[6] else None,
+                     self._pool[:n_pool].copy() if v[1] else None, float(v[3]), float(v[4]), ages, int(v[5]))
 
     def close(self) -> None:
-        self._word = self._data = None
+        self._word = self._f64 = self._force = self._pool = self._text = None  # no view left on the block
         release(self.shm, self.owner)
 
 
 class SharedTap(Tap):
-    """A tap that also encodes the newest tick into `SharedFrames` at most `rate_hz` times a second, in the loop
-    (one JSON header and one copy of the forces, tens of microseconds); a frame too large is skipped and counted."""
+    """A tap that also copies the newest tick into `SharedFrames` at most `rate_hz` times a second, in the loop (its
+    arrays as they are: the publisher process encodes them); a tick that does not fit is skipped and counted."""
 
     def __init__(self, frames: SharedFrames, rate_hz: float = 30.0):
         self.frames, self.period = frames, 1.0 / rate_hz
@@ -93,7 +135,7 @@ class SharedTap(Tap):
         if now < self.due:
             return
         self.due, self.seq = now + self.period, self.seq + 1
-        if not self.frames.write(frame_message(self.seq, frame)):
+        if not self.frames.write(frame):
             self.skipped += 1
 
 
@@ -116,7 +158,8 @@ def _serve(argv: list[str]) -> int:
     frames until the run that started it ends."""
     name, host, port = argv
     hello_message = sys.stdin.buffer.read()
-    frames = SharedFrames.attach(name)
+    h = decode(bytearray(hello_message))[0][0][0]
+    frames = SharedFrames.attach(name, h["n_taxels"], len(h["joint_names"]), [int(b) for b in h["boards"]])
     try:
         pub = ViewPublisher(frames.newest, hello_message, host, int(port))
     except OSError as e:

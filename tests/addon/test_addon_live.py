@@ -6,6 +6,7 @@ taxels the scene lacks; the robot takes the streamed pose; a record opens and sc
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import bpy
 import mujoco
@@ -23,6 +24,7 @@ from skinsafe.core.runtime.view_scale import colours
 from skinsafe.core.runtime.view_stream import ViewPublisher, hello
 
 E = 0.13585 - 0.1197  # UR5 forearm capsule axis height (body frame)
+PICTURE = Path(__file__).resolve().parents[2] / "results" / "view" / "blender_live.png"  # the README's
 VMAX = 4.0  # the scale's top: twice the 2 N threshold
 
 
@@ -123,6 +125,37 @@ def test_the_robot_takes_the_streamed_pose(scene, stream):
     mujoco.mj_kinematics(robot.model, d)
     W = np.array(b2c.body_objects(scene)["wrist_3_link"].matrix_world)
     assert np.allclose(W[:3, 3], d.xpos[robot.model.body("wrist_3_link").id], atol=1e-5)
+    stream({}, robot.home)
+
+
+def _hot(png) -> int:
+    """Pixels of the scale's colours above the threshold (red to yellow, lit: red well over blue) in the picture,
+    left of its key (add_key: the render is the left 1 / 1.22 of the keyed picture)."""
+    from PIL import Image
+
+    a = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    a = a[:, :int(a.shape[1] / 1.22) - 2]
+    return int(((a[..., 0] > 150) & (a[..., 0] - a[..., 2] > 80)).sum())
+
+
+def test_a_touch_shows_in_the_rendered_picture_of_the_skin(scene, stream, tmp_path):
+    """Workbench renders the live colours (the README's picture): a hand-sized press on the forearm, its centre
+    at the scale's top, falling off over 2.5 cm, turns hot pixels where there were none at rest."""
+    from skinsafe.addon.headless import render
+
+    design = b2c.design_of(scene)
+    on = np.flatnonzero(design.taxels.module == design.taxels.module[0])
+    p = design.taxels.positions[on]
+    centre = on[np.argmin(np.linalg.norm(p - p.mean(0), axis=1))]  # the middle of the module
+    d = np.linalg.norm(p - design.taxels.positions[centre], axis=1)
+    press = {int(i): float(VMAX * 1.5 * max(0.0, 1 - r / 0.025)) for i, r in zip(on, d) if r < 0.025}
+    robot = b2c.robot_for(scene)
+    pose = robot.home + np.array([0.5, -0.4, 0.6, -0.3, 0.4, 0.0])
+    stream({}, pose)
+    rest = render(scene, tmp_path / "rest.png", "live", size=700, vmax=VMAX)
+    stream(press, pose)
+    touched = render(scene, PICTURE, "live", size=700, vmax=VMAX)
+    assert _hot(rest) == 0 and _hot(touched) > 100  # a taxel's hexagon is ~60 pixels at this size
     stream({}, robot.home)
 
 

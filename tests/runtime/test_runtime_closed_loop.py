@@ -10,6 +10,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -64,6 +65,9 @@ def test_a_poke_is_retracted_and_the_record_replays_exactly(skin, tmp_path):
     assert 2.0 < w["first_peak_N"] <= w["peak_N"]  # the first contact's peak: one of the run's
     lat, wait = np.array(s["latency_ms_all"]), np.array(s["latency_wait_ms_all"])
     assert len(lat) == s["latency_samples"] > 0 and (0 <= wait).all() and (wait < lat).all()  # a part, before the tick
+    at = np.array(s["latency_tick_all"])  # each latency's tick: one at most per tick, in order, within the run
+    assert len(at) == len(lat) and (np.diff(at) > 0).all() and 0 < at[0] and at[-1] < s["ticks"]
+    assert 0 < s["start_mono"] < time.monotonic() - 1.6  # the first tick's start: the run lasted 1.6 s after it
     msgs = messages(record)
     assert {t for t, _ in msgs} == TOPICS
     times = np.array([m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for t, m in msgs if t == "/skinsafe/command"])

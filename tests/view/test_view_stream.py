@@ -4,10 +4,12 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from skinsafe.core.runtime.tap import Frame
 from skinsafe.core.runtime.view_share import SharedFrames, SharedTap, start_publisher
-from skinsafe.core.runtime.view_stream import ViewClient, hello
+from skinsafe.core.runtime.view_stream import ViewClient, frame_message, hello
 
 N = 5000
 
@@ -28,7 +30,7 @@ def newest(client: ViewClient, timeout: float = 10.0):
 
 
 def test_the_publisher_process_sends_the_newest_shared_tick_and_the_loop_never_writes_faster_than_the_view():
-    frames = SharedFrames.create(N)
+    frames = SharedFrames.create(N, 6, [7])
     tap = SharedTap(frames, rate_hz=30.0)
     ids = np.arange(N) * 3
     proc = None
@@ -54,14 +56,54 @@ def test_the_publisher_process_sends_the_newest_shared_tick_and_the_loop_never_w
         frames.close()
 
 
-def test_a_frame_too_large_for_the_block_is_skipped_and_counted_never_half_written():
-    frames = SharedFrames.create(10)
+def test_a_tick_that_does_not_fit_the_block_is_skipped_and_counted_never_half_written():
+    frames = SharedFrames.create(10, 6, [7])
     tap = SharedTap(frames, rate_hz=1000.0)
     try:
         tap.publish(frame(1.0, np.ones(10)))
         first = frames.newest()
-        time.sleep(0.002)
-        tap.publish(frame(2.0, np.ones(10), pool=np.arange(100_000)))  # a header far larger than 10 taxels allow
-        assert tap.skipped == 1 and frames.newest() is first
+        for bad in (frame(2.0, np.ones(10), pool=np.arange(11)),  # a pool longer than the taxels
+                    frame(2.0, np.ones(11)),  # other taxels
+                    frame(2.0, np.ones(10))._replace(q=np.zeros(7)),  # other joints
+                    frame(2.0, np.ones(10))._replace(flags=("x" * 5000,))):  # flags over the block's text
+            time.sleep(0.002)
+            tap.publish(bad)
+        assert tap.skipped == 4 and frames.newest() is first and frames.newest().t == 1.0
+    finally:
+        frames.close()
+
+
+floats = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+
+@st.composite
+def ticks(draw):
+    n, nj = draw(st.integers(1, 300)), draw(st.integers(1, 8))
+    arr = lambda k: np.array(draw(st.lists(floats, min_size=k, max_size=k)))  # noqa: E731
+    retracting = draw(st.booleans())
+    pool = np.array(draw(st.lists(st.integers(0, n - 1), max_size=n, unique=True)), np.int64) if retracting else None
+    boards = draw(st.lists(st.integers(0, 2**31), max_size=6, unique=True))
+    ages = {b: draw(st.floats(0, 10)) for b in boards if draw(st.booleans())}
+    flags = tuple(draw(st.lists(st.sampled_from(["limited", "pfl:transient", "stale:board 3", "ñ"]), max_size=4)))
+    f = Frame(draw(floats), arr(nj), None if draw(st.booleans()) else arr(n), arr(nj), retracting,
+              0 if pool is None else len(pool), flags, draw(st.sampled_from(["", "skin-silent", "operator"])),
+              None if draw(st.booleans()) else arr(nj), pool, draw(floats), draw(floats), ages,
+              draw(st.integers(0, 2**40)))
+    return n, nj, boards, f
+
+
+@settings(max_examples=150, deadline=None)
+@given(ticks())
+def test_the_publisher_process_sends_exactly_the_message_the_loop_would_have_encoded(case):
+    """The loop copies the tick's arrays; the publisher's message from them is the loop's own encoding, byte for byte
+    (forces as float32, every float of q / command / planned, the pool, flags, stop, board ages); a tick without
+    forces yet has every taxel NaN ("no fresh reading"), not an empty blob."""
+    n, nj, boards, f = case
+    sent = f if f.force is not None else f._replace(force=np.full(n, np.nan))
+    frames = SharedFrames.create(n, nj, boards)
+    try:
+        with np.errstate(over="ignore"):  # forces beyond float32 are inf in both
+            assert frames.write(f)
+            assert frame_message(5, frames.newest()) == frame_message(5, sent)
     finally:
         frames.close()
