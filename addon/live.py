@@ -4,7 +4,8 @@ the viewport, from a running `skinsafe run --view` (its view stream, HOST:PORT) 
 Each module mesh gets a colour attribute `live` (one colour per taxel face, on the web page's scale:
 core/runtime/view_scale.py; grey: no reading, or a taxel the source does not have), matched by taxel id,
 so a map whose taxels are in another order, or a scene with only some of the map's modules, colours the
-right faces. The robot takes the measured pose. `step(scene)` applies the newest frame: callable without
+right faces. The robot takes the measured pose; a record's obstacles (an experiment's balls, a person's
+parts) are drawn in the collection "skinsafe live obstacles" and move with its ticks. `step(scene)` applies the newest frame: callable without
 Blender's event loop (headless, bpy timers never fire); the Attach operator registers a timer that calls
 it, Detach (and unregistering the add-on) removes it (a bpy process hangs at exit with a timer left).
 
@@ -24,6 +25,8 @@ from skinsafe.core.runtime.view_stream import StreamError, ViewClient
 
 ATTR = "live"
 FPS = 20.0
+OBSTACLES = "skinsafe live obstacles"  # the collection of a record's obstacles (an experiment's balls, a person)
+OBSTACLE_RGBA = (230 / 255, 150 / 255, 60 / 255, 0.6)  # the page's colour
 _link = None  # the one attached source: a _Link
 
 
@@ -47,6 +50,7 @@ class _Link:
             except ValueError:
                 raise StreamError(f"{source!r}: give HOST:PORT of `skinsafe run --view` or a record FILE.mcap") from None
             self.ids, self.joint_names = self.client.ids, list(self.client.hello["joint_names"])
+        self.obstacles = []  # a record's obstacle objects (None: a kind not drawn)
         self.last = None  # the header last applied
         self.wall = None  # a playing record: the wall clock of the last step
         self.faces = None  # (the design revision, `_faces` of it)
@@ -132,10 +136,53 @@ def attach(scene, source: str) -> str:
     msg = f"attached to {source}: {n} module(s) matched" + (
         f"; a record of {_link.t1 - _link.t0:.2f} s" if _link.record is not None else "")
     if _link.record is not None:
+        _link.obstacles = _add_obstacles(scene, _link.record.config.get("obstacles") or ())
         lv["time"] = _link.t0  # no callback: shown here
         show_time(scene, _link.t0)
     lv.status = msg
     return msg
+
+
+def _add_obstacles(scene, obstacles) -> list:
+    """A record's obstacles as meshes in their own collection, where its metadata puts them (MuJoCo primitives:
+    core/runtime/sim_record.py); the objects (None: a kind not drawn)."""
+    from skinsafe.core.runtime.sim_record import obstacle_mesh
+
+    if not obstacles:
+        return []
+    col = bpy.data.collections.new(OBSTACLES)
+    scene.collection.children.link(col)
+    out = []
+    for i, ob in enumerate(obstacles):
+        mesh = obstacle_mesh(ob)
+        if mesh is None:
+            out.append(None)
+            continue
+        me = bpy.data.meshes.new(f"obstacle{i}")
+        me.from_pydata(mesh[0].tolist(), [], mesh[1].tolist())
+        me.update()
+        obj = bpy.data.objects.new(f"obstacle{i}", me)
+        obj.rotation_mode, obj.color = "QUATERNION", OBSTACLE_RGBA
+        col.objects.link(obj)
+        _place(obj, np.r_[ob["pos"], ob.get("quat", (1.0, 0.0, 0.0, 0.0))])
+        out.append(obj)
+    return out
+
+
+def _place(obj, pose) -> None:
+    """An obstacle at `pose`: position (3), quaternion w x y z (4)."""
+    obj.location, obj.rotation_quaternion = tuple(pose[:3]), tuple(pose[3:7])
+
+
+def _remove_obstacles() -> None:
+    col = bpy.data.collections.get(OBSTACLES)
+    if col is None:
+        return
+    for obj in list(col.objects):
+        me = obj.data
+        bpy.data.objects.remove(obj)
+        bpy.data.meshes.remove(me)
+    bpy.data.collections.remove(col)
 
 
 def step(scene) -> bool:
@@ -177,6 +224,9 @@ def _apply(scene, h: dict, force: np.ndarray) -> None:
     if _link.faces is None or _link.faces[0] != rev:  # the design changed: match its taxels again
         _link.faces = (rev, _faces(scene, _link.ids))
     colour(scene, force, _link.ids, lv.vmax or None, _link.faces[1])
+    for obj, pose in zip(_link.obstacles, h.get("obstacles") or ()):  # a person who moves
+        if obj is not None:
+            _place(obj, pose)
     _link.last = h
     f = np.nan_to_num(force)
     top = int(np.argmax(f)) if len(f) else -1
@@ -193,6 +243,7 @@ def detach(scene=None) -> None:
     if _link is not None:
         _link.close()
         _link = None
+    _remove_obstacles()
     for obj in (scene.objects if scene is not None else ()):
         me = obj.data if obj.skinsafe_module.is_module else None
         if me is not None and "heat" in me.color_attributes:

@@ -22,14 +22,14 @@ import mujoco
 import numpy as np
 import viser
 
-from skinsafe.core.design.surface import body_surface, tessellate_geom
+from skinsafe.core.design.surface import body_surface
 from skinsafe.core.robot.kinematics import TaxelKinematics
+from skinsafe.core.runtime.sim_record import obstacle_mesh
 from skinsafe.core.runtime.view_scale import COLOURS, STOPS, colours, default_vmax
 
 ROBOT_RGB = (185, 188, 195)
 ARROW_RGB = (0, 200, 220)
 OBSTACLE_RGB = (230, 150, 60)
-PRIMITIVES = ("sphere", "capsule", "ellipsoid", "cylinder", "box")  # the obstacle kinds the page draws
 ARROW_M = 0.06  # length of a retracting taxel's arrow, m
 HISTORY_S = 10.0
 VIEW_DIR = np.array([0.55, -0.7, 0.45])  # the page's first view: from the front right, above
@@ -127,10 +127,10 @@ class Page:
         self._gui(timeline, on_time, on_next_contact)
 
     def _obstacle(self, i: int, ob: dict):
-        if ob.get("kind") not in PRIMITIVES:
+        mesh = obstacle_mesh(ob)
+        if mesh is None:
             return None
-        gtype = getattr(mujoco.mjtGeom, f"mjGEOM_{ob['kind'].upper()}")
-        v, tri, _ = tessellate_geom(gtype, np.asarray(ob["size"], float), tol=5e-4, max_edge=0.02)
+        v, tri = mesh
         return self.server.scene.add_mesh_simple(f"/world/obstacle{i}", v.astype(np.float32), tri.astype(np.uint32),
                                                  color=OBSTACLE_RGB, opacity=0.6, position=tuple(ob["pos"]),
                                                  wxyz=tuple(ob.get("quat", (1.0, 0.0, 0.0, 0.0))))

@@ -19,6 +19,22 @@ import numpy as np
 
 from skinsafe.core.runtime.record import Recorder
 
+PRIMITIVES = ("sphere", "capsule", "ellipsoid", "cylinder", "box")  # the obstacle kinds the views draw
+
+
+def obstacle_mesh(ob: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """(vertices (V, 3), triangles (T, 3)) of an obstacle in its own frame (MuJoCo's tessellation of the
+    primitive, 5 mm from the true surface at most); None for a kind the views do not draw."""
+    if ob.get("kind") not in PRIMITIVES:
+        return None
+    import mujoco
+
+    from skinsafe.core.design.surface import tessellate_geom
+
+    gtype = getattr(mujoco.mjtGeom, f"mjGEOM_{ob['kind'].upper()}")
+    v, tri, _ = tessellate_geom(gtype, np.asarray(ob["size"], float), tol=5e-4, max_edge=0.02)
+    return v, tri
+
 
 class SimRecord:
     def __init__(self, path: str | Path, design, joint_names, period_s: float, experiment: str = "",

@@ -187,6 +187,42 @@ def test_a_record_opens_and_scrubs_to_the_touch(scene, tmp_path):
     assert not bpy.app.timers.is_registered(live._timer)
 
 
+def test_a_records_obstacles_are_drawn_and_move_with_its_ticks(scene, tmp_path):
+    """An experiment's record: a ball that moves (a pose every tick), a box that stands where the metadata puts it,
+    and a kind the views do not draw; each drawn with its MuJoCo size; Detach removes them."""
+    design = b2c.design_of(scene)
+    robot = b2c.robot_for(scene)
+    names = [robot.model.joint(j).name for j in range(robot.model.njnt)]
+    obstacles = [{"kind": "sphere", "size": [0.05], "pos": [0.4, 0.0, 0.3]},
+                 {"kind": "box", "size": [0.1, 0.2, 0.05], "pos": [0.0, 0.5, 0.1], "quat": [0.7071068, 0, 0, 0.7071068]},
+                 {"kind": "mesh", "size": [1.0], "pos": [0.0, 0.0, 0.0]}]
+    rec = SimRecord(tmp_path / "balls.mcap", design, names, 0.02, "tracking", obstacles)
+    for k in range(20):
+        ball = [0.4, 0.01 * k, 0.3, 1, 0, 0, 0]
+        rec.tick(k * 0.02, robot.home, np.zeros(6), force=np.zeros(design.n_taxels),
+                 obstacles=[ball, obstacles[1]["pos"] + obstacles[1]["quat"], [0, 0, 0, 1, 0, 0, 0]])
+    rec.close()
+    assert live.attach(scene, str(tmp_path / "balls.mcap")).startswith("attached")
+    col = bpy.data.collections[live.OBSTACLES]
+    assert len(col.objects) == 2 and live._link.obstacles[2] is None
+    ball, box = live._link.obstacles[:2]
+
+    def extent(obj):
+        v = np.array([obj.matrix_world @ x.co for x in obj.data.vertices])
+        return v.min(0), v.max(0)
+    bpy.context.view_layer.update()
+    lo, hi = extent(ball)
+    assert np.allclose((lo + hi) / 2, [0.4, 0.0, 0.3], atol=2e-3) and np.allclose(hi - lo, 0.1, atol=2e-3)
+    lo, hi = extent(box)  # turned 90 degrees about z: its 0.1 x 0.2 half sizes swap
+    assert np.allclose(hi - lo, [0.4, 0.2, 0.1], atol=1e-4) and np.allclose((lo + hi) / 2, [0.0, 0.5, 0.1], atol=1e-4)
+    bpy.context.window_manager.skinsafe_live.time = 0.2  # tick 10: the ball 10 cm along y
+    bpy.context.view_layer.update()
+    lo, hi = extent(ball)
+    assert np.allclose((lo + hi) / 2, [0.4, 0.1, 0.3], atol=2e-3)
+    live.detach(scene)
+    assert live.OBSTACLES not in bpy.data.collections and not any(o.name.startswith("obstacle") for o in bpy.data.objects)
+
+
 def test_the_live_link_imports_nothing_the_addon_does_not_bundle():
     """Its stream client and colour scale: stdlib and numpy only (no mujoco, torch, numba, mcap)."""
     code = ("import sys; import skinsafe.core.runtime.view_stream, skinsafe.core.runtime.view_scale; "
