@@ -2,6 +2,7 @@
 frame of a run put in the block (view working or paused) it began in."""
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -54,9 +55,10 @@ def test_the_view_processes_are_found_paused_and_resumed_and_nothing_else(tmp_pa
     browser = tmp_path / "fakebrowser"
     browser.symlink_to(shutil.which("yes"))  # busy: it uses CPU while it is not paused
     # a shell (not the view) starting the "browser", and one named as the view's publisher module
-    shell = subprocess.Popen(["bash", "-c", f"{browser} > /dev/null & wait"])
-    publisher = subprocess.Popen(["bash", "-c", "sleep 30; true", "skinsafe.core.runtime.view_share"])
-    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    shell = subprocess.Popen(["bash", "-c", f"{browser} > /dev/null & wait"], start_new_session=True)
+    publisher = subprocess.Popen(["bash", "-c", "sleep 30; true", "skinsafe.core.runtime.view_share"],
+                                 start_new_session=True)
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"], start_new_session=True)
     try:
         deadline = time.monotonic() + 10
         while len(view_processes(os.getpid(), str(browser))) < 2 and time.monotonic() < deadline:
@@ -73,6 +75,6 @@ def test_the_view_processes_are_found_paused_and_resumed_and_nothing_else(tmp_pa
         assert [p for _, p in pauser.switches[:3]] == [False, True, False]
         assert "T" not in {_state(p) for p in found} and pauser.cpu_s > 0.05  # the "browser" ran ~0.3 s of 0.5
     finally:
-        for p in (shell, publisher, other):
-            p.kill()
+        for p in (shell, publisher, other):  # each with what it started (the busy "browser")
+            os.killpg(p.pid, signal.SIGKILL)
             p.wait()
