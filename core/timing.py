@@ -54,6 +54,18 @@ def interleaved_ms(fns: list[Callable[[], object]], repeat: int = 200, warmup: i
     return [np.array(t) * 1e3 for t in times]
 
 
+def pct(a: np.ndarray, p: float) -> float:
+    """Percentile `p` of the samples `a` (nan without any)."""
+    return float(np.percentile(a, p)) if len(a) else float("nan")
+
+
+def pooled_change_ci95(a: list[np.ndarray], b: list[np.ndarray], draws: np.ndarray, p: float = 99) -> list[float]:
+    """The 95% interval of (percentile `p` of a's samples pooled / of b's - 1), the pairs (a[k], b[k]) resampled:
+    `draws` holds rows of pair indices drawn with replacement; draws without samples are left out."""
+    ratio = [pct(np.concatenate([a[k] for k in d]), p) / pct(np.concatenate([b[k] for k in d]), p) - 1 for d in draws]
+    return [round(float(x), 4) for x in np.nanpercentile(ratio, [2.5, 97.5])]
+
+
 def loop_cores(cpus) -> tuple[set[int], set[int]]:
     """`cpus` split into the control loop's core (the first) and the rest, for everything else."""
     first, *rest = sorted(cpus)

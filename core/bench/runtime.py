@@ -58,6 +58,7 @@ from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.skin.boards import assign_boards, number_channels
 from skinsafe.core.skin.model import Module, SkinDesign
+from skinsafe.core.timing import pct, pooled_change_ci95
 
 PITCHES = (0.01, 0.0072, 0.005, 0.0036, 0.0025)  # the sample skin gets denser until it holds enough taxels
 PAN_SPEED = 0.2  # rad/s of the shoulder pan in the trajectory
@@ -344,7 +345,7 @@ SAMPLES = {  # a run's samples of each pooled figure (ms): every tick's period, 
 
 def _pooled(runs: list[dict], name: str, p: float = 99) -> float:
     """Percentile `p` of the runs' samples of `name` (SAMPLES) together."""
-    return _pct(np.concatenate([SAMPLES[name](r) for r in runs]) if runs else np.zeros(0), p)
+    return pct(np.concatenate([SAMPLES[name](r) for r in runs]) if runs else np.zeros(0), p)
 
 
 VIEW_KEYS = ("period", "latency", "latency_tick")
@@ -377,15 +378,14 @@ def _vs_off(runs: dict[str, list[dict]], view: str, seed: int = 0) -> dict:
         if view != "off":
             out[f"{name}_p99_vs_off"] = out[f"{name}_ms_p99_pooled"] / _pooled(off, name) - 1
             if draws is not None:
-                out[f"{name}_p99_vs_off_ci95"] = _paired_interval(runs[view][:pairs], off[:pairs], name, draws)
+                out[f"{name}_p99_vs_off_ci95"] = pooled_change_ci95(
+                    [SAMPLES[name](r) for r in runs[view][:pairs]], [SAMPLES[name](r) for r in off[:pairs]], draws)
     if view != "off":
         change = [out[f"{name}_p99_vs_off"] for name in VIEW_KEYS]
         out["within_5pct"] = all(abs(c) <= VIEW_TOLERANCE for c in change)
         out["not_slower_5pct"] = all(c <= VIEW_TOLERANCE for c in change)
         if draws is not None:
-            ci = [out[f"{name}_p99_vs_off_ci95"] for name in VIEW_KEYS]
-            out["shown_within_5pct"] = all(-VIEW_TOLERANCE <= lo and hi <= VIEW_TOLERANCE for lo, hi in ci)
-            out["shown_not_slower_5pct"] = all(hi <= VIEW_TOLERANCE for _, hi in ci)
+            out |= _shown([out[f"{name}_p99_vs_off_ci95"] for name in VIEW_KEYS])
     if spread:
         out["off_spread"] = max(spread)
         out["resolvable"] = max(spread) <= VIEW_TOLERANCE
@@ -403,24 +403,13 @@ def _vs_paused(runs: list[dict], block: float) -> dict:
     working = sum((b - a) for r in runs for (a, p), (b, _) in zip(r["switches"], r["switches"][1:]) if not p)
     out = compare(pairs, VIEW_KEYS) | {"block_s": block,
                                        "view_cpu_per_working_s": sum(r["view_cpu_s"] for r in runs) / working}
-    ci = [out[f"{name}_p99_vs_paused_ci95"] for name in VIEW_KEYS]
-    out["shown_within_5pct"] = all(-VIEW_TOLERANCE <= lo and hi <= VIEW_TOLERANCE for lo, hi in ci)
-    out["shown_not_slower_5pct"] = all(hi <= VIEW_TOLERANCE for _, hi in ci)
-    return out
+    return out | _shown([out[f"{name}_p99_vs_paused_ci95"] for name in VIEW_KEYS])
 
 
-def _paired_interval(mode: list[dict], off: list[dict], name: str, draws: np.ndarray) -> list[float]:
-    """The 2.5 and 97.5 percentiles of (pooled p99 of the mode's runs / off's - 1) over `draws` (rows of repeat
-    indices drawn with replacement, the same for both: the pairs are resampled)."""
-    a, b = [SAMPLES[name](r) for r in mode], [SAMPLES[name](r) for r in off]
-    ratio = [_pct(np.concatenate([a[k] for k in d]), 99) / _pct(np.concatenate([b[k] for k in d]), 99) - 1
-             for d in draws]
-    lo, hi = np.percentile(ratio, [2.5, 97.5])
-    return [round(float(lo), 4), round(float(hi), 4)]
-
-
-def _pct(a: np.ndarray, p: float) -> float:
-    return float(np.percentile(a, p)) if len(a) else float("nan")
+def _shown(ci: list[list[float]]) -> dict:
+    """What the whole 95% intervals of the view's changes show: all within 5%, none more than 5% slower."""
+    return {"shown_within_5pct": all(-VIEW_TOLERANCE <= lo and hi <= VIEW_TOLERANCE for lo, hi in ci),
+            "shown_not_slower_5pct": all(hi <= VIEW_TOLERANCE for _, hi in ci)}
 
 
 def write_still(path: Path, joints: list[str], q) -> Path:

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from skinsafe.core.timing import pct, pooled_change_ci95
+
 VIEW_ARGV = ("skinsafe.core.runtime.view_share", "view")  # the publisher's module; `skinsafe ... view` (the page)
 
 
@@ -125,10 +127,6 @@ def blocks(run: dict, switches: list[tuple[float, bool]]) -> list[tuple[bool, di
     return out
 
 
-def _p99(a: np.ndarray) -> float:
-    return float(np.percentile(a, 99)) if len(a) else float("nan")
-
-
 def compare(pairs: list[tuple[dict, dict]], names, draws: int = 2000, seed: int = 0) -> dict:
     """The view's p99 change per figure: pooled over the blocks while it worked against those while it was paused,
     `*_p99_vs_paused`, with a 95% interval over the pairs of neighbouring blocks resampled (`_ci95`)."""
@@ -137,12 +135,9 @@ def compare(pairs: list[tuple[dict, dict]], names, draws: int = 2000, seed: int 
     for name in names:
         on = [w[name] for w, _ in pairs]
         off = [p[name] for _, p in pairs]
-        p99 = lambda xs, d: _p99(np.concatenate([xs[k] for k in d]))  # noqa: E731
-        every = range(len(pairs))
-        out[f"{name}_ms_p99_working"], out[f"{name}_ms_p99_paused"] = p99(on, every), p99(off, every)
+        out[f"{name}_ms_p99_working"], out[f"{name}_ms_p99_paused"] = pct(np.concatenate(on), 99), pct(np.concatenate(off), 99)
         out[f"{name}_p99_vs_paused"] = out[f"{name}_ms_p99_working"] / out[f"{name}_ms_p99_paused"] - 1
-        ratio = [p99(on, d) / p99(off, d) - 1 for d in idx]
-        out[f"{name}_p99_vs_paused_ci95"] = [round(float(x), 4) for x in np.nanpercentile(ratio, [2.5, 97.5])]
+        out[f"{name}_p99_vs_paused_ci95"] = pooled_change_ci95(on, off, idx)
         out[f"{name}_samples"] = int(sum(map(len, on)) + sum(map(len, off)))
     return out
 
