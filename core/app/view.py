@@ -12,6 +12,7 @@ as to a live run, or opens the record itself).
 from __future__ import annotations
 
 import json
+import os
 import sys
 import threading
 import time
@@ -74,32 +75,60 @@ def _endpoint(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:
 
 
 def serve_live(args, stop: threading.Event) -> int:
+    """The page of a live stream. While no browser has the page open it is off the stream (nothing is sent, encoded
+    or, in `run --view`, copied by the loop for it) and attaches again when one opens it."""
     from skinsafe.core.app.view_page import Page
 
-    client = ViewClient(*_endpoint(args.source))
+    where = _endpoint(args.source)
+    client = ViewClient(*where)
     h = client.hello
+    client.close()  # attached again when a browser opens the page
+    client = None
     design, robot = _load_design(h["map"], args.map)
     if design.n_taxels != h["n_taxels"]:
         raise StreamError(f"the stream has {h['n_taxels']} taxels, the map {design.n_taxels}; give the run's map with --map")
     page = Page(design, robot.model, args.host, args.port, args.vmax, "skinsafe live", h["boards"], q0=robot.home,
                 board_period_s=h.get("board_period_s", 0.0))
     print(f"skinsafe view: live from {args.source} ({h['n_taxels']} taxels) at {page.url}", flush=True)
+    parent = os.getppid()
     try:
-        latest = None
-        while not stop.is_set() and not client.closed:
-            latest = client.poll() or latest
-            if latest is not None and page.watched():  # nobody looking: nothing drawn (the machine is the robot's)
-                page.show(*latest, live=True)
-                latest = None
+        while not stop.is_set() and not (args.until_ended and os.getppid() != parent):
+            if not page.watched():  # nobody looking: off the stream (the machine is the robot's)
+                if client is not None:
+                    client.close()
+                    client = None
+            else:
+                if client is None:
+                    client = _reattach(where, h)
+                    if client is None:
+                        break
+                latest = client.poll()
+                if latest is not None:
+                    page.show(*latest, live=True)
+                if client.closed:
+                    break
             stop.wait(1.0 / args.fps)
-        if client.closed:
+        if not stop.is_set():
             print("skinsafe view: the stream ended (the run stopped)", file=sys.stderr)
             if not args.until_ended:
                 stop.wait()  # the page keeps the last tick until Ctrl-C / --seconds
     finally:
-        client.close()
+        if client is not None:
+            client.close()
         page.close()
     return 0
+
+
+def _reattach(where: tuple[str, int], first: dict) -> ViewClient | None:
+    """The stream at `where` again, if it is still the one that said `first` (None: it ended)."""
+    try:
+        client = ViewClient(*where)
+    except StreamError:
+        return None
+    if client.hello != first:  # another run on that port since: not this page's
+        client.close()
+        return None
+    return client
 
 
 def serve_record(args, stop: threading.Event) -> int:

@@ -33,10 +33,12 @@ than 5% above), `*_p99_vs_off_ci95` (the change's 95% interval, the repeats resa
 next to each other) with `shown_within_5pct` / `shown_not_slower_5pct` (the whole intervals), and the noise
 floor: `off_spread`, how far the runs without the view differ from themselves (even runs against odd),
 `resolvable` when that is within 5%.
-`--view alternating alternating-pinned` (core/bench/view_pause.py): the comparison inside each run instead, the
-view attached throughout and its processes paused and resumed every `--block` s: `*_p99_vs_paused` (and `_ci95`,
-the pairs of neighbouring blocks resampled), `view_cpu_per_working_s`, `shown_within_5pct`; with `--sweep S` (the
-arm into the post and back every S s) and `--block S`, each block holds one whole sweep: the same contacts.
+`--view alternating alternating-pinned alternating-remote` (core/bench/view_pause.py): the comparison inside each
+run instead (a local Chromium on any core, off the loop's core, or the page open on another computer), the view
+attached throughout and its processes paused and resumed every `--block` s: `*_p50_vs_paused`, `*_p99_vs_paused`
+(and `_ci95`, the pairs of neighbouring blocks resampled), `view_cpu_per_working_s`, `shown_within_5pct`,
+`shown_not_slower_5pct` (and `_p50`); with `--sweep S` (the arm into the post and back every S s) and `--block S`,
+each block holds one whole sweep: the same contacts.
 `--tap`: the live view's cost inside the loop (core/bench/view_tap.py).
 `--faults`: the fault storm (core/app/runtime_faults.py) in its own process, one row: runs, faults
 (runs the fault stopped), stopped_within_2_periods (fraction: zero velocity sent within 2 control
@@ -45,6 +47,7 @@ periods of the detection), unnamed, tracebacks, records_readable (fraction), and
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
@@ -100,12 +103,14 @@ def add_arguments(p) -> None:
                    "after 2 frame periods: 40 ms, so a 50 ms delay trips it and the machine's stalls mostly do not)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--view", nargs="+", default=["off"],
-                   choices=("off", "page", "browser", "browser-shared", "alternating", "alternating-pinned"),
+                   choices=("off", "page", "browser", "browser-shared", "alternating", "alternating-pinned",
+                            "alternating-remote"),
                    help="rows without the live view (off), with `run --view` (page: the stream and its page process), "
                    "and also with a headless Chromium showing the page, kept off the loop's core (browser) or free to "
                    "use it (browser-shared); the runs alternate between them. alternating (-pinned): browser-shared "
                    "(browser) with the view's processes paused and resumed every --block s, the ticks compared inside "
-                   "each run (core/bench/view_pause.py)")
+                   "each run (core/bench/view_pause.py); alternating-remote: so, the page open on another computer "
+                   "(core/bench/remote_viewer.py) instead of a local browser")
     p.add_argument("--sweep", type=float, metavar="S", help="the arm into the post and back every S seconds (contacts "
                    "all run long) instead of the pan on into it")
     p.add_argument("--block", type=float, default=0.5, help="--view alternating: seconds the view works, then is paused")
@@ -176,7 +181,8 @@ def _run(args, map_path: Path, command: str, stats: Path, seconds: float, *extra
     """One `skinsafe run` in its own process: its figures. `view`: "page" with `--view` (the stream and its page
     process), "browser" also with a headless Chromium (nice 19) showing the page while the robot moves, off the
     loop's core ("browser-shared": on any core); "alternating" ("-pinned"): as "browser-shared" ("browser"), the
-    view's processes paused and resumed every `args.block` s."""
+    view's processes paused and resumed every `args.block` s; "alternating-remote": so, with the page open on
+    another computer instead of a browser here."""
     cmd = [sys.executable, "-m", "skinsafe.core.app.cli", "run", str(map_path), "--boards", "emulate", "--command", command,
            "--seconds", str(seconds), "--rate", str(args.rate), "--link-latency", str(args.link_latency),
            "--stats", str(stats), *extra]
@@ -187,7 +193,7 @@ def _run(args, map_path: Path, command: str, stats: Path, seconds: float, *extra
     if view not in ("off", "page"):
         alternating = view.startswith("alternating")
         p = _with_browser(cmd, shared=view in ("browser-shared", "alternating"), block=args.block if alternating else None,
-                          pause=pause)
+                          pause=pause, remote=view == "alternating-remote")
     else:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=600 + 20 * seconds)
     if not stats.exists():
@@ -210,35 +216,48 @@ def _retried(run) -> tuple[dict, int]:
 
 
 def _with_browser(cmd: list[str], shared: bool = False, block: float | None = None,
-                  pause: dict | None = None) -> subprocess.CompletedProcess:
+                  pause: dict | None = None, remote: bool = False) -> subprocess.CompletedProcess:
     """`cmd` (a `run --view`) with a headless Chromium (Debian's, nice 19) on its page from before the robot moves;
     on the cores `run` leaves to what it starts (all but the first, its loop's: as an operator keeps a browser
-    off a robot PC's control core, README 'The loop with the view attached'), or with `shared` on any. `block`:
+    off a robot PC's control core, README 'The loop with the view attached'), or with `shared` on any; `remote`:
+    the page open on another computer instead (core/bench/remote_viewer.py, nice 19, off the loop's core). `block`:
     the view's processes paused and resumed every `block` s once the page is open, its `switches` and the view's
     `view_cpu_s` put in `pause` (core/bench/view_pause.py)."""
     from playwright.sync_api import Error as PlaywrightError
     from playwright.sync_api import sync_playwright
 
     from skinsafe.core.bench.browser import CHROMIUM_ARGS, chromium, niced
+    from skinsafe.core.bench.remote_viewer import MODULE as REMOTE
     from skinsafe.core.bench.view_pause import Pauser
     from skinsafe.core.timing import loop_cores
 
-    exe = chromium()
-    if exe is None:
+    exe = None if remote else chromium()
+    if exe is None and not remote:
         raise RuntimeError("bench runtime --view browser: no chromium (`apt-get install -y chromium`)")
-    with tempfile.TemporaryDirectory() as tmp, sync_playwright() as pw:
-        cpus = os.sched_getaffinity(0)
-        others = None if shared or len(cpus) < 2 else loop_cores(cpus)[1]
-        browser = pw.chromium.launch(executable_path=niced(tmp, exe, cpus=others), args=CHROMIUM_ARGS)
+    cpus = os.sched_getaffinity(0)
+    others = None if shared or len(cpus) < 2 else loop_cores(cpus)[1]
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
+        if remote:
+            def open_page(url):
+                viewer = subprocess.Popen(["taskset", "-c", ",".join(map(str, sorted(others or cpus))), "nice", "-n",
+                                           "19", sys.executable, "-m", REMOTE, url], stderr=subprocess.DEVNULL)
+                stack.callback(_stop, viewer)
+        else:
+            browser = stack.enter_context(sync_playwright()).chromium.launch(
+                executable_path=niced(tmp, exe, cpus=others), args=CHROMIUM_ARGS)
+            stack.callback(browser.close)
+
+            def open_page(url):
+                try:
+                    browser.new_page().goto(url)
+                except PlaywrightError:  # the run already stopped (a false staleness stop) and its page with it
+                    pass
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         err, pauser = [], None
         for line in proc.stderr:
             err.append(line)
             if "the view page at" in line:
-                try:
-                    browser.new_page().goto(line.rsplit(" at ", 1)[1].strip())
-                except PlaywrightError:  # the run already stopped (a false staleness stop) and its page with it
-                    pass
+                open_page(line.rsplit(" at ", 1)[1].strip())
                 if block:
                     pauser = Pauser(os.getpid(), exe, block)
                     pauser.start()
@@ -247,8 +266,16 @@ def _with_browser(cmd: list[str], shared: bool = False, block: float | None = No
         if pauser is not None:
             pauser.stop()
             pause |= {"switches": pauser.switches, "view_cpu_s": pauser.cpu_s}
-        browser.close()
     return subprocess.CompletedProcess(cmd, proc.returncode, out, "".join(err) + rest)
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    proc.terminate()
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
 
 
 def _ms(world: dict, key: str) -> float:
@@ -403,7 +430,8 @@ def _vs_paused(runs: list[dict], block: float) -> dict:
     working = sum((b - a) for r in runs for (a, p), (b, _) in zip(r["switches"], r["switches"][1:]) if not p)
     out = compare(pairs, VIEW_KEYS) | {"block_s": block,
                                        "view_cpu_per_working_s": sum(r["view_cpu_s"] for r in runs) / working}
-    return out | _shown([out[f"{name}_p99_vs_paused_ci95"] for name in VIEW_KEYS])
+    return out | _shown([out[f"{name}_p99_vs_paused_ci95"] for name in VIEW_KEYS]) | \
+        {f"{k}_p50": v for k, v in _shown([out[f"{name}_p50_vs_paused_ci95"] for name in VIEW_KEYS]).items()}
 
 
 def _shown(ci: list[list[float]]) -> dict:

@@ -3,12 +3,15 @@
 Runs of one mode differ from each other by more than 5% at p99 on a shared 2-vCPU machine (where the host
 puts the virtual CPUs, what else it runs that minute), so a comparison of runs with the view against runs
 without it cannot resolve 5%. Here each run has the view attached throughout (`run --view` and a headless
-Chromium drawing its page, on any core; `alternating-pinned`: off the loop's core), and the view's processes (the stream's publisher, the page's
-server, every Chromium process) are paused (SIGSTOP) and resumed (SIGCONT) every `block` seconds: the ticks
-while the view worked are compared with the ticks of the same run while it was paused, block against the
-block next to it (with `--block` equal to `--sweep`, each block holds one whole sweep of the arm into the
-post and back: the two blocks of a pair did the same work). The loop's own side of the view (its tap's copy
-into shared memory, 30 times a second) runs in both states: `bench runtime --tap` measures it.
+Chromium drawing its page, on any core; `alternating-pinned`: off the loop's core; `alternating-remote`: the page
+open on another computer, core/bench/remote_viewer.py), and the view's processes (the stream's publisher, the
+page's server, every Chromium process or the remote viewer) are paused (SIGSTOP) and resumed (SIGCONT) every
+`block` seconds: the ticks while the view worked are compared with the ticks of the same run while it was
+paused, block against the block next to it (with `--block` equal to `--sweep`, each block holds one whole sweep of the arm into the
+post and back: the two blocks of a pair did the same work). The loop's own side of the view, its tap's copy
+into shared memory 30 times a second, is in the comparison too: the loop copies only while the publisher reads
+(core/runtime/view_share.py), so it stops within `SharedFrames.LEASE_S` of a pause (`bench runtime --tap`
+measures the copy alone).
 """
 from __future__ import annotations
 
@@ -23,7 +26,8 @@ import numpy as np
 
 from skinsafe.core.timing import pct, pooled_change_ci95
 
-VIEW_ARGV = ("skinsafe.core.runtime.view_share", "view")  # the publisher's module; `skinsafe ... view` (the page)
+VIEW_MODULES = ("skinsafe.core.runtime.view_share", "skinsafe.core.bench.remote_viewer")  # the publisher, a remote page
+PAGE_COMMAND = "view"  # `skinsafe view`: the page's process
 
 
 def _children() -> dict[int, list[int]]:
@@ -38,8 +42,9 @@ def _children() -> dict[int, list[int]]:
     return kids
 
 
-def view_processes(root: int, browser_exe: str) -> list[int]:
-    """Descendants of `root` that are the view: the publisher, the page's server, the browser's processes."""
+def view_processes(root: int, browser_exe: str | None) -> list[int]:
+    """Descendants of `root` that are the view: the publisher, the page's server, the browser's processes (of
+    `browser_exe`) or the remote viewer."""
     kids, out, todo = _children(), [], [root]
     while todo:
         for pid in kids.get(todo.pop(), []):
@@ -50,8 +55,8 @@ def view_processes(root: int, browser_exe: str) -> list[int]:
                 continue
             args = [a.decode(errors="replace") for a in argv]
             program = os.path.basename(args[0].split(" ")[0])  # Chromium's helpers rewrite argv into one string
-            if program == os.path.basename(browser_exe) or VIEW_ARGV[0] in args or \
-                    (len(args) > 3 and args[2] == "skinsafe.core.app.cli" and args[3] == VIEW_ARGV[1]):
+            if (browser_exe and program == os.path.basename(browser_exe)) or any(m in args for m in VIEW_MODULES) or \
+                    (len(args) > 3 and args[2] == "skinsafe.core.app.cli" and args[3] == PAGE_COMMAND):
                 out.append(pid)
     return out
 
@@ -69,7 +74,7 @@ class Pauser:
     """Pauses and resumes the view's processes every `block` s from `start()` until `stop()`; `switches`: the
     (time.monotonic, paused) of each switch, the first a resume; `cpu_s`: the CPU seconds they used meanwhile."""
 
-    def __init__(self, root: int, browser_exe: str, block: float):
+    def __init__(self, root: int, browser_exe: str | None, block: float):
         self.root, self.exe, self.block = root, browser_exe, block
         self.switches: list[tuple[float, bool]] = []
         self._cpu: dict[int, tuple[float, float]] = {}  # pid: (CPU seconds when first seen, when last seen)
@@ -128,16 +133,19 @@ def blocks(run: dict, switches: list[tuple[float, bool]]) -> list[tuple[bool, di
 
 
 def compare(pairs: list[tuple[dict, dict]], names, draws: int = 2000, seed: int = 0) -> dict:
-    """The view's p99 change per figure: pooled over the blocks while it worked against those while it was paused,
-    `*_p99_vs_paused`, with a 95% interval over the pairs of neighbouring blocks resampled (`_ci95`)."""
+    """The view's change per figure at p50 and p99: pooled over the blocks while it worked against those while it
+    was paused, `*_p50_vs_paused` / `*_p99_vs_paused`, with a 95% interval over the pairs of neighbouring blocks
+    resampled (`_ci95`)."""
     out = {"blocks": 2 * len(pairs)}
     idx = np.random.default_rng(seed).integers(0, len(pairs), (draws, len(pairs)))
     for name in names:
         on = [w[name] for w, _ in pairs]
         off = [p[name] for _, p in pairs]
-        out[f"{name}_ms_p99_working"], out[f"{name}_ms_p99_paused"] = pct(np.concatenate(on), 99), pct(np.concatenate(off), 99)
-        out[f"{name}_p99_vs_paused"] = out[f"{name}_ms_p99_working"] / out[f"{name}_ms_p99_paused"] - 1
-        out[f"{name}_p99_vs_paused_ci95"] = pooled_change_ci95(on, off, idx)
+        for q in (50, 99):
+            work, rest = pct(np.concatenate(on), q), pct(np.concatenate(off), q)
+            out[f"{name}_ms_p{q}_working"], out[f"{name}_ms_p{q}_paused"] = work, rest
+            out[f"{name}_p{q}_vs_paused"] = work / rest - 1
+            out[f"{name}_p{q}_vs_paused_ci95"] = pooled_change_ci95(on, off, idx, q)
         out[f"{name}_samples"] = int(sum(map(len, on)) + sum(map(len, off)))
     return out
 

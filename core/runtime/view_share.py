@@ -4,7 +4,8 @@ A publisher thread in the loop's process would share its interpreter lock and re
 loop's tap (`SharedTap`) copies the newest tick's arrays at the view's rate into shared memory
 (`SharedFrames`, a seqlock as core/skin/force_feed.py's: nobody waits), and the publisher process (`python -m
 skinsafe.core.runtime.view_share`, started by `start_publisher`) encodes it and sends it on as the view stream
-(core/runtime/view_stream.py). Encoding the message in the loop, as before, grew with the retracting pool (its
+(core/runtime/view_stream.py). The loop copies only while the publisher reads (a lease it renews with each read,
+and it reads only while a viewer is connected): nothing is copied for a view nobody watches, or one that stalls. Encoding the message in the loop, as before, grew with the retracting pool (its
 JSON list: milliseconds with thousands of taxels); the copy does not (`skinsafe bench runtime --tap`).
 """
 from __future__ import annotations
@@ -28,11 +29,15 @@ class SharedFrames:
     core/skin/force_feed.py's (nobody waits). The writer makes `seq` odd, copies, makes it even; a reader copies
     and retries while it was odd or changed.
 
-    Layout: `u64 seq | u64 n_pool | u64 text_len | f64 [t, retracting, pool, potential, speed_factor,
-    frames_lost, planned?] | f64 q, command, planned (n_joints each) | f64 board ages (the boards' order, NaN:
-    none) | f32 forces (n_taxels) | i32 pool | text: the stop reason and the flags, U+001E between them`."""
+    A reader's `newest` also renews its lease (`wanted` for LEASE_S more): the writer skips ticks nobody will read.
 
-    HEADER, SCALARS, TEXT = 3, 7, 4096
+    Layout: `u64 seq | u64 n_pool | u64 text_len | u64 lease end (monotonic ns) | f64 [t, retracting, pool,
+    potential, speed_factor, frames_lost, planned?] | f64 q, command, planned (n_joints each) | f64 board ages (the
+    boards' order, NaN: none) | f32 forces (n_taxels) | i32 pool | text: the stop reason and the flags, U+001E
+    between them`."""
+
+    HEADER, SCALARS, TEXT = 4, 7, 4096
+    LEASE_S = 0.25  # several of the view's reads (30 Hz), well under a second of a stalled reader
 
     def __init__(self, shm: shared_memory.SharedMemory, owner: bool, n_taxels: int, n_joints: int, boards):
         self.shm, self.owner, self.name = shm, owner, shm.name
@@ -93,9 +98,15 @@ class SharedFrames:
         w[0] += np.uint64(1)
         return True
 
+    def wanted(self) -> bool:
+        """Whether a reader took a tick within the last LEASE_S (the writer's test before copying one)."""
+        return int(self._word[3]) > time.monotonic_ns()
+
     def newest(self) -> Frame | None:
-        """The newest tick (the same object until a newer one is written), None before the first."""
+        """The newest tick (the same object until a newer one is written), None before the first; the reader wants
+        ticks for LEASE_S more."""
         w = self._word
+        w[3] = time.monotonic_ns() + int(self.LEASE_S * 1e9)
         for _ in range(1000):
             s1 = int(w[0])
             if s1 == self._seen or s1 == 0:
@@ -122,8 +133,9 @@ class SharedFrames:
 
 
 class SharedTap(Tap):
-    """A tap that also copies the newest tick into `SharedFrames` at most `rate_hz` times a second, in the loop (its
-    arrays as they are: the publisher process encodes them); a tick that does not fit is skipped and counted."""
+    """A tap that also copies the newest tick into `SharedFrames` at most `rate_hz` times a second while a reader
+    wants them, in the loop (its arrays as they are: the publisher process encodes them); a tick that does not fit
+    is skipped and counted. `seq`: ticks copied."""
 
     def __init__(self, frames: SharedFrames, rate_hz: float = 30.0):
         self.frames, self.period = frames, 1.0 / rate_hz
@@ -134,7 +146,10 @@ class SharedTap(Tap):
         now = time.monotonic()
         if now < self.due:
             return
-        self.due, self.seq = now + self.period, self.seq + 1
+        self.due = now + self.period
+        if not self.frames.wanted():  # no viewer, or the publisher stalled: nobody reads it
+            return
+        self.seq += 1
         if not self.frames.write(frame):
             self.skipped += 1
 

@@ -139,8 +139,10 @@ class ViewPublisher:
             if time.monotonic() < due:
                 continue
             due = max(due + self.period, time.monotonic() - self.period)
+            if not self.pending:  # nobody to send it to: not even read (SharedFrames: the loop stops copying)
+                continue
             f = self.latest()
-            if f is None or f is last or not self.pending:
+            if f is None or f is last:
                 continue
             last, seq = f, seq + 1
             msg = memoryview(f if isinstance(f, bytes) else frame_message(seq, f))

@@ -47,6 +47,7 @@ def test_each_tick_and_contact_frame_counts_in_the_block_it_began_in():
     out = compare(pairs, ("period", "latency", "latency_tick"), draws=200)
     assert np.isclose(out["period_ms_p99_paused"], 1.25) and np.isclose(out["period_ms_p99_working"], 1.0, atol=0.01)
     assert np.isclose(out["latency_p99_vs_paused"], 2 / 3 - 1) and out["blocks"] == 4
+    assert np.isclose(out["latency_p50_vs_paused"], 2 / 3 - 1) and np.isclose(out["period_ms_p50_paused"], 1.25)
     lo, hi = out["latency_tick_p99_vs_paused_ci95"]
     assert np.isclose(lo, 1.5 / 2.5 - 1) and np.isclose(hi, lo)  # every resample the same: no spread
 

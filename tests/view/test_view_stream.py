@@ -1,5 +1,7 @@
 """The live view stream of `skinsafe run --view`: the loop's tap shares the newest tick through shared memory
 at the view's rate, and a publisher in its own process sends it to a viewer (the page, Blender)."""
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -7,9 +9,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from skinsafe.core.design.sample import make_sample_design
+from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.runtime.tap import Frame
 from skinsafe.core.runtime.view_share import SharedFrames, SharedTap, start_publisher
 from skinsafe.core.runtime.view_stream import ViewClient, frame_message, hello
+from skinsafe.core.skin.taxel_map import save
 
 N = 5000
 
@@ -36,8 +41,16 @@ def test_the_publisher_process_sends_the_newest_shared_tick_and_the_loop_never_w
     proc = None
     try:
         proc, (host, port) = start_publisher(frames, hello(N, ids, [f"j{i}" for i in range(6)], {7: "b0"}), "127.0.0.1", 0)
+        for k in range(20):  # no viewer yet: the publisher reads nothing and the loop copies nothing
+            tap.publish(frame(k * 1e-3, np.full(N, float(k))))
+            time.sleep(0.01)
+        assert tap.seq == 0 and not frames.wanted()
         client = ViewClient(host, port)
         assert client.hello["n_taxels"] == N and np.array_equal(client.ids, ids)
+        deadline = time.monotonic() + 10
+        while not frames.wanted() and time.monotonic() < deadline:  # the publisher reads at 30 Hz once watched
+            time.sleep(0.005)
+        time.sleep(tap.period)  # the tap is due again
         for k in range(200):  # 200 ticks in well under 1/30 s: one of them is shared, the tap keeps the newest
             tap.publish(frame(k * 1e-3, np.full(N, float(k))))
         assert tap.seq == 1 and tap.latest().t == pytest.approx(0.199)
@@ -60,6 +73,7 @@ def test_a_tick_that_does_not_fit_the_block_is_skipped_and_counted_never_half_wr
     frames = SharedFrames.create(10, 6, [7])
     tap = SharedTap(frames, rate_hz=1000.0)
     try:
+        assert frames.newest() is None  # a reader: the tap copies for the next LEASE_S
         tap.publish(frame(1.0, np.ones(10)))
         first = frames.newest()
         for bad in (frame(2.0, np.ones(10), pool=np.arange(11)),  # a pool longer than the taxels
@@ -70,6 +84,75 @@ def test_a_tick_that_does_not_fit_the_block_is_skipped_and_counted_never_half_wr
             tap.publish(bad)
         assert tap.skipped == 4 and frames.newest() is first and frames.newest().t == 1.0
     finally:
+        frames.close()
+
+
+def test_the_loop_copies_only_while_a_reader_takes_ticks():
+    """Without a read within LEASE_S (no viewer connected, the publisher stalled or gone) the tap copies nothing;
+    one read resumes the copies at the tap's rate."""
+    frames = SharedFrames.create(10, 6, [7])
+    tap = SharedTap(frames, rate_hz=1000.0)
+    try:
+        def publish_for(seconds):
+            end, seq = time.monotonic() + seconds, tap.seq
+            while time.monotonic() < end:
+                tap.publish(frame(time.monotonic(), np.ones(10)))
+                time.sleep(0.002)
+            return tap.seq - seq
+        assert publish_for(0.1) == 0 and frames.newest() is None
+        copied = publish_for(SharedFrames.LEASE_S / 2)  # within the lease of that read: every 1 ms due tick
+        assert copied >= 10 and frames.newest().t > 0
+        time.sleep(SharedFrames.LEASE_S)  # the reader stalls
+        assert publish_for(0.1) == 0
+    finally:
+        frames.close()
+
+
+def test_nothing_is_copied_for_a_page_nobody_has_open(tmp_path):
+    """`run --view`'s chain (the loop's tap, the publisher process, the page's process): while no browser has the
+    page open the page process is off the stream, so the publisher reads nothing and the loop copies nothing; a
+    browser opening it starts the copies, closing it stops them again."""
+    from skinsafe.core.bench.remote_viewer import open_page
+
+    robot = build_ur5()
+    design = make_sample_design("ur5", robot=robot)
+    skin = save(design, tmp_path / "skin.json")
+    n = design.n_taxels
+    frames = SharedFrames.create(n, len(robot.home), [b.uid for b in design.boards])
+    tap = SharedTap(frames, rate_hz=30.0)
+    joints = [robot.model.joint(i).name for i in range(robot.model.njnt)]
+    msg = hello(n, design.taxels.ids, joints, {b.uid: b.name for b in design.boards}, str(skin))
+    pub = page = None
+
+    def copies(seconds):
+        seq, end = tap.seq, time.monotonic() + seconds
+        while time.monotonic() < end:
+            tap.publish(Frame(time.monotonic(), robot.home, np.ones(n), 0 * robot.home, False, 0, (), ""))
+            time.sleep(0.005)
+        return tap.seq - seq
+
+    try:
+        pub, (host, port) = start_publisher(frames, msg, "127.0.0.1", 0)
+        page = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", "view", f"{host}:{port}", "--port",
+                                 "0", "--until-ended"], stdout=subprocess.PIPE, text=True)
+        line = "-"
+        while line and not line.startswith("skinsafe view:"):  # after viser's banner
+            line = page.stdout.readline()
+        assert line.startswith("skinsafe view: live"), line
+        url = line.rsplit(" at ", 1)[1].strip()
+        assert copies(1.5) == 0  # the page served, nobody looking
+        with open_page(url):  # a browser opens the page (elsewhere: nothing drawn here)
+            deadline = time.monotonic() + 30
+            while copies(0.5) == 0:
+                assert time.monotonic() < deadline, "no copies with the page open"
+            assert copies(1.0) >= 15  # at the view's 30 Hz
+        time.sleep(3.0)  # the page process notices the browser left and leaves the stream
+        assert copies(1.0) == 0
+    finally:
+        for proc in (page, pub):
+            if proc is not None:
+                proc.terminate()
+                proc.wait(10)
         frames.close()
 
 
