@@ -16,8 +16,6 @@ from viser._messages import ViewerCameraMessage
 from websockets.exceptions import ConnectionClosed, WebSocketException
 from websockets.sync.client import ClientConnection, connect
 
-MODULE = "skinsafe.core.bench.remote_viewer"
-
 
 def open_page(url: str, timeout_s: float = 30.0) -> ClientConnection:
     """The page at `url` (http:// or ws://) opened as a browser opens it; a context manager."""

@@ -7,11 +7,11 @@ Chromium drawing its page, on any core; `alternating-pinned`: off the loop's cor
 open on another computer, core/bench/remote_viewer.py), and the view's processes (the stream's publisher, the
 page's server, every Chromium process or the remote viewer) are paused (SIGSTOP) and resumed (SIGCONT) every
 `block` seconds: the ticks while the view worked are compared with the ticks of the same run while it was
-paused, block against the block next to it (with `--block` equal to `--sweep`, each block holds one whole sweep of the arm into the
-post and back: the two blocks of a pair did the same work). The loop's own side of the view, its tap's copy
-into shared memory 30 times a second, is in the comparison too: the loop copies only while the publisher reads
-(core/runtime/view_share.py), so it stops within `SharedFrames.LEASE_S` of a pause (`bench runtime --tap`
-measures the copy alone).
+paused, block against the block next to it (with `--block` equal to `--sweep`, each block holds one whole
+sweep of the arm into the post and back: the two blocks of a pair did the same work). The loop's own side of
+the view, its tap's copy into shared memory 30 times a second, is in the comparison too: the loop copies only
+while the publisher reads (core/runtime/view_share.py), so it stops within `SharedFrames.LEASE_S` of a pause
+(`bench runtime --tap` measures the copy alone).
 """
 from __future__ import annotations
 
@@ -26,7 +26,8 @@ import numpy as np
 
 from skinsafe.core.timing import pct, pooled_change_ci95
 
-VIEW_MODULES = ("skinsafe.core.runtime.view_share", "skinsafe.core.bench.remote_viewer")  # the publisher, a remote page
+REMOTE_VIEWER = "skinsafe.core.bench.remote_viewer"  # `python -m` it: a page open on another computer
+VIEW_MODULES = ("skinsafe.core.runtime.view_share", REMOTE_VIEWER)  # the publisher, a remote page
 PAGE_COMMAND = "view"  # `skinsafe view`: the page's process
 
 

@@ -5,8 +5,9 @@ loop's tap (`SharedTap`) copies the newest tick's arrays at the view's rate into
 (`SharedFrames`, a seqlock as core/skin/force_feed.py's: nobody waits), and the publisher process (`python -m
 skinsafe.core.runtime.view_share`, started by `start_publisher`) encodes it and sends it on as the view stream
 (core/runtime/view_stream.py). The loop copies only while the publisher reads (a lease it renews with each read,
-and it reads only while a viewer is connected): nothing is copied for a view nobody watches, or one that stalls. Encoding the message in the loop, as before, grew with the retracting pool (its
-JSON list: milliseconds with thousands of taxels); the copy does not (`skinsafe bench runtime --tap`).
+and it reads only while a viewer is connected): nothing is copied for a view nobody watches, or one that
+stalls. Encoding the message in the loop, as before, grew with the retracting pool (its JSON list:
+milliseconds with thousands of taxels); the copy does not (`skinsafe bench runtime --tap`).
 """
 from __future__ import annotations
 
