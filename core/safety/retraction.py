@@ -30,8 +30,10 @@ formula is kept as `merge_paper` for comparison):
   along its retraction axis); lower priorities must not change the higher ones' speeds;
 * `qd = qd_0 + sum_j P_j qd_j`, `P_j = I - eps * U_j U_j^T` where `U_j` is an orthonormal basis
   (Gram-Schmidt, rank-safe: directions with a relative residual under `rank_tol` add nothing)
-  of `a_0 .. a_{j-1}`. eps = 1: full null-space projection, lower priorities cannot alter any
-  higher taxel's retraction speed; eps = 0: the plain sum;
+  of `a_0 .. a_{j-1}`. eps = 1: full null-space projection, lower priorities cannot alter the
+  retraction speed of a higher taxel whose row added a column; a row within `rank_tol` of the rows
+  above it counts as dependent, and lower priorities may change its speed by its residual's share,
+  at most `rank_tol * |a_k| * |their motion|` (tested over random sets); eps = 0: the plain sum;
 * safety guard: a component of a lower-priority motion that *opposes* a higher retraction
   (negative along the basis direction) is always removed in full, whatever eps. Along the
   dominant taxel's direction this is exact, so the dominant taxel never moves toward its
