@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: test demo bench clean readme-figures robots franky-sim
+.PHONY: test demo bench clean readme-figures robots franky-sim docs
 
 # franky-sim 1.0.4 (the FR3 over the libfranka protocol, MuJoCo inside) needs numpy >= 2, which bpy
 # forbids: it gets its own environment, with the numpy/numba parts of skinsafe that its world runs
@@ -35,10 +35,14 @@ robots: $(ROBOTS_STAMP)
 $(ROBOTS_STAMP): blend_assets/robots/fetch.py $(STAMP)
 	$(BIN)/python blend_assets/robots/fetch.py
 
-test: $(STAMP) $(ROBOTS_STAMP) $(FRANKY_STAMP) test-numpy2
+test: $(STAMP) $(ROBOTS_STAMP) $(FRANKY_STAMP) test-numpy2 docs
 	$(BIN)/lint-imports
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadgroup --durations=20
+
+# The documentation site (docs/, mkdocs.yml) into build/site; --strict: a broken link or reference fails it
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
 
 # hardware/ runs under numpy 2 too (emulated boards run in franky-sim's environment): its protocol, stream
 # and link-fault tests in franky-sim's numpy-2 environment (no bpy there: no conftest)

@@ -4,9 +4,9 @@ adapts Blender data and draws.
 
 Registers properties, then operators, then panels, drawing and handlers; unregisters in reverse.
 """
-from skinsafe.addon import cover, drawing, handlers, live, operators, panels, pfl, props
+from skinsafe.addon import cover, deploy, drawing, findings, handlers, live, operators, panels, pfl, place_tool, props
 
-_MODULES = (props, operators, cover, panels, pfl, drawing, handlers, live)
+_MODULES = (props, operators, cover, place_tool, findings, deploy, panels, pfl, drawing, handlers, live)
 
 
 def register():

@@ -5,12 +5,13 @@ import numpy as np
 from mathutils import Matrix
 
 from skinsafe.core.design.surface import Surface
-from skinsafe.core.robot.models import load_robot  # noqa: F401 (operators refuse files early)
+from skinsafe.core.robot.models import load_robot
 from skinsafe.core.robot.urdf_import import parse_xacro_args
 from skinsafe.core.skin import taxel_map
 from skinsafe.core.skin.model import DesignError, Module, RobotRef
 
 TEXT_NAME = "skinsafe_taxel_map.json"
+COLLECTION = "skinsafe robot"  # the imported robot's body objects (and the modules on them)
 _robots: dict = {}  # (kind, name, path) -> Robot
 _designs: dict = {}  # scene name -> (design_rev, SkinDesign)
 _surfaces: dict = {}  # object name -> (key, Surface)
@@ -28,20 +29,41 @@ def robot_ref(scene) -> RobotRef | None:
     return RobotRef(s.robot_kind, s.robot_name, s.robot_path or None, dirs, parse_xacro_args(s.robot_xacro_args))
 
 
+def preload(ref: RobotRef, fresh: bool = False):
+    """Load the robot of `ref` (validated: joints, every mesh by link and file) into the cache `robot_for`
+    reads; `fresh`: read its files again (an import: they may have changed). No bpy: it may run in a worker
+    thread (addon/background.py)."""
+    key = (ref.kind, ref.name, ref.path, ref.package_dirs, tuple(sorted(ref.xacro_args.items())))
+    if fresh or key not in _robots:
+        robot = load_robot(ref)  # a refusal leaves the cache as it was
+        _robots[key] = robot
+    return _robots[key]
+
+
 def robot_for(scene):
     """The scene's robot (MuJoCo model and limits), loaded once per reference."""
     ref = robot_ref(scene)
     if ref is None:
         raise DesignError("scene: no robot imported; import one first (skinsafe panel > Robot)")
-    key = (ref.kind, ref.name, ref.path, ref.package_dirs, tuple(sorted(ref.xacro_args.items())))
-    if key not in _robots:
-        _robots[key] = load_robot(ref)
-    return _robots[key]
+    return preload(ref)
 
 
 def body_objects(scene) -> dict:
-    """Body name -> Blender object of the scene's imported robot."""
-    return {o["skinsafe_body"]: o for o in scene.objects if "skinsafe_body" in o}
+    """Body name -> Blender object of the scene's imported robot: the objects of its collection (link
+    copies that came with a pasted or appended module are not), the one named as the body first."""
+    coll = bpy.data.collections.get(COLLECTION)
+    out = {}
+    for o in coll.objects if coll is not None else scene.objects:
+        b = o.get("skinsafe_body")
+        if b is not None and (b not in out or o.name == b):
+            out[b] = o
+    return out
+
+
+def stray_bodies(scene) -> list[str]:
+    """Names of the scene's objects that claim a robot body but are not the robot's (copies)."""
+    mine = {o.name for o in body_objects(scene).values()}
+    return sorted(o.name for o in scene.objects if "skinsafe_body" in o and o.name not in mine)
 
 
 def pose(scene) -> np.ndarray:
@@ -92,7 +114,8 @@ def settings_module(settings, module_id: int, name: str, body: str) -> Module:
 
 
 def outline_of(settings) -> np.ndarray | None:
-    """A curve object's points (its local x, y in m) as the 'curve' template's outline."""
+    """A curve object's points (its local x, y in m) as the 'curve' template's outline (x negated for a
+    mirrored module)."""
     cu = settings.outline
     if settings.template != "curve" or cu is None or cu.type != "CURVE":
         return None
@@ -100,7 +123,7 @@ def outline_of(settings) -> np.ndarray | None:
     for sp in cu.data.splines:
         seq = sp.bezier_points if sp.type == "BEZIER" else sp.points
         pts += [tuple(p.co[:2]) for p in seq]
-    return np.asarray(pts, dtype=float) * np.asarray(cu.scale[:2])
+    return np.asarray(pts, dtype=float) * np.asarray(cu.scale[:2]) * ((-1.0 if settings.mirrored else 1.0), 1.0)
 
 
 def placement_of(obj) -> tuple[np.ndarray, np.ndarray]:

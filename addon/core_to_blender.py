@@ -1,16 +1,26 @@
 """core -> Blender: robot bodies as parented mesh objects, poses, module meshes (one hexagon per
 taxel), heat-map colours and the design stored in the .blend as a text datablock."""
 import json
+import random
 
 import bpy
 import mujoco
 import numpy as np
 
-from skinsafe.addon.blender_to_core import TEXT_NAME, _designs, body_objects, matrix_key, pose, robot_for, to_matrix
+from skinsafe.addon.blender_to_core import (
+    COLLECTION,
+    TEXT_NAME,
+    _designs,
+    body_objects,
+    matrix_key,
+    pose,
+    robot_for,
+    to_matrix,
+)
 from skinsafe.core.design.surface import body_surface
 from skinsafe.core.skin import taxel_map
+from skinsafe.core.skin.ids import with_stable_ids
 
-COLLECTION = "skinsafe robot"
 # viridis at 0, .25, .5, .75, 1
 _VIRIDIS = np.array([[0.267, 0.005, 0.329], [0.229, 0.322, 0.546], [0.128, 0.567, 0.551],
                      [0.369, 0.789, 0.383], [0.993, 0.906, 0.144]])
@@ -169,23 +179,37 @@ def show_heat(scene, design, values: np.ndarray) -> None:
         me.update()
 
 
-def store_design(scene, design) -> None:
-    """Keep the design in the .blend (text datablock, taxel-map JSON) and in the session cache."""
+def store_design(scene, design):
+    """Keep the design, its taxel ids made stable (module id and index), in the .blend (text datablock,
+    taxel-map JSON) and in the session cache; returns what was stored."""
+    design = with_stable_ids(design)
     text = bpy.data.texts.get(TEXT_NAME) or bpy.data.texts.new(TEXT_NAME)
     # One value per line: Blender's text editor is quadratic in the length of a line.
     text.from_string(json.dumps(taxel_map.to_dict(design), indent=0, separators=(",", ":"), allow_nan=False))
-    scene.skinsafe.design_rev += 1
+    _new_rev(scene)
     _designs[scene.name] = (scene.skinsafe.design_rev, design)
+    return design
 
 
-def clear_design(scene) -> None:
+def _new_rev(scene) -> None:
+    """A random revision, not a counter: after an undo and a different edit a counter could repeat a cached one."""
+    scene.skinsafe.design_rev = random.randrange(1, 2 ** 31)
+
+
+def clear_text(scene) -> None:
+    """Forget the stored design (its text and cache); the module objects stay."""
     text = bpy.data.texts.get(TEXT_NAME)
     if text is not None:
         bpy.data.texts.remove(text)
+    _new_rev(scene)
+    _designs.pop(scene.name, None)
+
+
+def clear_design(scene) -> None:
+    """Remove the design and every module object."""
     for o in [o for o in scene.objects if o.skinsafe_module.is_module]:
         bpy.data.objects.remove(o, do_unlink=True)
-    scene.skinsafe.design_rev += 1
-    _designs.pop(scene.name, None)
+    clear_text(scene)
 
 
 def new_module_object(scene, body_obj, module, placed, settings) -> bpy.types.Object:
@@ -195,8 +219,9 @@ def new_module_object(scene, body_obj, module, placed, settings) -> bpy.types.Ob
     obj.parent = body_obj
     obj.matrix_parent_inverse.identity()
     mm = obj.skinsafe_module
-    mm.is_module, mm.module_id, mm.body = True, module.id, module.body
-    for k in ("template", "method", "rows", "cols", "pitch", "taxel_diameter", "margin", "min_bend_radius", "outline"):
+    mm.is_module, mm.module_id, mm.body, mm.owner = True, module.id, module.body, obj.session_uid
+    for k in ("template", "method", "rows", "cols", "pitch", "taxel_diameter", "margin", "min_bend_radius", "outline",
+              "mirrored"):
         setattr(mm.settings, k, getattr(settings, k))
     set_module_transform(obj, placed)
     return obj

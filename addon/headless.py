@@ -213,12 +213,56 @@ def run(blend: Path, out: Path) -> dict:
         unregister()
 
 
+def designer_path(out: Path) -> dict:
+    """The designer's path on the UR5, as the docs show it (docs/design/blender.md), its pictures under `out`:
+    three 8x8 modules placed with the Place Skin tool along rays (designer_place.png, a board each), one
+    duplicated along the upper arm and mirrored (designer_edit.png), the Jacobian heat map
+    (designer_heat.png); then checked and exported (taxel map, MuJoCo scene, URDF under out/export)."""
+
+    register()
+    try:
+        bpy.ops.wm.read_homefile(use_empty=True)
+        scene = bpy.context.scene
+        bpy.ops.skinsafe.import_robot(source="ur5")
+        s = scene.skinsafe
+        s.board_capacity = 64  # a board per module: the pictures tell them apart
+        st = s.new_module
+        st.rows, st.cols, st.pitch, st.taxel_diameter, st.margin = 8, 8, 0.01, 0.006, 0.002
+        out.mkdir(parents=True, exist_ok=True)
+        for body, x, top in (("forearm_link", -0.3, 0.13585 - 0.1197 + 0.04), ("forearm_link", -0.12,
+                                                                                0.13585 - 0.1197 + 0.04),
+                             ("upper_arm_link", -0.3, 0.13585 + 0.06)):
+            W = np.array(b2c.body_objects(scene)[body].matrix_world)
+            origin, direction = W[:3, :3] @ (x, 0.0, top + 0.05) + W[:3, 3], -W[:3, 2]
+            assert bpy.ops.skinsafe.place_skin(ray_origin=origin, ray_direction=direction) == {"FINISHED"}, s.error
+        pics = [render(scene, out / "designer_place.png", "board")]
+        along = np.array(b2c.body_objects(scene)["upper_arm_link"].matrix_world)[:3, 0]
+        bpy.ops.object.duplicate_move(TRANSFORM_OT_translate={"value": tuple(along * 0.15)})
+        bpy.ops.transform.mirror(constraint_axis=(True, False, False), orient_type="LOCAL")
+        bpy.context.view_layer.update()
+        pics.append(render(scene, out / "designer_edit.png", "board"))
+        bpy.ops.skinsafe.map_jacobians()
+        pics.append(render(scene, out / "designer_heat.png", "heat"))
+        bpy.ops.skinsafe.check(poses=8)
+        checked = s.message
+        exp = out / "export"
+        bpy.ops.skinsafe.export_taxel_map(filepath=str(exp / "skin.json"))
+        bpy.ops.skinsafe.export_mjcf(directory=str(exp / "scene"))
+        bpy.ops.skinsafe.export_urdf(filepath=str(exp / "skin.urdf"))
+        design = b2c.design_of(scene)
+        return {"modules": len(design.modules), "taxels": design.n_taxels, "boards": len(design.boards),
+                "check": checked, "pictures": [str(p) for p in pics]}
+    finally:
+        unregister()
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--blend", default=str(Path(__file__).resolve().parents[1] / "blend_assets" / "ur5_skin.blend"))
     p.add_argument("--out", default="out/blender")
+    p.add_argument("--designer-path", action="store_true", help="the docs' designer's path instead (designer_path)")
     a = p.parse_args(argv)
-    print(json.dumps(run(Path(a.blend), Path(a.out))))
+    print(json.dumps(designer_path(Path(a.out)) if a.designer_path else run(Path(a.blend), Path(a.out))))
     return 0
 
 

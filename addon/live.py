@@ -4,7 +4,8 @@ the viewport, from a running `skinsafe run --view` (its view stream, HOST:PORT) 
 Each module mesh gets a colour attribute `live` (one colour per taxel face, on the web page's scale:
 core/runtime/view_scale.py; grey: no reading, or a taxel the source does not have), matched by taxel id,
 so a map whose taxels are in another order, or a scene with only some of the map's modules, colours the
-right faces. The robot takes the measured pose; a record's obstacles (an experiment's balls, a person's
+right faces; a source whose taxel map is not the scene's design (its `map_sha256`, then its taxels) is
+refused on attach, naming what to do. The robot takes the measured pose; a record's obstacles (an experiment's balls, a person's
 parts) are drawn in the collection "skinsafe live obstacles" and move with its ticks. `step(scene)` applies the newest frame: callable without
 Blender's event loop (headless, bpy timers never fire); the Attach operator registers a timer that calls
 it, Detach (and unregistering the add-on) removes it (a bpy process hangs at exit with a timer left).
@@ -127,6 +128,12 @@ def attach(scene, source: str) -> str:
     global _link
     detach(scene)
     _link = _Link(source)
+    named = _link.record.config if _link.record is not None else _link.client.hello  # the map the source runs
+    try:
+        _check_map(scene, source, named.get("map_sha256", ""), named.get("map", ""))
+    except StreamError:
+        detach(scene)
+        raise
     n = len(_faces(scene, _link.ids))
     if not n:
         detach(scene)
@@ -141,6 +148,35 @@ def attach(scene, source: str) -> str:
         show_time(scene, _link.t0)
     lv.status = msg
     return msg
+
+
+def _check_map(scene, source: str, sha: str, path: str) -> None:
+    """Refuse a source whose taxel map is not the scene's design (its hash, or its taxels where the map file
+    is here to read: a map whose only change is its coverage report passes). A source naming no map hash
+    is matched by taxel id alone."""
+    from skinsafe.addon.blender_to_core import design_of
+    from skinsafe.core.skin import taxel_map
+    from skinsafe.core.skin.model import DesignError
+
+    design = design_of(scene)
+    if not sha or design is None:
+        return
+    mine = taxel_map.sha256(design)
+    if sha == mine:
+        return
+    try:
+        other = taxel_map.load(path) if path else None
+    except DesignError:
+        other = None
+    t = design.taxels
+    if other is not None and other.bodies == design.bodies and all(
+            np.array_equal(getattr(other.taxels, k), getattr(t, k)) for k in ("ids", "module", "body", "positions",
+                                                                            "frames")):
+        return
+    raise StreamError(f"{source}: its taxel map ({path or 'no file named'}, sha256 {sha[:12]}) is not this scene's "
+                      f"design (sha256 {mine[:12]}): its taxels would light the wrong places. Export this scene's map "
+                      "(File > Export > skinsafe Taxel Map) and restart the run with it, or open the .blend that map "
+                      "was designed in")
 
 
 def _add_obstacles(scene, obstacles) -> list:
@@ -317,6 +353,8 @@ class SKINSAFE_OT_live_detach(bpy.types.Operator):
 
     bl_idname = "skinsafe.live_detach"
     bl_label = "Detach"
+
+    poll = classmethod(lambda cls, context: _link is not None)
 
     def execute(self, context):
         detach(context.scene)

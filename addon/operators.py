@@ -7,9 +7,9 @@ import numpy as np
 from bpy.props import EnumProperty, FloatProperty, FloatVectorProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
+from skinsafe.addon import background, designer, findings
 from skinsafe.addon import blender_to_core as b2c
 from skinsafe.addon import core_to_blender as c2b
-from skinsafe.addon import designer
 from skinsafe.core.design.coverage import format_report
 from skinsafe.core.robot.urdf_import import parse_xacro_args
 from skinsafe.core.skin import taxel_map
@@ -37,7 +37,11 @@ def _has_skin(context):
     return _has_robot(context) and any(o.skinsafe_module.is_module for o in context.scene.objects)
 
 
-class SKINSAFE_OT_import_robot(bpy.types.Operator, ImportHelper):
+def _n_modules(context) -> int:
+    return len(b2c.module_objects(context.scene)) if context.scene is not None else 0
+
+
+class SKINSAFE_OT_import_robot(background.Modal, bpy.types.Operator, ImportHelper):
     """Import the built-in UR5 or Panda, or a URDF, xacro or MJCF file (one object per body; meshes
     STL/OBJ/DAE are read by the core, `package://` resolved in the package folders given)"""
 
@@ -53,10 +57,25 @@ class SKINSAFE_OT_import_robot(bpy.types.Operator, ImportHelper):
     xacro_args: StringProperty(name="xacro arguments", default="",
                                description="NAME:=VALUE arguments for a xacro file, ';'-separated (e.g. ur_type:=ur5e;name:=ur5e)")
 
+    poll = classmethod(lambda cls, context: context.scene is not None)
+
     def invoke(self, context, event):
-        if self.source == "FILE":
+        if self.source == "FILE":  # the file browser shows the warning (`draw`)
             return ImportHelper.invoke(self, context, event)
+        n = _n_modules(context)
+        if n:
+            return context.window_manager.invoke_confirm(
+                self, event, title="Replace the robot?", message=f"Importing replaces the robot and deletes the skin "
+                f"({n} modules); undo brings them back", confirm_text="Replace", icon="WARNING")
         return self.execute(context)
+
+    def draw(self, context):
+        layout = self.layout
+        for k in ("package_dirs", "xacro_args"):
+            layout.prop(self, k)
+        n = _n_modules(context)
+        if n:
+            layout.label(text=f"Replaces the robot and deletes the skin ({n} modules)", icon="WARNING")
 
     def execute(self, context):
         scene = context.scene
@@ -65,11 +84,25 @@ class SKINSAFE_OT_import_robot(bpy.types.Operator, ImportHelper):
                 path = Path(bpy.path.abspath(self.filepath))
                 kind = "mjcf" if path.suffix.lower() in (".xml", ".mjcf") else "urdf"
                 dirs = tuple(str(Path(bpy.path.abspath(d))) for d in self.package_dirs.split(";") if d)
-                ref = RobotRef(kind, path.name.split(".")[0], str(path), dirs, parse_xacro_args(self.xacro_args))
-                b2c.load_robot(ref)  # one validation (joints, every mesh by link and file) before touching the scene
+                self.ref = RobotRef(kind, path.name.split(".")[0], str(path), dirs, parse_xacro_args(self.xacro_args))
             else:
-                ref = RobotRef("builtin", self.source)
-            root = c2b.build_robot(scene, ref)
+                self.ref = RobotRef("builtin", self.source)
+        except DesignError as e:
+            return _fail(self, scene, e)
+        # one validation (joints, every mesh by link and file) before the scene changes; with a window the
+        # reading runs off Blender's thread (xacro and meshes take seconds), Esc cancels
+        job = background.Job(b2c.preload, self.ref, True)
+        if not bpy.app.background and self.source == "FILE":  # an event loop to poll it from
+            return self.start(context, job, self.finish, f"importing {self.ref.name}")
+        job.wait()
+        return self.finish(context, job)
+
+    def finish(self, context, job):
+        scene = context.scene
+        try:
+            if job.error is not None:
+                raise job.error
+            root = c2b.build_robot(scene, self.ref)
         except DesignError as e:
             return _fail(self, scene, e)
         return _ok(self, scene, f"imported {root['skinsafe_robot']}: {len(b2c.body_objects(scene)) - 1} bodies, "
@@ -241,12 +274,13 @@ class SKINSAFE_OT_coverage(bpy.types.Operator):
         return _ok(self, context.scene, f"{t['taxels']} taxels, {t['modules']} modules, {t['boards']} boards")
 
 
-class SKINSAFE_OT_check(bpy.types.Operator):
+class SKINSAFE_OT_check(background.Modal, bpy.types.Operator):
     """Check the skin as `skinsafe check` does: taxels on their link's surface, outlines not
     overhanging, anchors on the link, none buried inside another link at sampled poses; coverage"""
 
     bl_idname = "skinsafe.check"
     bl_label = "Check Skin"
+    bl_options = {"REGISTER", "UNDO"}  # it stores the coverage report with the design
 
     poses: bpy.props.IntProperty(name="Poses", default=16, min=1, max=1000,
                                  description="sampled poses for the buried-taxel check (home first)")
@@ -254,16 +288,33 @@ class SKINSAFE_OT_check(bpy.types.Operator):
     poll = classmethod(lambda cls, context: _has_skin(context))
 
     def execute(self, context):
+        """The check runs off Blender's thread (seconds at many poses; Esc cancels) where there is an event loop."""
         scene = context.scene
         try:
-            problems = designer.check(scene, self.poses)
+            job = background.Job(designer.check_work, designer.need_design(scene), b2c.robot_for(scene), self.poses)
         except DesignError as e:
+            findings.fill(scene, [str(e)])
             return _fail(self, scene, e)
-        scene.skinsafe.coverage_text = format_report(b2c.design_of(scene).coverage)
+        self.rev = scene.skinsafe.design_rev
+        if not bpy.app.background:
+            return self.start(context, job, self.finish, "checking the skin")
+        job.wait()
+        return self.finish(context, job)
+
+    def finish(self, context, job):
+        scene = context.scene
+        try:
+            if job.error is not None:
+                raise job.error
+            problems = designer.keep_check(scene, self.rev, job.result)
+        except DesignError as e:
+            findings.fill(scene, [str(e)])
+            return _fail(self, scene, e)
+        scene.skinsafe.coverage_text = format_report(job.result[1])
+        findings.fill(scene, problems)
         if problems:
-            for line in problems[1:]:
-                self.report({"WARNING"}, line)
-            return _fail(self, scene, DesignError(f"{len(problems)} problems, the first: {problems[0]}"))
+            return _fail(self, scene, DesignError(f"{len(problems)} problems, listed in Skin > Check; the first: "
+                                                  f"{problems[0]}"))
         return _ok(self, scene, f"skin valid: {b2c.design_of(scene).n_taxels} taxels checked at {self.poses} poses")
 
 
@@ -315,11 +366,55 @@ class SKINSAFE_OT_export_mjcf(bpy.types.Operator):
         return _ok(self, scene, f"wrote {path}" + (f" ({len(caught)} warnings)" if caught else ""))
 
 
+class SKINSAFE_OT_export_urdf(bpy.types.Operator, ExportHelper):
+    """Export the robot with its skin as a URDF (the robot's links with their meshes beside it, a link and a
+    tactile sensor per taxel)"""
+
+    bl_idname = "skinsafe.export_urdf"
+    bl_label = "Export URDF"
+    filename_ext = ".urdf"
+
+    poll = classmethod(lambda cls, context: _has_skin(context))
+
+    def execute(self, context):
+        from skinsafe.exporters.urdf import export_urdf
+
+        scene = context.scene
+        try:
+            path = export_urdf(b2c.design_of(scene), b2c.robot_for(scene), bpy.path.abspath(self.filepath))
+        except (ValueError, OSError) as e:  # DesignError is a ValueError
+            return _fail(self, scene, e)
+        return _ok(self, scene, f"wrote {path}")
+
+
+class SKINSAFE_OT_export_taxel_csv(bpy.types.Operator, ExportHelper):
+    """Export the taxels as the CSV the GenTact Toolbox writes for Isaac Sim (Index, X, Y, Z, Radius, Parent:
+    link-frame positions, the link's path)"""
+
+    bl_idname = "skinsafe.export_taxel_csv"
+    bl_label = "Export Taxel CSV (GenTact)"
+    filename_ext = ".csv"
+
+    poll = classmethod(lambda cls, context: _has_skin(context))
+
+    def execute(self, context):
+        from skinsafe.exporters.gentact import export_csv
+
+        scene = context.scene
+        try:
+            path = export_csv(b2c.design_of(scene), b2c.robot_for(scene), bpy.path.abspath(self.filepath))
+        except (DesignError, OSError) as e:
+            return _fail(self, scene, e)
+        return _ok(self, scene, f"wrote {path}")
+
+
 class SKINSAFE_OT_toggle_frames(bpy.types.Operator):
     """Draw the taxel frames (axes or normals) in the viewport"""
 
     bl_idname = "skinsafe.toggle_frames"
     bl_label = "Toggle Taxel Frames"
+
+    poll = classmethod(lambda cls, context: _has_skin(context))
 
     def execute(self, context):
         s = context.scene.skinsafe
@@ -331,7 +426,27 @@ class SKINSAFE_OT_toggle_frames(bpy.types.Operator):
 
 CLASSES = (SKINSAFE_OT_import_robot, SKINSAFE_OT_set_pose, SKINSAFE_OT_place_module, SKINSAFE_OT_regenerate,
            SKINSAFE_OT_remove_module, SKINSAFE_OT_assign_boards, SKINSAFE_OT_map_jacobians, SKINSAFE_OT_coverage,
-           SKINSAFE_OT_check, SKINSAFE_OT_export_taxel_map, SKINSAFE_OT_export_mjcf, SKINSAFE_OT_toggle_frames)
+           SKINSAFE_OT_check, SKINSAFE_OT_export_taxel_map, SKINSAFE_OT_export_mjcf, SKINSAFE_OT_export_urdf,
+           SKINSAFE_OT_export_taxel_csv, SKINSAFE_OT_toggle_frames)
+EXPORTS = ((SKINSAFE_OT_export_taxel_map, "skinsafe Taxel Map (.json)"),
+           (SKINSAFE_OT_export_mjcf, "skinsafe MuJoCo Scene (folder)"), (SKINSAFE_OT_export_urdf, "skinsafe URDF (.urdf)"),
+           (SKINSAFE_OT_export_taxel_csv, "skinsafe Taxel CSV, GenTact (.csv)"))
 
 
-register, unregister = bpy.utils.register_classes_factory(CLASSES)
+def export_menu(self, context):
+    """File > Export entries."""
+    for op, text in EXPORTS:
+        self.layout.operator(op.bl_idname, text=text)
+
+
+_register, _unregister = bpy.utils.register_classes_factory(CLASSES)
+
+
+def register():
+    _register()
+    bpy.types.TOPBAR_MT_file_export.append(export_menu)
+
+
+def unregister():
+    bpy.types.TOPBAR_MT_file_export.remove(export_menu)
+    _unregister()

@@ -38,6 +38,7 @@ class SKINSAFE_PT_modules(_Panel, bpy.types.Panel):
             col.prop(t, k)
         if t.template == "curve":
             col.prop(t, "outline")
+        col.operator("skinsafe.place_skin", icon="RESTRICT_SELECT_OFF")
         col.operator("skinsafe.place_module", text="Place at 3D Cursor")
         col.operator("skinsafe.cover_link", text="Cover Active Link")
         col.prop(s, "auto_regenerate")
@@ -72,11 +73,12 @@ class SKINSAFE_PT_analysis(_Panel, bpy.types.Panel):
         col.prop(s, "board_capacity")
         col.operator("skinsafe.assign_boards")
         col.operator("skinsafe.coverage")
-        col.operator("skinsafe.check")
         for line in s.coverage_text.splitlines():
             col.label(text=line)
         col.operator("skinsafe.export_taxel_map")
         col.operator("skinsafe.export_mjcf")
+        col.operator("skinsafe.export_urdf")
+        col.operator("skinsafe.export_taxel_csv")
 
 
 def _wrap(text: str, width: int = 60):

@@ -28,23 +28,33 @@ class SkinsafeJoint(bpy.types.PropertyGroup):
     upper: FloatProperty()
 
 
+def _settings_changed(self, context):
+    """A module object's own settings edited: mark it stale, so the next update re-generates it."""
+    obj = self.id_data
+    if isinstance(obj, bpy.types.Object) and obj.skinsafe_module.is_module:
+        obj.skinsafe_module.placed_matrix = [0.0] * 16
+
+
 class SkinsafeTemplate(bpy.types.PropertyGroup):
     """An FPC module template (on the scene: for new modules; on a module object: its own)."""
 
-    template: EnumProperty(name="Template", items=TEMPLATES, default="rect")
-    method: EnumProperty(name="Wrap", items=METHODS, default="geodesic")
-    rows: IntProperty(name="Rows", default=8, min=1, max=256)
-    cols: IntProperty(name="Cols", default=8, min=1, max=256)
-    pitch: FloatProperty(name="Pitch", default=0.01, min=1e-4, max=0.2, unit="LENGTH", precision=4)
-    taxel_diameter: FloatProperty(name="Taxel diameter", default=0.006, min=1e-4, max=0.2, unit="LENGTH", precision=4)
-    margin: FloatProperty(name="Margin", default=0.002, min=0.0, max=0.1, unit="LENGTH", precision=4)
-    min_bend_radius: FloatProperty(name="Min bend radius", default=0.01, min=0.0, max=10.0, unit="LENGTH", precision=4)
+    template: EnumProperty(name="Template", items=TEMPLATES, default="rect", update=_settings_changed)
+    method: EnumProperty(name="Wrap", items=METHODS, default="geodesic", update=_settings_changed)
+    rows: IntProperty(name="Rows", default=8, min=1, max=256, update=_settings_changed)
+    cols: IntProperty(name="Cols", default=8, min=1, max=256, update=_settings_changed)
+    pitch: FloatProperty(name="Pitch", default=0.01, min=1e-4, max=0.2, unit="LENGTH", precision=4, update=_settings_changed)
+    taxel_diameter: FloatProperty(name="Taxel diameter", default=0.006, min=1e-4, max=0.2, unit="LENGTH", precision=4, update=_settings_changed)
+    margin: FloatProperty(name="Margin", default=0.002, min=0.0, max=0.1, unit="LENGTH", precision=4, update=_settings_changed)
+    min_bend_radius: FloatProperty(name="Min bend radius", default=0.01, min=0.0, max=10.0, unit="LENGTH", precision=4, update=_settings_changed)
     outline: PointerProperty(name="Outline", type=bpy.types.Object, description="closed curve for the 'curve' template")
+    mirrored: BoolProperty(name="Mirrored", default=False,
+                           description="the mirror image of the template (taxel k at the mirror of its place)")
 
 
 class SkinsafeModule(bpy.types.PropertyGroup):
     is_module: BoolProperty(default=False)
-    module_id: IntProperty(default=-1)
+    module_id: IntProperty(default=-1)  # the module's uid in the design (its taxels' ids: designer.stable_ids)
+    owner: IntProperty(default=-1)  # session_uid of the object owning module_id (a duplicate's differs)
     body: StringProperty()
     settings: PointerProperty(type=SkinsafeTemplate)
     placed_matrix: FloatVectorProperty(size=16)  # matrix_local at the last placement (to detect moves)
@@ -69,7 +79,7 @@ class SkinsafeScene(bpy.types.PropertyGroup):
     message: StringProperty(default="")
     error: StringProperty(default="")
     coverage_text: StringProperty(default="")
-    design_rev: IntProperty(default=0)  # bumped with every stored design (undo-safe cache key)
+    design_rev: IntProperty(default=0)  # a fresh random value with every stored design (undo-safe cache key)
 
 
 CLASSES = (SkinsafeJoint, SkinsafeTemplate, SkinsafeModule, SkinsafeScene)

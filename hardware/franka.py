@@ -5,7 +5,7 @@ runtime's tick runs on it (`control(state)`), and its joint velocities go back w
 in the same cycle. The robot stops the arm when 20 cycles in a row bring no command
 (`communication_constraints_violation`), so the tick must fit the cycle; `stats` counts the robot
 states a slow tick let pass (`states_skipped`, `longest_gap_ms`) and the robot's own
-`control_command_success_rate`.
+`control_command_success_rate`; `zero_mono`: host time the stop's first command (its ramp to zero) went out.
 
 Chosen over franky-control 2.0.0 by measurement (README, "The FR3 case"): franky runs its own 1 kHz
 loop in C++ and takes new targets asynchronously through a jerk-limited planner, so a tick's
@@ -13,9 +13,13 @@ command reaches the robot after a planner delay and not in the cycle its state c
 
 Every command is rate limited to the FR3's published acceleration and jerk (libfranka's
 `limitRate` rule): a step change in the commanded velocity would otherwise trip the robot's
-discontinuity reflexes. A stop -- `control` returning None or raising, `stop(reason)` from any
+discontinuity reflexes. With `rate_limited=False` (`skinsafe run`: the runtime's one limiter,
+core/runtime/limiter.py, already did it and recorded what is sent) commands go out as given; a stop's
+ramp is limited here either way. A stop -- `control` returning None or raising, `stop(reason)` from any
 thread, a non-finite or ill-shaped command -- ramps the velocity to zero at those limits, one
-command per cycle, finishes the motion and calls the robot's own `stop()`. A communication fault
+command per cycle, finishes the motion and calls the robot's own `stop()`. A stop asked before `run` (a
+Ctrl-C while the run was being set up) is honoured by that run (the arm never starts); it is consumed
+when the run that honoured it ends. A communication fault
 (libfranka's network, control or command exceptions) ends the motion where the robot already
 stopped it; its reason is named. numpy and pylibfranka only (never mujoco, torch or bpy).
 """
@@ -24,11 +28,13 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
-import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from skinsafe.core.runtime import limiter
 
 JOINT_NAMES = [f"fr3_joint{i}" for i in range(1, 8)]
 PERIOD_S = 0.001
@@ -38,7 +44,6 @@ Q_MAX = np.array([2.7437, 1.7837, 2.9007, -0.1518, 2.8065, 4.5169, 3.0159])
 QD_MAX = np.array([2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26])
 QDD_MAX = np.full(7, 10.0)
 QDDD_MAX = np.full(7, 5000.0)
-MARGIN = 1e-3  # libfranka's kLimitEps: stay this fraction inside each limit
 SWITCH_S = 1e-4  # Python's thread switch interval while run() runs (see FrankaDriver.run)
 RAMP_MAX_S = 2.0  # a stop's ramp to zero never takes longer (2.62 rad/s at 10 rad/s^2 takes 0.27 s)
 
@@ -60,15 +65,8 @@ class FrankaState:
 def rate_limit(qd_cmd: np.ndarray, qd_last: np.ndarray, qdd_last: np.ndarray, dt: float = PERIOD_S,
                qd_max: np.ndarray = QD_MAX, qdd_max: np.ndarray = QDD_MAX, qddd_max: np.ndarray = QDDD_MAX
                ) -> tuple[np.ndarray, np.ndarray]:
-    """libfranka's `limitRate` for joint velocities, all joints at once: the command reached from the last
-    one with bounded jerk and acceleration, inside the velocity limit. Returns (velocity, acceleration)."""
-    qd_max, qdd_max, qddd_max = (x * (1 - MARGIN) for x in (qd_max, qdd_max, qddd_max))
-    jerk = np.clip(((qd_cmd - qd_last) / dt - qdd_last) / dt, -qddd_max, qddd_max)
-    acc = qdd_last + jerk * dt
-    hi = np.minimum(qddd_max / qdd_max * (qd_max - qd_last), qdd_max)
-    lo = np.maximum(qddd_max / qdd_max * (-qd_max - qd_last), -qdd_max)
-    acc = np.clip(acc, lo, hi)
-    return qd_last + acc * dt, acc
+    """libfranka's `limitRate` at the FR3's limits (core/runtime/limiter.py). Returns (velocity, acceleration)."""
+    return limiter.rate_limit(qd_cmd, qd_last, qdd_last, dt, qd_max, qdd_max, qddd_max)
 
 
 def realtime_kernel() -> bool:
@@ -111,7 +109,6 @@ class FrankaDriver:
         self.host = host
         self.rate_limited = rate_limited
         self._reason: str | None = None
-        self._lock = threading.Lock()
         self.stats: dict = {}
 
     def limits(self) -> dict[str, np.ndarray]:
@@ -120,14 +117,10 @@ class FrankaDriver:
                 "qddd_max": QDDD_MAX.copy()}
 
     def stop(self, reason: str) -> None:
-        """End the motion at the next cycle (any thread); the first reason given is kept."""
-        with self._lock:
-            if self._reason is None:
-                self._reason = reason
-
-    def _take_reason(self) -> str | None:
-        with self._lock:
-            return self._reason
+        """End the motion at the next cycle (any thread, a signal handler too: no lock, which the interrupted
+        thread could hold); the first reason given is kept."""
+        if self._reason is None:
+            self._reason = reason
 
     def run(self, control) -> str:
         """Joint-velocity control at the robot's clock until a stop; returns its reason (one line).
@@ -144,15 +137,16 @@ class FrankaDriver:
                 return self._run(control)
         finally:
             sys.setswitchinterval(previous)
+            self._reason = None  # honoured: the next run starts afresh
 
     def _run(self, control) -> str:
         pf = self._pf
         errors = (pf.NetworkException, pf.ControlException, pf.CommandException, pf.RealtimeException,
                   pf.InvalidOperationException, pf.FrankaException)
-        with self._lock:
-            self._reason = None
         self.stats = st = {"ticks": 0, "states_skipped": 0, "longest_gap_ms": 0.0, "success_rate_min": 1.0,
                            "ramp_ticks": 0, "rate_limited_ticks": 0}
+        if self._reason is not None:  # asked before the motion started: it never starts
+            return self._end(self._reason, motion_open=False)
         try:
             active = self._robot.start_joint_velocity_control(pf.ControllerMode.JointImpedance)
         except errors as e:
@@ -174,20 +168,24 @@ class FrankaDriver:
             st["success_rate_min"] = min(st["success_rate_min"], rs.control_command_success_rate)
             state = FrankaState(rs.time.to_sec(), np.array(rs.q), np.array(rs.dq), seq, sent.copy(),
                                 rs.control_command_success_rate)
-            reason = self._take_reason()
+            reason = self._reason
             if reason is None:
                 reason, cmd = _command(control, state)
             if reason is None:
                 want = cmd
             else:  # this cycle already starts the ramp down
                 want = np.zeros(7)
-            nxt, acc = rate_limit(want, sent, acc) if self.rate_limited else (want, np.zeros(7))
+            if reason is None and not self.rate_limited:  # limited before (core/runtime/limiter.py): sent as is
+                nxt, acc = want, (want - sent) / PERIOD_S
+            else:  # a stop's first command is always limited: its ramp starts here
+                nxt, acc = rate_limit(want, sent, acc)
             st["rate_limited_ticks"] += bool(reason is None and not np.array_equal(nxt, want))
             sent = nxt
             try:
                 active.writeOnce(pf.JointVelocities(sent.tolist()))
             except errors as e:
                 return self._end(_fault(e), motion_open=False)
+        st["zero_mono"] = time.monotonic()  # the stop's first command went out: the ramp to zero has begun
         return self._ramp_down(active, sent, acc, reason, errors)
 
     def _ramp_down(self, active, sent, acc, reason: str, errors) -> str:

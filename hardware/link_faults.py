@@ -6,9 +6,12 @@ Each board's port gets a new pseudo-terminal for the host; one thread copies byt
 a fault lands between frames. Faults, `at` seconds after `arm()` on one board (default the first):
 - board-unplug: the host's side of the link closes (reads fail, as a pulled USB cable);
 - frame-delay: the board's frames are held back `delay_s` (default 50 ms), then delivered at once;
+- frame-lag: every frame from then on arrives later than the one before (by half the time since the fault:
+  a link slower than the board), steadily, never a gap of more than 1.5 frame periods;
 - frame-replay: a frame is sent again 20 ms after it first went through (its counter is older);
 - foreign-uid: a copy of a frame with another board's uid;
 - crc-storm: the next 10 frames arrive with one byte of their payload flipped.
+`onsets`: board id -> host time.monotonic() its fault took effect (the first bad, held or lost byte).
 """
 from __future__ import annotations
 
@@ -20,7 +23,8 @@ import tty
 
 from skinsafe.hardware import protocol as P
 
-LINK_FAULTS = ("board-unplug", "frame-delay", "frame-replay", "foreign-uid", "crc-storm")
+LINK_FAULTS = ("board-unplug", "frame-delay", "frame-lag", "frame-replay", "foreign-uid", "crc-storm")
+LAG_RATE = 0.5  # frame-lag: s of extra delay per s since the fault
 DELAY_S = 0.05
 REPLAY_AFTER_S = 0.02
 STORM_FRAMES = 10
@@ -41,6 +45,7 @@ class _Link:
         self.storm = 0
         self.replay = None  # bytes of a frame to send again
         self.unplugged = False
+        self.onset: float | None = None  # host time the fault took effect
 
     def to_host(self, data: bytes, now: float) -> None:
         if self.unplugged:
@@ -57,15 +62,22 @@ class _Link:
         if now < start or f.type != P.STREAM_DATA:
             return raw
         if kind == "frame-delay" and now < start + self.delay_s:
+            self.onset = self.onset or now
             self.held.append((start + self.delay_s, raw))
+            return b""
+        if kind == "frame-lag":
+            self.onset = self.onset or now
+            self.held.append((now + (now - start) * LAG_RATE, raw))
             return b""
         if kind == "frame-replay" and self.replay is None:
             self.replay = raw
+            self.onset = now + REPLAY_AFTER_S
             self.held.append((now + REPLAY_AFTER_S, raw))
         elif kind == "foreign-uid" and self.replay is None:
-            self.replay = raw
+            self.replay, self.onset = raw, now
             return raw + P.encode_frame(f.type, f.seq, f.uid ^ 0x1000, f.payload, f.version)
         elif kind == "crc-storm" and self.storm < STORM_FRAMES:
+            self.onset = self.onset or now
             self.storm += 1
             b = bytearray(raw)
             b[P.HEADER_SIZE + 4] ^= 0xFF
@@ -75,6 +87,7 @@ class _Link:
     def flush(self, now: float) -> None:
         if self.fault and self.fault[0] == "board-unplug" and now >= self.fault[1] and not self.unplugged:
             self.unplugged = True
+            self.onset = time.monotonic()
             os.close(self.master)
             self.held = []
             return
@@ -110,6 +123,10 @@ class LinkFaults:
         self._run = True
         self.thread = threading.Thread(target=self._pump, name="link-faults", daemon=True)
         self.thread.start()
+
+    @property
+    def onsets(self) -> dict[int, float]:
+        return {b: x.onset for b, x in self.links.items() if x.onset is not None}
 
     def arm(self) -> None:
         """Start the fault clock (the robot starts moving)."""

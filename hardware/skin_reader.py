@@ -11,7 +11,8 @@ nothing shares the interpreter with the reader; it inherits the loop's real-time
 
 Protocol (multiprocessing `Connection`s over two pipes): the parent sends the configuration; the
 reader answers ("report", report, excluded) or ("refused", text) / ("board-error", text, kind); then
-("fault", text) for each named fault while it runs; "stop" from the parent (or its pipe closing)
+("fault", kind, source, text, onset) for each named fault while it runs (kind: one of `KINDS`, the runtime
+monitor's fault kinds; onset: host monotonic time the fault began, or None); "stop" from the parent (or its pipe closing)
 stops the boards, answered by ("closed", summary). Shared memory (two `ForceFeed`s, seqlocks):
 `state` = [frames lost, each board's last frame (host monotonic time), the (N,) forces] with the
 newest frame's host time as its stamp, written whenever frames arrive; `beat` = [the reader's last
@@ -19,7 +20,9 @@ pass], written every pass, so the loop sees a reader that stopped running.
 
 Silence is judged here, after every pass has read all the kernel delivered (the reader's own wake-ups
 never count): a board with no frame for `silent_periods` frame periods plus `link_latency` is named
-silent and its taxels read NaN. When its frames come again, their own clock (the board's time
+silent and its taxels read NaN; so are a lost link's, and a board's whose frames are late by its own clock
+(host read time - board stamp - the least such delay seen) beyond the same bound, however steadily they
+arrive; every frame of a burst is checked. When its frames come again, their own clock (the board's time
 stamps) tells who was silent: frames the board sent before it was named, arriving late, mean the
 host's serial input stalled; none mean the board was (`summary["silences"]`).
 """
@@ -42,6 +45,8 @@ from skinsafe.hardware.skin_source import PreflightRefused, classify
 from skinsafe.hardware.stream import SkinStream, decode_frames, frame_dtype
 
 HALF_RANGE = 1 << 31
+# the faults this reader names (core/runtime/monitor.py Kind values; hardware cannot import it)
+KINDS = ("link-lost", "board-silent", "board-late", "counter-back", "foreign-uid", "crc-storm")
 SETTLE_S = 0.5  # after a silence, how long the stop waits for the board's late frames (to say who was silent)
 
 
@@ -61,6 +66,7 @@ class _Board:
     offset: float = np.inf  # least (host read time - board stamp): the board clock's offset plus the least delay
     lags: deque = field(default_factory=lambda: deque(maxlen=100_000))  # per read: host read time - board stamps, s
     silence: dict | None = None  # the open silence: what its next frames tell
+    late: bool = False  # its newest frames are late by its own clock (taxels NaN until they are on time again)
 
 
 class BoardsReader:
@@ -78,7 +84,7 @@ class BoardsReader:
         self.baseline = np.zeros(self.n_taxels)
         self.excluded = ~np.asarray(design.taxels.enabled, bool)
         self.boards: dict[int, _Board] = {}
-        self._faults: list[str] = []
+        self._faults: list[tuple] = []
         self._named: set[str] = set()
         self.silences: list[dict] = []
         self.gaps: deque = deque(maxlen=1_000_000)  # s between the reader's passes (its own wake-ups)
@@ -86,6 +92,8 @@ class BoardsReader:
         self.t_newest = 0.0  # host time of the newest frame
         self._epoll = None
         self._rx_registered = False
+        self._lost = False  # a link was lost this pass (its taxels went NaN: publish)
+        self.running = False  # lateness is judged from the run on (the tare learns each board's least delay)
 
     # -- pre-flight ----------------------------------------------------------------------------
     def preflight(self, map_hash: bytes, tare_frames: int) -> dict:
@@ -152,13 +160,14 @@ class BoardsReader:
                 got[bid] += take
             faults = self._take_faults()
             if faults:
-                raise PreflightRefused(f"during the tare: {faults[0]}")
+                raise PreflightRefused(f"during the tare: {faults[0][2]}")
         return out
 
     # -- running -------------------------------------------------------------------------------
     def run(self, rx: Connection, tx: Connection, state: ForceFeed, beat: ForceFeed) -> None:
         """Read, publish and name faults until the parent says stop (or its pipe closes)."""
         self.t_newest = time.monotonic()
+        self.running = True
         self._publish(state)
         last = self.t_newest
         while True:
@@ -172,13 +181,17 @@ class BoardsReader:
             now = time.monotonic()
             for bid, forces in got:
                 b = self.boards[bid]
+                if b.late:  # stale by the board's own clock: fail safe
+                    self.force[b.rows] = np.nan
+                    continue
                 f = forces[-1] - b.baseline
                 np.maximum(f, 0.0, out=f)
                 f[b.excluded] = np.nan
                 self.force[b.rows] = f
-            named = self._silent(now)
-            for text in self._take_faults():  # before the readings they explain (a silent board's NaN): the loop
-                tx.send(("fault", text))  # that reads those finds its name waiting
+            named = self._silent(now) or self._lost
+            self._lost = False
+            for fault in self._take_faults():  # before the readings they explain (a silent board's NaN): the loop
+                tx.send(("fault", *fault))  # that reads those finds its name waiting
             if got or named:
                 self.t_newest = max([self.boards[b].arrived for b, _ in got], default=self.t_newest)
                 self._publish(state)
@@ -204,11 +217,11 @@ class BoardsReader:
             allowance = f" + {self.link_latency * 1e3:g} ms link latency" if self.link_latency else ""
             b.silence = {"board": b.name, "silent_ms": round((now - b.arrived) * 1e3, 1), "named": now,
                          "last": b.arrived, "cause": "nothing came before the stop"}
-            self._fault(f"board '{b.name}' (uid {b.uid:#x}): silent for {(now - b.arrived) * 1e3:.1f} ms, more than "
+            self._fault("crc-storm" if corrupt else "board-silent", b, f"silent for {(now - b.arrived) * 1e3:.1f} ms, more than "
                         f"{self.silent_periods:g} frame periods ({self.silent_periods * self.frame_period_s * 1e3:.1f} "
                         f"ms){allowance}"
                         + (f"; {corrupt} corrupt frames since its last good one (a CRC storm)" if corrupt else ""),
-                        again=True)
+                        b.arrived + self.frame_period_s, again=True)
             self.silences.append(b.silence)
             named = True
         return named
@@ -261,15 +274,16 @@ class BoardsReader:
     def frames_lost(self) -> int:
         return sum(s.stats().lost for s in self.stream.boards) if self.stream is not None else 0
 
-    def _fault(self, text: str, again: bool = False) -> None:
-        """Name a fault to the loop, each text once (a CRC storm or a foreign uid is seen on every pass), or every time
-        with `again` (each silence is news: one named before the robot moved, which the loop lets pass, must not
-        hide a later one of the same length)."""
+    def _fault(self, kind: str, b: _Board, text: str, onset: float | None = None, again: bool = False) -> None:
+        """Name a fault of board `b` to the loop, each text once (a CRC storm or a foreign uid is seen on every pass),
+        or every time with `again` (each silence is news: one named before the robot moved, which the loop lets
+        pass, must not hide a later one of the same length)."""
+        text = f"board '{b.name}' (uid {b.uid:#x}): {text}"
         if again or text not in self._named:
             self._named.add(text)
-            self._faults.append(text)
+            self._faults.append((kind, f"board '{b.name}'", text, onset))
 
-    def _take_faults(self) -> list[str]:
+    def _take_faults(self) -> list[tuple]:
         out, self._faults = self._faults, []
         return out
 
@@ -303,8 +317,10 @@ class BoardsReader:
                     raise OSError("the port hung up: cable pulled or board powered off")
                 frames = s.client.read_stream(0.0)
             except (BoardError, OSError) as e:
-                b.dead = f"board '{b.name}' (uid {b.uid:#x}): link lost ({e})"
-                self._fault(b.dead)
+                b.dead = f"link lost ({e})"
+                self._fault("link-lost", b, b.dead, time.monotonic())
+                self.force[b.rows] = np.nan  # fail safe: never its last forces
+                self._lost = True
                 self._epoll.unregister(s.client.ser.fileno())
                 continue
             now = time.monotonic()
@@ -328,6 +344,8 @@ class BoardsReader:
         b.lags.append(lag)
         b.offset = min(b.offset, float(lag.min()))
         b.arrived = now
+        if self.running:
+            self._late(b, lag - b.offset, stamps)
         if b.silence is not None:  # the first frames since the board was named silent
             sent = stamps + b.offset  # when the board sent them, on this host's clock (at the least delay)
             early = sent[sent < b.silence["named"]]
@@ -339,13 +357,25 @@ class BoardsReader:
             b.silence = None
             b.silent_at = 0.0
 
+    def _late(self, b: _Board, late: np.ndarray, stamps: np.ndarray) -> None:
+        """Every frame of a burst judged by the board's own clock: one later than a board may be silent names the
+        board late (once per episode; a silence already named says it), and while its newest frame is, its taxels
+        read NaN."""
+        over = late > self.silence_s
+        if over.any() and not b.late and b.silence is None:
+            k = int(np.argmax(over))
+            self._fault("board-late", b, f"a frame {late.max() * 1e3:.1f} ms late by the board's own clock, more than "
+                        f"{self.silence_s * 1e3:.1f} ms (frames arriving steadily but stale)",
+                        float(stamps[k]) + b.offset + self.silence_s, again=True)
+        b.late = bool(over[-1])
+
     def _own(self, s, b: _Board, frames: list) -> list:
         """Frames of this board of the right size; others named (another uid) or counted (wrong size)."""
         size = frame_dtype(s.n_channels).itemsize
         good = []
         for f in frames:
             if f.uid != b.uid:
-                self._fault(f"board '{b.name}' (uid {b.uid:#x}): frames from another uid {f.uid:#x} on its port")
+                self._fault("foreign-uid", b, f"frames from another uid {f.uid:#x} on its port", time.monotonic())
             elif (f.payloads.shape[1] if isinstance(f, FrameRun) else len(f.payload)) != size:
                 s.malformed += len(f.seqs) if isinstance(f, FrameRun) else 1
             else:
@@ -361,8 +391,8 @@ class BoardsReader:
             if s.last_sample is not None or k:
                 if step == 0 or step >= HALF_RANGE:
                     keep[k] = False
-                    self._fault(f"board '{b.name}' (uid {b.uid:#x}): frame counter went back from {prev} to {c} "
-                                "(a replayed or stale frame, or the board reset)")
+                    self._fault("counter-back", b, f"frame counter went back from {prev} to {c} (a replayed or stale "
+                                "frame, or the board reset)", time.monotonic())
                     continue
             prev = c
         return keep
@@ -372,10 +402,10 @@ class BoardsReader:
         foreign = getattr(s.client, "foreign", None) or {}
         if foreign:
             uid = next(iter(foreign))
-            self._fault(f"board '{b.name}' (uid {b.uid:#x}): frames from another uid {uid:#x} on its port")
+            self._fault("foreign-uid", b, f"frames from another uid {uid:#x} on its port", time.monotonic())
         if getattr(s, "replayed", 0):
-            self._fault(f"board '{b.name}' (uid {b.uid:#x}): frame counter went back (a replayed or stale frame, "
-                        "or the board reset)")
+            self._fault("counter-back", b, "frame counter went back (a replayed or stale frame, or the board reset)",
+                        time.monotonic())
 
     def _crc_storm(self, s, b: _Board, now: float) -> None:
         errors = s.client.parser.crc_errors
@@ -384,7 +414,7 @@ class BoardsReader:
         while b.crc and now - b.crc[0] > 1.0:
             b.crc.popleft()
         if len(b.crc) >= self.crc_storm:
-            self._fault(f"board '{b.name}' (uid {b.uid:#x}): CRC storm ({len(b.crc)} corrupt frames within 1 s); "
+            self._fault("crc-storm", b, f"CRC storm ({len(b.crc)} corrupt frames within 1 s); "
                         "check the cable and its shielding")
 
 

@@ -17,15 +17,19 @@ Pre-flight, before the robot may move (robot still, nothing touching the skin):
 
 Running, `newest()` never waits: the boards' reader (hardware/skin_reader.py, its own process at the
 loop's priority) decodes each board's frames (its own counter and uid checked first) into the latest
-force per taxel (tared, clipped at 0) in shared memory. Faults named once each: a board silent for
-more than `silent_periods` frame periods (+ `link_latency`; its taxels read NaN until it speaks
-again), a CRC storm (`crc_storm` failed frames within a second), frames from another uid, a frame
-counter that went back (a replayed or stale frame, or a board reset), the link lost; and the reader
-itself not running for as long as a board may be silent, or ended.
+force per taxel (tared, clipped at 0) in shared memory. Faults come typed, (kind, source, text, onset),
+kind a core/runtime/monitor.py `Kind` value: a board silent for more than `silent_periods` frame
+periods (+ `link_latency`), or late by its own clock beyond that (its taxels read NaN until it is on
+time again), a CRC storm (`crc_storm` failed frames within a second), frames from another uid, a
+frame counter that went back (a replayed or stale frame, or a board reset), the link lost (NaN);
+the reader itself not running for as long as a board may be silent (`reader-stalled`, on every call
+while it lasts), or dead: its process's pidfd and its pipe's hang-up are polled on every call
+(`reader-died`, whatever `link_latency` is), never inferred from its silence.
 """
 from __future__ import annotations
 
 import os
+import select
 import subprocess
 import sys
 import time
@@ -52,7 +56,7 @@ class Readings:
     force: np.ndarray  # (N,) N after tare; NaN: no fresh data (silent board) or excluded
     seq: int  # increments with every frame decoded
     board_age_s: dict[int, float]  # board uid -> s since its last frame
-    faults: list[str]  # named faults since the last call
+    faults: list[tuple]  # (kind, source, text, onset or None) named since the last call
     frames_lost: int
 
 
@@ -95,8 +99,9 @@ class SkinSource:
                      "crc_storm": crc_storm, "client_kw": client_kw}
         self._proc = self._rx = self._tx = self._state = self._beat = None
         self._uids: list[int] = []
-        self._faults: list[str] = []
-        self._reader_named = False
+        self._faults: list[tuple] = []
+        self._pidfd: int | None = None
+        self._gone = select.poll()  # the reader's pidfd (readable once it ended) and its pipe's hang-up
 
     # -- pre-flight ----------------------------------------------------------------------------
     def preflight(self, map_hash: bytes, tare_frames: int = 100) -> dict:
@@ -116,6 +121,9 @@ class SkinSource:
             os.close(down_r)
             os.close(up_w)
         self._tx, self._rx = Connection(down_w, readable=False), Connection(up_r, writable=False)
+        self._pidfd = os.pidfd_open(self._proc.pid)
+        self._gone.register(self._pidfd, select.POLLIN)
+        self._gone.register(self._rx.fileno(), 0)  # POLLHUP only: every writer of the pipe closed
         try:
             self._tx.send({**self._cfg, "map_hash": map_hash, "tare_frames": tare_frames, "state": self._state.name,
                            "beat": self._beat.name})
@@ -152,6 +160,11 @@ class SkinSource:
         if self._state is None or self._proc is None:
             raise RuntimeError("SkinSource.start before preflight: run the pre-flight first")
 
+    @property
+    def pid(self) -> int | None:
+        """The boards' reader's process id (None before the pre-flight or after close)."""
+        return self._proc.pid if self._proc is not None else None
+
     def newest(self) -> Readings:
         """The reader's newest readings (from shared memory: never waits), and the faults named since the last call."""
         seq, t, v = self._state.read()
@@ -159,12 +172,14 @@ class SkinSource:
         now = time.monotonic()
         nb = len(self._uids)
         faults = self._take_faults()
-        if now - beat > self.silence_s and not self._reader_named:
-            self._reader_named = True
+        if self._gone.poll(0):
             code = self._proc.poll()
-            faults.append(f"the boards' reader ended (exit code {code})" if code is not None else
-                          f"the boards' reader was silent for {(now - beat) * 1e3:.1f} ms, more than a board may be "
-                          f"({self.silence_s * 1e3:.1f} ms): the host is overloaded")
+            how = f"exit code {code}" if code is not None else "its pipe closed"
+            faults.insert(0, ("reader-died", "skin", f"the boards' reader ended ({how})", None))
+        elif now - beat > self.silence_s:
+            faults.append(("reader-stalled", "skin", f"the boards' reader was silent for {(now - beat) * 1e3:.1f} ms, "
+                           f"more than a board may be ({self.silence_s * 1e3:.1f} ms): the host is overloaded",
+                           beat + self.silence_s))
         ages = {uid: now - a for uid, a in zip(self._uids, v[1:1 + nb])}
         return Readings(t, v[1 + nb:], seq, ages, faults, int(v[0]))
 
@@ -173,9 +188,9 @@ class SkinSource:
             while self._rx.poll(0):
                 msg = self._rx.recv()
                 if msg[0] == "fault":
-                    self._faults.append(msg[1])
+                    self._faults.append(tuple(msg[1:]))
         except (EOFError, OSError):
-            pass  # the reader ended: its beat stops, which names it
+            pass  # the reader ended: its pidfd names it
         out, self._faults = self._faults, []
         return out
 
@@ -199,7 +214,7 @@ class SkinSource:
                         problems = self.summary.pop("problems")
                         break
                     if msg[0] == "fault":
-                        self._faults.append(msg[1])
+                        self._faults.append(tuple(msg[1:]))
             except (EOFError, OSError):
                 pass
             try:
@@ -210,7 +225,9 @@ class SkinSource:
                 problems = problems or {-1: "the boards' reader did not stop; the boards may still stream"}
             for c in (self._tx, self._rx):
                 c.close()
-            self._proc = None
+            os.close(self._pidfd)
+            self._gone = select.poll()
+            self._proc = self._pidfd = None
         for feed in (self._state, self._beat):
             if feed is not None:
                 feed.close()

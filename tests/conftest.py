@@ -9,6 +9,24 @@ import pytest
 matplotlib.use("Agg")
 
 
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config, items):
+    """`--dist loadgroup` (a worker's `config.option.loadgroup`): a test's `xdist_group` names go at the end of its
+    node id, where the scheduler finds them (one worker runs a group, in order). pytest-xdist 3.8 writes them to
+    `item._nodeid`, which pytest 9.2 no longer reads (its node ids are `item._id`): without this every group splits."""
+    import dataclasses
+
+    if not getattr(config.option, "loadgroup", False):
+        return
+    for item in items:
+        names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
+                        for m in item.iter_markers("xdist_group")})
+        if names and hasattr(item, "_id") and item.nodeid.rfind("@") <= item.nodeid.rfind("]"):  # not grouped yet
+            nid = dataclasses.replace(item._id)
+            object.__setattr__(nid, "_str_cache", f"{item.nodeid}@{'_'.join(names)}")  # str(NodeId)'s own cache
+            item._id = nid
+
+
 @pytest.fixture(scope="module")
 def one_torch_thread():
     """Tiny networks: one torch thread avoids oversubscribing the shared 2-core machine."""
@@ -59,9 +77,30 @@ def fresh_pieces(tmp_path_factory):
     import os
 
     old = os.environ.get("SKINSAFE_PIECES")
-    os.environ["SKINSAFE_PIECES"] = str(tmp_path_factory.mktemp("pieces"))
+    os.environ["SKINSAFE_PIECES"] = str(run_folder(tmp_path_factory) / "pieces")  # pieces are renamed into place
     yield
     if old is None:
         os.environ.pop("SKINSAFE_PIECES", None)
     else:
         os.environ["SKINSAFE_PIECES"] = old
+
+
+def run_folder(tmp_path_factory):
+    """This test run's temporary folder: under pytest-xdist the one its workers' folders are in, which they share."""
+    import os
+
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+@pytest.fixture
+def realtime_host(tmp_path_factory):
+    """The machine's one real-time slot, held while a test runs the control loop (`skinsafe run`: SCHED_FIFO, the loop
+    pinned to the first core, the PM QoS target held at 0, boards named silent after a set latency). Two at once, one
+    per pytest-xdist worker, stall each other's ticks and frames: the `realtime` group's tests take it in turn on one
+    worker, the docs' blocks that run the loop wait for it on the other."""
+    import fcntl
+
+    with open(run_folder(tmp_path_factory) / "realtime.lock", "w") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        yield

@@ -36,6 +36,8 @@ COMMANDS = {
     "emulate": ("skinsafe.hardware.cli_emulate", "run a board emulator on a pseudo-terminal"),
     "run": ("skinsafe.core.app.run", "the safety runtime: boards -> the three layers -> a robot (sim or FR3), with watchdogs"),
     "view": ("skinsafe.core.app.view", "see a run live (`run --view` stream) or a record in the browser"),
+    "faults": ("skinsafe.core.app.runtime_faults", "inject each fault kind at its source into short runs and time "
+               "onset -> zero command (`bench runtime --faults` summarises it)"),
     "replay": ("skinsafe.core.app.replay", "re-run the layers on a `run --record` MCAP and compare the commands"),
     "pfl": ("skinsafe.core.app.pfl", "ISO/TS 15066: effective mass and safe approach speed per taxel, at a pose or along a trajectory"),
     "trade": ("skinsafe.core.app.trade", "sweep speed-vs-accuracy knobs (Ray) and plot the Pareto front"),
@@ -56,9 +58,9 @@ BENCHES = {
     "import": ("skinsafe.core.bench.robot_import", "a robot's own description in, a full-arm skin on its real surface"),
     "pfl": ("skinsafe.core.bench.pfl", "the ISO/TS 15066 speed cap tick vs a per-taxel loop"),
     "safety": ("skinsafe.core.bench.safety", "correctness audit: no-push, limits, fail-safe on random contact sets"),
-    "serial": ("skinsafe.hardware.bench_serial", "deploy and stream decoding over a pseudo-terminal"),
+    "serial": ("skinsafe.core.bench.serial_link", "deploy and stream decoding over a pseudo-terminal"),
     "runtime": ("skinsafe.core.bench.runtime", "skinsafe run closed-loop: loop rate, latency, reaction, faults"),
-    "viewers": ("skinsafe.core.app.view_bench", "the live view in headless Chromium: viser vs Rerun at 16,384 taxels"),
+    "viewers": ("skinsafe.core.bench.viewers", "the live view in headless Chromium: viser vs Rerun at 16,384 taxels"),
 }
 
 
@@ -173,6 +175,11 @@ def _main(argv: list[str] | None) -> int:
 
 def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False):
     """Parse `argv` with the module's own arguments (the demo uses this to run commands in-process)."""
+    return module_parser(mod, prog, helptext, name, bench).parse_args(argv)
+
+
+def module_parser(mod, prog: str, helptext: str, name: str, bench: bool = False):
+    """The argument parser of one command module (its own arguments, plus --json/--save for a bench)."""
     import argparse
 
     p = argparse.ArgumentParser(prog=prog, description=helptext)
@@ -183,7 +190,24 @@ def module_args(mod, prog: str, helptext: str, argv: list[str], name: str, bench
     p.set_defaults(command_name=name)  # one module may serve several names
     if hasattr(mod, "add_arguments"):
         mod.add_arguments(p)
-    return p.parse_args(argv)
+    return p
+
+
+def reference_markdown() -> str:
+    """Every command's `--help`, as Markdown (the docs' CLI reference is generated from it)."""
+    import importlib
+    import os
+    from unittest import mock
+
+    parts = []
+    with mock.patch.dict(os.environ, {"COLUMNS": "110"}):  # argparse wraps at the terminal's width: one page anywhere
+        parts += ["```text", build_parser().format_help().rstrip(), "```"]
+        for prefix, table in [("", COMMANDS), ("experiment ", EXPERIMENTS), ("bench ", BENCHES)]:
+            for name, (module, helptext) in sorted(table.items()):
+                prog = f"skinsafe {prefix}{name}"
+                parser = module_parser(importlib.import_module(module), prog, helptext, name, bench=prefix == "bench ")
+                parts += [f"### `{prog}`", "", "```text", parser.format_help().rstrip(), "```", ""]
+    return "\n".join(parts)
 
 
 def _run_module(mod, prog: str, helptext: str, argv: list[str], name: str, bench: bool = False) -> int:
@@ -201,8 +225,8 @@ def _run_module(mod, prog: str, helptext: str, argv: list[str], name: str, bench
                 save_rows(args.save, rows, f"skinsafe bench {name} {' '.join(argv)}".strip())
             return 0
         return int(mod.run(args) or 0)
-    except (DesignError, FileNotFoundError) as e:
-        print(f"skinsafe {name}: error: {e}", file=sys.stderr)
+    except (DesignError, FileNotFoundError) as e:  # FileNotFoundError: also a missing system part (core/system.py)
+        print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     except OSError as e:  # a folder that cannot be made or written: name it, no traceback
         where = f"{e.filename}: " if e.filename else ""

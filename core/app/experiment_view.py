@@ -105,8 +105,10 @@ def record_collaboration(result: str | Path, out: str | Path, scenario: str = "d
     its contact events (`contacts`) beside the result's (`contacts_in_result`)."""
     import torch
 
-    from skinsafe.core.experiments import collaboration as co
+    from skinsafe.core.experiments import collaboration_scenario as co
     from skinsafe.core.experiments.arm_scene import JOINTS
+    from skinsafe.core.experiments.collaboration_person import learn_person
+    from skinsafe.core.experiments.collaboration_result import contact_events
     from skinsafe.core.robot.kinematics import TaxelKinematics
     from skinsafe.core.robot.models import build_ur5
     from skinsafe.core.skin.taxel_map import load
@@ -130,10 +132,10 @@ def record_collaboration(result: str | Path, out: str | Path, scenario: str = "d
         raise ValueError(f"{result}: its skin {skin} is missing; put the taxel map the experiment ran on there")
     torch.set_num_threads(1)  # as the experiment's cells: the same TDM
     single_thread_blas()
-    cfg, nominal, design = doc["config"], doc["nominal"], load(skin)
+    cfg, nominal, design = co.CollabConfig.from_json(doc["config"]), doc["nominal"], load(skin)
     lay = co.layout(scenario, TaxelKinematics(build_ur5().model, design), cfg)
     sc = co.build(lay, design, nominal["damping_ratio"], nominal["attachment_N_m"], nominal["dt_ms"], cfg)
-    pot = co.learn_person(sc, lay, cfg) if stack.startswith("full") else None
+    pot = learn_person(sc, lay, cfg) if stack.startswith("full") else None
     parts = [{"kind": p.kind, "size": list(p.size), "pos": [float(x) for x in at], "quat": list(p.quat),
               "name": p.region} for p, at in zip(lay.parts, lay.targets(0.0))]
     record = SimRecord(out, design, JOINTS, sc.control_dt, "collaboration", parts,
@@ -149,7 +151,7 @@ def record_collaboration(result: str | Path, out: str | Path, scenario: str = "d
     run = co.episode(sc, lay, stack, pot, cfg, on_tick=tick)
     rec = record.close()
     names = [sc.model.body(b).name for b in range(sc.model.nbody)]
-    events = co.contact_events(run["trace"], [p.region for p in lay.parts], sc.control_dt, run["acted"], names)
+    events = contact_events(run["trace"], [p.region for p in lay.parts], sc.control_dt, run["acted"], names)
     rows = [e for e in doc.get("contacts", []) if (e["scenario"], e["stack"]) == (scenario, stack)]
     return {**rec, "map": str(record.map), "ticks": record.ticks, "contacts": events, "contacts_in_result": rows,
             "same": same_contacts(events, rows)}

@@ -1,4 +1,5 @@
-"""`skinsafe readme`: the README's quoted figures, filled in from the results files the code writes.
+"""`skinsafe readme`: the figures quoted in README.md and the docs pages, filled in from the results files
+the code writes.
 
 A figure sits between two HTML comments, which Markdown does not show:
 
@@ -16,8 +17,9 @@ and scales (`slope*100`, `params.alpha*100/12`); a table's rows are the file its
 or its `rows`. FORMAT is a Python format spec (`.3f`, `+.1f`, `.0%`), `mins` (seconds as "3 min 39 s") or
 `code` (as inline code: a command), each item of a list (an interval: `[-1.2%, +3.4%]`); without one, numbers keep 3 significant digits and thousands get separators.
 
-Markers inside fenced code blocks are examples, left alone. `skinsafe readme` rewrites README.md; `--check` changes nothing and exits 1 naming every figure
-whose text is not what its results file says (tests/app/test_readme_figures.py runs it).
+Markers inside fenced code blocks are examples, left alone. `skinsafe readme` rewrites README.md and every
+page of mkdocs.yml's nav (`pages`); `--check` changes nothing and exits 1 naming every figure whose text is
+not what its results file says (tests/app/test_readme_figures.py runs it).
 """
 from __future__ import annotations
 
@@ -161,7 +163,7 @@ def fill(text: str, root: Path = REPO) -> tuple[str, list[str]]:
         try:
             new = render(kind, args, root)
         except FigureError as e:
-            raise FigureError(f"README line {line}, fig:{kind} {' '.join(args)}: {e}") from None
+            raise FigureError(f"line {line}, fig:{kind} {' '.join(args)}: {e}") from None
         if new != old:
             changed.append(f"line {line}: fig:{kind} {' '.join(args)}: {_short(old)} -> {_short(new)}")
         return m.group(0).replace(f"-->{old}<!--", f"-->{new}<!--", 1)
@@ -175,6 +177,23 @@ def _short(s: str) -> str:
 
 
 # --- composite figures: the README's tables that combine several results files -------------------
+
+
+def _lo(lo: float, data: dict) -> float:
+    """A 95% interval's lower end as computed; results from before issue 41 (no `replicates`) as they were
+    published (clipped at 0)."""
+    return lo if "replicates" in data else max(lo, 0)
+
+
+def _chosen(rec: dict) -> str:
+    """The configuration tuning chose: Optuna's trial (issue 41: `trials`), or the earlier grid's keywords."""
+    if "trials" not in rec:
+        return ", ".join(f"{k} {v}" for k, v in rec["chosen"].items()) or "defaults"
+    from skinsafe.core.experiments.maze import config_text
+
+    if not rec["met_criterion"]:
+        return f"no trial of {rec['trials']} met the goal criterion: defaults"
+    return f"trial {rec['chosen_index']} of {rec['trials']}: {config_text(rec['chosen'])}"
 
 
 def maze_grid(root: Path) -> str:
@@ -194,10 +213,9 @@ def maze_grid(root: Path) -> str:
         goal = "1.00 (all)" if all(g == 1 for g in rates) else \
             f"{s['goal_rate_last_mean']:.2f} ({', '.join(fmt(round(g, 2)) for g in rates)})"
         lo, hi = s["total_contacts_ci95"]
-        cell = f"{s['total_contacts_mean']:,.1f} [{max(lo, 0):,.1f}, {hi:,.1f}]"
+        cell = f"{s['total_contacts_mean']:,.1f} [{_lo(lo, data):,.1f}, {hi:,.1f}]"
         split = f"{s['online_contacts_mean']:,.1f} / {s['offline_contacts_mean']:,.1f}"
-        chosen = tuning.get(method, {}).get("chosen")
-        chosen = "—" if chosen is None else (", ".join(f"{k} {v}" for k, v in chosen.items()) or "defaults")
+        chosen = _chosen(tuning[method]) if method in tuning else "—"
         name = f"**{method}**" if method in tdm else method
         lines.append(f"| {name} | {'**' + cell + '**' if method in tdm else cell} | {split} | {per_seed} | {goal} | {chosen} |")
     return "\n".join(lines)
@@ -205,14 +223,15 @@ def maze_grid(root: Path) -> str:
 
 def maze_ablation(root: Path) -> str:
     """Each -TDM extra removed in turn, and given to the baselines where it applies."""
-    rows = load(root, "results/maze/maze_results.json")["ablation"]
+    data = load(root, "results/maze/maze_results.json")
+    rows = data["ablation"]
     lines = ["| variant | seeds | total contacts, mean [95% CI] | vs its method's chosen configuration [95% CI] | "
              "goal rate, last 20 |", "| --- | ---: | ---: | ---: | ---: |"]
     for r in rows:
         lo, hi = r["ci95"]
         diff = "—" if r.get("difference_to_chosen") is None else \
             f"{r['difference_to_chosen']:+,.1f} [{r['difference_ci95'][0]:+,.1f}, {r['difference_ci95'][1]:+,.1f}]"
-        lines.append(f"| {r['variant']} | {r['seeds']} | {r['total_contacts_mean']:,.1f} [{max(lo, 0):,.1f}, {hi:,.1f}] | "
+        lines.append(f"| {r['variant']} | {r['seeds']} | {r['total_contacts_mean']:,.1f} [{_lo(lo, data):,.1f}, {hi:,.1f}] | "
                      f"{diff} | {r['goal_rate_last_mean']:.2f} |")
     return "\n".join(lines)
 
@@ -239,16 +258,21 @@ def safety_audit(root: Path) -> str:
 def tracking_labels(root: Path) -> str:
     """Fig. 11 on the held-out seeds, the paper's binary labels and the soft extension side by side."""
     track = load(root, "results/tracking/tracking.json")
+    onsets = "replicates" in track  # issue 41: contact onsets and the potential's alignment beside the ticks
     lines = ["| labels | method | episode 1 | episodes 6-10, mean [95% CI] over seeds | per seed (episodes 6-10) | "
-             "tracking error mm |", "| --- | --- | ---: | ---: | --- | ---: |"]
+             + ("onsets, episodes 6-10 [95% CI] | cos(n, -grad d) before the balls | " if onsets else "")
+             + "tracking error mm |", "| --- | --- | ---: | ---: | --- | " + ("---: | ---: | " if onsets else "") + "---: |"]
     for labels, res in track["labels"].items():
         per = {(r["method"], r["seed"]): r for r in res["per_seed"]}
         for r in res["summary"]:
             seeds = " / ".join(f"{per[(r['method'], sd)]['contacts_ep6_10']:.1f}" for sd in track["config"]["seeds"]
                                if (r["method"], sd) in per)
+            extra = "" if not onsets else (
+                f"{r['onsets_ep6_10']:.1f} [{r['onsets_ep6_10_ci95_low']:.1f}, {r['onsets_ep6_10_ci95_high']:.1f}] | "
+                + ("—" if r["alignment_cos_ep6_10"] is None else f"{r['alignment_cos_ep6_10']:+.2f}") + " | ")
             lines.append(f"| {labels} | {r['method']} | {r['contacts_first']:.1f} | {r['contacts_ep6_10']:.1f} "
-                         f"[{max(r['contacts_ep6_10_ci95_low'], 0):.1f}, {r['contacts_ep6_10_ci95_high']:.1f}] | "
-                         f"{seeds} | {r['tracking_error_mm']:.0f} |")
+                         f"[{_lo(r['contacts_ep6_10_ci95_low'], track):.1f}, {r['contacts_ep6_10_ci95_high']:.1f}] | "
+                         f"{seeds} | {extra}{r['tracking_error_mm']:.0f} |")
     return "\n".join(lines)
 
 
@@ -261,6 +285,57 @@ def _soft(track: dict, name: dict) -> str:
     per = ", ".join(f"{name.get(r['method'], r['method'])} {r['contacts_ep6_10']:.1f}" for r in soft["summary"])
     return (f". Extension, soft distance labels: {per}; 2-step / vanilla {c['tdm2_over_vanilla']:.1%} "
             f"[{c['tdm2_over_vanilla_ci95'][0]:.1%}, {c['tdm2_over_vanilla_ci95'][1]:.1%}]: {c['verdict']}")
+
+
+def _maze_effort(maze: dict, n: int) -> str:
+    """How the maze's methods were tuned and whether the replicates agree (issue 41), or the earlier grid's phrase."""
+    tuning = maze.get("tuning", {})
+    if "replicates" not in maze:
+        return f"all {n} methods tuned alike"
+    trials = sorted({t["trials"] for t in tuning.values()})
+    never = [m for m, t in tuning.items() if not t["met_criterion"]]
+    reps = maze["replicates"]
+    return (f"every method {'/'.join(map(str, trials))} Optuna trials over its own search space"
+            + (f"; never met the goal criterion: {', '.join(never)}" if never else "")
+            + f"; {len(reps)} replicates (tuning seeds " + ", ".join(f"{r['tuning_seeds'][0]}-{r['tuning_seeds'][-1]}" for r in reps)
+            + f"): {', '.join(r['verdict'] for r in reps)}, {'agree' if maze['verdict_agrees'] else 'differ: not settled'}")
+
+
+def _maze_verdict(maze: dict) -> str:
+    """Fig. 9's verdict word: the computed verdict (issue 41: holds, does not hold, not resolved, not settled), or
+    the earlier grid's yes / no."""
+    claim = maze["summary"]["claim"]
+    return claim["verdict"] if "replicates" in maze else "yes" if claim["holds"] else "no"
+
+
+def _reaching(claim: dict, learned: list[str]) -> str:
+    """The verdict among the goal-reaching methods and which of SAC, AC and their -TDM variants learned."""
+    among = claim.get("holds_among_goal_reaching")
+    head = "no method reaches the goal" if among is None else f"among the methods that reach the goal it {'holds' if among else 'does not hold'}"
+    return f"{head}; {', '.join(learned) or 'none of ' + ', '.join(claim['learned'])} reach the goal in >= 80% of the last 20 episodes"
+
+
+def _fig9c(summary: dict) -> str:
+    """Fig. 9c (faster convergence) per -TDM variant, where the result has it."""
+    pairs = summary.get("convergence", {}).get("pairs", {})
+    return "".join(f"; Fig. 9c {k}: {p['verdict']} ({p['difference']:+.1f} episodes [{p['ci95'][0]:+.1f}, {p['ci95'][1]:+.1f}])"
+                   for k, p in pairs.items())
+
+
+def _onsets(rows: dict, name: dict) -> str:
+    """Contact onsets beside the ticks (issue 41), where the result has them."""
+    if not all("onsets_ep6_10" in r for r in rows.values()):
+        return ""
+    return "; contact onsets per episode " + ", ".join(f"{name.get(k, k)} {r['onsets_ep6_10']:.1f}" for k, r in rows.items())
+
+
+def _track_replicates(track: dict) -> str:
+    """The tracking grid's replicates and whether their verdicts agree (issue 41), where the result has them."""
+    reps = track.get("replicates", [])
+    if len(reps) < 2:
+        return ""
+    return ("; replicates (seeds " + ", ".join(f"{r['seeds'][0]}-{r['seeds'][-1]}: {r['verdict']}" for r in reps)
+            + f") {'agree' if track['verdict_agrees'] else 'differ: not settled'}")
 
 
 def _against(claim: dict) -> str:
@@ -299,7 +374,8 @@ def _fig7(poke: dict) -> str:
 def paper_results(root: Path) -> str:
     """The paper's claims against ours, each figure from its results file."""
     poke = load(root, "results/poke/poke_results.json")
-    maze = load(root, "results/maze/maze_results.json")["summary"]
+    maze_doc = load(root, "results/maze/maze_results.json")
+    maze = maze_doc["summary"]
     track = load(root, "results/tracking/tracking.json")
     desk = load(root, "results/desk/desk.json")
     collab = load(root, COLLAB)
@@ -327,19 +403,19 @@ def paper_results(root: Path) -> str:
          f"the 6-D task achieves a median {forms['6d']['achieved_median']:.0%} of the commanded −z distance, a 3-D "
          f"task {forms['3d']['achieved_median']:.0%}: we default to 3-D", "`skinsafe poke --out results/poke`"),
         ("Fig. 9", "-TDM variants have the lowest total collisions",
-         f"**{'yes' if maze['claim']['holds'] else 'no'}** ({maze['config']['seeds']} held-out seeds x "
-         f"{maze['config']['episodes']} episodes, all {len(m)} methods tuned alike; verdict from 95% intervals in "
-         f"`maze_results.json`): total contacts {totals}{_against(maze['claim'])}; among the methods that reach the "
-         f"goal it {'holds' if maze['claim'].get('holds_among_goal_reaching') else 'does not hold'}; "
-         f"{', '.join(learned)} reach the goal in >= 80% of the last 20 episodes" + _online(maze["claim"]),
+         f"**{_maze_verdict(maze_doc)}** ({maze['config']['seeds']} held-out seeds x "
+         f"{maze['config']['episodes']} episodes, {_maze_effort(maze_doc, len(m))}; verdict from 95% intervals in "
+         f"`maze_results.json`): total contacts {totals}{_against(maze['claim'])}; " + _reaching(maze['claim'], learned) + _online(maze["claim"]) + _fig9c(maze),
          "`skinsafe experiment maze`"),
         ("Fig. 11", "vanilla most contacts; TDM reduces but doesn't improve; 2-step ≈ 0 after 6 episodes",
          f"**{track['claim'].get('verdict', 'holds' if track['claim']['holds'] else 'does not hold')}** with the "
          f"paper's binary labels ({len(track['config']['seeds'])} held-out seeds x {track['config']['episodes']} "
          f"episodes, {fmt(track['n_taxels'])} taxels; verdict from 95% intervals in `tracking.json`): mean contact "
-         f"ticks per episode over {ep}: {tr}; mean tracking error {err} (the balls sit on the path)"
+         f"ticks per episode over {ep}: {tr}{_onsets(ts, name)}{_track_replicates(track)}; mean tracking error {err} "
+         "(the balls sit on the path)"
          + _soft(track, name), "`skinsafe experiment tracking`"),
-        ("Fig. 14", "modulation stops the retraction before the desk", f"worst min clearance over touches of {fmt(min(touches))}-{fmt(max(touches))} N: {desk_cells}",
+        ("Fig. 14", "modulation stops the retraction before the desk", f"worst min clearance over touches of {fmt(min(touches))}-{fmt(max(touches))} N"
+         + (f" ({desk['labels']} labels, tangent gain {desk['tangent_gain']:g})" if "labels" in desk else "") + f": {desk_cells}",
          "`skinsafe experiment desk`"),
         ("Fig. 15", "the robot retracts from an accidental contact", _fig15(collab),
          "`skinsafe experiment collaboration`"),
@@ -370,14 +446,14 @@ def _fig15(collab: dict) -> str:
 
 def collaboration(root: Path) -> str:
     """The collaboration scene's nominal runs (collaboration.md's first table)."""
-    from skinsafe.core.experiments.collaboration import nominal_table
+    from skinsafe.core.experiments.collaboration_result import nominal_table
 
     return nominal_table(load(root, COLLAB))
 
 
 def collaboration_sweep(root: Path) -> str:
     """The collaboration scene's robustness sweep (collaboration.md's second table)."""
-    from skinsafe.core.experiments.collaboration import sweep_table
+    from skinsafe.core.experiments.collaboration_result import sweep_table
 
     return sweep_table(load(root, COLLAB))
 
@@ -386,24 +462,52 @@ FIGURES = {"maze-grid": maze_grid, "maze-ablation": maze_ablation, "tracking-lab
            "collaboration": collaboration, "collaboration-sweep": collaboration_sweep}
 
 
+def _nav_files(nav) -> list[str]:
+    out = []
+    for item in nav:
+        value = next(iter(item.values())) if isinstance(item, dict) else item
+        out += _nav_files(value) if isinstance(value, list) else [value]
+    return out
+
+
+def pages(root: Path = REPO) -> list[Path]:
+    """README.md, then every docs page in the order of mkdocs.yml's nav (the order their commands run in)."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):  # mkdocs.yml names Python objects (`!!python/name:`): not needed here
+        pass
+
+    Loader.add_multi_constructor("tag:yaml.org,2002:python/", lambda loader, suffix, node: None)
+    config = yaml.load((root / "mkdocs.yml").read_text(), Loader=Loader)
+    docs = root / config.get("docs_dir", "docs")
+    return [root / "README.md"] + [docs / f for f in _nav_files(config["nav"])]
+
+
 def add_arguments(p) -> None:
-    p.add_argument("--readme", default=str(REPO / "README.md"), help="the README to fill (default: the repository's)")
+    p.add_argument("--readme", help="one page to fill (default: README.md and every docs page in mkdocs.yml)")
     p.add_argument("--check", action="store_true", help="change nothing; exit 1 if a figure differs from its results")
 
 
 def run(args) -> int:
-    path = Path(args.readme)
-    text = path.read_text()
-    try:
-        new, changed = fill(text, path.resolve().parent)
-    except FigureError as e:
-        print(f"skinsafe readme: error: {e}", file=sys.stderr)
-        return 2
-    for line in changed:
-        print(f"{path}: {line}", file=sys.stderr if args.check else sys.stdout)
+    files = [(Path(args.readme), Path(args.readme).resolve().parent)] if args.readme else \
+        [(path, REPO) for path in pages()]
+    stale, total, updates = 0, 0, {}
+    for path, root in files:
+        text = path.read_text()
+        try:
+            new, changed = fill(text, root)
+        except FigureError as e:
+            print(f"skinsafe readme: error: {path}: {e}", file=sys.stderr)
+            return 2
+        for line in changed:
+            print(f"{path}: {line}", file=sys.stderr if args.check else sys.stdout)
+        stale += len(changed)
+        total += len(MARKER.findall(text))
+        if changed:
+            updates[path] = new
     if args.check:
-        return 1 if changed else 0
-    if changed:
+        return 1 if stale else 0
+    for path, new in updates.items():
         atomic_write(path, new)
-    print(f"{path}: {len(MARKER.findall(text))} figures, {len(changed)} updated")
+    print(f"{len(files)} pages: {total} figures, {stale} updated")
     return 0

@@ -170,7 +170,7 @@ def desk(res: dict):
 def collaboration(res: dict):
     """Force on the person per scenario and stack, each contact's and sweep cell's worst ratio to its
     ISO/TS 15066 limits (collaboration.json, Fig. 15): the experiment's own figure."""
-    from skinsafe.core.experiments.collaboration import plot
+    from skinsafe.core.experiments.collaboration_result import plot
 
     _plt()
     return plot(res)

@@ -5,7 +5,9 @@ MuJoCo whose contacts feed the emulated boards; `fr3`: hardware/franka.py), the 
 one emulator process per run on pseudo-terminals, fed by the simulation and deployed with MAP
 first; or the serial ports of real boards), the pre-flight and readings source
 (hardware/skin_source.py), the stack, the command source and the recorder, then hands the loop
-(core/runtime/loop.py) to the driver. Ctrl-C (or SIGTERM) stops the robot first, then reports.
+(core/runtime/loop.py) to the driver. The safety monitor (core/runtime/monitor.py) decides every stop;
+its detection bounds are printed at the start with the distance a taxel can travel blind within each.
+Ctrl-C (or SIGTERM) stops the robot first, then reports; every further signal only sets the same flag.
 
 Exit codes: 0 the run ended as planned (--seconds, the trajectory's end) and the robot stopped;
 1 a watchdog or the driver stopped the robot (the reason is named); 2 bad input; 3 the pre-flight
@@ -23,6 +25,7 @@ import os
 import signal
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -30,7 +33,9 @@ import numpy as np
 
 from skinsafe.core.runtime.commands import CommandError, Trajectory, command_source
 from skinsafe.core.runtime.layers import build_stack, run_config
+from skinsafe.core.runtime.limiter import Limiter
 from skinsafe.core.runtime.loop import Runtime, warm_up
+from skinsafe.core.runtime.monitor import AFTER_CONTACT, Monitor, Timing, fastest_taxel_speed, table
 from skinsafe.core.runtime.tap import Tap
 from skinsafe.core.runtime.view_stream import DEFAULT_PORT
 from skinsafe.core.safety.retraction import RetractionParams
@@ -44,6 +49,9 @@ EMULATOR_PRIORITY = RT_PRIORITY - 1  # emulated boards: below the host's reader 
 SWITCH_S = 0.0005  # the interpreter's thread switch interval while the robot moves (default 5 ms)
 EXIT_CODES = {0: "ran as planned, robot stopped", 1: "a watchdog or the driver stopped the robot (named)",
               2: "bad input", 3: "pre-flight refused (the robot never moved)", 130: "Ctrl-C", 143: "SIGTERM"}
+SIM_FAULTS = {"sim-freeze": "freeze_at", "sim-die": "die_at", "sim-clock-freeze": "clock_freeze_at",
+              "sim-clock-back": "clock_back_at"}
+READER_FAULTS = ("reader-kill", "reader-stall")  # at S s after the robot is handed over (before the boards settle)
 
 
 def add_arguments(p) -> None:
@@ -76,6 +84,8 @@ def add_arguments(p) -> None:
     p.add_argument("--command-timeout", type=float, default=0.1, help="teleop: stop when no datagram came for this long, s")
     p.add_argument("--tdm", help="a TDM checkpoint (skinsafe's torch format) for the strategy and modulation layers")
     p.add_argument("--alpha", type=float, default=RetractionParams.alpha, help="retraction sensitivity, m/N")
+    p.add_argument("--after-contact", choices=tuple(AFTER_CONTACT), default="resume",
+                   help="; ".join(f"{k}: {v}" for k, v in AFTER_CONTACT.items()))
     sim = p.add_argument_group("sim robot")
     sim.add_argument("--period", type=float, default=0.002, help="the sim's control period, s (default 0.002: 500 Hz)")
     sim.add_argument("--contact", default="none", metavar="poke|post[:KEY=VALUE,...]|none",
@@ -86,8 +96,11 @@ def add_arguments(p) -> None:
                      help="a faulty sensor in the sim's skin (the pre-flight must find it); repeatable")
     sim.add_argument("--inject", action="append", default=[], metavar="FAULT@SECONDS[:BOARD]",
                      help="fault injection for tests and `bench runtime --faults`: board-unplug, frame-delay (50 ms, or 3 "
-                          "frame periods + --link-latency, the longer), "
-                          "frame-replay, foreign-uid, crc-storm (on the emulated boards' links), sim-freeze, sim-die")
+                          "frame periods + --link-latency, the longer), frame-lag, "
+                          "frame-replay, foreign-uid, crc-storm (on the emulated boards' links), sim-freeze, sim-die, "
+                          "sim-clock-freeze, sim-clock-back; reader-kill (SIGKILL), reader-stall (SIGSTOP for a silence "
+                          "+ 0.1 s) on the boards' reader, S s after the robot is handed over (0: before the boards "
+                          "settle)")
     p.add_argument("--feed", metavar="NAME", help="with --boards emulate: the emulated boards stream this existing "
                    "shared-memory feed of simulated contacts (e.g. franky-sim's world, `feed NAME`; default: a fresh "
                    "one the sim driver writes)")
@@ -174,9 +187,9 @@ def _injections(items: list[str]) -> list[tuple[str, float, int | None]]:
             b = int(board) if board else None
         except ValueError:
             raise DesignError(f"--inject {item!r}: give FAULT@SECONDS[:BOARD], e.g. board-unplug@0.5:1") from None
-        if kind not in LINK_FAULTS + ("sim-freeze", "sim-die") or not (math.isfinite(t) and t >= 0):
-            raise DesignError(f"--inject {item!r}: faults are {', '.join(LINK_FAULTS + ('sim-freeze', 'sim-die'))}, "
-                              "at a time >= 0 s")
+        kinds = LINK_FAULTS + tuple(SIM_FAULTS) + READER_FAULTS
+        if kind not in kinds or not (math.isfinite(t) and t >= 0):
+            raise DesignError(f"--inject {item!r}: faults are {', '.join(kinds)}, at a time >= 0 s")
         out.append((kind, t, b))
     return out
 
@@ -193,13 +206,12 @@ def _driver(args, design, robot, feed, inject):
         if not args.host:
             raise DesignError("--robot fr3 needs --host IP: the robot's (or franky-sim's) address")
         try:
-            return franka.FrankaDriver(args.host)
+            return franka.FrankaDriver(args.host, rate_limited=False)  # the runtime's limiter does it
         except franka.FrankaError as e:
             raise DesignError(str(e)) from None
     from skinsafe.core.sim.robot_driver import SimDriver, SimFaults
 
-    faults = SimFaults(**{("freeze_at" if k == "sim-freeze" else "die_at"): t for k, t, _ in inject
-                          if k.startswith("sim-")})
+    faults = SimFaults(**{SIM_FAULTS[k]: t for k, t, _ in inject if k in SIM_FAULTS})
     try:
         return SimDriver(design, robot, feed, args.period, _contact(args.contact), faults=faults,
                          taxel_faults=_taxel_faults(args.taxel_fault))
@@ -362,7 +374,14 @@ def _end(proc) -> None:
 
 def run(args, feed=None, ports=None, on_moving=None) -> int:
     """The command. In-process callers (the fault bench) may pass an existing `feed` and the `ports` of boards
-    it feeds (already running this map), and `on_moving(runtime)`, called once the robot is handed over."""
+    it feeds (already running this map), and `on_moving(runtime)`, called once the robot is handed over. The
+    operator's signal handler, once installed, stays until the report and the record are complete (a second
+    Ctrl-C right after a quick stop must not cut them short)."""
+    with contextlib.ExitStack() as signals:
+        return _run(args, feed, ports, on_moving, signals)
+
+
+def _run(args, feed, ports, on_moving, signals: contextlib.ExitStack) -> int:
     from skinsafe.core.robot.models import load_robot, only_joints
     from skinsafe.core.runtime.record import Recorder
     from skinsafe.core.skin.force_feed import FeedError, ForceFeed
@@ -399,7 +418,7 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
             stack.callback(command.close)
             ports = ports or _ports(args, design, stack, feed)
             links = None
-            link_faults = [f for f in inject if not f[0].startswith("sim-")]
+            link_faults = [f for f in inject if not f[0].startswith(("sim-", "reader-"))]
             if link_faults:
                 from skinsafe.hardware.link_faults import DELAY_S, LinkFaults
 
@@ -440,22 +459,20 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
             except (OSError, ValueError) as e:
                 return fail(2, f"--view: {e}")
         runtime = Runtime(driver, source, layers, command, source.excluded, design.taxels.thresholds["force"],
-                          recorder, tap, seconds=seconds)
+                          recorder, tap, seconds=seconds, monitor=Monitor(args.after_contact), limiter=Limiter(limits))
+        _print_bounds(Timing(driver.period_s, 1.0 / args.rate, source.silence_s, command.stale_s), arm, design,
+                      limits["qd_max"])
         if links is not None:
             links.arm()
-        signals = {}
 
-        def on_signal(signum, _frame):
-            signals.setdefault("first", signum)
-            signal.signal(signum, signal.SIG_DFL if signum == signal.SIGTERM else _second)
-            runtime.stop_by_operator(f"interrupted by the operator ({signal.Signals(signum).name})")
+        def on_signal(signum, _frame):  # only sets the monitor's flag, the first time and every time after
+            runtime.stop_by_operator(signum, signal.Signals(signum).name)
 
-        def _second(signum, _frame):
-            raise KeyboardInterrupt
-
-        old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signals.callback(signal.signal, signum, signal.signal(signum, on_signal))
         print(f"skinsafe run: {driver.name} robot moving under '{command.spec}' ({driver.period_s * 1e3:g} ms period, "
               f"boards at {args.rate} Hz, {rt}); Ctrl-C stops it", file=sys.stderr, flush=True)
+        injected = _reader_faults(stack, inject, source, source.silence_s + 0.1)
         if on_moving is not None:
             on_moving(runtime)
         switch = sys.getswitchinterval()
@@ -469,10 +486,10 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
         finally:
             gc.enable()
             sys.setswitchinterval(switch)
-            for s, h in old.items():
-                signal.signal(s, h)
         source.close()  # the robot has stopped: the boards stop, and the reader says what any silence was
         lost, skin = source.frames_lost(), source.summary
+        injected.update({k: links.onsets.get(b if b is not None else min(links.ports)) for k, _, b in link_faults}
+                        if links is not None else {})
         rec = recorder.close({"reason": outcome.reason, "kind": outcome.kind, "watchdog": outcome.watchdog,
                               "t": outcome.t, "ns": time.time_ns(), "ticks": outcome.ticks,
                               "dropped": recorder.dropped, "frames_lost": lost}) if recorder else None
@@ -495,14 +512,60 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
         world = getattr(driver, "stats", None)
         world = world if isinstance(world, dict) or world is None else vars(world)
         out = {"reason": outcome.reason, "kind": outcome.kind, "watchdog": outcome.watchdog, "t": outcome.t,
-               "detected_mono": outcome.detected_mono, "frames_lost": lost, "preflight": report,
+               "detected_mono": outcome.detected_mono, "onset_mono": outcome.onset_mono, "state": outcome.state,
+               "exit": outcome.exit_code, "injected": injected, "frames_lost": lost, "preflight": report,
                "record": rec, "period_s": driver.period_s, "robot": driver.name, "taxels": design.n_taxels,
                "boards": len(design.boards), **t, "skin": skin,
                "world": {k: v for k, v in world.items() if k != "extra"} if world is not None else {}}
         atomic_write(Path(args.stats), json.dumps(out, default=_plain))
-    if outcome.kind == "operator":
-        return 128 + signals.get("first", signal.SIGINT)
-    return 0 if outcome.kind == "end" else 1
+    return outcome.exit_code
+
+
+def _print_bounds(tm: Timing, arm, design, qd_max) -> None:
+    """The monitor's detection bound of each fault kind, and how far the fastest taxel (at home, every joint at its
+    limit) travels blind within it."""
+    from skinsafe.core.robot.kinematics import TaxelKinematics
+
+    J = TaxelKinematics(arm.model, design).jacobians_of(np.arange(design.n_taxels), arm.home)[0]
+    speed = fastest_taxel_speed(J, qd_max)
+    rows = "; ".join(f"{k} {ms:.0f} ms / {mm:.0f} mm" for k, ms, mm, _ in table(tm, speed))
+    print(f"skinsafe run: detection bounds / blind distance at the fastest taxel's {speed:.2f} m/s: {rows}",
+          file=sys.stderr)
+
+
+def _reader_faults(stack: contextlib.ExitStack, inject, source, stall_s: float) -> dict:
+    """--inject reader-kill / reader-stall: timers from the hand-over on; fault -> host time it was done (filled
+    in when it is)."""
+    done = {}
+
+    def later(at: float, call, *args) -> None:
+        timer = threading.Timer(at, call, args)
+        timer.daemon = True
+        timer.start()
+        stack.callback(timer.cancel)
+
+    def hit(kind: str) -> None:
+        pid = source.pid
+        if pid is None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL if kind == "reader-kill" else signal.SIGSTOP)
+            done[kind] = time.monotonic()
+        if kind == "reader-stall":
+            later(stall_s, _signal, pid, signal.SIGCONT)
+
+    for kind, at, _ in (f for f in inject if f[0] in READER_FAULTS):
+        if at == 0:  # now, and the boards' readings already stale when the loop looks: the boards settle after it
+            hit(kind)
+            time.sleep(2 * source.frame_period_s)
+        else:
+            later(at, hit, kind)
+    return done
+
+
+def _signal(pid: int, signum: int) -> None:
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, signum)
 
 
 def _plain(x):

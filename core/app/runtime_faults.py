@@ -1,23 +1,23 @@
-"""The fault storm behind `skinsafe bench runtime --faults`: many short `skinsafe run`s, each with one fault.
+"""`skinsafe faults`: the fault storm behind `skinsafe bench runtime --faults`: many short `skinsafe run`s,
+each with one fault.
 
-Run as its own process (`python -m skinsafe.core.app.runtime_faults --runs N --json`; the bench starts
-it): one emulator process (boards fed by the run's simulation through one shared-memory feed, the
+Its own command (`skinsafe faults --runs N --json`; the bench starts it as a user would, so the bench never
+imports the application): one emulator process (boards fed by the run's simulation through one shared-memory feed, the
 map deployed once) serves every run; each run is the real command (`core.app.run.run`: pre-flight,
 sim driver, readings source, stack, recorder, signal handling) with one fault, at a random time
-0.1-0.8 s after the robot starts moving, in turn:
-- board-unplug: a board's link closes (the host's side of its pseudo-terminal);
-- frame-delay: a board's frames arrive 50 ms late;
-- frame-replay / foreign-uid (alternating): a frame sent again, or one with another board's uid;
-- sim-die / sim-freeze (alternating): the simulation fails, or its state stops updating;
-- command-silent: the teleop leader stops sending;
-- ctrl-c: SIGINT to this process.
-Per run: was it stopped, by the watchdog that names this fault, within 2 periods of the detection
-(zero velocity sent), any traceback, is the record readable (every message decodes with
-mcap-ros2-support and the last one is the stop's diagnostics)?
+0.1-0.8 s after the robot starts moving, each of `KINDS` in turn, injected at its source at a known
+time.monotonic() (the onset): a board's link closed (the host's side of its pseudo-terminal), its
+frames held 50 ms, ever later (frame-lag), replayed, foreign or corrupt (on the link proxy), the
+simulation failed, its state frozen or its clock gone back, the boards' reader killed (SIGKILL), the
+teleop leader silent, SIGINT to this process. Per run: the fault kind the monitor named (is it the
+one injected: `EXPECT`, no text matched), onset -> the time the driver sent zero velocity (not the
+detection), any traceback, is the record readable (every message decodes with mcap-ros2-support and
+the last one is the stop's diagnostics), was the stop latched (the monitor's protective stop)?
+A frame-lag is a ramp: its onset is when the loop's newest frame became older than a board's silence
+(the lag's start + a silence x (1 + 1 / LAG_RATE)), not its first late byte.
 """
 from __future__ import annotations
 
-import argparse
 import contextlib
 import io
 import json
@@ -34,16 +34,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-KINDS = ("board-unplug", "frame-delay", ("frame-replay", "foreign-uid"), ("sim-die", "sim-freeze"), "command-silent",
-         "ctrl-c")
-NAMED_BY = {"board-unplug": "link lost", "frame-delay": "silent for", "frame-replay": "frame counter went back",
-            "foreign-uid": "frames from another uid", "sim-die": "the simulation failed",
-            "sim-freeze": "state not updating", "command-silent": "command: teleop", "ctrl-c": "interrupted by the operator"}
-
-
-def _kind(k: int) -> str:
-    kind = KINDS[k % len(KINDS)]
-    return kind if isinstance(kind, str) else kind[(k // len(KINDS)) % 2]
+EXPECT = {"board-unplug": "link-lost", "frame-delay": "board-silent", "frame-lag": "board-late",
+          "frame-replay": "counter-back", "foreign-uid": "foreign-uid", "crc-storm": "crc-storm", "sim-die": "driver",
+          "sim-freeze": "robot-frozen", "sim-clock-back": "robot-clock-back", "reader-kill": "reader-died",
+          "command-silent": "command-stale", "ctrl-c": "operator"}  # injected -> the monitor's kind that names it
+KINDS = {"sim": tuple(EXPECT), "fr3": tuple(k for k in EXPECT if not k.startswith("sim-"))}  # per driver
 
 
 def _readable(record: Path) -> bool:
@@ -81,15 +76,21 @@ def _stop_boards(ports: dict[int, str]) -> None:
 
 
 def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out: Path, rate: int,
-            link_latency: float = 0.0) -> dict:
-    """One `skinsafe run` with the fault `kind` at `at` s after the robot starts moving."""
+            link_latency: float = 0.0, robot: tuple = ("--robot", "sim")) -> dict:
+    """One `skinsafe run` (`robot`: its --robot and the driver's options) with the fault `kind` at `at` s after the
+    robot starts moving."""
     from skinsafe.core.app import run as run_cmd
     from skinsafe.core.app.cli import module_args
     from skinsafe.core.runtime.leader import stream
+    from skinsafe.hardware.link_faults import LAG_RATE
 
     record, stats = out / f"run{k}.mcap", out / f"run{k}.json"
     command, extra, stop = "hold", [], threading.Event()
-    timers = []
+    timers, done = [], {}
+
+    def at_once(call, *args):  # the harness's own injections: the onset is when it acts
+        done["onset"] = time.monotonic()
+        call(*args)
     if kind == "command-silent":
         port = _free_port()
         command = f"teleop:{port}"
@@ -100,13 +101,13 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
 
     def moving(runtime):
         if kind == "command-silent":
-            timers.append(threading.Timer(at, stop.set))
+            timers.append(threading.Timer(at, at_once, (stop.set,)))
         elif kind == "ctrl-c":
-            timers.append(threading.Timer(at, os.kill, (os.getpid(), signal.SIGINT)))
+            timers.append(threading.Timer(at, at_once, (os.kill, os.getpid(), signal.SIGINT)))
         for t in timers:
             t.start()
 
-    args = module_args(run_cmd, "skinsafe run", "", [str(map_path), "--boards", "emulate", "--command", command,
+    args = module_args(run_cmd, "skinsafe run", "", [str(map_path), *robot, "--boards", "emulate", "--command", command,
                                                      "--rate", str(rate), "--link-latency", str(link_latency),
                                                      "--tare-frames", "10", "--seconds", "3",
                                                      "--record", str(record), "--stats", str(stats), *extra], "run")
@@ -124,56 +125,88 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
     s = json.loads(stats.read_text()) if stats.exists() else {}
     reason = s.get("reason", "")
     world = s.get("world", {})
-    stop_periods = ((world.get("zero_mono", np.inf) - s.get("detected_mono", 0.0)) / s.get("period_s", 1.0)
-                    if s else np.inf)
-    return {"run": k, "fault": kind, "at_s": round(at, 3), "exit": code, "reason": reason,
-            "stopped": bool(s) and s.get("kind") != "end", "named": bool(reason) and s.get("kind") != "end",
-            "named_as_injected": NAMED_BY[kind] in reason, "stop_periods": float(stop_periods),
+    onset = done.get("onset") or s.get("injected", {}).get(kind) or world.get("fault_mono")
+    if kind == "frame-lag" and onset:  # a ramp: the loop's newest frame is older than a silence from here on
+        onset += (2.0 / rate + link_latency) * (1 + 1 / LAG_RATE)
+    zero = world.get("zero_mono")
+    return {"run": k, "fault": kind, "driver": robot[1], "period_s": s.get("period_s"), "at_s": round(at, 3),
+            "exit": code, "reason": reason,
+            "named_kind": s.get("watchdog", ""), "expected_kind": EXPECT[kind], "stopped": bool(s) and s.get("kind") != "end",
+            "named": bool(reason) and s.get("kind") != "end", "named_as_injected": s.get("watchdog") == EXPECT[kind],
+            "onset_to_zero_ms": (zero - onset) * 1e3 if onset and zero else None,
+            "latched": s.get("state") == "protective_stop",
             "traceback": bool(tb) or "Traceback" in err.getvalue(), "record_readable": _readable(record),
             "seconds": time.monotonic() - t0, "detail": tb.strip().splitlines()[-1] if tb else ""}
 
 
-def main(argv: list[str] | None = None) -> int:
-    from skinsafe.core.design.sample import make_sample_design
-    from skinsafe.core.robot.models import build_ur5
+@contextlib.contextmanager
+def _setup(driver: str, tmp: Path):
+    """(map, feed, ports, home, the run's robot options) of `driver`'s world: the UR5 sample skin in the sim, or
+    a skin on franky-sim's FR3 (its own process, no hand in its world); one emulator serves every run."""
     from skinsafe.core.skin.force_feed import ForceFeed
-    from skinsafe.core.skin.taxel_map import save
+    from skinsafe.core.skin.taxel_map import load, save
     from skinsafe.hardware.deploy import deploy
     from skinsafe.hardware.emulator import EmulatorProcess
 
-    p = argparse.ArgumentParser(prog="python -m skinsafe.core.app.runtime_faults", description=__doc__.split("\n\n")[0])
+    with contextlib.ExitStack() as stack:
+        if driver == "sim":
+            from skinsafe.core.design.sample import make_sample_design
+            from skinsafe.core.robot.models import build_ur5
+
+            robot = build_ur5()
+            save(make_sample_design("ur5", robot=robot), tmp / "skin.json")
+            home, options = robot.home, ("--robot", "sim")
+            feed = stack.enter_context(ForceFeed.create(None, load(tmp / "skin.json").n_taxels))
+        else:
+            import subprocess
+
+            from skinsafe.core.app.cli import main as skinsafe
+            from skinsafe.core.sim.franky_world import INITIAL_Q, WorldProcess, require_franky_python
+
+            subprocess.run([str(require_franky_python()), "-m", "skinsafe.core.sim.franky_world", "mjcf",
+                            str(tmp / "fr3.xml")], check=True, capture_output=True)
+            with contextlib.redirect_stdout(io.StringIO()):
+                if skinsafe(["design", str(tmp / "fr3.xml"), "--bodies", "fr3_link5,fr3_link6", "--out",
+                             str(tmp / "skin.json")]):
+                    raise SystemExit("runtime faults: designing the FR3 skin failed")
+            world = stack.enter_context(WorldProcess(tmp / "skin.json", tmp / "world.json", realtime=True))
+            feed = stack.enter_context(ForceFeed.attach(world.feed))
+            home, options = np.array(INITIAL_Q), ("--robot", "fr3", "--host", world.host, "--feed", world.feed)
+        design = load(tmp / "skin.json")
+        em = stack.enter_context(EmulatorProcess([], tmp / "flash", "--map", str(tmp / "skin.json"), "--feed",
+                                                 feed.name))
+        ports = {b.id: em.ports[b.uid] for b in design.boards}
+        if not all(r.ok for r in deploy(design, ports)):
+            raise SystemExit(f"runtime faults: deploying the {driver} map to the emulated boards failed")
+        yield tmp / "skin.json", feed, ports, home, options
+
+
+def add_arguments(p) -> None:
     p.add_argument("--runs", type=int, default=204)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--rate", type=int, default=50,
                    help="board frames per second (50: a board is silent after 40 ms; a 50 ms delay still trips it)")
     p.add_argument("--link-latency", type=float, default=0.0, metavar="S", help="`skinsafe run --link-latency` (a frame "
                    "delay is then 3 frame periods + this)")
+    p.add_argument("--driver", choices=tuple(KINDS), default="sim", help="sim (default) or fr3 (franky-sim's FR3 in "
+                   "its own process: `make franky-sim`); fr3 has no sim-* faults")
     p.add_argument("--json", action="store_true", help="print the per-run rows as one JSON list")
-    args = p.parse_args(argv)
+
+
+def run(args) -> int:
     from skinsafe.core.app.run import _realtime
 
     rng = np.random.default_rng(args.seed)
     _realtime("auto")  # before the emulator starts: it inherits the priority, as under `skinsafe run`
     signal.signal(signal.SIGINT, lambda *_: None)  # a run's own handler takes Ctrl-C; a late one lands here
     rows = []
-    with tempfile.TemporaryDirectory(prefix="skinsafe-faults-") as tmp:
-        tmp = Path(tmp)
-        robot = build_ur5()
-        design = make_sample_design("ur5", robot=robot)
-        save(design, tmp / "skin.json")
-        with ForceFeed.create(None, design.n_taxels) as feed, \
-                EmulatorProcess([], tmp / "flash", "--map", str(tmp / "skin.json"), "--feed", feed.name) as em:
-            ports = {b.id: em.ports[b.uid] for b in design.boards}
-            if not all(r.ok for r in deploy(design, ports)):
-                raise SystemExit("runtime faults: deploying the sample map to the emulated boards failed")
-            for k in tqdm(range(args.runs), desc="fault runs", file=sys.stderr):
-                rows.append(one_run(k, _kind(k), float(rng.uniform(0.1, 0.8)), tmp / "skin.json", feed, ports,
-                                    robot.home, tmp, args.rate, args.link_latency))
-                for f in tmp.glob(f"run{k}.*"):
-                    f.unlink()
+    kinds = KINDS[args.driver]
+    with tempfile.TemporaryDirectory(prefix="skinsafe-faults-") as tmp, _setup(args.driver, Path(tmp)) as world:
+        map_path, feed, ports, home, options = world
+        for k in tqdm(range(args.runs), desc=f"fault runs ({args.driver})", file=sys.stderr):
+            rows.append(one_run(k, kinds[k % len(kinds)], float(rng.uniform(0.1, 0.8)), map_path, feed, ports, home,
+                                Path(tmp), args.rate, args.link_latency, options))
+            for f in Path(tmp).glob(f"run{k}.*"):
+                f.unlink()
     print(json.dumps(rows) if args.json else "\n".join(map(str, rows)))
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -4,7 +4,7 @@ SOURCE is `HOST:PORT` (a view stream: `skinsafe run --view` publishes one, core/
 `FILE.mcap` (a `run --record` record, or an experiment's: core/runtime/sim_record.py; read by core/runtime/
 recording.py). `--tracking RESULT.json` / `--collaboration RESULT.json` run an episode of the tracking or
 the collaboration experiment again into a record first (core/app/experiment_view.py). The page
-(core/app/view_page.py) runs in this process, apart from the control loop: a live view takes the newest
+(core/runtime/view_page.py) runs in this process, apart from the control loop: a live view takes the newest
 tick at `--fps` and drops the rest; a record gets a timeline (slider, play, next contact). `--publish
 [HOST:]PORT` also replays a record as a view stream, following the timeline (Blender's add-on attaches to it
 as to a live run, or opens the record itself).
@@ -77,7 +77,7 @@ def _endpoint(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:
 def serve_live(args, stop: threading.Event) -> int:
     """The page of a live stream. While no browser has the page open it is off the stream (nothing is sent, encoded
     or, in `run --view`, copied by the loop for it) and attaches again when one opens it."""
-    from skinsafe.core.app.view_page import Page
+    from skinsafe.core.runtime.view_page import Page
 
     where = _endpoint(args.source)
     client = ViewClient(*where)
@@ -132,7 +132,7 @@ def _reattach(where: tuple[str, int], first: dict) -> ViewClient | None:
 
 
 def serve_record(args, stop: threading.Event) -> int:
-    from skinsafe.core.app.view_page import Page
+    from skinsafe.core.runtime.view_page import Page
 
     rec = Recording(args.source)
     cfg = rec.config

@@ -1,5 +1,6 @@
 """`skinsafe bench design`: placing FPC modules (geodesic wrap, frames, checks) plus the Jacobian
-mapping for all taxels, and re-generating one 256-taxel module after a move.
+mapping for all taxels, re-generating one 256-taxel module after a move, and Blender's Place Skin tool
+(`first_place_s`, `preview_ms`).
 
 Reference in the same run: the per-taxel `mj_jac` loop for the Jacobian mapping
 (`TaxelKinematics.jacobians_loop`)."""
@@ -59,4 +60,21 @@ def rows(args) -> list[dict]:
         out.append({"n_taxels": design.n_taxels, "modules": len(design.modules), "boards": len(design.boards),
                     "place_s": float(np.median(times)), "regen_ms": regen, "surfaces_s": surf_s,
                     "jac_ms": jac_ms, "jac_loop_ms": loop_ms, "jac_speedup": loop_ms / jac_ms})
+    out.append(place_tool_row())
     return out
+
+
+def place_tool_row() -> dict:
+    """Blender's Place Skin tool in a fresh process (addon/bench_tool.py, its own process: bpy never shares
+    one with this library): `first_place_s` from the process's start to its first 8x8 module placed,
+    `preview_ms` its work per mouse move (ray cast and placement check)."""
+    import json
+    import subprocess
+    import sys
+
+    t0 = time.time()
+    done = subprocess.run([sys.executable, "-m", "skinsafe.addon.bench_tool", str(t0)], capture_output=True,
+                          text=True, timeout=600)
+    if done.returncode:
+        raise RuntimeError(f"bench design: the Place Skin run failed: {done.stderr.strip()[-400:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])

@@ -40,9 +40,11 @@ attached throughout and its processes paused and resumed every `--block` s: `*_p
 `shown_not_slower_5pct` (and `_p50`); with `--sweep S` (the arm into the post and back every S s) and `--block S`,
 each block holds one whole sweep: the same contacts.
 `--tap`: the live view's cost inside the loop (core/bench/view_tap.py).
-`--faults`: the fault storm (core/app/runtime_faults.py) in its own process, one row: runs, faults
-(runs the fault stopped), stopped_within_2_periods (fraction: zero velocity sent within 2 control
-periods of the detection), unnamed, tracebacks, records_readable (fraction), and named_as_injected.
+`--faults`: the fault storm (`skinsafe faults`) in its own process, one row per fault kind and
+driver (`--robot`: sim, or fr3 against franky-sim): runs, detect_bound_ms (the monitor's bound for the kind that names it), onset_to_zero_ms_p50 /
+_max (the injection's time -> the zero command the driver sent), over_bound (runs over the bound),
+named_as_injected (fraction named by that kind), unnamed, tracebacks, records_readable (fraction),
+latched (fraction left in the monitor's protective stop).
 """
 from __future__ import annotations
 
@@ -61,6 +63,7 @@ from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.skin.boards import assign_boards, number_channels
 from skinsafe.core.skin.model import Module, SkinDesign
+from skinsafe.core.system import SKINSAFE
 from skinsafe.core.timing import pct, pooled_change_ci95
 
 PITCHES = (0.01, 0.0072, 0.005, 0.0036, 0.0025)  # the sample skin gets denser until it holds enough taxels
@@ -71,6 +74,7 @@ STALE = ("skin-silent", "robot-state", "command-stale")
 RETRIES = 5
 FR3_SECONDS = 60.0
 VIEW_PORT = 8480
+LOCAL_BROWSER = {"browser", "browser-shared", "alternating", "alternating-pinned"}  # --view modes with a Chromium here
 
 
 def add_arguments(p) -> None:
@@ -183,8 +187,9 @@ def _run(args, map_path: Path, command: str, stats: Path, seconds: float, *extra
     loop's core ("browser-shared": on any core); "alternating" ("-pinned"): as "browser-shared" ("browser"), the
     view's processes paused and resumed every `args.block` s; "alternating-remote": so, with the page open on
     another computer instead of a browser here."""
-    cmd = [sys.executable, "-m", "skinsafe.core.app.cli", "run", str(map_path), "--boards", "emulate", "--command", command,
+    cmd = [SKINSAFE, "run", str(map_path), "--boards", "emulate", "--command", command,
            "--seconds", str(seconds), "--rate", str(args.rate), "--link-latency", str(args.link_latency),
+           "--after-contact", "always-resume",  # the rows measure every contact of a sweep, flagged or not
            "--stats", str(stats), *extra]
     if view != "off":
         cmd += ["--view", "--view-port", str(VIEW_PORT), "--view-stream", "127.0.0.1:0"]
@@ -226,13 +231,11 @@ def _with_browser(cmd: list[str], shared: bool = False, block: float | None = No
     from playwright.sync_api import Error as PlaywrightError
     from playwright.sync_api import sync_playwright
 
-    from skinsafe.core.bench.browser import CHROMIUM_ARGS, chromium, niced
+    from skinsafe.core.bench.browser import CHROMIUM_ARGS, niced, require_chromium
     from skinsafe.core.bench.view_pause import REMOTE_VIEWER, Pauser
     from skinsafe.core.timing import loop_cores
 
-    exe = None if remote else chromium()
-    if exe is None and not remote:
-        raise RuntimeError("bench runtime --view browser: no chromium (`apt-get install -y chromium`)")
+    exe = None if remote else require_chromium("bench runtime --view")
     cpus = os.sched_getaffinity(0)
     others = None if shared or len(cpus) < 2 else loop_cores(cpus)[1]
     with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
@@ -275,7 +278,7 @@ def _ms(world: dict, key: str) -> float:
 
 def rows(args) -> list[dict]:
     if args.faults:
-        return [fault_row(args)]
+        return fault_rows(args)
     if args.links:
         from skinsafe.core.bench.links import rows as link_rows
 
@@ -286,6 +289,10 @@ def rows(args) -> list[dict]:
         return tap_rows(args.taxels, args.seconds or 2.0)
     if args.robot == "fr3":
         return fr3_rows(args)
+    if set(args.view) & LOCAL_BROWSER:  # before any run: a missing browser ends the bench, not its third run
+        from skinsafe.core.bench.browser import require_chromium
+
+        require_chromium(f"bench runtime --view {' '.join(sorted(set(args.view) & LOCAL_BROWSER))}")
     from tqdm import tqdm
 
     from skinsafe.core.skin.taxel_map import save
@@ -443,12 +450,13 @@ def fr3_rows(args) -> list[dict]:
     command holds franky-sim's start pose (the arm goes back after each retraction), for `--seconds` of robot
     time. The robot's clock is libfranka's (franky-sim's 1 ms steps)."""
     from skinsafe.core.robot.models import load_robot
-    from skinsafe.core.sim.franky_world import INITIAL_Q, WorldProcess, hand_in_reach
+    from skinsafe.core.sim.franky_world import INITIAL_Q, WorldProcess, hand_in_reach, require_franky_python
     from skinsafe.core.skin.taxel_map import load
 
     if not args.maps:
         raise ValueError("bench runtime --robot fr3: give --maps (taxel maps designed on franky-sim's FR3; README, "
                          "'The FR3 case')")
+    require_franky_python()  # before the maps load
     seconds = args.seconds or FR3_SECONDS
     out = []
     with tempfile.TemporaryDirectory(prefix="skinsafe-bench-fr3-") as tmp:
@@ -490,22 +498,30 @@ def fr3_row(r: dict, w: dict, stale: int, args) -> dict:
             "work_ms_p99": rnd(r["work_ms_p99"]), "stop": r["reason"]}
 
 
-def fault_row(args) -> dict:
-    cmd = [sys.executable, "-m", "skinsafe.core.app.runtime_faults", "--runs", str(args.runs), "--seed", str(args.seed),
-           "--rate", str(args.fault_rate), "--link-latency", str(args.link_latency), "--json"]
+def fault_rows(args) -> list[dict]:
+    from skinsafe.core.runtime.monitor import Kind, Timing, bounds
+
+    cmd = [SKINSAFE, "faults", "--runs", str(args.runs), "--seed", str(args.seed),
+           "--rate", str(args.fault_rate), "--link-latency", str(args.link_latency), "--driver", args.robot, "--json"]
     p = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, timeout=7200)
     if p.returncode:
         raise RuntimeError(f"bench runtime --faults: the fault storm exited {p.returncode}")
     runs = json.loads(p.stdout)
-    stopped = [r for r in runs if r["stopped"]]
-    kinds = sorted({r["fault"] for r in runs})
-    return {"runs": len(runs), "faults": len(stopped),
-            "stopped_within_2_periods": float(np.mean([r["stop_periods"] <= 2 for r in stopped])) if stopped else 0.0,
-            "unnamed": sum(not r["named"] for r in runs), "tracebacks": sum(r["traceback"] for r in runs),
-            "records_readable": float(np.mean([r["record_readable"] for r in runs])),
-            "named_as_injected": float(np.mean([r["named_as_injected"] for r in runs])),
-            "stop_periods_max": float(max((r["stop_periods"] for r in stopped), default=float("nan"))),
-            "rate_hz": args.fault_rate, "link_latency_ms": args.link_latency * 1e3, "seconds": float(sum(r["seconds"] for r in runs)),
-            **{f"runs_{k.replace('-', '_')}": sum(r["fault"] == k for r in runs) for k in kinds},
-            **{f"other_first_{k.replace('-', '_')}": sum(r["fault"] == k and not r["named_as_injected"] for r in runs)
-               for k in kinds}}
+    frame = 1.0 / args.fault_rate
+    period = next(r["period_s"] for r in runs if r["period_s"])  # the driver's (sim 2 ms, fr3 1 ms)
+    bound = bounds(Timing(period, frame, 2 * frame + args.link_latency, 0.1))
+    rows = []
+    for (fault, driver) in sorted({(r["fault"], r["driver"]) for r in runs}):
+        these = [r for r in runs if r["fault"] == fault and r["driver"] == driver]
+        b = bound[Kind(these[0]["expected_kind"])] * 1e3
+        z = np.array([r["onset_to_zero_ms"] for r in these if r["onset_to_zero_ms"] is not None])
+        rows.append({"fault": fault, "driver": driver, "runs": len(these), "detect_bound_ms": round(b, 2),
+                     "onset_to_zero_ms_p50": round(float(np.median(z)), 2) if len(z) else None,
+                     "onset_to_zero_ms_max": round(float(z.max()), 2) if len(z) else None,
+                     "over_bound": int((z > b).sum()) + len(these) - len(z),
+                     "named_as_injected": float(np.mean([r["named_as_injected"] for r in these])),
+                     "unnamed": sum(not r["named"] for r in these), "tracebacks": sum(r["traceback"] for r in these),
+                     "records_readable": float(np.mean([r["record_readable"] for r in these])),
+                     "latched": float(np.mean([r["latched"] for r in these])),
+                     "rate_hz": args.fault_rate, "link_latency_ms": args.link_latency * 1e3})
+    return rows

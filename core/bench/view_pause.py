@@ -28,7 +28,7 @@ from skinsafe.core.timing import pct, pooled_change_ci95
 
 REMOTE_VIEWER = "skinsafe.core.bench.remote_viewer"  # `python -m` it: a page open on another computer
 VIEW_MODULES = ("skinsafe.core.runtime.view_share", REMOTE_VIEWER)  # the publisher, a remote page
-PAGE_COMMAND = "view"  # `skinsafe view`: the page's process
+PAGE_COMMAND = "view"  # `python -m <skinsafe's CLI> view`: the page's process (`run --view` starts it)
 
 
 def _children() -> dict[int, list[int]]:
@@ -57,7 +57,7 @@ def view_processes(root: int, browser_exe: str | None) -> list[int]:
             args = [a.decode(errors="replace") for a in argv]
             program = os.path.basename(args[0].split(" ")[0])  # Chromium's helpers rewrite argv into one string
             if (browser_exe and program == os.path.basename(browser_exe)) or any(m in args for m in VIEW_MODULES) or \
-                    (len(args) > 3 and args[2] == "skinsafe.core.app.cli" and args[3] == PAGE_COMMAND):
+                    (len(args) > 3 and args[1] == "-m" and args[3] == PAGE_COMMAND):
                 out.append(pid)
     return out
 

@@ -6,11 +6,13 @@ cached in `--out`/tasks and reused by a restarted run).
 
 The full protocol (the default; issue 31), the same effort for every method:
 
-1. tuning: every method's `TUNING` configurations (the same number for each, its previous default
-   first) on the tuning seeds (`--tuning-seeds`, default 0-1) for `TUNING_EPISODES` (40) episodes; the
-   chosen configuration is the one with the lowest mean total contacts among those whose mean goal rate
-   over the last 20 of those episodes is at least 0.8, else the one with the highest such goal rate
-   (`choose`);
+1. tuning (`tune`): one tuner (Optuna's TPE sampler, seeded) gives every method the same number of
+   trials (`--trials`, default `TRIALS` = 8) over its own declared search space (`SPACES`: its previous
+   default is trial 0; the -TDM mechanisms are switches in the -TDM spaces, the offline phase a switch
+   for RRL, SQRL and the -TDM agents) on the tuning seeds (`--tuning-seeds`, default 0-1) for
+   `TUNING_EPISODES` (40) episodes. One selection rule (`choose`): the lowest mean total contacts among
+   the trials whose mean goal rate over the last 20 of those episodes is at least 0.8; a method with no
+   such trial is reported as never meeting the criterion and evaluated at its default (no rescue);
 2. evaluation: each chosen configuration on held-out seeds (`--seeds`, default 10-19), reported per
    seed and as means with 95% intervals; the claim (Fig. 9b: the -TDM variants have the fewest total
    contacts) is decided per pair by Welch's interval of the difference (`claim_check`);
@@ -18,6 +20,12 @@ The full protocol (the default; issue 31), the same effort for every method:
    SQRL (`BASELINE_EXTRAS`), on the first three evaluation seeds (10-12, `--ablation-seeds`) for the first
    `ABLATION_EPISODES` (30) episodes, where nearly all -TDM contacts happen, each against the same
    episodes of its method's evaluation runs (a run's first episodes do not depend on how many follow).
+
+Replicates (`--replicates`, default 2): tuning and evaluation run again with the next tuning seeds (0-1,
+then 2-3) and another sampler seed; each replicate's verdicts are recorded (`replicates`) and the claim
+is stated only where they agree (`verdict_agrees`; else "not settled"). Fig. 9c (faster convergence:
+`convergence`): per run the first episode from which the goal is reached in >= 80% of `WINDOW`
+episodes (never: episodes + 1), each -TDM variant against its plain method by Welch's interval.
 
 The budget (issue 31: the full grids within 60 min on 2 cores) is set by the cost of a run: ~3-5 ms of
 CPU per macro-action for the SAC family (one gradient step per step), ~1 ms for AC and CPO; a run that
@@ -44,7 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
-from skinsafe.core.experiments.runner import run_tasks
+from skinsafe.core.experiments.runner import provenance, run_tasks
 from skinsafe.core.experiments.stats import compare, diff_ci, mean_ci, parse_seeds
 from skinsafe.core.skin.files import atomic_write
 
@@ -53,6 +61,10 @@ TDM_METHODS = ("SAC-TDM", "AC-TDM")
 FULL = dict(seeds=10, episodes=80, max_steps=200)  # the evaluation stage of the full protocol
 PROTOCOL = dict(tuning_seeds=[0, 1], eval_seeds=list(range(10, 20)), ablation_seeds=3)  # the first 3 evaluation seeds
 TUNING_EPISODES = 40
+TRIALS = 8  # tuning trials per method, the same for every method
+ROUND = 4  # trials asked of every method's sampler at once (run together on Ray, then told in a fixed order)
+REPLICATES = 2
+WINDOW = 10  # episodes over which convergence (Fig. 9c) is judged
 ABLATION_EPISODES = 30
 DEMO = dict(seeds=2, episodes=60, max_steps=200)
 QUICK = dict(seeds=1, episodes=2, max_steps=20)
@@ -60,19 +72,24 @@ PRESETS = {"full": FULL, "demo": DEMO, "quick": QUICK}
 LAST = 20  # episodes over which the final goal rate is measured
 LEARNED_AT = 0.8  # a method "reaches the goal" when its mean goal rate over the last LAST episodes is at least this
 
-# Configurations searched per method on the tuning seeds: the same number for every method, each
-# method's own most influential knobs, its previous default (or its paper's setting) first.
-TUNING = {
-    "SAC": [{}, {"lr": 1e-3}, {"entropy_share": 0.5}],
-    "SAC-RP": [{}, {"cost_penalty": 10.0}, {"cost_penalty": 50.0}],  # 50: recovery-rl's maze reward penalty
-    "SAC-TDM": [{}, {"prior_count": 0.5}, {"prior_count": 0.1}],
-    "AC": [{}, {"lr": 1e-3}, {"entropy_coef": 0.05}],
-    "AC-RP": [{}, {"cost_penalty": 10.0}, {"cost_penalty": 50.0}],
-    "AC-TDM": [{}, {"prior_count": 0.5}, {"prior_count": 0.1}],
-    # RRL, SQRL {}: recovery-rl's maze (eps 0.15, gamma_safe 0.5, SQRL nu from 100, 4,000 offline transitions)
-    "RRL": [{}, {"eps_risk": 0.3}, {"offline_transitions": 500}],
-    "CPO": [{}, {"target_kl": 0.01}, {"target_kl": 0.05}],  # the cost budget is the maze's (`cpo_budget`)
-    "SQRL": [{}, {"nu": 1.0}, {"offline_transitions": 500}],
+# Each method's own search space: keyword -> (its default, the trial-0 value; the values tried): a list
+# is a switch or a choice, ("log" | "float", low, high) a range. The -TDM mechanisms are switches; the
+# offline phase (recovery-rl's 4,000 random transitions) is a switch for every agent that can use it.
+LR = (3e-3, ("log", 3e-4, 1e-2))
+TDM_SPACE = {"lr": LR, "prior_count": (0.01, ("log", 1e-3, 1.0)), "raw_floor": (0.05, [0.05, 0.0]),
+             "unfiltered_entropy": (True, [True, False]), "shrink": (True, [True, False]),
+             "contact_steps": (100, [100, 0]), "offline_transitions": (0, [0, 4000])}
+SPACES = {
+    "SAC": {"lr": LR, "entropy_share": (0.3, ("float", 0.1, 0.5))},
+    "SAC-RP": {"lr": LR, "cost_penalty": (1.0, ("log", 1.0, 100.0))},  # 50: recovery-rl's maze reward penalty
+    "SAC-TDM": TDM_SPACE,
+    "AC": {"lr": LR, "entropy_coef": (0.02, ("log", 0.005, 0.1))},
+    "AC-RP": {"lr": LR, "cost_penalty": (1.0, ("log", 1.0, 100.0))},
+    "AC-TDM": TDM_SPACE,
+    # RRL, SQRL defaults: recovery-rl's maze (eps 0.15, gamma_safe 0.5, SQRL nu from 100, 4,000 offline transitions)
+    "RRL": {"lr": LR, "eps_risk": (0.15, ("float", 0.05, 0.5)), "offline_transitions": (4000, [4000, 0])},
+    "CPO": {"lr": LR, "target_kl": (0.02, ("log", 0.005, 0.05))},  # the cost budget is the maze's (`cpo_budget`)
+    "SQRL": {"lr": LR, "nu": (100.0, ("log", 1.0, 500.0)), "offline_transitions": (4000, [4000, 0])},
 }
 # The -TDM extras, each removed in turn (ablation): what is removed and the keyword that removes it.
 TDM_EXTRAS = (
@@ -117,7 +134,10 @@ def add_arguments(p) -> None:
     p.add_argument("--tuning-seeds", help="tuning seeds of the full protocol (default 0-1)")
     p.add_argument("--tuning-episodes", type=int, default=TUNING_EPISODES,
                    help="episodes of every tuning run (default %(default)s, at most --episodes)")
-    p.add_argument("--configs", type=int, help="configurations searched per method (default all: 3); the same for every method")
+    p.add_argument("--trials", type=int, default=TRIALS, help="tuning trials per method, the same for every method "
+                                                               "(default %(default)s)")
+    p.add_argument("--replicates", type=int, default=REPLICATES,
+                   help="tuning + evaluation replicates, each on the next tuning seeds (default %(default)s)")
     p.add_argument("--ablation-seeds", help="evaluation seeds the ablation runs on (default the first three: 10-12)")
     p.add_argument("--ablation-episodes", type=int, default=ABLATION_EPISODES,
                    help="episodes of every ablation run (default %(default)s, at most --episodes)")
@@ -156,7 +176,7 @@ def run_one(method: str, seed: int, episodes: int, max_steps: int, agent_kw: dic
     offline = {}
     if getattr(agent, "offline_transitions", 0) > 0:
         data = random_rollouts(env, agent.offline_transitions, np.random.default_rng(seed + 424242))
-        agent.pretrain(data["obs"], data["actions"], data["costs"], data["next_obs"], data["terminated"])
+        agent.pretrain(**data)
         offline = {"offline_transitions": len(data["actions"]), "offline_contacts": int(data["costs"].sum())}
     returns, costs, goals, steps = [], [], [], []
     for ep in range(episodes):
@@ -204,8 +224,9 @@ def run_row(r: dict) -> dict:
             "goal_rate_last": float(np.mean(r["goals"][-LAST:])), "cpu_seconds": r.get("cpu_seconds")}
 
 
-def summarise(runs: list[dict], methods: list[str]) -> dict:
-    """Per-method totals and goal rates (mean, std and 95% interval over seeds) and the claim check."""
+def summarise(runs: list[dict], methods: list[str], tuning: dict | None = None) -> dict:
+    """Per-method totals and goal rates (mean, std and 95% interval over seeds), whether tuning met the goal
+    criterion (`met_criterion`, with `tuning`), the claim check and Fig. 9c's `convergence`."""
     rows = {}
     per_seed = [run_row(r) for r in runs]
     for m in methods:
@@ -225,7 +246,74 @@ def summarise(runs: list[dict], methods: list[str]) -> dict:
         claim["online_only"] = claim_check(rows, per_seed, key="online_contacts")
         claim["statement"] += (" Counting only the online contacts (recovery-rl's accounting, the offline phase's "
                                "apart): " + claim["online_only"]["statement"])
-    return {"methods": rows, "claim": claim}
+    if tuning:
+        for m in methods:
+            rows[m]["met_criterion"] = tuning[m]["met_criterion"]
+        never = [m for m in methods if not tuning[m]["met_criterion"]]
+        if never:
+            claim["never_met_criterion"] = never
+            claim["statement"] += (f" Tuning: {', '.join(never)} never met the goal criterion in {tuning[never[0]]['trials']} "
+                                   "trials (evaluated at the default configuration).")
+    return {"methods": rows, "claim": claim, "convergence": convergence(runs, methods)}
+
+
+def converged_at(goals, window: int = WINDOW, learned_at: float = LEARNED_AT) -> int:
+    """The first episode (1-based) from which the goal is reached in >= `learned_at` of `window` episodes;
+    never: the number of episodes + 1."""
+    g = np.asarray(goals, float)
+    hit = [e for e in range(len(g) - window + 1) if g[e:e + window].mean() >= learned_at]
+    return hit[0] + 1 if hit else len(g) + 1
+
+
+def convergence(runs: list[dict], methods: list[str]) -> dict:
+    """Fig. 9c, faster convergence: per method the mean convergence episode (`converged_at`) with its 95%
+    interval and how many runs never converged; per -TDM variant against its plain method, Welch's interval
+    of (plain - TDM) episodes: "faster" when it lies above 0, "slower" below, else "not resolved"."""
+    eps = {m: [converged_at(r["goals"]) for r in runs if r["method"] == m] for m in methods}
+    rows = {m: {"episode_mean": mean_ci(x)[0], "ci95": mean_ci(x)[1], "never": int(sum(
+        e > len(r["goals"]) for e, r in zip(x, [r for r in runs if r["method"] == m])))} for m, x in eps.items() if x}
+    pairs = {}
+    for t in TDM_METHODS:
+        if t in rows and t[:-4] in rows:
+            d, ci = diff_ci(eps[t], eps[t[:-4]])
+            pairs[f"{t} vs {t[:-4]}"] = {"difference": d, "ci95": ci,
+                                         "verdict": {"lower": "faster", "higher": "slower"}.get(compare(ci), "not resolved")}
+    s = (f"Convergence (first episode from which >= {LEARNED_AT:.0%} of {WINDOW} episodes reach the goal; never: episodes"
+         " + 1): " + ", ".join(f"{m} {v['episode_mean']:.1f} [{v['ci95'][0]:.1f}, {v['ci95'][1]:.1f}]" for m, v in rows.items())
+         + ". " + " ".join(f"{k}: {p['verdict']} by {p['difference']:.1f} episodes [{p['ci95'][0]:.1f}, {p['ci95'][1]:.1f}]."
+                           for k, p in pairs.items()))
+    return {"window": WINDOW, "methods": rows, "pairs": pairs, "statement": s.strip()}
+
+
+def settle(claim: dict, reps: list[dict]) -> dict:
+    """The first replicate's claim with every replicate's verdict beside it: `verdict_agrees` when all
+    replicates give the same verdicts (total and online-only contacts); where they differ the verdict is
+    "not settled" (never the first replicate's alone)."""
+    v = [r["summary"]["claim"]["verdict"] for r in reps]
+    vo = [r["summary"]["claim"].get("online_only", {}).get("verdict") for r in reps]
+    agrees = len(set(v)) == 1 and len(set(vo)) == 1
+    out = dict(claim, verdict_agrees=agrees, replicate_verdicts=v)
+    if len(reps) > 1:
+        out["statement"] = claim["statement"] + " Replicates: " + "; ".join(
+            f"tuning seeds {r['tuning_seeds'][0]}-{r['tuning_seeds'][-1]}: {a}" + (f" (online only: {b})" if b else "")
+            for r, a, b in zip(reps, v, vo)) + (". The verdicts agree." if agrees else ". The verdicts differ: not settled.")
+    if len(set(v)) > 1:
+        out.update(verdict="not settled", holds=False)
+    if len(set(vo)) > 1:
+        out["online_only"] = dict(claim["online_only"], verdict="not settled", holds=False)
+    return out
+
+
+def replicate_record(rep: dict, runs: list[dict]) -> dict:
+    """One replicate in brief: its tuning seeds, chosen configurations, totals and verdicts."""
+    sm = rep["summary"]
+    return {"tuning_seeds": rep["tuning_seeds"], "chosen": {m: t["chosen"] for m, t in rep["tuning"].items()},
+            "met_criterion": {m: t["met_criterion"] for m, t in rep["tuning"].items()},
+            "total_contacts_mean": {m: v["total_contacts_mean"] for m, v in sm["methods"].items()},
+            "per_seed": [run_row(r) for r in runs], "verdict": sm["claim"]["verdict"],
+            "online_only_verdict": sm["claim"].get("online_only", {}).get("verdict"),
+            "convergence": {k: p["verdict"] for k, p in sm["convergence"]["pairs"].items()},
+            "statement": sm["claim"]["statement"]}
 
 
 def _pairs(tdm: list[str], other: list[str], totals: dict) -> dict:
@@ -315,17 +403,23 @@ def claim_check(rows: dict, per_seed: list[dict] | None = None, learned_at: floa
 
 
 # -- the tuning protocol ----------------------------------------------------------------------------
-def choose(rows: list[dict], learned_at: float = LEARNED_AT) -> int:
-    """Index of the chosen configuration: the lowest mean total contacts among those whose mean goal rate
-    over the last LAST episodes is >= `learned_at`; if none, the highest such goal rate (then fewer contacts)."""
+def choose(rows: list[dict], learned_at: float = LEARNED_AT) -> int | None:
+    """Index of the chosen trial: the lowest mean total contacts among those whose mean goal rate over the
+    last LAST episodes is >= `learned_at` (ties: the earlier trial); None when no trial meets it."""
     ok = [i for i, r in enumerate(rows) if r["goal_rate_last_mean"] >= learned_at]
-    if ok:
-        return min(ok, key=lambda i: (rows[i]["total_contacts_mean"], i))
-    return min(range(len(rows)), key=lambda i: (-rows[i]["goal_rate_last_mean"], rows[i]["total_contacts_mean"], i))
+    return min(ok, key=lambda i: (rows[i]["total_contacts_mean"], i)) if ok else None
 
 
-CRITERION = (f"lowest mean total contacts among the configurations whose mean goal rate over the last {LAST} "
-             f"episodes on the tuning seeds is >= {LEARNED_AT}; if none, the highest such goal rate")
+def objective(row: dict, learned_at: float = LEARNED_AT) -> float:
+    """The number the sampler minimises, ordered as `choose` orders: a trial meeting the goal criterion
+    scores its contacts, one missing it 10^6 per goal rate short of the criterion plus its contacts."""
+    short = max(0.0, learned_at - row["goal_rate_last_mean"])
+    return row["total_contacts_mean"] + (1e6 * (1 + short) if short > 0 else 0.0)
+
+
+CRITERION = (f"lowest mean total contacts among the trials whose mean goal rate over the last {LAST} "
+             f"episodes on the tuning seeds is >= {LEARNED_AT}; none: the method never met the criterion "
+             "(evaluated at its default configuration)")
 
 
 def agent_kw(method: str, config: dict, episodes: int, extra: dict | None = None) -> dict:
@@ -358,23 +452,58 @@ def _stop_ray() -> None:
         sys.modules["ray"].shutdown()
 
 
-def tune(methods, cfg, seeds, k, out, args, extra) -> tuple[dict, list[dict]]:
-    """Stage 1: every method's first `k` TUNING configurations on the tuning seeds; the record and the runs."""
-    grid = {m: TUNING[m][:k] for m in methods}
-    tasks = [_task(m, s, cfg, agent_kw(m, c, cfg["episodes"], extra)) for m in methods for c in grid[m] for s in seeds]
-    runs = _run(tasks, out, args, "maze tuning", keep_ray=True)  # the evaluation stage reuses this Ray
-    record, it = {}, iter(runs)
+def config_text(config: dict) -> str:
+    """A configuration in a line: `lr 0.00206, shrink False` (floats to 3 significant digits)."""
+    return ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in config.items()) or "defaults"
+
+
+def _distribution(values):
+    import optuna.distributions as od
+
+    if isinstance(values, list):
+        return od.CategoricalDistribution(values)
+    kind, lo, hi = values
+    return od.FloatDistribution(lo, hi, log=kind == "log")
+
+
+def tune(methods, cfg, seeds, trials, out, args, extra, sampler_seed: int = 0) -> tuple[dict, list[dict]]:
+    """Stage 1: `trials` Optuna trials per method over its `SPACES` entry (trial 0 its defaults; TPE, seeded,
+    asked `ROUND` at a time per method, all of a round run together on Ray and told in a fixed order, so the
+    trials are a function of the runs), each on the tuning seeds; the record (per method: every trial, the
+    chosen one by `choose`, or none) and the runs."""
+    import optuna
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    studies, dists, rows, runs = {}, {}, {m: [] for m in methods}, []
     for m in methods:
-        rows = []
-        for c in grid[m]:
-            rs = [run_row(next(it)) for _ in seeds]
-            rows.append({"config": c, "agent_kw": agent_kw(m, c, cfg["episodes"], extra),
-                         "total_contacts_mean": float(np.mean([r["total_contacts"] for r in rs])),
-                         "goal_rate_last_mean": float(np.mean([r["goal_rate_last"] for r in rs])),
-                         "per_seed": [{k_: r[k_] for k_ in ("seed", "total_contacts", "goal_rate_last")} for r in rs]})
-        i = choose(rows)
-        record[m] = {"configs": rows, "tuning_seeds": list(seeds), "episodes": cfg["episodes"], "chosen": rows[i]["config"],
-                     "chosen_index": i, "criterion": CRITERION}
+        sampler = optuna.samplers.TPESampler(seed=sampler_seed, n_startup_trials=max(1, trials // 2), constant_liar=True)
+        studies[m] = optuna.create_study(direction="minimize", sampler=sampler)
+        studies[m].enqueue_trial({k: default for k, (default, _) in SPACES[m].items()})
+        dists[m] = {k: _distribution(values) for k, (_, values) in SPACES[m].items()}
+    while len(rows[methods[0]]) < trials:
+        n = min(ROUND, trials - len(rows[methods[0]]))
+        asked = {m: [studies[m].ask(dists[m]) for _ in range(n)] for m in methods}
+        tasks = [_task(m, s, cfg, agent_kw(m, t.params, cfg["episodes"], extra)) for m in methods for t in asked[m] for s in seeds]
+        done = _run(tasks, out, args, f"maze tuning (seeds {seeds[0]}-{seeds[-1]}), {len(rows[methods[0]]) + n}/{trials} trials",
+                    keep_ray=True)  # the next round and the evaluation stage reuse this Ray
+        runs += done
+        it = iter(done)
+        for m in methods:
+            for t in asked[m]:
+                rs = [run_row(next(it)) for _ in seeds]
+                row = {"trial": t.number, "config": t.params, "agent_kw": agent_kw(m, t.params, cfg["episodes"], extra),
+                       "total_contacts_mean": float(np.mean([r["total_contacts"] for r in rs])),
+                       "goal_rate_last_mean": float(np.mean([r["goal_rate_last"] for r in rs])),
+                       "per_seed": [{k_: r[k_] for k_ in ("seed", "total_contacts", "goal_rate_last")} for r in rs]}
+                studies[m].tell(t, objective(row))
+                rows[m].append(row)
+    record = {}
+    for m in methods:
+        i = choose(rows[m])
+        record[m] = {"space": {k: values for k, (_, values) in SPACES[m].items()}, "trials": len(rows[m]),
+                     "configs": rows[m], "tuning_seeds": list(seeds), "episodes": cfg["episodes"],
+                     "sampler": f"optuna {optuna.__version__} TPE, seed {sampler_seed}", "met_criterion": i is not None,
+                     "chosen": rows[m][0 if i is None else i]["config"], "chosen_index": i, "criterion": CRITERION}
     return record, runs
 
 
@@ -441,7 +570,7 @@ def markdown_table(summary: dict, per_seed: list[dict] | None = None, tuning: di
         lines.append(f"| {m} | {v['total_contacts_mean']:.1f} [{lo:.1f}, {hi:.1f}] | {v['total_contacts_std']:.1f} | "
                      f"{v['offline_contacts_mean']:.0f} | {v['goal_rate_mean']:.2f} | {v['goal_rate_last_mean']:.2f} "
                      f"({v['seeds_reaching']}/{v['seeds']}) | {v['seeds']} |")
-    text = "\n".join(lines) + "\n\n" + summary["claim"]["statement"] + "\n"
+    text = "\n".join(lines) + "\n\n" + summary["claim"]["statement"] + "\n\n" + summary["convergence"]["statement"] + "\n"
     if per_seed and n > 1:
         seeds = sorted({p["seed"] for p in per_seed})
         text += ("\nPer seed: total contacts (goal rate over the last 20 episodes)\n\n| method | "
@@ -451,11 +580,13 @@ def markdown_table(summary: dict, per_seed: list[dict] | None = None, tuning: di
             text += f"| {m} | " + " | ".join(
                 f"{by[s]['total_contacts']:.0f} ({by[s]['goal_rate_last']:.2f})" if s in by else "-" for s in seeds) + " |\n"
     if tuning:
-        text += "\nTuning (" + CRITERION + "):\n\n| method | configuration | total contacts | goal rate, last 20 | chosen |\n| --- | --- | --- | --- | --- |\n"
+        text += "\nTuning (" + CRITERION + "):\n\n| method | trial | configuration | total contacts | goal rate, last 20 | chosen |\n| --- | --- | --- | --- | --- | --- |\n"
         for m, rec in tuning.items():
             for i, c in enumerate(rec["configs"]):
-                text += (f"| {m} | {json.dumps(c['config']) if c['config'] else 'default'} | {c['total_contacts_mean']:.1f} | "
+                text += (f"| {m} | {c['trial']} | {config_text(c['config'])} | {c['total_contacts_mean']:.1f} | "
                          f"{c['goal_rate_last_mean']:.2f} | {'**yes**' if i == rec['chosen_index'] else ''} |\n")
+            if not rec["met_criterion"]:
+                text += f"| {m} | — | no trial met the goal criterion: evaluated at trial 0 (default) | | | |\n"
     if ablation:
         text += (f"\nAblation (seeds {', '.join(str(p['seed']) for p in ablation[0]['per_seed'])}, the first "
                  f"{ablation[0]['episodes']} episodes): total contacts, mean [95% interval]; difference to the chosen "
@@ -554,20 +685,32 @@ def run(args) -> int:
     t0 = time.perf_counter()
     extra = tdm_overrides(args)
     full = args.preset == "full"
-    tuning, stage_runs = None, {}
+    reps, stage_runs = [{"tuning": None}], {"tuning": []}
     if full:
-        k = args.configs or max(len(v) for v in TUNING.values())
-        if k < 1:
-            raise SystemExit(f"skinsafe experiment maze: --configs must be >= 1, got {k}")
-        tuning_seeds = parse_seeds(getattr(args, "tuning_seeds", None) or PROTOCOL["tuning_seeds"])
-        overlap = sorted(set(tuning_seeds) & set(cfg["eval_seeds"]))
+        trials, n_reps = getattr(args, "trials", TRIALS), getattr(args, "replicates", REPLICATES)
+        if trials < 1 or n_reps < 1:
+            raise SystemExit(f"skinsafe experiment maze: --trials and --replicates must be >= 1, got {trials} and {n_reps}")
+        first = parse_seeds(getattr(args, "tuning_seeds", None) or PROTOCOL["tuning_seeds"])
+        span = first[-1] - first[0] + 1
+        reps = [{"tuning_seeds": [s + r * span for s in first]} for r in range(n_reps)]
+        overlap = sorted({s for r in reps for s in r["tuning_seeds"]} & set(cfg["eval_seeds"]))
         if overlap:
-            raise SystemExit(f"skinsafe experiment maze: seeds {overlap} are both tuning and evaluation seeds; "
-                             "evaluate on held-out seeds (e.g. --tuning-seeds 0-1 --seeds 10-19)")
+            raise SystemExit(f"skinsafe experiment maze: seeds {overlap} are both tuning and evaluation seeds (replicate r "
+                             f"tunes on --tuning-seeds shifted by r x {span}); evaluate on held-out seeds (e.g. --tuning-seeds "
+                             "0-1 --seeds 10-19)")
         n = min(getattr(args, "tuning_episodes", TUNING_EPISODES), cfg["episodes"])
-        tuning, stage_runs["tuning"] = tune(methods, dict(cfg, episodes=n), tuning_seeds, k, out, args, extra)
-    chosen = {m: agent_kw(m, tuning[m]["chosen"] if tuning else {}, cfg["episodes"], extra) for m in methods}
-    eval_tasks = [_task(m, s, cfg, chosen[m]) for s in cfg["eval_seeds"] for m in methods]
+        try:
+            for r, rep in enumerate(reps):
+                rep["tuning"], runs_r = tune(methods, dict(cfg, episodes=n), rep["tuning_seeds"], trials, out, args, extra, r)
+                stage_runs["tuning"] += runs_r
+        except BaseException:
+            _stop_ray()  # tuning keeps its Ray for the next stage; a failed or interrupted run ends it
+            raise
+    for rep in reps:
+        rep["chosen"] = {m: agent_kw(m, rep["tuning"][m]["chosen"] if rep["tuning"] else {}, cfg["episodes"], extra)
+                         for m in methods}
+    chosen = reps[0]["chosen"]
+    eval_tasks = [_task(m, s, cfg, rep["chosen"][m]) for rep in reps for s in cfg["eval_seeds"] for m in methods]
     abl = []
     if full and not args.no_ablation:
         named = getattr(args, "ablation_seeds", None)
@@ -581,9 +724,15 @@ def run(args) -> int:
         done = _run(eval_tasks + [t for _, t in abl], out, args, "maze evaluation" + (" + ablation" if abl else ""))
     finally:
         _stop_ray()
-    runs, abl_runs = done[:len(eval_tasks)], done[len(eval_tasks):]
-    stage_runs["evaluation"], stage_runs["ablation"] = runs, abl_runs
-    summary = summarise(runs, methods)
+    per_rep = len(cfg["eval_seeds"]) * len(methods)
+    rep_runs = [done[k * per_rep:(k + 1) * per_rep] for k in range(len(reps))]
+    runs, abl_runs = rep_runs[0], done[len(eval_tasks):]
+    stage_runs["evaluation"], stage_runs["ablation"] = [r for rr in rep_runs for r in rr], abl_runs
+    for rep, rr in zip(reps, rep_runs):
+        rep["summary"] = summarise(rr, methods, rep["tuning"])
+    summary = reps[0]["summary"]
+    if full:
+        summary["claim"] = settle(summary["claim"], reps)
     for m in methods:
         summary["methods"][m]["agent_kw"] = chosen[m]
     summary["config"] = {k: cfg[k] for k in ("seeds", "episodes", "max_steps")}
@@ -593,8 +742,12 @@ def run(args) -> int:
     summary["stage_cpu_seconds"] = {k: float(sum(r.get("cpu_seconds", 0.0) for r in v)) for k, v in stage_runs.items() if v}
     per_seed = [run_row(r) for r in runs]
     ablation = ablation_rows(list(zip((h for h, _ in abl), abl_runs)), runs, chosen) if abl else []
-    doc = {"summary": summary, "eval_seeds": cfg["eval_seeds"], "tuning": tuning or {}, "per_seed": per_seed,
-           "ablation": ablation, "runs": runs}
+    tuning = reps[0]["tuning"] or {}
+    doc = {"summary": summary, "eval_seeds": cfg["eval_seeds"], "tuning": tuning, "per_seed": per_seed,
+           "ablation": ablation, "runs": runs, "provenance": provenance()}
+    if full:
+        doc["replicates"] = [replicate_record(rep, rr) for rep, rr in zip(reps, rep_runs)]
+        doc["verdict_agrees"] = summary["claim"]["verdict_agrees"]
     plot_curves(runs, methods, out / "maze_curves.png")
     md = markdown_table(summary, per_seed, tuning, ablation)
     atomic_write(out / "maze_contacts.md", md)

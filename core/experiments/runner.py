@@ -2,11 +2,15 @@
 
 `run_tasks(fn, tasks, cache)` runs `fn(**task)` for every task dict as a Ray task (one CPU each).
 Each finished task is written at once to `cache/<method>_s<seed>[_<digest>].json` (atomically) together with
-the task it ran and a digest of every skinsafe source file loaded where it ran, so a restarted run
-reuses every task whose file holds the same task (the same method, seed and configuration) run by
-the same code, and only runs the rest (a changed default in an agent re-runs its tasks). Ray is local by default (`workers`
-CPUs, a private instance that stops at the end); `address` joins a cluster instead (every node
-needs skinsafe installed). Progress is shown as tasks finish.
+the task it ran, a digest of every skinsafe source file loaded where it ran and the versions of the
+libraries that decide its numbers (`VERSIONED`), so a restarted run reuses every task whose file holds
+the same task (the same method, seed and configuration) run by the same code on the same libraries,
+and only runs the rest (a changed default in an agent re-runs its tasks). A run is a pure function of
+(code, configuration, seed): every task runs with torch and BLAS on one thread (`_one_thread`), and
+`provenance()` (the hash of the package's sources and those versions) goes into every result file. A
+task given twice in one call runs once. Ray is local by default (`workers` CPUs, a private instance that
+stops at the end); `address` joins a cluster instead (every node needs skinsafe installed). Progress is
+shown as tasks finish.
 """
 from __future__ import annotations
 
@@ -38,12 +42,35 @@ def cached(cache: Path, task: dict) -> dict | None:
         doc = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-    if doc.get("task") != json.loads(json.dumps(task)) or not _unchanged(doc.get("sources")):
+    if (doc.get("task") != json.loads(json.dumps(task)) or not _unchanged(doc.get("sources"))
+            or doc.get("versions") != versions()):
         return None
     return doc.get("result")
 
 
 ROOT = Path(__file__).resolve().parents[2]  # the folder the `skinsafe` package maps to
+VERSIONED = ("torch", "mujoco", "numba", "numpy")  # the libraries whose version can change a run's numbers
+ONE_THREAD = {k: "1" for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+
+
+def versions() -> dict[str, str]:
+    """{library: installed version} of `VERSIONED`."""
+    from importlib.metadata import version
+
+    return {name: version(name) for name in VERSIONED}
+
+
+def code_hash() -> str:
+    """sha1 over the path and bytes of every .py file of `skinsafe.core` (the code an experiment runs)."""
+    h = hashlib.sha1()
+    for path in sorted((ROOT / "core").rglob("*.py")):
+        h.update(path.relative_to(ROOT).as_posix().encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()
+
+
+def provenance() -> dict:
+    """What a result was computed with: `code_sha1` (`code_hash`), the library `versions`, one thread."""
+    return {"code_sha1": code_hash(), "versions": versions(), "threads": 1}
 
 
 def _digest(path: Path) -> str | None:
@@ -70,10 +97,21 @@ def _unchanged(sources) -> bool:
     return bool(sources) and all(_digest(ROOT / p) == h for p, h in sources.items())
 
 
-def traced(fn: Callable[..., dict], task: dict) -> tuple[dict, dict[str, str]]:
-    """`fn(**task)` and the skinsafe sources it ran with (`loaded_sources` after it)."""
+def _one_thread() -> None:
+    """torch and BLAS on one thread in this process (a run's numbers must not depend on thread counts)."""
+    import torch
+
+    from skinsafe.core.timing import single_thread_blas
+
+    torch.set_num_threads(1)
+    single_thread_blas()
+
+
+def traced(fn: Callable[..., dict], task: dict) -> tuple[dict, dict[str, str], dict[str, str]]:
+    """`fn(**task)` on one thread, the skinsafe sources it ran with (`loaded_sources` after it) and `versions`."""
+    _one_thread()
     result = fn(**task)
-    return result, loaded_sources()
+    return result, loaded_sources(), versions()
 
 
 def _start_ray(ray, address: str | None, workers: int | None, tries: int = 3) -> None:
@@ -82,11 +120,11 @@ def _start_ray(ray, address: str | None, workers: int | None, tries: int = 3) ->
     for k in range(1 if address else tries):
         try:
             if address:
-                ray.init(address=address, log_to_driver=False)
+                ray.init(address=address, log_to_driver=False, runtime_env={"env_vars": ONE_THREAD})
             else:
                 n = int(workers or min(2, os.cpu_count() or 1))
                 ray.init(address="local", num_cpus=n, include_dashboard=False, log_to_driver=False,
-                         object_store_memory=128 * 2 ** 20)
+                         object_store_memory=128 * 2 ** 20, runtime_env={"env_vars": ONE_THREAD})
             return
         except Exception as e:  # noqa: BLE001 - Ray raises plain Exception for a start-up timeout
             ray.shutdown()
@@ -107,7 +145,11 @@ def run_tasks(fn: Callable[..., dict], tasks: list[dict], cache: str | Path, add
     cache = Path(cache)
     cache.mkdir(parents=True, exist_ok=True)
     results: list[dict | None] = [None if fresh else cached(cache, t) for t in tasks]
-    todo = [i for i, r in enumerate(results) if r is None]
+    first = {}  # a task given twice (two replicates choosing the same configuration) runs once
+    for i, t in enumerate(tasks):
+        first.setdefault(json.dumps(t, sort_keys=True), i)
+    same = [first[json.dumps(t, sort_keys=True)] for t in tasks]
+    todo = [i for i, r in enumerate(results) if r is None and same[i] == i]
     if cost is not None:
         todo.sort(key=lambda i: -cost(tasks[i]))
     bar = tqdm(total=len(tasks), initial=len(tasks) - len(todo), desc=desc, disable=not progress, file=sys.stderr)
@@ -125,13 +167,13 @@ def run_tasks(fn: Callable[..., dict], tasks: list[dict], cache: str | Path, add
                 done, pending = ray.wait(pending, num_returns=1)
                 for ref in done:
                     i = refs[ref]
-                    results[i], sources = ray.get(ref)
+                    results[i], sources, libs = ray.get(ref)
                     atomic_write(task_file(cache, tasks[i]), json.dumps({"task": tasks[i], "result": results[i],
-                                                                         "sources": sources}))
+                                                                         "sources": sources, "versions": libs}))
                     bar.set_postfix_str(f"{tasks[i]['method']} seed {tasks[i]['seed']}")
                     bar.update()
         finally:
             if started and not keep_ray:
                 ray.shutdown()
     bar.close()
-    return results
+    return [results[j] for j in same]

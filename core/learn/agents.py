@@ -154,7 +154,7 @@ class Agent:
                  cost_penalty: float = 0.0, use_tdm: bool = False, gamma: float = 0.97, lr: float = 3e-3,
                  hidden=(64, 64), refit_every: int = 20, fit: FitConfig | None = None, unseen_max: float = 0.8,
                  prior_count: float = 0.01, raw_floor: float = 0.05, unfiltered_entropy: bool = True,
-                 contact_steps: int = 100, shrink: bool = True):
+                 contact_steps: int = 100, shrink: bool = True, offline_transitions: int = 0, pretrain_steps: int = 2000):
         torch.manual_seed(seed)
         self.rng = np.random.default_rng(seed)
         self.features = features if features is not None else (lambda o: np.atleast_2d(np.asarray(o, np.float32)))
@@ -164,6 +164,21 @@ class Agent:
         self.raw_floor, self.unfiltered_entropy = float(raw_floor), bool(unfiltered_entropy)
         self.shield = (TDMShield(self.feat_dim, n_actions, n_taxels, seed, refit_every, fit, unseen_max=unseen_max,
                                  prior_count=prior_count, contact_steps=contact_steps, shrink=shrink) if use_tdm else None)
+        if offline_transitions and self.shield is None:
+            raise ValueError(f"offline_transitions={offline_transitions}: only a -TDM agent, RRL or SQRL learns from an "
+                             "offline phase; give 0 for this agent")
+        self.offline_transitions, self.pretrain_steps = int(offline_transitions), int(pretrain_steps)
+
+    def pretrain(self, obs, actions, costs, next_obs, terminated, dangers) -> None:
+        """The offline phase of a -TDM agent (`offline_transitions` > 0, the random transitions RRL and SQRL
+        get): its TDM and visit counts take their taxel events and the TDM is fitted on them for
+        `pretrain_steps` gradient steps; the policy learns online only."""
+        feats = self.features(np.asarray(obs, np.float32))
+        actions = np.asarray(actions, np.int64)
+        self.shield.trainer.add(feats, self.shield.eye[actions], np.asarray(dangers, np.float32))
+        for f, a in zip(feats, actions):
+            self.shield.counts.add(f, int(a))
+        self.shield.fit(self.pretrain_steps)
 
     # p(a|s) of the raw policy, on features: the interface `safety.danger.PolicyFilter` wraps.
     @torch.no_grad()

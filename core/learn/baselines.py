@@ -17,8 +17,8 @@ As their reference specifies (recovery-rl's scripts/maze.sh and arg_utils.py; is
 - SQRL's multiplier nu from 100, updated like the reference's dual: log nu by Adam at a tenth of the
   learning rate on `log nu (eps - E_pi Q_risk)`.
 
-The tuning protocol (`core.experiments.maze.TUNING`) searches these against milder settings, as many as
-every other method gets. Departures: Q_risk is a network over the maze features with target rate
+The tuning protocol (`core.experiments.maze.SPACES`, `tune`) searches around these (these first), with as
+many trials as every other method gets; the offline phase is a switch of that search. Departures: Q_risk is a network over the maze features with target rate
 tau = 0.05 (recovery-rl: 0.0002), recovery is argmin_a Q_risk (exact for 4 actions), the policies are
 categorical.
 
@@ -108,8 +108,9 @@ class _RiskSAC(DiscreteSAC):
         with torch.no_grad():
             return torch.softmax(self.actor(s2), -1)
 
-    def pretrain(self, obs, actions, costs, next_obs, terminated) -> None:
-        """The offline phase: store the transitions in the risk replay and fit Q_risk on them."""
+    def pretrain(self, obs, actions, costs, next_obs, terminated, dangers=None) -> None:
+        """The offline phase: store the transitions in the risk replay and fit Q_risk on them (Q_risk learns
+        from the contact events `costs`; the per-taxel `dangers` are a -TDM agent's, `Agent.pretrain`)."""
         for o, a, c, o2, t in zip(obs, actions, costs, next_obs, terminated):
             s = self.features(o)[0]
             self.risk_replay.add(s, int(a), 0.0, float(c), self.features(o2)[0], float(t))

@@ -224,16 +224,16 @@ def wall_moves(walls: np.ndarray) -> int:
 def random_rollouts(env: MazeEnv, n: int, rng: np.random.Generator, length: int = 20) -> dict:
     """`n` transitions of uniformly random actions in rollouts of `length` from uniformly random (free
     cell, heading) placements (recovery-rl's offline `transition_function`). Arrays `obs`, `actions`,
-    `costs`, `next_obs`, `terminated`."""
+    `costs`, `next_obs`, `terminated` and `dangers` (the per-taxel events)."""
     free = np.argwhere(~env.walls)
-    out = {k: [] for k in ("obs", "actions", "costs", "next_obs", "terminated")}
+    out = {k: [] for k in ("obs", "actions", "costs", "next_obs", "terminated", "dangers")}
     while len(out["actions"]) < n:
         r, c = free[rng.integers(len(free))]
         obs, _ = env.reset(options={"start": (int(r), int(c), int(rng.integers(4)))})
         for _ in range(min(length, n - len(out["actions"]))):
             a = int(rng.integers(env.action_space.n))
             nxt, _, term, _, info = env.step(a)
-            for k, v in zip(out, (obs, a, info["cost"], nxt, term)):
+            for k, v in zip(out, (obs, a, info["cost"], nxt, term, info["taxel_danger"])):
                 out[k].append(v)
             obs = nxt
             if term:

@@ -103,8 +103,27 @@ class TrackingScene:
 
     def ball_distance(self, q: np.ndarray) -> float:
         """Smallest signed distance (m) from any taxel at joint angles q to a ball's surface (< 0: inside)."""
+        return float(self.ball_distances(q).min())
+
+    def danger_at(self, S: np.ndarray) -> np.ndarray:
+        """(len(S), N) taxel events of the skin at rest at each state S (the first MOVING joint angles, the
+        others at home): MuJoCo's contacts at that pose (`mj_forward`), read by the episodes' readout and
+        thresholds. The label of a state nobody visited (a noisy copy of a visited one)."""
+        d = mujoco.MjData(self.model)
+        out = np.zeros((len(S), self.design.n_taxels), bool)
+        q = self.robot.home.copy()
+        for k, s in enumerate(np.asarray(S, float)):
+            q[:MOVING] = s
+            d.qpos[self.qadr] = q
+            d.ctrl[:] = q
+            mujoco.mj_forward(self.model, d)
+            out[k] = self.readout.read(d) > self.thresholds
+        return out
+
+    def ball_distances(self, q: np.ndarray) -> np.ndarray:
+        """(n_balls,) smallest signed distance (m) from any taxel at joint angles q to each ball's surface."""
         pos, _ = self.kin.poses(q)
-        return float((np.linalg.norm(pos[:, None] - self.balls[None], axis=2) - self.task.ball_radius).min())
+        return (np.linalg.norm(pos[:, None] - self.balls[None], axis=2) - self.task.ball_radius).min(0)
 
     def path_contact_ticks(self) -> int:
         """Ticks at which the exact desired path itself puts a taxel inside a ball."""

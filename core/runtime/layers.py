@@ -17,6 +17,7 @@ import numpy as np
 
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.robot.models import load_robot, only_joints
+from skinsafe.core.runtime.limiter import limits_config
 from skinsafe.core.safety.defensiveness import DefensivenessLayer
 from skinsafe.core.safety.retraction import RetractionParams
 from skinsafe.core.safety.stack import SafetyStack
@@ -54,7 +55,8 @@ def run_config(map_path: str | Path, driver, limits: dict, params: RetractionPar
             "robot": driver.name, "joint_names": list(driver.joint_names), "period_s": driver.period_s,
             "qd_max": [float(x) for x in limits["qd_max"]], "qdd_max": [float(x) for x in limits["qdd_max"]],
             "retraction": {f.name: _plain(getattr(params, f.name)) for f in fields(params)}, "excluded": [int(i) for i in np.flatnonzero(excluded)],
-            "command": command, "tdm": str(Path(tdm_path).resolve()) if tdm_path else None}
+            "command": command, "tdm": str(Path(tdm_path).resolve()) if tdm_path else None,
+            "limits": limits_config(limits)}
 
 
 def _plain(x):

@@ -1,19 +1,24 @@
 """The safety loop: every period of the robot's clock, newest readings -> `SafetyStack.tick` -> the driver.
 
 `Runtime.control(state)` is the driver's callback (core/runtime/protocol.py). One tick:
-1. watchdogs, in this order (the first that fires names the stop): the skin source's named faults
-   (a board silent for more than 2 frame periods, a CRC storm, frames from another uid, a counter
-   that went back, a link lost), the robot's state not updating (its `seq` unchanged for
-   `state_periods` ticks), a stale command source (`age() > stale_s`), then anything non-finite
-   (robot clock, q, qd, a reading of a taxel that is not excluded, the planned command);
+1. every fault source reports to the safety monitor (core/runtime/monitor.py) as a typed fault: the
+   command source (a non-finite plan), the skin source's faults (the reader's death from its pidfd, a
+   board lost, silent, late by its own clock, replayed, foreign, a CRC storm), the robot's own clock
+   (unchanged for `state_periods` ticks, or going back: never a host counter), a stale command source
+   (`age() > stale_s`), anything non-finite (robot clock, q, qd, a reading of a taxel that is not
+   excluded); the monitor alone decides the stop;
 2. the readings (excluded taxels as 0 N, read after the plan so that a frame arriving while it was
-   computed is used), the command source's planned velocity at the robot's clock
-   since the start, and the MEASURED dt and qd go through `SafetyStack.tick`; a non-finite result
-   is a stop too;
-3. the command goes back to the driver; the recorder and the tap get the tick (never waited on).
-A watchdog raises `StopRobot(reason)`: the driver sends zero velocity, then the robot's own stop.
-Nothing resumes: the operator starts a new run. `stop_by_operator` (Ctrl-C) asks the driver to stop
-from any thread.
+   computed is used), the command source's planned velocity at the robot's clock since the start, and
+   the MEASURED dt and qd go through `SafetyStack.tick`; a non-finite result or a failed QP solve
+   latches a stop too; a retraction with ticks flagged infeasible latches one when it ends (a contact
+   at speed flags its first ticks by physics: the retraction is let finish, the plan never resumes),
+   as does any retraction's end under `--after-contact hold`;
+3. the one command limiter (core/runtime/limiter.py: position, velocity, acceleration, jerk) makes the
+   command the driver sends, the stack is told it, and that is what the recorder and the tap get
+   (never waited on).
+A stop raises `StopRobot(reason)`: the driver sends zero velocity, then the robot's own stop.
+Nothing resumes: the operator starts a new run. `stop_by_operator` (a signal) asks the driver to stop
+from any thread; every further signal only sets the same flag.
 """
 from __future__ import annotations
 
@@ -22,23 +27,36 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from skinsafe.core.runtime.limiter import Limiter
+from skinsafe.core.runtime.monitor import Fault, Kind, Monitor
 from skinsafe.core.runtime.protocol import StopRobot
 from skinsafe.core.runtime.tap import Frame, Tap
 from skinsafe.core.runtime.tick_figures import Figure
 from skinsafe.core.safety.limits import finite
 
-STALE_KINDS = ("skin-silent", "robot-state", "command-stale")
+# the flag of a tick that makes its retraction latch a stop when it ends: no command met the no-push rows within the
+# limits. Not `pushing`: it flags any measured motion into a contact above 1e-9 (franky-sim's joint-velocity jitter
+# under a hand's touch flags it in a clean retraction)
+UNCLEAN = ("infeasible",)
+SETTLING = (Kind.BOARD_SILENT, Kind.BOARD_LATE, Kind.READER_STALLED)  # may pass before the robot moves (a stall)
 
 
 @dataclass
 class Outcome:
     reason: str  # one line: why the robot stopped
     kind: str  # end | fault | operator | driver
-    watchdog: str = ""  # the watchdog that fired (fault): skin, skin-silent, robot-state, command-stale, nonfinite
+    watchdog: str = ""  # the fault's kind (monitor.Kind value); "" for the planned end
     t: float = 0.0  # the robot's clock at the stop
     detected_mono: float = 0.0  # host time the stop was decided
     ticks: int = 0
     stats: dict = field(default_factory=dict)
+    onset_mono: float | None = None  # host time the fault began, where its source knows it
+    exit_code: int = 0
+    state: str = ""  # the monitor's state when the run ended (protective_stop: latched)
+
+
+def _skin_faults(r) -> list[Fault]:
+    return [Fault(Kind(kind), source, f"skin: {text}", onset) for kind, source, text, onset in r.faults]
 
 
 class Runtime:
@@ -46,12 +64,14 @@ class Runtime:
 
     def __init__(self, driver, source, stack, command, excluded: np.ndarray, thresholds: np.ndarray,
                  recorder=None, tap: Tap | None = None, seconds: float | None = None, state_periods: int = 2,
-                 stale_s: float | None = None):
+                 stale_s: float | None = None, monitor: Monitor | None = None, limiter: Limiter | None = None):
         self.driver, self.source, self.stack, self.command = driver, source, stack, command
         self.excluded = np.asarray(excluded, bool)
         self.thresholds = np.asarray(thresholds, float)
         self.recorder, self.tap, self.seconds = recorder, tap or Tap(), seconds
         self.state_periods, self.stale_s = int(state_periods), stale_s if stale_s is not None else command.stale_s
+        self.monitor = monitor or Monitor()
+        self.limiter = limiter
         self.outcome: Outcome | None = None
         self.ticks = 0
         self.period = Figure()  # s between the starts of consecutive ticks (host clock)
@@ -60,7 +80,7 @@ class Runtime:
         self.latency = Figure()  # s from a frame holding a contact to its command leaving
         self.waited = Figure()  # s of each such latency before the tick that used the frame began
         self.latency_at = Figure()  # the index of each such latency's tick
-        self._t0 = self._prev_t = self._seq = self._start = self._last_t = self._first_start = None
+        self._t0 = self._prev_t = self._start = self._last_t = self._first_start = None
         self._repeats = 0
         self._reading_seq = None
         self._force = None
@@ -70,39 +90,44 @@ class Runtime:
     # -- the callback ----------------------------------------------------------------------------
     def control(self, state) -> np.ndarray:
         start = time.monotonic()
+        m = self.monitor
         q, qd, t = state.q, state.qd, state.t
         if self._t0 is None:
             self._t0, self._prev_t, self._first_start = t, t, start
             self.command.start(q)
+            m.tick(False)
         else:
             self.period.add(start - self._start)
             self.robot_period.add(t - self._last_t)
-        self._start, self._last_t = start, t
-        planned, unplanned = self._plan(t, q)
+        planned = self._plan(t, q)
         r = self.source.newest()  # after the plan: a frame that arrived meanwhile is this tick's
         self._state = (state, r)
-        watchdog, why = self._watch(state, r)
+        self._watch(state, r)
         new = r.seq != self._reading_seq
-        if new and not watchdog:
+        if new and not m.stopped:
             self._force = np.where(self.excluded, 0.0, r.force)
             self._reading_seq = r.seq
             if not finite(self._force):
                 bad = np.flatnonzero(~np.isfinite(self._force))
-                watchdog, why = "nonfinite", f"non-finite reading on {len(bad)} taxel(s), first taxel {bad[0]}"
-        if not watchdog and unplanned:
-            watchdog, why, planned = "nonfinite", unplanned, None
-        if not watchdog and self.seconds is not None and t - self._t0 >= self.seconds:
-            self._stop(state, r, start, "end", "", f"the run ended after {self.seconds:g} s (--seconds)")
-        if watchdog:
-            self._stop(state, r, start, "fault", watchdog, why)
+                m.report(Fault(Kind.READING_NONFINITE, "skin", f"non-finite reading on {len(bad)} taxel(s), first "
+                               f"taxel {bad[0]}", start))
+        if self.seconds is not None and t - self._t0 >= self.seconds:
+            m.end(f"the run ended after {self.seconds:g} s (--seconds)")
+        self._start, self._last_t = start, t
+        if m.stopped:
+            self._stop(state, r)
         dt = t - self._prev_t if self.ticks else self.driver.period_s  # measured on the robot's clock
         self._prev_t = t
         v = self.stack.tick(t, q, {"force": self._force}, planned, dt, qdot=qd)
-        if not finite(v):
-            self._stop(state, r, start, "fault", "nonfinite", "the layers' command is not finite")
+        self._judge(v, start)
+        if self.limiter is not None and not m.stopped:
+            v = self.stack.last = self.limiter(v, q, dt)  # what is sent: the stack's next tick starts from it
         info = self.stack.info
         d = self.stack.defensiveness
         retracting, pool = bool(d is not None and d.active), int(len(d.pool)) if d is not None else 0
+        m.tick(retracting, tuple(f for f in info.flags if f in UNCLEAN))
+        if m.stopped:
+            self._stop(state, r)
         now = time.monotonic()
         if new and (self._force > self.thresholds).any():
             self.latency.add(now - r.t)
@@ -119,36 +144,52 @@ class Runtime:
                                self.command.age(), 1.0, frame.potential, frame.speed_factor, frame.pool_taxels))
         return v
 
-    def _plan(self, t: float, q: np.ndarray) -> tuple[np.ndarray | None, str]:
-        """The command source's planned velocity, or (None, why it has none)."""
+    def _plan(self, t: float, q: np.ndarray) -> np.ndarray | None:
+        """The command source's planned velocity (None, reported, when it has none)."""
         try:
             planned = np.asarray(self.command(t - self._t0, q), float)
         except StopRobot as e:
-            return None, str(e)
+            self.monitor.report(Fault(Kind.COMMAND_BAD, "command", str(e), time.monotonic()))
+            return None
         if not finite(planned):
-            return None, f"command: {self.command.spec} planned a non-finite velocity"
-        return planned, ""
+            self.monitor.report(Fault(Kind.COMMAND_BAD, "command", f"command: {self.command.spec} planned a "
+                                      "non-finite velocity", time.monotonic()))
+            return None
+        return planned
 
-    def _watch(self, state, r) -> tuple[str, str]:
-        if r.faults:
-            return ("skin-silent" if "silent" in r.faults[0] else "skin"), f"skin: {r.faults[0]}"
-        if state.seq == self._seq:
-            self._repeats += 1
-            if self._repeats >= self.state_periods:
-                return "robot-state", (f"robot: state not updating (seq {state.seq} for {self._repeats + 1} periods "
-                                       f"of {self.driver.period_s * 1e3:g} ms)")
-        else:
-            self._seq, self._repeats = state.seq, 0
-        age = self.command.age()
-        if self.stale_s is not None and age > self.stale_s:
-            return "command-stale", f"command: {self.command.spec} silent for {age:.3f} s (> {self.stale_s:g} s)"
+    def _watch(self, state, r) -> None:
+        """The skin's faults, the robot's own clock, the command source's age, non-finite robot state."""
+        m = self.monitor
+        for f in _skin_faults(r):
+            m.report(f)
         for name, x in (("robot clock", state.t), ("q", state.q), ("qd", state.qd)):
             if not finite(x):
-                return "nonfinite", f"robot: non-finite {name}"
-        return "", ""
+                m.report(Fault(Kind.ROBOT_NONFINITE, "robot", f"robot: non-finite {name}", time.monotonic()))
+        if self._last_t is not None and state.t < self._last_t:
+            m.report(Fault(Kind.ROBOT_CLOCK_BACK, "robot", f"robot: its clock went back from {self._last_t:.4f} s to "
+                           f"{state.t:.4f} s", time.monotonic()))
+        elif self._last_t is not None and state.t == self._last_t:
+            self._repeats += 1
+            if self._repeats >= self.state_periods:
+                m.report(Fault(Kind.ROBOT_FROZEN, "robot", f"robot: state not updating (its clock at {state.t:.4f} s "
+                               f"for {self._repeats + 1} periods of {self.driver.period_s * 1e3:g} ms)", time.monotonic()))
+        else:
+            self._repeats = 0
+        age = self.command.age()
+        if self.stale_s is not None and age > self.stale_s:
+            m.report(Fault(Kind.COMMAND_STALE, "command", f"command: {self.command.spec} silent for {age:.3f} s "
+                           f"(> {self.stale_s:g} s)", time.monotonic() - (age - self.stale_s)))
 
-    def _stop(self, state, r, start: float, kind: str, watchdog: str, reason: str) -> None:
-        self.outcome = Outcome(reason, kind, watchdog, float(state.t), start, self.ticks)
+    def _judge(self, v: np.ndarray, now: float) -> None:
+        """The layers' command: non-finite, or the retraction's QP solve failed, latches a stop."""
+        if not finite(v):
+            self.monitor.report(Fault(Kind.STACK_NONFINITE, "layers", "the layers' command is not finite", now))
+        elif self.stack.defensiveness is not None and self.stack.defensiveness.info.solver_failed:
+            self.monitor.report(Fault(Kind.STACK_LATCH, "layers", "layers: the retraction's QP solve failed: protective "
+                                      "stop (latched until a new run)", now))
+
+    def _stop(self, state, r) -> None:
+        reason = self.monitor.reason
         self._zero(state, r, reason)
         raise StopRobot(reason)
 
@@ -164,35 +205,43 @@ class Runtime:
                                self.command.age(), 0.0))
 
     # -- the run ---------------------------------------------------------------------------------
-    def stop_by_operator(self, why: str = "interrupted by the operator (Ctrl-C)") -> None:
-        """Thread- and signal-safe: the driver stops at its next period."""
-        if self.outcome is None:
-            self.outcome = Outcome(why, "operator", "", float(self._prev_t or 0.0), time.monotonic(), self.ticks)
-        self.driver.stop(why)
+    def stop_by_operator(self, signum: int, name: str) -> None:
+        """Signal-safe (no lock): the monitor latches the operator's stop, the driver stops at its next period."""
+        self.monitor.signal(signum, name)
+        self.driver.stop(self.monitor.reason)
 
     def run(self, settle_s: float = 1.0) -> Outcome:
         """Hand `control` to the driver until the robot stops; the outcome names why. First every board must be
-        streaming fresh frames (within `settle_s`): a board that went quiet while the stack was set up is
-        no reason to stop, one that stays quiet, or any other skin fault, is."""
+        streaming fresh frames, on time by its own clock (within `settle_s`): a board that went quiet, or the reader stalled, while the
+        stack was set up is no reason to stop, one that stays quiet, or any other skin fault, is."""
+        m = self.monitor
         deadline = time.monotonic() + settle_s
-        while True:
+        while not m.stopped:
             r = self.source.newest()
-            other = [f for f in r.faults if "silent" not in f]
-            fresh = max(r.board_age_s.values(), default=0.0) <= self.source.frame_period_s
-            if other or (not fresh and time.monotonic() > deadline):
-                why = other[0] if other else r.faults[0] if r.faults else "boards not streaming"
-                self.outcome = Outcome(f"skin: {why} (before the robot moved)", "fault", "skin", 0.0, time.monotonic())
-                return self.outcome
-            if fresh:
+            other = [f for f in _skin_faults(r) if f.kind not in SETTLING]
+            aged = max(r.board_age_s.values(), default=0.0) <= self.source.frame_period_s
+            fresh = aged and finite(np.where(self.excluded, 0.0, r.force))  # a late board's taxels read NaN
+            late = time.monotonic() > deadline
+            if aged and late and not other:
+                break  # fresh frames, NaN readings: the loop's first tick names them
+            if other or (not fresh and late):
+                f = other[0] if other else Fault(Kind.BOARD_SILENT, "skin", "skin: boards not streaming")
+                m.report(Fault(f.kind, f.source, f"{f.message} (before the robot moved)", f.onset))
+            elif fresh:
                 break
-            time.sleep(self.source.frame_period_s / 4)
-        reason = self.driver.run(self.control)
-        if self.outcome is None:  # the driver stopped on its own (a communication fault, its own limits)
-            self.outcome = Outcome(reason, "driver", "robot", float(self._prev_t or 0.0), time.monotonic(), self.ticks)
+            else:
+                time.sleep(self.source.frame_period_s / 4)
+        if not m.stopped:
+            m.arm()
+            reason = self.driver.run(self.control)
+            if not m.stopped:  # the driver stopped on its own (a communication fault, its own limits)
+                m.report(Fault(Kind.DRIVER, "robot", reason, time.monotonic()))
         if not self._stopped and self._state is not None:  # the operator's or the driver's stop: zero went out too
-            self._zero(*self._state, self.outcome.reason)
-        self.outcome.ticks = self.ticks
-        self.outcome.stats = self.timing()
+            self._zero(*self._state, m.reason)
+        d = m.decide()
+        self.outcome = Outcome(d.reason, d.kind, d.fault.kind.value if d.fault else "", float(self._prev_t or 0.0),
+                               d.detected, self.ticks, self.timing() if self._t0 is not None else {},
+                               d.fault.onset if d.fault else None, d.exit_code, d.state.value)
         return self.outcome
 
     def timing(self) -> dict:

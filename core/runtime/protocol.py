@@ -49,7 +49,7 @@ class Readings(Protocol):
     force: np.ndarray  # (N,) N after tare, taxel order; NaN where no fresh data or disabled by the health policy
     seq: int  # increments when new data arrived
     board_age_s: dict[int, float]  # per board uid: seconds since its last frame
-    faults: list[str]  # named faults since the last call
+    faults: list[tuple]  # (kind: a monitor.Kind value, source, text, onset monotonic s or None) since the last call
     frames_lost: int
 
 

@@ -4,7 +4,8 @@ The record holds everything the stack needs to repeat itself (core/runtime/recor
 configuration (metadata `skinsafe`: the map and its SHA-256, the robot's limits, the period, the
 retraction parameters, the excluded taxels), and per tick the robot's clock, the measured dt, q
 and qd, the readings the layers saw and the command source's output. The stack is rebuilt from
-the configuration and ticked on those inputs in order; the report is the largest difference
+the configuration and ticked on those inputs in order, its commands through the run's limiter
+(core/runtime/limiter.py) where the record holds its limits; the report is the largest difference
 between its commands and the recorded ones (0 or floating-point noise), ticks compared, and
 whether the record is complete (no tick dropped by the recorder).
 """
@@ -19,6 +20,8 @@ import numpy as np
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
+
+from skinsafe.core.runtime.limiter import Limiter
 
 
 class ReplayError(ValueError):
@@ -83,6 +86,7 @@ def replay(path: str | Path, stack_from_config, map_path: str | Path | None = No
         raise ReplayError(f"{path}: the map {mp} changed since the run (SHA-256 {digest[:8]}, recorded "
                           f"{config['map_sha256'][:8]}); give the map the run used with --map")
     stack = stack_from_config(config, load(mp))
+    limiter = Limiter(config["limits"]) if config.get("limits") else None  # records before it: the stack's output
     n = len(config["joint_names"])
     worst, compared, stops, gaps, last_tick = 0.0, 0, 0, 0, 0
     q = qd = planned = command = force = None
@@ -105,6 +109,8 @@ def replay(path: str | Path, stack_from_config, map_path: str | Path | None = No
             if force is None or q is None or len(q) != n:
                 raise ReplayError(f"{path}: tick {int(tick)} comes before any reading or joint state")
             v = stack.tick(t, q, {"force": force}, planned, dt, qdot=qd)
+            if limiter is not None:
+                v = stack.last = limiter(v, q, dt)
             worst = max(worst, float(np.abs(v - command).max()))
             compared += 1
     if not compared:

@@ -1,4 +1,4 @@
-"""The live view's colour scale, shared by the web page (core/app/view_page.py) and Blender's live link
+"""The live view's colour scale, shared by the web page (core/runtime/view_page.py) and Blender's live link
 (addon/live.py): force in N from 0 to `vmax` (default twice the largest taxel threshold), dark blue ->
 red at the threshold -> yellow; grey: no fresh reading (an excluded taxel, a silent board). numpy only."""
 from __future__ import annotations

@@ -48,6 +48,7 @@ from skinsafe.core.skin import taxel_map
 from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.force_feed import ForceFeed
 from skinsafe.core.skin.model import DesignError
+from skinsafe.core.system import MissingPart
 
 PREFIX = "robot0_"  # franky-sim's names for its first robot's bodies
 OBSTACLE = "skinsafe_obstacle"
@@ -432,15 +433,22 @@ def franky_python() -> Path:
     return Path(__file__).resolve().parents[2] / ".venv-franky" / "bin" / "python"
 
 
+def require_franky_python() -> Path:
+    """franky_python(), or MissingPart when it is not there."""
+    py = franky_python()
+    if not py.exists():
+        raise MissingPart(f"franky-sim's environment ({py})", "build it: `make franky-sim` (.venv-franky), or set "
+                          "SKINSAFE_FRANKY_PYTHON to its interpreter")
+    return py
+
+
 class WorldProcess:
     """`serve` in franky-sim's own interpreter as a child process; `.host` and `.feed` once it is ready,
     `.stop()` ends it (SIGINT) and returns its stats."""
 
     def __init__(self, map_path: str | Path, stats_path: str | Path, obstacle=None, q0=None, timeout: float = 60.0,
                  hand: Hand | None = None, realtime: bool = False):
-        py = franky_python()
-        if not py.exists():
-            raise FileNotFoundError(f"franky-sim's environment is missing ({py}); run `make franky-sim`")
+        py = require_franky_python()
         cmd = [str(py), "-m", "skinsafe.core.sim.franky_world", "serve", str(map_path), "--stats", str(stats_path)]
         if obstacle is not None:
             cmd.append("--obstacle=" + ",".join(f"{v:.9g}" for v in obstacle))  # "=": values may start with "-"

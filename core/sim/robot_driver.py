@@ -43,6 +43,7 @@ REST_TIMEOUT_S = 0.5  # ... or after this long
 RETRACT_SPEED = 1e-3  # m/s out of the contact: the measured motion follows the retraction
 TAXEL_FAULTS = ("stuck", "noisy")  # sensor faults on demand: stuck reads STUCK_N always, noisy adds U(0, threshold)
 STUCK_N = 5.0
+CLOCK_BACK_S = 0.01
 
 
 @dataclass
@@ -78,10 +79,14 @@ class Contact:
 
 @dataclass
 class SimFaults:
-    """Faults of the robot's side for the fault bench: the state stops updating, or the physics dies."""
+    """Faults of the robot's side for the fault bench: the state stops updating, its clock freezes or goes back (as
+    a robot's would, while the driver's own counter still counts every read, as the FR3 driver's does), or the
+    physics dies. `WorldStats.fault_mono`: host time the first one took effect."""
 
     freeze_at: float | None = None  # s (sim clock): the state stops updating (the control still runs)
     die_at: float | None = None  # s: the simulation fails (the driver stops, naming it)
+    clock_freeze_at: float | None = None  # s: the state's clock stays (q, qd and seq go on)
+    clock_back_at: float | None = None  # s: the state's clock jumps CLOCK_BACK_S back, once
 
 
 @dataclass
@@ -95,6 +100,7 @@ class WorldStats:
     overruns: int = 0  # periods whose work took longer than the period
     stop_t: float | None = None  # sim time of the stop
     zero_mono: float | None = None  # host time zero velocity was sent
+    fault_mono: float | None = None  # host time an injected fault (SimFaults) took effect
     rest_qd: float = float("nan")  # largest joint speed when the robot's own stop ended
     extra: dict = field(default_factory=dict)
 
@@ -223,8 +229,9 @@ class SimDriver:
             t = float(self.data.time)
             if self.faults.freeze_at is not None and t >= self.faults.freeze_at and frozen is None:
                 frozen = self.state()
+                self.stats.fault_mono = time.monotonic()
             try:
-                v = control(frozen or self.state())
+                v = control(frozen or self._faulty(self.state()))
             except Exception as e:  # StopRobot or any failure of the control: a named stop
                 reason = str(e) or type(e).__name__
                 break
@@ -244,10 +251,22 @@ class SimDriver:
         self._halt()
         return reason
 
+    def _faulty(self, s: SimState) -> SimState:
+        """The state through the clock's injected faults (SimFaults)."""
+        f = self.faults
+        if f.clock_freeze_at is not None and s.t >= f.clock_freeze_at:
+            self.stats.fault_mono = self.stats.fault_mono or time.monotonic()
+            s.t = f.clock_freeze_at
+        elif f.clock_back_at is not None and s.t >= f.clock_back_at and self.stats.fault_mono is None:
+            self.stats.fault_mono = time.monotonic()
+            s.t -= CLOCK_BACK_S
+        return s
+
     # -- the world ---------------------------------------------------------------------------
     def _step(self, v: np.ndarray) -> None:
         d, nq = self.data, self.nq
         if self.faults.die_at is not None and d.time >= self.faults.die_at:
+            self.stats.fault_mono = self.stats.fault_mono or time.monotonic()
             raise RuntimeError(f"physics stopped at t = {d.time:.3f} s (injected)")
         q = d.qpos[:nq]
         self.target = np.clip(self.target + v * self.period_s, q - SERVO_LEAD, q + SERVO_LEAD)

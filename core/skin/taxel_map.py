@@ -4,6 +4,7 @@ Floats are written with Python's shortest round-trip repr, so save -> load is ex
 """
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import asdict, fields
 from pathlib import Path
@@ -45,11 +46,20 @@ def to_dict(design: SkinDesign) -> dict:
     }
 
 
+def dumps(design: SkinDesign) -> str:
+    """The text of the design's taxel-map file (what `save` writes)."""
+    return json.dumps(to_dict(design), separators=(",", ":"), allow_nan=False) + "\n"
+
+
+def sha256(design: SkinDesign) -> str:
+    """The hex SHA-256 of the design's taxel-map file: a run's `map_sha256` when it runs with that file."""
+    return hashlib.sha256(dumps(design).encode()).hexdigest()
+
+
 def save(design: SkinDesign, path: str | Path, robot_bodies: set[str] | None = None) -> Path:
     """Validate and write the taxel map atomically (a failed save leaves the old file intact)."""
     design.validate(str(path), robot_bodies)
-    text = json.dumps(to_dict(design), separators=(",", ":"), allow_nan=False)
-    return atomic_write(path, text + "\n")
+    return atomic_write(path, dumps(design))
 
 
 def load(path: str | Path, robot_bodies: set[str] | None = None) -> SkinDesign:

@@ -3,6 +3,7 @@ import bpy
 import pytest
 
 import skinsafe.addon as addon
+from skinsafe.addon import handlers
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -11,3 +12,4 @@ def registered():
     yield
     addon.unregister()
     assert not any(getattr(f, "__module__", "").startswith("skinsafe") for f in bpy.app.handlers.depsgraph_update_post)
+    assert not bpy.app.timers.is_registered(handlers._after_transform)  # a timer left would hang the process at exit

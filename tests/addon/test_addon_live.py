@@ -94,7 +94,8 @@ def stream(scene):
     assert bpy.ops.skinsafe.live_attach(source=f"127.0.0.1:{pub.address[1]}") == {"FINISHED"}
     assert bpy.app.timers.is_registered(live._timer)
     yield send
-    assert bpy.ops.skinsafe.live_detach() == {"FINISHED"}
+    if live._link is not None:  # a record test may have attached (and detached) since: Detach needs a link
+        assert bpy.ops.skinsafe.live_detach() == {"FINISHED"}
     assert not bpy.app.timers.is_registered(live._timer)  # else the bpy process hangs at exit
     pub.close()
 

@@ -5,7 +5,7 @@ import numpy as np
 
 from skinsafe.core.app.cli import main
 from skinsafe.core.design.sample import make_sample_design
-from skinsafe.core.experiments.collaboration import _delivery
+from skinsafe.core.experiments.collaboration_scenario import _delivery
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.safety import pfl

@@ -1,18 +1,21 @@
-"""Every shell command the README shows runs as written on a fresh clone.
+"""Every shell command the README and the docs show runs as written on a fresh clone.
 
-Each ```bash block of README.md runs, in README order, as one bash script (`set -euo pipefail`) in
+Each ```bash block of README.md and of the docs pages (in mkdocs.yml's nav order, blocks in page order:
+a later block may use what an earlier one made) runs as one bash script (`set -euo pipefail`) in
 a copy of the checkout's files (tracked, or untracked and not ignored: what a fresh clone holds),
 with this environment's `skinsafe` on PATH and its .venv linked in for `make`. A new ```bash block
 is picked up by itself. A command too slow for the suite declares, in an HTML comment anywhere in
-the README (a line of its own, invisible when rendered), flags appended to it (its reduced size), or that it is not
+the README or a docs page (a line of its own, invisible when rendered), flags appended to it (its reduced size), or that it is not
 run and why:
 
     <!-- readme-test: skinsafe experiment maze += --quick --out out/mq -->
     <!-- readme-test: make test => skip: the suite this check is part of -->
 
 The command is matched as written in its block (comments dropped, spaces collapsed). A directive
-naming no command of a bash block fails, as does any command that fails. Blocks of other languages
-(```python, ```json, plain ``` for synopses and output) are not run."""
+naming no command of a bash block fails, as does any command that fails, but for one that lacks a part of the
+machine (a browser, franky-sim's environment): it exits 2 with one line holding `missing system part: PART; HOW`
+(core/system.py), and its block is skipped with that line as the reason (the commands before it ran). Blocks of
+other languages (```python, ```json, plain ``` for synopses and output) are not run."""
 import os
 import re
 import shlex
@@ -25,8 +28,11 @@ from pathlib import Path
 
 import pytest
 
+from skinsafe.core.app.readme import pages
+from skinsafe.core.system import MARKER
+
 ROOT = Path(__file__).resolve().parents[2]
-README = ROOT / "README.md"
+PAGES = pages(ROOT)
 DIRECTIVE = re.compile(r"^<!--\s*readme-test:\s*(.+?)\s*(\+=|=>)\s*(.+?)\s*-->", re.M)
 
 
@@ -69,21 +75,21 @@ def directives(text: str) -> dict[str, tuple[str, str]]:
     """command -> ("+=", flags appended) or ("=>", "skip: reason")."""
     found = {}
     for cmd, op, what in DIRECTIVE.findall(text):
-        assert _norm(cmd) not in found, f"README: two readme-test directives for '{cmd}'"
+        assert _norm(cmd) not in found, f"docs: two readme-test directives for '{cmd}'"
         assert op == "+=" or what.startswith("skip: ") and len(what) > 10, \
             f"README: readme-test '{cmd} {op} {what}': use '+= FLAGS' or '=> skip: REASON'"
         found[_norm(cmd)] = (op, what)
     return found
 
 
-TEXT = README.read_text()
-BLOCKS = bash_blocks(TEXT)
-DIRECTIVES = directives(TEXT)
+TEXTS = {page.relative_to(ROOT).as_posix(): page.read_text() for page in PAGES}
+BLOCKS = [(page, line, cmds) for page, text in TEXTS.items() for line, cmds in bash_blocks(text)]
+DIRECTIVES = directives("\n".join(TEXTS.values()))
 
 
 def test_every_directive_names_a_command_of_a_bash_block():
-    commands = {c for _, cmds in BLOCKS for c in cmds}
-    assert BLOCKS and not set(DIRECTIVES) - commands, f"README: readme-test directives for no command: " \
+    commands = {c for _, _, cmds in BLOCKS for c in cmds}
+    assert BLOCKS and not set(DIRECTIVES) - commands, f"docs: readme-test directives for no command: " \
                                                       f"{sorted(set(DIRECTIVES) - commands)}"
 
 
@@ -111,8 +117,29 @@ def clone(tmp_path_factory):
     return dst
 
 
+FAILED = "readme-test: failed: "
+LOOP = re.compile(r"\bskinsafe (run|bench runtime)\b")  # commands that start `skinsafe run` (conftest.realtime_host)
+
+
+def missing_part(out: str, returncode: int) -> str | None:
+    """The failing command's `missing system part` line, when it ended so (exit 2, that line its last before the
+    failure): a part of the machine it needs is not here."""
+    lines = out.splitlines()
+    at = max((i for i, x in enumerate(lines) if x.startswith(FAILED)), default=None)
+    if returncode != 2 or not at or f"{MARKER}: " not in lines[at - 1]:
+        return None
+    return f"`{lines[at][len(FAILED):]}`: {lines[at - 1]}"
+
+
+def test_a_command_missing_a_part_skips_its_block_and_any_other_failure_fails():
+    out = "$ a\nskinsafe bench runtime: error: missing system part: chromium; install it\nreadme-test: failed: a --x\n"
+    assert missing_part(out, 2) == "`a --x`: skinsafe bench runtime: error: missing system part: chromium; install it"
+    assert missing_part(out, 1) is None and missing_part(out.replace("missing system part", "bad"), 2) is None
+    assert missing_part("missing system part: x\n", 2) is None  # no failed command
+
+
 def _script(cmds: list[str]) -> str:
-    lines = ["set -euo pipefail", "trap 'echo \"readme-test: failed: $BASH_COMMAND\" >&2' ERR"]
+    lines = ["set -euo pipefail", f"trap 'echo \"{FAILED}$BASH_COMMAND\" >&2' ERR"]
     for c in cmds:
         op, what = DIRECTIVES.get(c, ("", ""))
         if op == "=>":
@@ -123,9 +150,12 @@ def _script(cmds: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-@pytest.mark.parametrize("line,cmds", BLOCKS, ids=[f"line{n}-{c[0].split(' #')[0][:40]}" if c else f"line{n}"
-                                                    for n, c in BLOCKS])
-def test_readme_bash_block_runs_as_written(clone, line, cmds, tmp_path):
+@pytest.mark.xdist_group("docs-blocks")  # one worker, in order: a block may use an earlier block's files
+@pytest.mark.parametrize("page,line,cmds", BLOCKS, ids=[f"{p}:{n}-{c[0].split(' #')[0][:40]}" if c else f"{p}:{n}"
+                                                         for p, n, c in BLOCKS])
+def test_docs_bash_block_runs_as_written(clone, page, line, cmds, tmp_path, request):
+    if any(LOOP.search(c) for c in cmds):  # the control loop: never beside the `realtime` group's (pytest-xdist)
+        request.getfixturevalue("realtime_host")
     env = {**os.environ, "PATH": f"{Path(sys.prefix) / 'bin'}{os.pathsep}{os.environ['PATH']}", "MPLBACKEND": "Agg"}
     log = tmp_path / "out.txt"
     t = time.perf_counter()
@@ -139,5 +169,8 @@ def test_readme_bash_block_runs_as_written(clone, line, cmds, tmp_path):
                 os.killpg(proc.pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
-    assert proc.returncode == 0, f"README.md line {line}: the block failed after {time.perf_counter() - t:.0f} s:\n" \
+    missing = missing_part(log.read_text(), proc.returncode)
+    if missing:
+        pytest.skip(f"{page} line {line}: {missing}")
+    assert proc.returncode == 0, f"{page} line {line}: the block failed after {time.perf_counter() - t:.0f} s:\n" \
                                  f"{log.read_text()[-4000:]}"

@@ -11,12 +11,22 @@ from skinsafe.core.app.readme import FigureError, fill, fmt, lookup
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def test_readme_figures_match_the_results_files():
-    text = (ROOT / "README.md").read_text()
-    _, changed = fill(text, ROOT)
-    assert not changed, "README figures differ from results/ (run `make readme-figures`):\n" + "\n".join(changed)
-    kinds = {m[0] for m in readme.MARKER.findall(text)}
+def test_readme_and_docs_figures_match_the_results_files():
+    kinds = set()
+    for page in readme.pages(ROOT):
+        text = page.read_text()
+        _, changed = fill(text, ROOT)
+        assert not changed, f"{page}: figures differ from results/ (run `make readme-figures`):\n" + "\n".join(changed)
+        kinds |= {m[0] for m in readme.MARKER.findall(text)}
     assert {"maze-grid", "safety-audit", "paper-results", "table", "value"} <= kinds
+
+
+def test_every_docs_page_is_in_the_nav_and_the_readme_stays_short():
+    listed = set(readme.pages(ROOT))
+    on_disk = {p for p in (ROOT / "docs").rglob("*.md")}
+    assert on_disk - listed == set(), f"docs pages missing from mkdocs.yml's nav: {sorted(on_disk - listed)}"
+    assert all(p.is_file() for p in listed), f"nav names missing pages: {[p for p in listed if not p.is_file()]}"
+    assert len((ROOT / "README.md").read_text().splitlines()) <= 250
 
 
 def test_a_stale_figure_is_named_and_rewritten(tmp_path):

@@ -7,6 +7,10 @@ import pytest
 from skinsafe.core.app import trade
 from skinsafe.core.app.cli import main
 
+# the module's quick sweep starts a local Ray: one worker builds it once, and never beside another test's Ray
+# (two starting at once on the shared cores miss their start-up timeout)
+pytestmark = pytest.mark.xdist_group("ray")
+
 
 def test_pareto_front_on_hand_made_points():
     cost = [1.0, 2.0, 3.0, 2.0, 4.0, 1.0, 5.0]

@@ -5,7 +5,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from skinsafe.core.experiments.collaboration import GAP_S, _covered, contact_events, cover
+from skinsafe.core.experiments.collaboration_result import GAP_S, contact_events
+from skinsafe.core.experiments.collaboration_scenario import CollabConfig
+from skinsafe.core.experiments.collaboration_skin import _covered, cover
 from skinsafe.core.sim.body_regions import REGIONS
 
 
@@ -97,3 +99,21 @@ def test_cover_puts_taxels_where_the_person_is_met_and_the_readout_senses_them(u
         mujoco.mj_forward(model, data)
         readout = SkinReadout(model, new)
         assert readout.read(data).sum() > 0 and readout.last_missed == 0, body
+
+
+def test_the_config_is_typed_and_the_committed_result_loads_with_it():
+    """The committed result's `config` is the experiment's defaults; JSON round trip keeps every field; an unknown
+    key is refused by name."""
+    import json
+    from pathlib import Path
+
+    doc = json.loads((Path(__file__).resolve().parents[2] / "results/collaboration/collaboration.json").read_text())
+    cfg = CollabConfig.from_json(doc["config"])
+    assert cfg == CollabConfig() and cfg.to_json() == doc["config"] and list(doc["config"])[-1] == "seed"
+    ours = CollabConfig(pfl_regions=("hand", "lower_arm"), samples=300, seed=4)
+    assert CollabConfig.from_json(json.loads(json.dumps(ours.to_json()))) == ours
+    assert ours.to_json()["pfl_regions"] == ["hand", "lower_arm"]
+    with pytest.raises(ValueError, match=r"unknown keys \['pitch_m'\]"):
+        CollabConfig.from_json({**doc["config"], "pitch_m": 0.01})
+    with pytest.raises(AttributeError):
+        cfg.seed = 1  # frozen

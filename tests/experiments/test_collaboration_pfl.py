@@ -10,12 +10,15 @@ from pathlib import Path
 
 import pytest
 
-from skinsafe.core.experiments.collaboration import ROBOT_DRIVEN, SCENARIOS, cell, summarise, tables
+from skinsafe.core.experiments.collaboration import cell
+from skinsafe.core.experiments.collaboration_result import summarise, tables
+from skinsafe.core.experiments.collaboration_scenario import ROBOT_DRIVEN, SCENARIOS, CollabConfig
 from skinsafe.core.sim.body_regions import REGIONS
 
+pytestmark = pytest.mark.xdist_group("collaboration-pfl")  # one worker builds the module's costly fixtures, once
+
 SKIN = Path(__file__).resolve().parents[2] / "results" / "collaboration" / "collaboration_skin.json"
-CFG = {"pitch": 0.01, "duration": 1.0, "stay": 1.5, "finish": 0.3, "presence": 0.5, "pfl_factor": 0.8,
-       "pfl_regions": None, "samples": 300, "steps": 150, "source": "planner", "person_speed": 0.5, "push_N": 200.0}
+CFG = CollabConfig(finish=0.3, samples=300, steps=150)
 KEYS = {"stack", "region", "peak_N", "limit_N", "within", "sensed", "sensed_ms", "kind", "peak_pressure_N_cm2",
         "pressure_limit_N_cm2"}
 SWEEP_KEYS = {"damping_ratio", "attachment_N_m", "dt_ms", "scenario", "stack", "worst_ratio"}
@@ -27,7 +30,7 @@ def _peak(events):
 
 @pytest.fixture(scope="module")
 def corner():
-    return {s: cell(f"test_{s}", 0, s, 0.5, 3000.0, 1.0, ["none", "full+pfl"], CFG, str(SKIN)) for s in SCENARIOS}
+    return {s: cell(f"test_{s}", 0, s, 0.5, 3000.0, 1.0, ["none", "full+pfl"], CFG.to_json(), str(SKIN)) for s in SCENARIOS}
 
 
 @pytest.mark.parametrize("scenario", SCENARIOS)

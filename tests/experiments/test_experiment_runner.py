@@ -33,6 +33,12 @@ def test_tasks_run_on_ray_are_cached_and_reused(tmp_path, monkeypatch):
     doc["sources"]["core/learn/agents.py"] = "0" * 40
     runner.task_file(tmp_path, tasks[1]).write_text(json.dumps(doc))
     assert runner.cached(tmp_path, tasks[1]) is None and runner.cached(tmp_path, tasks[2]) == again[2]
+    # nor one run on other library versions (torch, mujoco, numba, numpy are part of the key)
+    doc = json.loads(runner.task_file(tmp_path, tasks[3]).read_text())
+    assert doc["versions"] == runner.versions()
+    doc["versions"]["mujoco"] = "0.0.1"
+    runner.task_file(tmp_path, tasks[3]).write_text(json.dumps(doc))
+    assert runner.cached(tmp_path, tasks[3]) is None
     runner.task_file(tmp_path, tasks[0]).write_text("{not json")  # a half-written file counts as missing
     assert runner.cached(tmp_path, tasks[0]) is None
     monkeypatch.setattr(runner.time, "sleep", lambda s: None)
@@ -111,11 +117,19 @@ def test_tuning_chooses_by_one_criterion_for_every_method():
     rows = [{"total_contacts_mean": 50.0, "goal_rate_last_mean": 0.7}, {"total_contacts_mean": 90.0, "goal_rate_last_mean": 0.9},
             {"total_contacts_mean": 70.0, "goal_rate_last_mean": 0.85}]
     assert maze.choose(rows) == 2  # fewest contacts among those reaching the goal, not the fewest overall
+    # the sampler's objective orders trials as the rule does: every trial meeting the criterion first
+    assert sorted(range(3), key=lambda i: maze.objective(rows[i])) == [2, 1, 0]
+    assert maze.objective(rows[2]) == 70.0 and maze.objective(rows[0]) == pytest.approx(1e6 * 1.1 + 50.0)
     for r in rows:
         r["goal_rate_last_mean"] = 0.5
-    rows[1]["goal_rate_last_mean"] = 0.6
-    assert maze.choose(rows) == 1  # none reaches it: the highest goal rate
-    assert len({len(c) for c in maze.TUNING.values()}) == 1 and set(maze.TUNING) == set(maze.METHODS)
+    assert maze.choose(rows) is None  # none reaches it: no rescue by the highest goal rate
+    assert set(maze.SPACES) == set(maze.METHODS)
+    for m in maze.TDM_METHODS:  # the -TDM mechanisms are switches of their search space, the offline phase too
+        space = maze.SPACES[m]
+        assert space["raw_floor"][1] == [0.05, 0.0] and space["shrink"][1] == [True, False]
+        assert space["contact_steps"][1] == [100, 0] and space["offline_transitions"][1] == [0, 4000]
+    for m in maze.BASELINES_GIVEN:
+        assert maze.SPACES[m]["offline_transitions"][1] == [4000, 0]
     chosen = {"SAC-TDM": {"prior_count": 0.5}, "RRL": {}, "SAC": {}}
     abl = maze.ablation_tasks(chosen, ["SAC-TDM", "RRL", "SAC"], {"episodes": 3, "max_steps": 5}, [10, 11])
     variants = sorted({h["variant"] for h, _ in abl})
@@ -125,21 +139,57 @@ def test_tuning_chooses_by_one_criterion_for_every_method():
     assert {t["seed"] for _, t in abl} == {10, 11} and all(h["agent_kw"] == t["agent_kw"] for h, t in abl)
 
 
-def test_full_protocol_tunes_evaluates_on_held_out_seeds_and_ablates(tmp_path):
+def test_convergence_and_replicate_verdicts_from_numbers():
+    # the first window of 10 episodes with >= 8 goals starts at episode 4 (2 misses, 8 goals); never: 31
+    assert maze.converged_at([0] * 5 + [1] * 20) == 4 and maze.converged_at([0] * 30) == 31
+    assert maze.converged_at([1, 0] * 4 + [1] * 12) == 5
+    runs = [{"method": m, "goals": [0] * k + [1] * (40 - k)} for m, ks in (("AC", (20, 22, 24)), ("AC-TDM", (5, 6, 7)))
+            for k in ks]
+    c = maze.convergence(runs, ["AC", "AC-TDM"])
+    assert c["methods"]["AC-TDM"]["episode_mean"] == 5.0 and c["methods"]["AC"]["episode_mean"] == 21.0
+    p = c["pairs"]["AC-TDM vs AC"]
+    assert p["difference"] == 16.0 and p["ci95"][0] > 0 and p["verdict"] == "faster"
+    claim = {"verdict": "holds", "holds": True, "statement": "S.", "online_only": {"verdict": "does not hold"}}
+    reps = [{"tuning_seeds": [0, 1], "summary": {"claim": claim}},
+            {"tuning_seeds": [2, 3], "summary": {"claim": dict(claim, verdict="does not hold")}}]
+    out = maze.settle(claim, reps)
+    assert out["verdict"] == "not settled" and out["holds"] is False and out["verdict_agrees"] is False
+    assert out["replicate_verdicts"] == ["holds", "does not hold"] and "not settled" in out["statement"]
+    assert out["online_only"]["verdict"] == "does not hold"  # both replicates agree on it
+    same = maze.settle(claim, reps[:1] * 2)
+    assert same["verdict"] == "holds" and same["verdict_agrees"]
+
+
+def test_full_protocol_tunes_evaluates_on_held_out_seeds_and_ablates(tmp_path, monkeypatch):
     import argparse
+
+    from skinsafe.core.app import readme
+
+    root, tmp_path = tmp_path, tmp_path / "results" / "maze"
 
     p = argparse.ArgumentParser()
     maze.add_arguments(p)
-    args = p.parse_args(["--out", str(tmp_path), "--methods", "AC-TDM,CPO", "--configs", "2", "--tuning-seeds", "0",
+    args = p.parse_args(["--out", str(tmp_path), "--methods", "AC-TDM,CPO", "--trials", "3", "--tuning-seeds", "0",
                          "--seeds", "10-11", "--episodes", "2", "--tuning-episodes", "1", "--max-steps", "8", "--ablation-seeds", "10-11",
                          "--ablation-episodes", "1", "--workers", "1", "--no-progress"])
     assert maze.run(args) == 0
     doc = json.loads((tmp_path / "maze_results.json").read_text())
     assert doc["eval_seeds"] == [10, 11]
+    assert {m: t["trials"] for m, t in doc["tuning"].items()} == {"AC-TDM": 3, "CPO": 3}  # equal effort by construction
     for m in ("AC-TDM", "CPO"):
         rec = doc["tuning"][m]
-        assert rec["tuning_seeds"] == [0] and len(rec["configs"]) == 2 and rec["chosen"] in [c["config"] for c in rec["configs"]]
-        assert rec["chosen"] == rec["configs"][maze.choose(rec["configs"])]["config"]
+        assert rec["tuning_seeds"] == [0] and len(rec["configs"]) == 3 and set(rec["space"]) == set(maze.SPACES[m])
+        assert rec["configs"][0]["config"] == {k: d for k, (d, _) in maze.SPACES[m].items()}  # trial 0: the defaults
+        i = maze.choose(rec["configs"])
+        assert rec["chosen_index"] == i and rec["met_criterion"] == (i is not None)
+        assert rec["chosen"] == rec["configs"][0 if i is None else i]["config"]  # none met: the default, reported so
+        assert all(set(c["config"]) == set(maze.SPACES[m]) for c in rec["configs"])
+    assert len(doc["replicates"]) == 2 and [r["tuning_seeds"] for r in doc["replicates"]] == [[0], [1]]
+    assert doc["verdict_agrees"] == (len({(r["verdict"], r["online_only_verdict"]) for r in doc["replicates"]}) == 1)
+    assert doc["summary"]["claim"]["replicate_verdicts"] == [r["verdict"] for r in doc["replicates"]]
+    assert {"code_sha1", "versions"} <= set(doc["provenance"]) and "AC-TDM vs AC" not in doc["summary"]["convergence"]["pairs"]
+    never = [m for m in ("AC-TDM", "CPO") if not doc["tuning"][m]["met_criterion"]]
+    assert doc["summary"]["claim"].get("never_met_criterion", []) == never
     assert {(r["method"], r["seed"]) for r in doc["per_seed"]} == {(m, s) for m in ("AC-TDM", "CPO") for s in (10, 11)}
     assert all({"method", "seed", "total_contacts", "goal_rate"} <= set(r) for r in doc["per_seed"])
     for r in doc["runs"]:  # the evaluation runs are the chosen configurations on the held-out seeds
@@ -158,8 +208,22 @@ def test_full_protocol_tunes_evaluates_on_held_out_seeds_and_ablates(tmp_path):
     assert cpo == {**doc["tuning"]["CPO"]["chosen"], "cost_limit": pytest.approx(68 / 2)}  # wall-facing moves over the run's episodes
     assert doc["tuning"]["CPO"]["configs"][0]["agent_kw"]["cost_limit"] == pytest.approx(68 / 1)  # tuning ran 1 episode
     assert "Ablation" in (tmp_path / "maze_contacts.md").read_text()
+    grid = readme.maze_grid(root)  # the docs' table: every method's trials, intervals as computed (not clipped at 0)
+    lows = [doc["summary"]["methods"][m]["total_contacts_ci95"][0] for m in ("AC-TDM", "CPO")]
+    assert all(f"[{lo:,.1f}, " in grid for lo in lows)
+    for m in ("AC-TDM", "CPO"):
+        rec = doc["tuning"][m]
+        want = f"trial {rec['chosen_index']} of 3: " if rec["met_criterion"] else "no trial of 3 met the goal criterion: defaults"
+        assert want in grid
     with pytest.raises(SystemExit, match="held-out"):
         maze.run(p.parse_args(["--out", str(tmp_path), "--tuning-seeds", "0-1", "--seeds", "1-3"]))
+    # the tuner is a function of the runs: run again, every trial it asks is a finished task (Ray never starts)
+    import ray
+
+    monkeypatch.setattr(ray, "init", lambda *a, **k: (_ for _ in ()).throw(AssertionError("a new trial was asked")))
+    assert maze.run(args) == 0
+    again = json.loads((tmp_path / "maze_results.json").read_text())
+    assert again["tuning"] == doc["tuning"] and again["replicates"] == doc["replicates"]
 
 
 @pytest.mark.parametrize("method, kw", [("AC-TDM", None), ("SAC-TDM", None), ("SQRL", {"offline_transitions": 60, "pretrain_steps": 5})])

@@ -14,6 +14,8 @@ from skinsafe.core.safety.retraction import RetractionParams
 from skinsafe.core.skin.model import RobotRef
 from skinsafe.core.skin.taxel_map import save
 
+pytestmark = pytest.mark.xdist_group("poke-any-robot")  # one worker builds the module's costly fixtures, once
+
 ASSET = Path(__file__).resolve().parents[2] / "blend_assets" / "franka_description"
 REF = RobotRef("urdf", "franka", str(ASSET / "robots/panda/panda.urdf.xacro"), (str(ASSET),))
 

@@ -7,7 +7,9 @@ import pytest
 import torch
 
 from skinsafe.core.experiments.tracking import (
+    Learner,
     TrackingConfig,
+    alignment_cos,
     claim_check,
     contacts_per_episode,
     per_seed,
@@ -19,6 +21,8 @@ from skinsafe.core.learn.tracking_env import TrackingEnv
 from skinsafe.core.safety.modulation import ModulationLayer
 from skinsafe.core.safety.stack import SafetyStack, StrategyFilter, TeleopStream, TrajectorySource
 from skinsafe.core.safety.tdm import TactileDangerModel
+
+pytestmark = pytest.mark.xdist_group("tracking-experiment")  # one worker builds the module's costly fixtures, once
 
 
 @pytest.fixture(scope="module")
@@ -53,6 +57,12 @@ def test_quick_tracking_run_modulated_contacts_fewer_than_vanilla(quick_results)
     rows = {r["method"]: r for r in summary(res["labels"]["soft"])}
     assert rows["vanilla"]["tracking_error_mm"] < 60  # vanilla follows the path
     assert contacts_per_episode(res["labels"]["soft"])["tdm2"] == c["tdm2"].tolist()  # one seed: its own
+    # onsets beside ticks; the potential's alignment before each ball once there is a potential (episode 2 on)
+    assert all(0 < r["onsets"] <= r["contacts"] for r in runs["vanilla"]["0"])
+    assert all(v is None for r in runs["vanilla"]["0"] for v in r["alignment_cos"])
+    cos = [v for r in runs["tdm2"]["0"][1:] for v in r["alignment_cos"]]
+    assert len(cos) == 2 * cfg.n_balls and all(v is not None and -1 <= v <= 1 for v in cos)
+    assert all(v is None for v in runs["tdm2"]["0"][0]["alignment_cos"])  # episode 1: nothing learned yet
 
 
 def test_episode_logs_are_consistent(quick_results):
@@ -68,6 +78,43 @@ def test_episode_logs_are_consistent(quick_results):
     assert (d < cfg.ball_radius + 0.08).all()
     # the exact path itself runs through the balls: that is where tracking must touch
     assert res["path_contact_ticks"]["0"] > 0.3 * cfg.ticks
+
+
+def test_noisy_copies_are_labelled_by_the_skin_at_the_noisy_state(quick_results):
+    """Fig. 11e's binary labels: a noisy copy of a touching state that no longer touches gets label 0."""
+    cfg, _ = quick_results
+    cfg = TrackingConfig(**{**cfg.__dict__, "labels": "binary"})
+    env = TrackingEnv(cfg, seed=0)
+    sc = env.scene
+    ep = run_episode(env, None, seed=0)
+    touched = ep.dangers.any(1)
+    at_rest = sc.danger_at(ep.states).any(1)
+    assert touched.sum() > 50 and (at_rest & touched).sum() >= 0.8 * touched.sum() and not (at_rest & ~touched).any()
+    learner = Learner(cfg, sc, False, 0)
+    learner.S, learner.A, learner.D = [ep.states], [ep.actions], [ep.dangers]
+    S, A, D, src = learner.training_set()
+    n = len(ep.states)
+    copy, origin = src >= n, src % n
+    assert len(S) == min(cfg.max_train, (cfg.augment + 1) * n) and np.array_equal(A, ep.actions[origin])
+    assert np.array_equal(D[~copy], ep.dangers[origin[~copy]])  # visited: the episode's own events
+    assert np.array_equal(D[copy], sc.danger_at(S[copy]))  # copies: the skin's events at the noisy state
+    moved_off = copy & touched[origin] & ~D.any(1)
+    share = moved_off.sum() / (copy & touched[origin]).sum()
+    assert 0.3 < share < 0.9  # 61% of the copies of touching states touch nothing (sigma 0.05 rad > 2 cm penetration)
+    clear = np.array([sc.ball_distance(np.r_[s, sc.robot.home[4:]]) for s in S[moved_off]])
+    assert (clear > 0).mean() > 0.7  # most are off the balls (80%; the rest sink a taxel where MuJoCo's contact is unsensed)
+    i = int(np.flatnonzero(moved_off & at_rest[origin])[0])  # one copy: its state touches at rest, the copy does not
+    assert D[i].sum() == 0 and sc.danger_at(ep.states[origin[i]][None]).sum() > 0 and ep.dangers[origin[i]].sum() > 0
+
+
+def test_alignment_cos_is_one_for_the_distance_gradient_itself(quick_results):
+    cfg, _ = quick_results
+    sc = TrackingEnv(cfg, seed=0).scene
+    q = sc.desired(1.0)[0]
+    h = 1e-4
+    g = np.array([(sc.ball_distances(q + h * e)[0] - sc.ball_distances(q - h * e)[0]) / (2 * h) for e in np.eye(6)[:4]])
+    assert alignment_cos(sc, q, -g, 0) == pytest.approx(1.0) and alignment_cos(sc, q, g, 0) == pytest.approx(-1.0)
+    assert alignment_cos(sc, q, np.zeros(4), 0) is None
 
 
 def test_claim_check_from_numbers():
@@ -93,8 +140,10 @@ def test_claim_check_decides_on_intervals_over_seeds():
         c = claim_check(rows(ps), ps)
         assert c["verdict"] == verdict and c["holds"] == (verdict == "holds") and c["seeds"] == list(range(10))
         assert c["tdm2_over_vanilla_ci95"][0] <= c["tdm2_over_vanilla"] <= c["tdm2_over_vanilla_ci95"][1]
-    assert per_seed({"runs": {"tdm": {"3": [{"contacts": k, "tracking_error": 0.01} for k in range(10)]}}}) == [
-        {"method": "tdm", "seed": 3, "contacts_ep6_10": 7.0, "contacts_last": 9, "tracking_error_mm": pytest.approx(10.0)}]
+    rows = [{"contacts": k, "onsets": k % 3, "tracking_error": 0.01, "alignment_cos": [0.5, None, -0.1]} for k in range(10)]
+    assert per_seed({"runs": {"tdm": {"3": rows}}}) == [
+        {"method": "tdm", "seed": 3, "contacts_ep6_10": 7.0, "contacts_last": 9, "onsets_ep6_10": 1.0,
+         "alignment_cos_ep6_10": pytest.approx(0.2), "tracking_error_mm": pytest.approx(10.0)}]
 
 
 def test_tracking_cli_writes_outputs(tmp_path, quick_results, monkeypatch):
@@ -122,6 +171,12 @@ def test_tracking_cli_writes_outputs(tmp_path, quick_results, monkeypatch):
         et.config_from_args(argparse.Namespace(quick=True, episodes=0, seeds=None, methods=None))
     full = et.config_from_args(argparse.Namespace(quick=False, episodes=None, seeds=["11,12", "15-16"], methods=None, labels="both"))
     assert full.seeds == (11, 12, 15, 16) and full.label_sets == ("binary", "soft") and et.TrackingConfig().seeds == et.HELD_OUT
+    assert full.replicate_seeds == () and et.TrackingConfig().replicate_seeds == tuple(range(20, 30))  # named seeds: one replicate
+    again = et.config_from_args(argparse.Namespace(quick=False, episodes=None, seeds=["11"], methods=None, replicate_seeds="12-13",
+                                                   horizons="1,3", rollout_dts="0.1"))
+    assert again.replicate_seeds == (12, 13) and again.nstep_grid == ((1, 0.1), (3, 0.1))
+    with pytest.raises(SystemExit, match="overlaps"):
+        et.config_from_args(argparse.Namespace(quick=False, episodes=None, seeds=["11"], methods=None, replicate_seeds="11"))
     with pytest.raises(SystemExit, match="range"):
         et.config_from_args(argparse.Namespace(quick=False, episodes=None, seeds=["12-10"], methods=None))
 

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from skinsafe.core.app.cli import main
+from skinsafe.core.bench.stream_faults import traceback_kind
 from skinsafe.core.sim.sensor_model import FSRModel
 from skinsafe.core.skin.taxel_map import save
 from skinsafe.hardware import protocol as P
-from skinsafe.hardware.bench_stream_faults import traceback_kind
 from skinsafe.hardware.board_config import board_configs
 from skinsafe.hardware.client import BoardClient, BoardError
 from skinsafe.hardware.deploy import deploy

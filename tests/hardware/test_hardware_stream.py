@@ -4,10 +4,10 @@ import time
 import numpy as np
 import pytest
 
+from skinsafe.core.bench.serial_link import decode_all, decode_loop, stream_bytes
 from skinsafe.core.safety.events import danger_events
 from skinsafe.core.sim.sensor_model import FSRModel
 from skinsafe.hardware import protocol as P
-from skinsafe.hardware.bench_serial import decode_all, decode_loop, stream_bytes
 from skinsafe.hardware.board_config import channel_rows
 from skinsafe.hardware.client import BoardClient, BoardError
 from skinsafe.hardware.deploy import deploy

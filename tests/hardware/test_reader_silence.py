@@ -1,5 +1,6 @@
 """The boards' reader names every silence to the loop, each time, together with the NaN readings it causes."""
 import numpy as np
+import pytest
 
 from skinsafe.hardware.flat_design import flat_design
 from skinsafe.hardware.skin_reader import BoardsReader, _Board
@@ -23,7 +24,11 @@ def test_a_second_silence_of_the_same_length_is_named_again():
         assert reader._silent(t0 + 0.0403)
         assert np.isnan(reader.force[rows[0]]).all() and not np.isnan(reader.force[rows[1]]).any()
         names.append(reader._take_faults())
-    assert names[0] == names[1] and len(names[1]) == 1 and "silent for 40.3 ms" in names[1][0]
-    reader._fault("CRC storm on board0")
-    reader._fault("CRC storm on board0")  # a fault seen on every pass is still named once
-    assert reader._take_faults() == ["CRC storm on board0"]
+    assert [f[:3] for f in names[0]] == [f[:3] for f in names[1]] and len(names[1]) == 1
+    kind, source, text, onset = names[1][0]
+    assert kind == "board-silent" and source == "board 'board0'" and "silent for 40.3 ms" in text
+    assert onset == pytest.approx(20.0 + 0.02)  # its next frame was due one frame period after its last
+    b = reader.boards[d.boards[0].id]
+    reader._fault("crc-storm", b, "CRC storm")
+    reader._fault("crc-storm", b, "CRC storm")  # a fault seen on every pass is still named once
+    assert [f[:2] for f in reader._take_faults()] == [("crc-storm", "board 'board0'")]

@@ -137,3 +137,23 @@ def test_tdm_extras_given_to_the_baselines():
     refit.observe(obs, 1, r, info["cost"], info["taxel_danger"], nxt, term, trunc)
     assert refit.buffer.n == 1 and any(not torch.equal(b, p) for b, p in zip(before, refit.risk.q.parameters()))
     assert float(refit.risk(torch.as_tensor(feat))[0, 1]) > 0.5  # the contact learned at once
+
+
+def test_a_tdm_agent_may_take_the_same_offline_phase():
+    """The offline data RRL and SQRL get, offered to a -TDM agent (a switch of its search space): its TDM
+    learns the random transitions' wall contacts before any online step; an agent with neither a TDM nor a
+    safety critic refuses it."""
+    from skinsafe.core.learn.maze_env import random_rollouts
+
+    env = MazeEnv(max_steps=30)
+    agent = make_agent("AC-TDM", 4, 4, env.n_taxels, MazeFeatures(env.walls), seed=0, offline_transitions=600, pretrain_steps=300)
+    data = random_rollouts(env, agent.offline_transitions, np.random.default_rng(1))
+    assert data["dangers"].shape == (600, env.n_taxels) and (data["dangers"].any(1) == (data["costs"] > 0)).all()
+    feats = torch.as_tensor(agent.features(data["obs"]))
+    agent.pretrain(**data)
+    assert agent.shield.trainer.n == 600 and agent.shield.stats()["grad_steps"] > 0
+    p_danger = 1 - agent.shield.log_safety(feats).exp().gather(1, torch.as_tensor(data["actions"])[:, None])[:, 0]
+    bump = data["costs"] > 0
+    assert float(p_danger[bump].mean()) > 0.5 and float(p_danger[~bump].mean()) < 0.2
+    with pytest.raises(ValueError, match="offline_transitions"):
+        make_agent("AC", 4, 4, env.n_taxels, MazeFeatures(env.walls), seed=0, offline_transitions=100)

@@ -20,6 +20,9 @@ from skinsafe.core.skin.model import DesignError, RobotRef
 # the xArm7's home is its zero pose, stretched straight up: a singular pose where no retraction
 # within the joint speed limits gets far (10% of eq. 10's distance), so its slope is not checked
 SINGULAR_HOME = {"xarm7"}
+# one worker builds each robot's scene (its skin collision cut: 6-40 s) once for the module's tests; ungrouped,
+# pytest-xdist hands the tests out one by one and both workers cut the same scene
+pytestmark = pytest.mark.xdist_group("public-robots")
 
 
 @pytest.fixture(scope="module", params=["gen3", "ur5e", "xarm7"])  # conftest.PUBLIC_LINKS

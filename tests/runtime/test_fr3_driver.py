@@ -29,6 +29,8 @@ from skinsafe.hardware.franka import FrankaDriver, rate_limit
 ROOT = Path(__file__).resolve().parents[2]
 SWING = np.array([0.3, 0, 0, 0, 0, 0, 0])  # rad/s of the base joint
 LINK_LATENCY = 0.5  # s: the shared test machine's kernel holds serial input this late at times (README)
+# one world, in order (the last test kills it); SCHED_FIFO (conftest.realtime_host)
+pytestmark = [pytest.mark.xdist_group("realtime"), pytest.mark.usefixtures("realtime_host")]
 
 
 @pytest.fixture(scope="module")
@@ -58,8 +60,11 @@ def run_fr3(fr3_map, world, tmp_path, seconds, when_moving=None):
     stats, record = tmp_path / "stats.json", tmp_path / "run.mcap"
     args = ["run", fr3_map, "--robot", "fr3", "--host", world.host, "--boards", "emulate", "--feed", world.feed,
             "--command", f"trajectory:{still}", "--seconds", seconds, "--link-latency", LINK_LATENCY,
-            "--tare-frames", 20, "--record", record, "--stats", stats]
+            "--tare-frames", 20, "--record", record, "--stats", stats,
+            "--after-contact", "always-resume"]  # the hand comes back every Hand.period s; a retraction it flags
+    # infeasible would latch a protective stop under the default (tests/runtime/test_runtime_closed_loop.py's post)
     code, _, err = start_run(args, when_moving, timeout=120)
+    assert stats.exists(), f"exit {code}: {err}"
     return code, err, json.loads(stats.read_text()), record
 
 
@@ -96,6 +101,14 @@ def test_fr3_run_senses_the_hand_retracts_and_replays(fr3_map, world, tmp_path):
     follows = [t for t, v in zip(ct[retract], cmd[retract]) if js[t] @ v > 0.5 * np.linalg.norm(v) * np.linalg.norm(js[t])
                and np.linalg.norm(js[t]) > 0.02]
     assert follows, "the measured joint velocity never followed the retraction"
+    # what the record holds is what was sent: the one limiter's output, inside the FR3's acceleration and jerk
+    # limits on the robot's clock (the stack's own output steps its acceleration at a contact), sent unchanged
+    dt = np.diff(ct[:-1])  # the last command is the stop's zero; the driver ramps from the one before it
+    acc = np.diff(cmd[:-1], axis=0) / dt[:, None]
+    jerk = np.diff(acc, axis=0) / dt[1:, None]
+    assert (np.abs(acc) <= franka.QDD_MAX + 1e-6).all()
+    assert (np.abs(jerk) <= franka.QDDD_MAX + 1e-3).all() and np.abs(jerk).max() > 100  # it had work to do
+    assert s["world"]["rate_limited_ticks"] == 0
     r = subprocess.run([sys.executable, "-m", "skinsafe.core.app.cli", "replay", str(record), "--json"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
@@ -113,6 +126,31 @@ def test_fr3_ctrl_c_stops_the_robot_first_then_exits_130(fr3_map, world, tmp_pat
     m = topics(record)
     assert list(m["/skinsafe/command"][-1][1].velocity) == [0.0] * 7
     assert "interrupted by the operator" in m["/diagnostics"][-1][1].status[0].message
+
+
+def test_fr3_ctrl_c_twice_stops_once_and_keeps_the_record(fr3_map, world, tmp_path):
+    """Two SIGINTs 10 ms apart while the arm moves: the second only sets the same flag (it used to raise
+    KeyboardInterrupt through the ramp: no stop reason, no report, the record lost as .part)."""
+    def twice(proc):
+        for at in (1.0, 1.01):
+            threading.Timer(at, proc.send_signal, (signal.SIGINT,)).start()
+    code, err, s, record = run_fr3(fr3_map, world, tmp_path, seconds=30, when_moving=twice)
+    assert code == 130, err
+    assert "STOPPED by the operator" in err and s["kind"] == "operator" and s["watchdog"] == "operator"
+    assert s["world"]["ramp_ticks"] > 0 and s["world"]["rest_qd"] < 0.05
+    assert record.exists() and not record.with_suffix(".mcap.part").exists()
+    m = topics(record)
+    assert list(m["/skinsafe/command"][-1][1].velocity) == [0.0] * 7
+    assert "interrupted by the operator (SIGINT)" == m["/diagnostics"][-1][1].status[0].message
+
+
+def test_fr3_a_stop_asked_before_the_motion_is_honoured(driver):
+    """A Ctrl-C between the signal handler's install and the driver's start: the arm never starts."""
+    driver.stop("interrupted by the operator (SIGINT)")
+    calls = []
+    assert driver.run(lambda s: calls.append(s) or np.zeros(7)) == "interrupted by the operator (SIGINT)"
+    assert not calls
+    assert driver.run(lambda s: None) == "control ended the motion"  # honoured once: the next run starts
 
 
 def test_fr3_limits_match_the_robot_model(fr3_map):

@@ -86,11 +86,11 @@ def test_excluded_taxels_read_zero_and_a_nan_anywhere_else_stops_the_robot(ur5):
     assert rt.run(settle_s=0.0).kind == "end"  # NaN only where excluded: the layers never see it
     drv, rt = _runtime(ur5, excluded=[5], nan=[5, 7])
     out = rt.run(settle_s=0.0)
-    assert out.kind == "fault" and out.watchdog == "nonfinite" and "first taxel 7" in out.reason and out.ticks == 0
+    assert out.kind == "fault" and out.watchdog == "reading-nonfinite" and "first taxel 7" in out.reason and out.ticks == 0
 
 
 def test_a_robot_state_that_stops_updating_stops_the_robot(ur5):
     drv, rt = _runtime(ur5, faults=SimFaults(freeze_at=0.2))
     out = rt.run(settle_s=0.0)
-    assert out.watchdog == "robot-state" and "state not updating" in out.reason
+    assert out.watchdog == "robot-frozen" and "state not updating" in out.reason
     assert drv.stats.stop_t == pytest.approx(0.2, abs=0.01)  # within a few periods of the freeze

@@ -165,6 +165,8 @@ def test_health_policy_finds_exactly_the_faulty_taxels(seed, frames, n):
     assert np.allclose(base[ok], np.median(x[:, ok], axis=0))
 
 
+@pytest.mark.xdist_group("realtime")  # reads the machine-wide PM QoS target, which a running `skinsafe run` holds at 0
+@pytest.mark.usefixtures("realtime_host")
 def test_while_the_robot_moves_idle_cores_are_kept_awake_then_released():
     import os
 

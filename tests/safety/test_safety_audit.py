@@ -1,6 +1,8 @@
 """`skinsafe bench safety`: the audit's row keys (a contract) and its verdicts on a small run."""
 import json
 
+import pytest
+
 from skinsafe.core.app.cli import main
 
 KEYS = {"robot", "contacts", "cases", "feasible", "into_contact_mm_worst", "into_contact_mm_worst_all", "infeasible_cases",
@@ -42,6 +44,7 @@ def test_chunks_reuse_and_merge():
     assert abs(np.log(_quantile(counts, 0.5) / np.median(ms))) < np.log(BINS[1] / BINS[0])
 
 
+@pytest.mark.xdist_group("ray")  # a local Ray: never beside another test's (start-up timeouts on the shared cores)
 def test_ray_fan_out_gives_the_in_process_rows(tmp_path, capsys):
     """The same chunks run as Ray tasks (cached, niced workers) and in this process: the same
     numbers (times aside), each chunk from its own random stream; the cache then serves a rerun."""

@@ -12,16 +12,18 @@ import numpy as np
 import pytest
 
 from skinsafe.core.app.experiment_view import record_collaboration
-from skinsafe.core.experiments import collaboration as co
+from skinsafe.core.experiments import collaboration_scenario as co
+from skinsafe.core.experiments.collaboration import cell
+from skinsafe.core.experiments.collaboration_result import summarise
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.runtime.recording import Recording
 from skinsafe.core.skin.taxel_map import load
 
 SKIN = Path(__file__).resolve().parents[2] / "results" / "collaboration" / "collaboration_skin.json"
-CFG = {"pitch": 0.01, "duration": 1.0, "stay": 1.5, "finish": 0.3, "presence": 0.5, "pfl_factor": 0.8,
-       "pfl_regions": None, "samples": 300, "steps": 150, "source": "planner", "person_speed": 0.5, "push_N": 200.0,
-       "seed": 0}
+CFG = co.CollabConfig(finish=0.3, samples=300, steps=150)
+# one worker builds the module's episode and record once (pytest-xdist: ungrouped tests each rebuild them)
+pytestmark = pytest.mark.xdist_group("collaboration-view")
 
 
 @pytest.fixture(scope="module")
@@ -30,8 +32,8 @@ def result(tmp_path_factory):
     skin beside it."""
     d = tmp_path_factory.mktemp("collaboration")
     skin = shutil.copy(SKIN, d / "collaboration_skin.json")
-    cell = co.cell("t", 0, "person", stacks=["retraction"], config=CFG, skin=str(skin), detail=True, **co.NOMINAL)
-    (d / "collaboration.json").write_text(json.dumps(co.summarise([cell], [], load(skin), CFG)))
+    run = cell("t", 0, "person", stacks=["retraction"], config=CFG.to_json(), skin=str(skin), detail=True, **co.NOMINAL)
+    (d / "collaboration.json").write_text(json.dumps(summarise([run], [], load(skin), CFG)))
     return d / "collaboration.json"
 
 
@@ -84,11 +86,11 @@ def test_an_episode_runs_again_into_a_record_with_the_person_moving(result, simu
 
 
 def test_the_page_moves_the_parts_with_the_timeline(recorded):
-    from skinsafe.core.app.view_page import Page
+    from skinsafe.core.runtime.view_page import Page
 
     rec = recorded[1]
     design = load(rec.config["map"])
-    page = Page(design, build_ur5().model, port=8731, obstacles=rec.config["obstacles"], q0=rec.q[0])
+    page = Page(design, build_ur5().model, port=0, obstacles=rec.config["obstacles"], q0=rec.q[0])  # any free port
     try:
         for k in (0, len(rec.t) // 3):
             page.show(*rec.frame(k))

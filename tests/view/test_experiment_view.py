@@ -13,6 +13,9 @@ from skinsafe.core.experiments.tracking import TrackingConfig, run_method
 from skinsafe.core.runtime.recording import Recording
 from skinsafe.core.runtime.replay import ReplayError, replay
 
+# one worker runs the module's tracking episode once (pytest-xdist: ungrouped tests each run it again)
+pytestmark = pytest.mark.xdist_group("tracking-view")
+
 
 @pytest.fixture(scope="module")
 def result(tmp_path_factory):

@@ -14,18 +14,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from skinsafe.core.app.view_page import FOV, camera
 from skinsafe.core.bench.browser import CHROMIUM_ARGS, chromium, niced
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.robot.models import build_ur5
+from skinsafe.core.runtime.view_page import FOV, camera
+from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.taxel_map import save
 
 CHROMIUM = chromium()
 W, H = 1200, 800
 SCREENSHOT = Path(__file__).resolve().parents[2] / "results" / "view" / "view_poke.png"
 POKE_S = 2.0  # robot seconds
-pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no chromium: `apt-get install -y chromium` (.ci/run does)")
+pytestmark = [pytest.mark.skipif(CHROMIUM is None, reason="no chromium: `apt-get install -y chromium` (.ci/run does)"),
+              # `run` pins its loop to the first core at SCHED_FIFO and its boards go silent after 200 ms: never
+              # beside another real-time run (pytest-xdist: one worker runs the group in order)
+              pytest.mark.xdist_group("realtime"), pytest.mark.usefixtures("realtime_host")]
 
 
 def project(p, eye, at, fov=FOV, w=W, h=H):
@@ -110,7 +114,7 @@ def test_run_view_live_then_the_record_scrubs_to_the_poke_and_the_taxel_turns_ho
     # runs until Ctrl-C: the live phase takes as long as this machine needs to draw the page, no longer
     run = cli("run", skin, "--boards", "emulate", "--command", "hold", "--rate", 10, "--tare-frames", 10,
               "--contact", f"poke:at={POKE_S},taxel={taxel}", "--seconds", 120, "--record", record, "--view",
-              "--view-port", 8391, "--view-stream", "127.0.0.1:0",
+              "--view-port", 8391, "--view-stream", "127.0.0.1:0",  # (0: no page); taken: viser tries the next
               # the browser drawing 16k points in software WebGL can starve the boards' reader for seconds on
               # a 2-core machine (CI: 1.8 s once): this test is about the view; tests/runtime holds the watchdogs
               "--link-latency", 5)
@@ -134,7 +138,7 @@ def test_run_view_live_then_the_record_scrubs_to_the_poke_and_the_taxel_turns_ho
     assert run.returncode == 130 and "STOPPED by the operator" in err, err[-2000:]
     page.close()
 
-    view = cli("view", record, "--port", 8392, "--seconds", 120)
+    view = cli("view", record, "--port", 0, "--seconds", 120)  # any free port: `url_of` reads it back
     try:
         page = browser.new_page(viewport={"width": W, "height": H})
         page.goto(url_of(view))
@@ -155,7 +159,7 @@ def test_run_view_live_then_the_record_scrubs_to_the_poke_and_the_taxel_turns_ho
                 break
             page.wait_for_timeout(500)
         assert hot_near(hot, xy) >= 4, f"taxel {taxel} at pixel {xy} is not hot"
-        SCREENSHOT.write_bytes(hot)
+        atomic_write(SCREENSHOT, hot)  # never half a PNG to a reader (the docs' clone copying results/)
         # scrub back to the start: the retraction and the heat are gone again
         page.get_by_role("slider").first.focus()
         page.keyboard.press("Home")

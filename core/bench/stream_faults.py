@@ -39,13 +39,13 @@ from pathlib import Path
 import numpy as np
 
 from skinsafe.core.skin.taxel_map import save
+from skinsafe.core.system import SKINSAFE
 from skinsafe.hardware import protocol as P
 from skinsafe.hardware.board_config import board_configs
 from skinsafe.hardware.client import BoardClient, BoardError
 from skinsafe.hardware.emulator import EmulatorProcess, flash_path
 from skinsafe.hardware.flat_design import flat_design
 
-SKINSAFE = str(Path(sys.executable).with_name("skinsafe"))
 SOURCE = [Path(P.__file__).resolve().parents[1] / d for d in ("core", "hardware", "exporters", "addon")]
 STREAM_FAULTS = ["", "old_frames=0.1", "foreign_frames=0.1", "lost_start_answers=10", "unplug_after=100",
                  "old_frames=0.1,foreign_frames=0.1"]

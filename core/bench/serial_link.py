@@ -14,9 +14,9 @@ import tempfile
 
 import numpy as np
 
+from skinsafe.core.bench import serial_faults
 from skinsafe.core.skin.model import SkinDesign
 from skinsafe.core.timing import cpu_median_ms, median_ms
-from skinsafe.hardware import bench_faults
 from skinsafe.hardware import protocol as P
 from skinsafe.hardware.board_config import board_configs, channel_rows, default_sensor
 from skinsafe.hardware.deploy import deploy
@@ -32,7 +32,7 @@ def add_arguments(p) -> None:
     p.add_argument("--rate", type=int, default=1000, help="stream frames per second per board")
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--verify", nargs="+", choices=["readback", "hash"], default=["readback", "hash"])
-    bench_faults.add_arguments(p)
+    serial_faults.add_arguments(p)
 
 
 def stream_bytes(design: SkinDesign, seconds_of_frames: int, seed: int = 0) -> list[bytes]:
@@ -77,7 +77,7 @@ def decode_loop(design: SkinDesign, wires: list[bytes], decode, n_frames: int) -
 
 def rows(args) -> list[dict]:
     if args.faults:
-        return bench_faults.rows(args)
+        return serial_faults.rows(args)
     fsr = default_sensor()
     table = decode_table(fsr.decode)
     out = []

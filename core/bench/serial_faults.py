@@ -16,7 +16,7 @@ commit answer had no hash, lying_config_len_accepted boards reporting an impossi
 that were not refused for it, dry_run_writes flashes a dry run changed, hung_commands runs killed
 after 60 s. A second loop signals `emulator_kills` emulators (SIGTERM and SIGINT alternately,
 boards streaming or in a delay) and times how long each took to end. The stream storm and the early
-Ctrl-C loop are in bench_stream_faults.
+Ctrl-C loop are in core/bench/stream_faults.py.
 """
 from __future__ import annotations
 
@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from skinsafe.core.bench import stream_faults as streams
 from skinsafe.core.skin.taxel_map import save
-from skinsafe.hardware import bench_stream_faults as streams
-from skinsafe.hardware.bench_stream_faults import SKINSAFE
+from skinsafe.core.system import SKINSAFE
 from skinsafe.hardware.board_config import board_configs
 from skinsafe.hardware.client import BoardClient, BoardError
 from skinsafe.hardware.emulator import EmulatorProcess, flash_path

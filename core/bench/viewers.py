@@ -3,7 +3,7 @@
 One row per viewer, each serving the same scene from this process: the UR5 sample skin cut to `--taxels`
 (whole modules, core/bench/runtime.sample_skin), every body's mesh posed by q, the taxels as points whose
 colours all change on every update, pushed at `--hz` (30: the view stream's rate):
-- `viser`: the page `skinsafe view` serves (core/app/view_page.Page, its `show` per update);
+- `viser`: the page `skinsafe view` serves (core/runtime/view_page.Page, its `show` per update);
 - `rerun`: Rerun's web viewer (rerun-sdk, only where it is installed: not a skinsafe dependency) fed the
   same meshes, transforms and colours (`rr.log`, partial updates of the colours), served by
   `rr.serve_grpc` + `rr.serve_web_viewer`.
@@ -27,7 +27,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 import numpy as np
 
-from skinsafe.core.bench.browser import CHROMIUM_ARGS, chromium
+from skinsafe.core.bench.browser import CHROMIUM_ARGS, require_chromium
 
 W, H = 1200, 800
 DRAWN, COOL = 5000, 2000  # yellow pixels: the skin drawn all yellow / none of it yellow (the scale bar has ~600)
@@ -93,7 +93,7 @@ class Source:
 
 
 def _viser(design, robot, port: int):
-    from skinsafe.core.app.view_page import Page
+    from skinsafe.core.runtime.view_page import Page
 
     with contextlib.redirect_stdout(sys.stderr):  # viser's banner: not into --json
         page = Page(design, robot.model, "127.0.0.1", port, title="skinsafe bench", q0=robot.home)
@@ -109,8 +109,8 @@ def _rerun(design, robot, port: int):
     import mujoco
     import rerun as rr
 
-    from skinsafe.core.app.view_page import point_size, skin_bodies
     from skinsafe.core.robot.kinematics import TaxelKinematics
+    from skinsafe.core.runtime.view_page import point_size, skin_bodies
     from skinsafe.core.runtime.view_scale import colours, default_vmax
 
     kin = TaxelKinematics(robot.model, design)
@@ -188,14 +188,12 @@ def _measure(browser, name: str, url: str, source: Source, seconds: float, trial
 
 
 def rows(args) -> list[dict]:
+    exe = require_chromium("bench viewers")  # before playwright is imported
     from playwright.sync_api import sync_playwright
 
     from skinsafe.core.bench.runtime import sample_skin
     from skinsafe.core.robot.models import build_ur5
 
-    exe = chromium()
-    if exe is None:
-        raise SystemExit("bench viewers: no chromium; `apt-get install -y chromium`")
     robot = build_ur5()
     design = sample_skin(args.taxels, 1024, robot)
     out = []

@@ -1,0 +1,284 @@
+"""The safety monitor: one small state machine decides every stop, its reason and its exit code.
+
+    preflight -> armed -> moving <-> retracting
+                   |        |           |
+                   +--------+-----------+--> protective_stop (latched) --> ended
+                                 moving --> ended (the run's planned end)
+
+Every fault source (the boards' reader, the readings source, the robot's state, the driver, the command
+source, the layers, the operator's signal) reports a typed `Fault` (its `Kind`, the source, a one-line
+message and, where known, its onset on the host's `time.monotonic()`); the first one latches the
+protective stop: zero velocity, then the robot's own stop, and nothing resumes (a new run is the
+acknowledgement). No text is matched: the kind decides. `report` takes no lock (a signal handler
+calls it). Each kind has a stated detection bound (`bounds`); `skinsafe run` prints them with the
+distance a taxel can travel blind within each (`table`); docs/run/safety.md's fault table is
+`python -m skinsafe.core.runtime.monitor`'s output.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+HANDOFF_S = 0.005  # the boards' reader's wake-up on an event and its message through the pipe to the loop
+
+
+class State(str, Enum):
+    PREFLIGHT = "preflight"
+    ARMED = "armed"
+    MOVING = "moving"
+    RETRACTING = "retracting"
+    PROTECTIVE_STOP = "protective_stop"
+    ENDED = "ended"
+
+
+class Kind(str, Enum):
+    """What went wrong (the values are what hardware/ reports: it cannot import this module)."""
+
+    READER_DIED = "reader-died"
+    READER_STALLED = "reader-stalled"
+    LINK_LOST = "link-lost"
+    BOARD_SILENT = "board-silent"
+    BOARD_LATE = "board-late"
+    COUNTER_BACK = "counter-back"
+    FOREIGN_UID = "foreign-uid"
+    CRC_STORM = "crc-storm"
+    READING_NONFINITE = "reading-nonfinite"
+    ROBOT_FROZEN = "robot-frozen"
+    ROBOT_CLOCK_BACK = "robot-clock-back"
+    ROBOT_NONFINITE = "robot-nonfinite"
+    DRIVER = "driver"
+    COMMAND_STALE = "command-stale"
+    COMMAND_BAD = "command-bad"
+    STACK_NONFINITE = "stack-nonfinite"
+    STACK_LATCH = "stack-latch"
+    OPERATOR = "operator"
+    AFTER_CONTACT = "after-contact"
+
+
+@dataclass(frozen=True)
+class Fault:
+    kind: Kind
+    source: str  # who reported it: skin, board '<name>', robot, command, layers, operator
+    message: str  # one line
+    onset: float | None = None  # host time.monotonic() the fault began, where its source knows it
+
+
+@dataclass(frozen=True)
+class Spec:
+    detection: str
+    leaves: str  # the state the robot is left in
+    test: str  # the test that shows it
+
+
+STOP = "zero velocity, then the robot's own stop; latched until a new run"
+SPECS = {
+    Kind.READER_DIED: Spec("the reader process's pidfd and pipe polled every tick (not its silence); + 5 ms for its exit", STOP,
+                           "tests/runtime/test_runtime_safety.py::test_reader_death_after_a_settle_stall_is_named"),
+    Kind.READER_STALLED: Spec("the reader's heartbeat older than a board may be silent (host overloaded)", STOP,
+                              "tests/runtime/test_runtime_safety.py::test_a_reader_stalled_while_the_robot_moves_stops_it"),
+    Kind.LINK_LOST: Spec("the port's hang-up (EPOLLHUP) or a failed read; that board's taxels read NaN", STOP,
+                         "tests/runtime/test_runtime_closed_loop.py::test_every_watchdog_stops_the_robot_naming_why"),
+    Kind.BOARD_SILENT: Spec("no frame for 2 frame periods + --link-latency; that board's taxels read NaN", STOP,
+                            "tests/runtime/test_runtime_closed_loop.py::test_every_watchdog_stops_the_robot_naming_why"),
+    Kind.BOARD_LATE: Spec("a frame older than the silence bound by the board's own clock (not by arrival); taxels "
+                          "NaN", STOP, "tests/runtime/test_runtime_safety.py::test_late_but_steady_frames_stop_the_robot"),
+    Kind.COUNTER_BACK: Spec("a frame counter not ahead of the last (replayed or stale frame, board reset); every "
+                            "frame of a burst", STOP,
+                            "tests/runtime/test_runtime_closed_loop.py::test_every_watchdog_stops_the_robot_naming_why"),
+    Kind.FOREIGN_UID: Spec("a frame with another board's uid on a board's port", STOP,
+                           "tests/runtime/test_runtime_closed_loop.py::test_every_watchdog_stops_the_robot_naming_why"),
+    Kind.CRC_STORM: Spec("a board silent with corrupt frames since its last good one, or 5 corrupt frames within 1 s",
+                         STOP,
+                         "tests/runtime/test_runtime_closed_loop.py::test_every_watchdog_stops_the_robot_naming_why"),
+    Kind.READING_NONFINITE: Spec("a non-finite reading on a taxel that is not excluded", STOP,
+                                 "tests/runtime/test_runtime_loop.py::test_excluded_taxels_read_zero_and_a_nan_anywhere"
+                                 "_else_stops_the_robot"),
+    Kind.ROBOT_FROZEN: Spec("the robot's own clock unchanged for 2 periods (not a host counter)", STOP,
+                            "tests/runtime/test_runtime_safety.py::test_the_robot_watchdog_watches_the_robots_own_clock"),
+    Kind.ROBOT_CLOCK_BACK: Spec("the robot's own clock going back", STOP,
+                                "tests/runtime/test_runtime_safety.py::test_the_robot_watchdog_watches_the_robots_own_clock"),
+    Kind.ROBOT_NONFINITE: Spec("a non-finite robot clock, q or qd", STOP,
+                               "tests/runtime/test_runtime_safety.py::test_a_non_finite_robot_state_or_teleop_target_is_"
+                               "typed"),
+    Kind.DRIVER: Spec("the driver's own stop (communication lost, the simulation failed, the robot's reflex)",
+                      "the robot's own stop (the robot or its driver stopped it)",
+                      "tests/runtime/test_fr3_driver.py::test_fr3_robot_gone_is_named"),
+    Kind.COMMAND_STALE: Spec("no teleop datagram for --command-timeout", STOP,
+                             "tests/runtime/test_runtime_closed_loop.py::test_every_watchdog_stops_the_robot_naming_why"),
+    Kind.COMMAND_BAD: Spec("a non-finite plan or teleop target", STOP,
+                           "tests/runtime/test_runtime_safety.py::test_a_non_finite_robot_state_or_teleop_target_is_"
+                           "typed"),
+    Kind.STACK_NONFINITE: Spec("a non-finite command from the layers", STOP, "none yet (not injected by a test)"),
+    Kind.STACK_LATCH: Spec("the retraction's QP solve failed (at once; not injected by a test yet), or a retraction with "
+                           "ticks flagged infeasible ended (it never resumes the plan)", STOP,
+                           "tests/runtime/test_runtime_closed_loop.py::test_a_trajectory_into_the_post_is_turned_back"),
+    Kind.OPERATOR: Spec("SIGINT or SIGTERM (each further signal only sets the same flag)", STOP,
+                        "tests/runtime/test_fr3_driver.py::test_fr3_ctrl_c_twice_stops_once_and_keeps_the_record"),
+    Kind.AFTER_CONTACT: Spec("a retraction ended under --after-contact hold", STOP,
+                             "tests/runtime/test_runtime_safety.py::test_after_contact_hold_latches_after_the_retraction"),
+}
+
+
+@dataclass(frozen=True)
+class Timing:
+    """What the bounds depend on (s)."""
+
+    period_s: float  # the robot's control period
+    frame_period_s: float  # a board's frame period
+    silence_s: float  # a board is silent after this long (2 frame periods + --link-latency)
+    stale_s: float | None = None  # the command source's timeout (teleop)
+    state_periods: int = 2
+
+
+def bounds(tm: Timing) -> dict[Kind, float]:
+    """Each kind's detection bound, s: from its onset to the tick that stops (the zero goes out in that tick)."""
+    p, board = tm.period_s, 2 * tm.period_s + HANDOFF_S  # a reader's event reaches the loop's next tick
+    return {Kind.READER_DIED: 2 * p + HANDOFF_S, Kind.READER_STALLED: tm.silence_s + 2 * p, Kind.LINK_LOST: board,
+            Kind.BOARD_SILENT: tm.silence_s + board, Kind.BOARD_LATE: tm.silence_s + tm.frame_period_s + board,
+            Kind.COUNTER_BACK: board, Kind.FOREIGN_UID: board, Kind.CRC_STORM: tm.silence_s + board,
+            Kind.READING_NONFINITE: p, Kind.ROBOT_FROZEN: (tm.state_periods + 1) * p, Kind.ROBOT_CLOCK_BACK: p,
+            Kind.ROBOT_NONFINITE: p, Kind.DRIVER: p,
+            Kind.COMMAND_STALE: (tm.stale_s or 0.0) + p, Kind.COMMAND_BAD: p, Kind.STACK_NONFINITE: p,
+            Kind.STACK_LATCH: p, Kind.OPERATOR: 2 * p, Kind.AFTER_CONTACT: p}
+
+
+def fastest_taxel_speed(J: np.ndarray, qd_max: np.ndarray) -> float:
+    """An upper bound of the fastest taxel's speed, m/s: max over taxels of sum_j |J_lin[:, j]| qd_max_j
+    (J (N, 6, n), linear rows first)."""
+    return float((np.linalg.norm(J[:, :3], axis=1) @ np.asarray(qd_max, float)).max()) if len(J) else 0.0
+
+
+def table(tm: Timing, speed: float = 0.0) -> list[tuple[str, float, float, str]]:
+    """[(kind, bound ms, blind distance mm = speed x bound, detection)] for the kinds that apply."""
+    b = bounds(tm)
+    return [(k.value, b[k] * 1e3, speed * b[k] * 1e3, SPECS[k].detection) for k in Kind
+            if k is not Kind.COMMAND_STALE or tm.stale_s is not None]
+
+
+@dataclass
+class Decision:
+    """The monitor's verdict at the end of a run."""
+
+    state: State
+    fault: Fault | None
+    reason: str
+    exit_code: int
+    detected: float  # host time.monotonic() the stop was decided
+
+    @property
+    def kind(self) -> str:
+        """end | operator | driver | fault (what `skinsafe run` prints and records)."""
+        if self.fault is None:
+            return "end"
+        return {Kind.OPERATOR: "operator", Kind.DRIVER: "driver"}.get(self.fault.kind, "fault")
+
+
+AFTER_CONTACT = {"resume": "the plan goes on after a clean retraction, as in the paper (default); one with ticks "
+                            "flagged infeasible latches a protective stop when it ends",
+                 "hold": "a protective stop once any retraction ends",
+                 "always-resume": "the plan goes on after every retraction, flagged or not: for benches that measure "
+                                  "repeated contacts, never near people"}
+
+
+class Monitor:
+    """The state machine (module docstring). `after_contact`: what a retraction's end does (`AFTER_CONTACT`)."""
+
+    def __init__(self, after_contact: str = "resume"):
+        if after_contact not in AFTER_CONTACT:
+            raise ValueError(f"--after-contact {after_contact}: use {', '.join(AFTER_CONTACT)}")
+        self.after_contact = after_contact
+        self.state = State.PREFLIGHT
+        self.fault: Fault | None = None
+        self.detected = 0.0
+        self.signum = 0
+        self._end = ""
+        self._unclean: set[str] = set()  # the flags of concern seen during the current retraction
+
+    @property
+    def stopped(self) -> bool:
+        return self.fault is not None or bool(self._end)
+
+    @property
+    def reason(self) -> str:
+        return self.fault.message if self.fault is not None else self._end
+
+    def report(self, fault: Fault) -> None:
+        """A fault: the first latches the protective stop (no lock: a signal handler calls this)."""
+        if self.fault is None and not self._end:
+            self.fault, self.detected = fault, time.monotonic()
+            self.state = State.PROTECTIVE_STOP
+
+    def signal(self, signum: int, name: str) -> None:
+        """The operator's SIGINT / SIGTERM: the first one is the stop; every further one only sets the same flag."""
+        if not self.signum:
+            self.signum = signum
+        self.report(Fault(Kind.OPERATOR, "operator", f"interrupted by the operator ({name})", time.monotonic()))
+
+    def arm(self) -> None:
+        if self.state is State.PREFLIGHT:
+            self.state = State.ARMED
+
+    def tick(self, retracting: bool, flags: tuple = ()) -> None:
+        """A tick went out: moving, or retracting (`flags`: the layers' flags of concern this tick). The end of a
+        retraction whose ticks were flagged, or any under `hold`, latches the stop: only a clean one resumes."""
+        if self.stopped:
+            return
+        if retracting and flags and self.after_contact != "always-resume":
+            self._unclean.update(flags)
+        if self.state is State.RETRACTING and not retracting and self._unclean:
+            self.report(Fault(Kind.STACK_LATCH, "layers", f"layers: the retraction ended after ticks flagged "
+                              f"{', '.join(sorted(self._unclean))}: protective stop (latched until a new run)",
+                              time.monotonic()))
+        elif self.state is State.RETRACTING and not retracting and self.after_contact == "hold":
+            self.report(Fault(Kind.AFTER_CONTACT, "layers", "the retraction ended; --after-contact hold keeps the "
+                              "robot stopped until a new run", time.monotonic()))
+        else:
+            self.state = State.RETRACTING if retracting else State.MOVING
+
+    def end(self, reason: str) -> None:
+        """The run's planned end (--seconds): not a fault."""
+        if not self.stopped:
+            self._end, self.detected = reason, time.monotonic()
+
+    def decide(self) -> Decision:
+        """After the driver returned: the run is over; its reason and exit code."""
+        stop = self.state
+        self.state = State.ENDED
+        if self.fault is None:
+            return Decision(stop, None, self._end or "the run ended", 0, self.detected)
+        code = 128 + self.signum if self.fault.kind is Kind.OPERATOR else 1
+        return Decision(stop, self.fault, self.fault.message, code, self.detected)
+
+
+def markdown(tm: Timing, speed: float) -> str:
+    """The fault table of docs/run/safety.md."""
+    b = bounds(tm)
+    rows = ["| fault | detection | bound (ms) | blind distance (mm) | leaves the robot | test |",
+            "|---|---|---:|---:|---|---|"]
+    for k in Kind:
+        s = SPECS[k]
+        rows.append(f"| `{k.value}` | {s.detection} | {b[k] * 1e3:.1f} | {speed * b[k] * 1e3:.1f} | {s.leaves} | "
+                    f"`{s.test}` |")
+    return "\n".join(rows)
+
+
+def main() -> None:
+    """The table for `skinsafe run --robot sim`'s defaults (2 ms period, boards at 100 Hz, no link latency, teleop
+    timeout 0.1 s) on the UR5 sample skin, its fastest taxel at home with every joint at its limit."""
+    from skinsafe.core.design.sample import make_sample_design
+    from skinsafe.core.robot.kinematics import TaxelKinematics
+    from skinsafe.core.robot.models import build_ur5
+
+    robot = build_ur5()
+    design = make_sample_design("ur5", robot=robot)
+    J = TaxelKinematics(robot.model, design).jacobians_of(np.arange(design.n_taxels), robot.home)[0]
+    speed = fastest_taxel_speed(J, robot.vel_limits)
+    print(f"UR5 sample skin, fastest taxel {speed:.2f} m/s; `skinsafe run --robot sim` defaults\n")
+    print(markdown(Timing(0.002, 0.01, 0.02, 0.1), speed))
+
+
+if __name__ == "__main__":
+    main()

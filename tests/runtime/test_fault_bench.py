@@ -1,0 +1,37 @@
+"""`skinsafe bench runtime --faults`: one row per injected fault kind, timed from the fault's onset at its
+source to the zero command the driver sent, every fault named as injected, nothing untraced or unreadable."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from skinsafe.core.runtime.monitor import Kind, Timing, bounds
+
+# `skinsafe run`s (SCHED_FIFO, core 0, timed watchdogs): one at a time (conftest.realtime_host)
+pytestmark = [pytest.mark.xdist_group("realtime"), pytest.mark.usefixtures("realtime_host")]
+
+SKINSAFE = str(Path(sys.executable).with_name("skinsafe"))
+KEYS = {"fault", "driver", "runs", "detect_bound_ms", "onset_to_zero_ms_p50", "onset_to_zero_ms_max", "over_bound",
+        "named_as_injected", "unnamed", "tracebacks", "records_readable", "latched"}
+# process death, a link hang-up, a signal, the robot's own faults: within 2 control periods + 5 ms at any link latency
+PROMPT = {"reader-kill", "board-unplug", "ctrl-c", "sim-die", "sim-clock-back"}
+
+
+def test_every_sim_fault_kind_is_one_row_stopped_within_its_bound():
+    out = subprocess.run([SKINSAFE, "bench", "runtime", "--faults", "--runs", "12", "--link-latency", "0.5", "--json"],
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "Traceback" not in out.stderr
+    rows = json.loads(out.stdout)
+    assert len(rows) == 12 and {r["fault"] for r in rows} >= PROMPT  # 12 runs: each sim kind once
+    bound = bounds(Timing(0.002, 1 / 50, 2 / 50 + 0.5, 0.1))
+    for r in rows:
+        assert KEYS <= set(r) and r["driver"] == "sim" and r["runs"] == 1
+        assert (r["unnamed"], r["tracebacks"], r["records_readable"], r["latched"]) == (0, 0, 1.0, 1.0), r
+        assert r["named_as_injected"] == 1.0 and r["over_bound"] == 0, r
+        assert r["onset_to_zero_ms_max"] <= r["detect_bound_ms"], r
+        if r["fault"] in PROMPT:
+            assert r["onset_to_zero_ms_max"] <= 2 * 2 + 5, r
+    assert max(bound[k] for k in (Kind.READER_DIED, Kind.LINK_LOST)) * 1e3 <= 2 * 2 + 5 + 1e-9  # whatever the latency

@@ -1,0 +1,114 @@
+"""The safety monitor decides every stop from a typed fault at its source: the boards' reader's death seen from its
+pidfd after a stall used up the old one-shot check, steadily late frames judged by the board's own clock, the robot's
+own clock frozen or going back (while a host counter still counts, as the FR3 driver's does), a retraction's end
+under --after-contact hold latches the stop; the one command limiter after the layers."""
+import json
+import socket
+import time
+
+import numpy as np
+import pytest
+import test_runtime_closed_loop as closed_loop
+import test_runtime_loop as loop
+
+from skinsafe.core.runtime.commands import Teleop, teleop_datagram
+from skinsafe.core.runtime.limiter import Limiter, limits_config
+from skinsafe.core.runtime.monitor import Kind, Monitor, Timing, bounds
+from skinsafe.core.runtime.protocol import StopRobot
+from skinsafe.core.sim.robot_driver import SimFaults, SimState
+from skinsafe.hardware.skin_reader import KINDS
+
+skin, ur5 = closed_loop.skin, loop.ur5  # their fixtures
+messages, run, _runtime = closed_loop.messages, closed_loop.run, loop._runtime
+# `skinsafe run`s (SCHED_FIFO, core 0, timed watchdogs): one at a time (conftest.realtime_host)
+pytestmark = [pytest.mark.xdist_group("realtime"), pytest.mark.usefixtures("realtime_host")]
+
+
+def _stopped_by(p, s, record, kind: str):
+    assert p.returncode == 1, p.stderr
+    assert s["watchdog"] == kind and s["state"] == "protective_stop", s["reason"]
+    assert s["world"]["zero_mono"] > s["detected_mono"] > 0  # zero went out after the decision, in that tick
+    stop = [m for t, m in messages(record) if t == "/diagnostics"][-1].status[0]
+    assert stop.name == "skinsafe/watchdog" and stop.message == s["reason"]
+
+
+def test_reader_death_after_a_settle_stall_is_named(skin, tmp_path):
+    """The reader stalls (SIGSTOP) while the boards settle (named, let pass), then is killed while the robot moves:
+    its pidfd names the death, whatever --link-latency (0.5 s here) a board's silence waits."""
+    p, s, record = run(skin, tmp_path, "--inject", "reader-stall@0", "--inject", "reader-kill@1.2", seconds=3.0)
+    _stopped_by(p, s, record, "reader-died")
+    assert "the boards' reader ended (exit code -9)" in s["reason"]
+    assert s["injected"]["reader-kill"] < s["world"]["zero_mono"]
+
+
+def test_a_reader_stalled_while_the_robot_moves_stops_it(skin, tmp_path):
+    """SIGSTOP on the reader while the arm moves: its heartbeat ages past a board's silence: the host is overloaded."""
+    p, s, record = run(skin, tmp_path, "--inject", "reader-stall@0.3", seconds=3.0)
+    _stopped_by(p, s, record, "reader-stalled")
+
+
+def test_late_but_steady_frames_stop_the_robot(skin, tmp_path):
+    """From 0.3 s on a board's frames arrive ever later but never more than 1.5 frame periods apart: no silence by
+    arrival; by the board's own clock they are late."""
+    p, s, record = run(skin, tmp_path, "--inject", "frame-lag@0.3", seconds=3.0)
+    _stopped_by(p, s, record, "board-late")
+    assert "late by the board's own clock" in s["reason"] and "board 'board0'" in s["reason"]
+
+
+@pytest.mark.parametrize("fault, kind", [("clock_freeze_at", "robot-frozen"), ("clock_back_at", "robot-clock-back")])
+def test_the_robot_watchdog_watches_the_robots_own_clock(ur5, fault, kind):
+    """The state's sequence number still counts every read (as the FR3 driver's host counter does); its clock froze
+    or went back: the robot's clock names it, within the bound."""
+    drv, rt = _runtime(ur5, faults=SimFaults(**{fault: 0.2}))
+    out = rt.run(settle_s=0.0)
+    assert out.watchdog == kind and out.exit_code == 1 and out.state == "protective_stop", out.reason
+    stop_t = drv.stats.stop_t
+    assert 0.2 <= stop_t <= 0.2 + bounds(Timing(0.002, 0.002, 0.004))[Kind(kind)] + 1e-9
+
+
+def test_after_contact_hold_latches_after_the_retraction(ur5):
+    drv, rt = _runtime(ur5, seconds=3.0)
+    rt.monitor = Monitor("hold")
+    out = rt.run(settle_s=0.0)
+    assert out.watchdog == "after-contact" and out.exit_code == 1, out.reason
+    assert drv.stats.reaction_t is not None and drv.stats.stop_t > drv.stats.reaction_t
+
+
+def test_every_kind_the_reader_names_is_a_monitor_kind():
+    assert {Kind(k) for k in KINDS} <= set(Kind) and Kind("reader-died") and Kind("reader-stalled")
+
+
+def test_the_limiter_stops_short_of_a_joint_limit_and_keeps_acceleration():
+    """Joint 0 is 0.02 rad below its limit: it may approach at most sqrt(2 qdd_max 0.02) = 0.4 rad/s, however fast the
+    layers ask; joint 1 (no limit, JSON None) is held to its velocity limit, reached at its acceleration limit; the
+    record's JSON of the limits rebuilds the same limiter."""
+    limits = {"q_min": np.array([-1.0, -np.inf]), "q_max": np.array([1.0, np.inf]), "qd_max": np.array([2.0, 1.0]),
+              "qdd_max": np.array([4.0, 100.0])}
+    lim = Limiter(json.loads(json.dumps(limits_config(limits))))
+    q = np.array([0.98, 0.0])
+    out = [lim(np.array([5.0, 5.0]), q, 0.01) for _ in range(30)]
+    assert out[0] == pytest.approx([0.04, 1.0])  # 4 rad/s^2 for 10 ms; joint 1 at once (100 rad/s^2)
+    assert out[-1] == pytest.approx([0.4, 1.0]) and lim.changed == 30
+    assert lim(np.array([-0.5, 0.0]), np.array([1.0, 0.0]), 0.01) == pytest.approx([0.36, 0.0])  # braking at 4
+
+
+def test_a_non_finite_robot_state_or_teleop_target_is_typed(ur5):
+    """A NaN in the measured q names the robot; a teleop datagram with a NaN target (real UDP) names the command
+    source; each stops the tick it arrives in, before the layers tick."""
+    robot, design = ur5
+    drv, rt = _runtime(ur5)
+    q = robot.home.copy()
+    q[2] = np.nan
+    with pytest.raises(StopRobot, match="non-finite q"):
+        rt.control(SimState(0.0, q, np.zeros(6), 0))
+    assert rt.monitor.fault.kind is Kind.ROBOT_NONFINITE and rt.ticks == 0
+    drv, rt = _runtime(ur5)
+    rt.command = Teleop("127.0.0.1:0", drv.joint_names, drv.limits())
+    rt.stale_s = None
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as out:
+        out.sendto(teleop_datagram(1, [np.nan] + [0.0] * 5), ("127.0.0.1", rt.command.port))
+        time.sleep(0.05)
+        with pytest.raises(StopRobot, match="non-finite joint target"):
+            rt.control(SimState(0.0, robot.home.copy(), np.zeros(6), 0))
+    rt.command.close()
+    assert rt.monitor.fault.kind is Kind.COMMAND_BAD and rt.ticks == 0
