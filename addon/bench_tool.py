@@ -40,8 +40,9 @@ def bench(t0: float, moves: int = 50) -> dict:
             pv = place_tool.preview(scene, o, d)
             times.append(time.perf_counter() - t)
             assert pv.body == "forearm_link"
-        return {"tool": "place_skin", "module": "8x8", "first_place_s": first,
-                "preview_ms": float(np.median(times) * 1e3), "moves": moves}
+        return {"tool": "place_skin", "module": "8x8", "n_taxels": 64, "modules": 1, "first_place_s": first,
+                "preview_ms": float(np.median(times) * 1e3), "preview_ms_max": float(np.max(times) * 1e3),
+                "moves": moves}
     finally:
         unregister_addon()
 

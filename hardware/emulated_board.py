@@ -334,8 +334,9 @@ class EmulatedBoard:
                 P.RESET: _reset, P.CONFIG_VERIFY: _verify}
 
     # -- streaming ---------------------------------------------------------------------------
-    def forces(self, t: float) -> np.ndarray:
-        """Synthetic forces (N): a 12 N press sweeping across the channels once a second, a replay, or the feed."""
+    def forces(self, t: float) -> np.ndarray | None:
+        """Synthetic forces (N): a 12 N press sweeping across the channels once a second, a replay, or the feed
+        (None: the feed has no complete sample)."""
         n = self.spec.n_channels
         if self.feed is not None:
             return self.feed()
@@ -345,9 +346,13 @@ class EmulatedBoard:
         centre = (t % 1.0) * n
         return 12.0 * np.exp(-0.5 * ((c - centre) / max(1.0, n / 64)) ** 2)
 
-    def stream_frame(self) -> bytes:
+    def stream_frame(self) -> bytes | None:
+        """The next stream frame, or None when there is no sample to send (the feed's writer is stuck)."""
         t = time.monotonic() - self.t0
-        raw = np.asarray(self.encode(self.forces(t)), np.int64)
+        forces = self.forces(t)
+        if forces is None:
+            return None
+        raw = np.asarray(self.encode(forces), np.int64)
         counts = np.minimum((raw * self.gain) >> 8, 65535).astype("<u2")  # gain Q8.8, rounded down
         over = int((counts > self.threshold).sum())
         sample = self.sample & 0xFFFFFFFF
@@ -382,7 +387,8 @@ class EmulatedBoard:
                 if data:
                     self.receive(data)
             if self.streaming and time.monotonic() >= self.next_tick:
-                for frame in self._stream_faults(self.stream_frame()):
+                frame = self.stream_frame()
+                for frame in self._stream_faults(frame) if frame is not None else []:
                     self.send(frame)
                 self.next_tick = max(self.next_tick + 1.0 / self.rate, time.monotonic() - 1.0 / self.rate)
                 if self.spec.faults.unplug_after and self.sample >= self.spec.faults.unplug_after:

@@ -160,13 +160,20 @@ def board_replay(forces: np.ndarray, spec: BoardSpec, board, design) -> np.ndarr
 
 
 def board_feed(feed, board, design, n_channels: int):
-    """() -> (n_channels,) forces of `board`'s channels, read from the shared-memory `feed` (taxel order)."""
+    """() -> (n_channels,) forces of `board`'s channels, read from the shared-memory `feed` (taxel order), or None
+    while its writer is stuck in the middle of a write (the board then sends no frame, as a board whose ADC did not
+    answer: the host names it silent if that lasts, never fed a stale press)."""
+    from skinsafe.core.skin.force_feed import FeedError
+
     rows = channel_rows(design, board)
     channels = design.taxels.channel[rows].astype(np.intp)
     out = np.zeros(n_channels)
 
-    def forces() -> np.ndarray:
-        out[channels] = feed.read(rows)[2]
+    def forces() -> np.ndarray | None:
+        try:
+            out[channels] = feed.read(rows)[2]
+        except FeedError:
+            return None
         return out
     return forces
 

@@ -104,3 +104,38 @@ def realtime_host(tmp_path_factory):
     with open(run_folder(tmp_path_factory) / "realtime.lock", "w") as f:
         fcntl.flock(f, fcntl.LOCK_EX)
         yield
+
+
+def pytest_sessionstart(session):
+    import time
+
+    session.config._skinsafe_started = time.monotonic()
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """With SKINSAFE_TEST_TIMES=FILE: the run's wall time, its outcome counts and the 20 slowest tests (setup + call +
+    teardown) as JSON, the figures of docs/contributing.md (`SKINSAFE_TEST_TIMES=results/tests/times.json make test`)."""
+    import json
+    import os
+    import time
+
+    path = os.environ.get("SKINSAFE_TEST_TIMES")
+    if not path or os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    per_test, counts = {}, {}
+    for outcome, reports in terminalreporter.stats.items():
+        for r in reports:
+            if getattr(r, "when", None) in ("setup", "call", "teardown"):
+                per_test[r.nodeid] = per_test.get(r.nodeid, 0.0) + r.duration
+                if r.when == "call" or outcome == "skipped":
+                    counts[outcome] = counts.get(outcome, 0) + 1
+    slowest = sorted(per_test.items(), key=lambda kv: -kv[1])[:20]
+    workers = getattr(config.option, "numprocesses", None) or 1
+    from skinsafe.core.skin.files import atomic_write
+
+    atomic_write(path, json.dumps({
+        "date": time.strftime("%Y-%m-%d"), "cpus": os.cpu_count(), "workers": workers,
+        "load_average": [round(x, 1) for x in os.getloadavg()], "exit_status": int(exitstatus),
+        "wall_s": round(time.monotonic() - config._skinsafe_started, 1), "counts": counts,
+        "rows": [{"test": k.split("::", 1)[1] if "::" in k else k, "file": k.split("::", 1)[0], "s": round(v, 1)}
+                    for k, v in slowest]}, indent=1))
