@@ -2,11 +2,25 @@
 Jacobian heat maps, boards, coverage, export). Logic lives in skinsafe.core; this package
 adapts Blender data and draws.
 
-Registers properties, then operators, then panels, drawing and handlers; unregisters in reverse.
+Registers properties, then operators, then panels, drawing, handlers and the toolbar's tool; unregisters in
+reverse.
 """
-from skinsafe.addon import cover, deploy, drawing, findings, handlers, live, operators, panels, pfl, place_tool, props
+from skinsafe.addon import (
+    cover,
+    deploy,
+    drawing,
+    findings,
+    handlers,
+    live,
+    operators,
+    panels,
+    pfl,
+    place_tool,
+    props,
+    toolbar,
+)
 
-_MODULES = (props, operators, cover, place_tool, findings, deploy, panels, pfl, drawing, handlers, live)
+_MODULES = (props, operators, cover, place_tool, findings, deploy, panels, pfl, drawing, handlers, live, toolbar)
 
 
 def register():

@@ -1,7 +1,9 @@
 """The Check panel (View3D > N > Skin > Check): a coverage bar per skinned link, and every finding of the
 last `skinsafe.check` in a list; Select makes the module it names the active object, Frame also puts the 3D
 cursor on the taxel it names and frames it in the viewport. A finding names its taxel ("taxel ID") or module
-("module ID") in its text (core/design/audit.py): the taxel's module and place come from the design."""
+("module ID") in its text (core/design/audit.py): the taxel's module and place come from the design.
+*Show uncovered area* draws, over the viewport, the surface points of each skinned link of the last coverage
+report that no module covers (core/design/coverage.py `uncovered_points`), in orange."""
 import re
 
 import bpy
@@ -9,8 +11,12 @@ import numpy as np
 from bpy.props import BoolProperty, CollectionProperty, FloatVectorProperty, IntProperty, StringProperty
 
 from skinsafe.addon import blender_to_core as b2c
+from skinsafe.core.design.coverage import uncovered_points
 
 _TAXEL, _MODULE = re.compile(r"taxel (\d+)"), re.compile(r"module (\d+)")
+WARN = (1.0, 0.55, 0.0, 1.0)  # the uncovered area's colour
+_overlay = None  # the uncovered area's draw handler
+_uncovered: dict = {}  # scene name -> (design revision, {link: body-frame points})
 
 
 class SkinsafeFinding(bpy.types.PropertyGroup):
@@ -42,6 +48,63 @@ def fill(scene, problems: list[str]) -> None:
             W = np.array(bodies[mod.body].matrix_world)
             f.location, f.has_location = tuple(W[:3, :3] @ p + W[:3, 3]), True
     scene.skinsafe_finding_index = 0
+
+
+def uncovered_world(scene) -> np.ndarray:
+    """(k, 3) world positions of the surface points no module covers, on each link with taxels in the
+    design's coverage report (the last Check, Cover or Coverage); none without a report."""
+    design = b2c.design_of(scene) if scene.skinsafe.robot_kind else None
+    if design is None or not design.coverage:
+        return np.zeros((0, 3))
+    hit = _uncovered.get(scene.name)
+    if hit is None or hit[0] != scene.skinsafe.design_rev:
+        model = b2c.robot_for(scene).model
+        hit = _uncovered[scene.name] = (scene.skinsafe.design_rev, {
+            body: uncovered_points(design, model, design.bodies.index(body))
+            for body, r in design.coverage.items() if body in design.bodies and r["taxels"]})
+    bodies = b2c.body_objects(scene)
+    world = [p @ W[:3, :3].T + W[:3, 3] for body, p in hit[1].items() if body in bodies
+             for W in (np.array(bodies[body].matrix_world),)]
+    return np.concatenate(world) if world else np.zeros((0, 3))
+
+
+def _draw_uncovered():
+    scene = bpy.context.scene
+    if not scene.skinsafe_show_uncovered:
+        return
+    pts = uncovered_world(scene)
+    if not len(pts):
+        return
+    import gpu
+    from gpu_extras.batch import batch_for_shader
+    shader = gpu.shader.from_builtin("UNIFORM_COLOR")
+    batch = batch_for_shader(shader, "POINTS", {"pos": pts.astype(np.float32)})
+    gpu.state.point_size_set(4.0)
+    shader.bind()
+    shader.uniform_float("color", WARN)
+    batch.draw(shader)
+
+
+def overlay_on() -> None:
+    """Add the uncovered area's draw handler to the 3D viewports (once)."""
+    global _overlay
+    if _overlay is None:
+        _overlay = bpy.types.SpaceView3D.draw_handler_add(_draw_uncovered, (), "WINDOW", "POST_VIEW")
+
+
+def overlay_off() -> None:
+    """Remove it (a handler left registered keeps a bpy process from exiting)."""
+    global _overlay
+    if _overlay is not None:
+        bpy.types.SpaceView3D.draw_handler_remove(_overlay, "WINDOW")
+        _overlay = None
+    _uncovered.clear()
+
+
+def _redraw(self, context) -> None:
+    for area in context.screen.areas if context.screen else ():
+        if area.type == "VIEW_3D":
+            area.tag_redraw()
 
 
 class SKINSAFE_UL_findings(bpy.types.UIList):
@@ -102,6 +165,8 @@ class SKINSAFE_PT_findings(bpy.types.Panel):
             if body != "total":  # per-link coverage of the last check or coverage report
                 col.progress(factor=min(r["fraction"], 1.0), type="BAR",
                              text=f"{body}: {r['fraction']:.0%} covered, {r['taxels']} taxels")
+        if design is not None and design.coverage:
+            col.prop(scene, "skinsafe_show_uncovered")
         if not len(scene.skinsafe_findings):
             col.label(text="no findings (run Check)")
             return
@@ -119,9 +184,16 @@ def register():
     _register()
     bpy.types.Scene.skinsafe_findings = CollectionProperty(type=SkinsafeFinding)
     bpy.types.Scene.skinsafe_finding_index = IntProperty(default=0)
+    bpy.types.Scene.skinsafe_show_uncovered = BoolProperty(
+        name="Show uncovered area", default=False, update=_redraw,
+        description="draw the surface points of the skinned links that no module covers (orange)")
+    if not bpy.app.background:  # no viewport draws in background mode
+        overlay_on()
 
 
 def unregister():
+    overlay_off()
+    del bpy.types.Scene.skinsafe_show_uncovered
     del bpy.types.Scene.skinsafe_finding_index
     del bpy.types.Scene.skinsafe_findings
     _unregister()

@@ -478,6 +478,7 @@ def pages(root: Path = REPO) -> list[Path]:
         pass
 
     Loader.add_multi_constructor("tag:yaml.org,2002:python/", lambda loader, suffix, node: None)
+    Loader.add_constructor("!relative", lambda loader, node: None)
     config = yaml.load((root / "mkdocs.yml").read_text(), Loader=Loader)
     docs = root / config.get("docs_dir", "docs")
     return [root / "README.md"] + [docs / f for f in _nav_files(config["nav"])]

@@ -44,21 +44,41 @@ def body_area(model: mujoco.MjModel, body: str) -> float:
     return cached_surfaces(model, [body])[body].area
 
 
-def gaps(design: SkinDesign, model: mujoco.MjModel, body_index: int, pitch: float) -> dict:
-    """Where the skin leaves the link bare: the share of the link's surface (its tessellation,
-    vertices weighted by area) farther than one pitch from every taxel, and `largest_gap_mm`, the
-    farthest any surface point is from a taxel (the radius of the biggest bare patch)."""
+def reach(design: SkinDesign, body_index: int) -> float:
+    """How far a link's taxels cover: the root mean square pitch of their modules (0 without taxels)."""
+    pitch = {m.id: m.pitch for m in design.modules}
+    cell = np.array([pitch.get(int(m), 0.0) ** 2 for m in design.taxels.module[design.taxels.body == body_index]])
+    return float(np.sqrt(cell.mean())) if len(cell) else 0.0
+
+
+def _distances(design: SkinDesign, model: mujoco.MjModel, body_index: int):
+    """The link's surface (vertices, triangles, body frame) and each vertex's distance to its nearest taxel
+    on the link (None without taxels)."""
     from skinsafe.core.design.surface import cached_surfaces
 
     on = design.taxels.body == body_index
     surf = cached_surfaces(model, [design.bodies[body_index]])[design.bodies[body_index]]
-    v, tri = surf.vertices, surf.triangles
-    if not on.any():
+    d = cKDTree(design.taxels.positions[on]).query(surf.vertices)[0] if on.any() else None
+    return surf.vertices, surf.triangles, d
+
+
+def uncovered_points(design: SkinDesign, model: mujoco.MjModel, body_index: int) -> np.ndarray:
+    """The bare area `gaps` measures, as points: the link's surface vertices (body frame) farther than
+    `reach` from every taxel; the whole surface of a link without taxels."""
+    v, _, d = _distances(design, model, body_index)
+    return v.copy() if d is None else v[d > reach(design, body_index)]
+
+
+def gaps(design: SkinDesign, model: mujoco.MjModel, body_index: int, pitch: float) -> dict:
+    """Where the skin leaves the link bare: the share of the link's surface (its tessellation,
+    vertices weighted by area) farther than one pitch from every taxel, and `largest_gap_mm`, the
+    farthest any surface point is from a taxel (the radius of the biggest bare patch)."""
+    v, tri, d = _distances(design, model, body_index)
+    if d is None:
         return {"bare_fraction": 1.0, "largest_gap_mm": float("inf")}
     # each vertex stands for a third of the area of its triangles
     area = 0.5 * np.linalg.norm(np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]]), axis=1)
     weight = np.bincount(tri.ravel(), np.repeat(area / 3, 3), len(v))
-    d, _ = cKDTree(design.taxels.positions[on]).query(v)
     return {"bare_fraction": float(weight[d > pitch].sum() / weight.sum()), "largest_gap_mm": float(d.max() * 1e3)}
 
 
@@ -81,7 +101,7 @@ def coverage_report(design: SkinDesign, model: mujoco.MjModel) -> dict:
             "fraction": skinned / area if area > 0 else 0.0,
             "density_per_cm2": n / (skinned * 1e4) if skinned > 0 else 0.0,
             "modules": len({int(m) for m in t.module[on]}),
-            **gaps(design, model, i, float(np.sqrt(cell[on].mean())) if n else 0.0),
+            **gaps(design, model, i, reach(design, i)),
         }
     out["total"] = {
         "taxels": len(t),

@@ -34,8 +34,14 @@ ASSET_REF = re.compile(r'(\]\(|src=")((?:results|blend_assets)/[^)"\s]+)')
 
 
 def on_files(files, config):
-    """The pictures pages show from results/ and blend_assets/, served at the same paths."""
+    """The pictures pages show from results/ and blend_assets/, served at the same paths, and the state machine's
+    picture drawn from docs/run/safety.md's own diagram (img/state_machine.png)."""
     from mkdocs.structure.files import File
+
+    generated = ROOT / "build" / "docs-img"
+    source = MERMAID.search((ROOT / "docs" / "run" / "safety.md").read_text())
+    state_picture(source.group(1), generated / "img" / "state_machine.png")
+    files.append(File("img/state_machine.png", str(generated), config["site_dir"], config["use_directory_urls"]))
 
     for folder in ("results", "blend_assets/pictures"):
         for path in sorted((ROOT / folder).rglob("*.png")):
@@ -48,3 +54,51 @@ def _assets_from(markdown: str, page) -> str:
     """`results/x.png` in a page at docs/a/b.md points to the site root's results/x.png."""
     up = "../" * page.file.src_uri.count("/")
     return ASSET_REF.sub(lambda m: m.group(1) + up + m.group(2), markdown)
+
+
+MERMAID = re.compile(r"```mermaid\nstateDiagram-v2\n(.*?)```", re.S)
+EDGE = re.compile(r"^\s*(\S+)\s*-->\s*(\S+?)(?::\s*(.*))?$")
+STATE_XY = {"[*]": (-1.6, 3), "preflight": (0, 3), "armed": (3, 3), "moving": (6.2, 3), "retracting": (6.2, 0.8),
+            "protective_stop": (3, -0.3), "ended": (10, 1.4)}
+
+
+def state_picture(source: str, path: Path) -> None:
+    """A PNG of a mermaid stateDiagram's edges (the page's own source), for readers without the mermaid script."""
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import FancyArrowPatch
+
+    edges = [m.groups() for m in map(EDGE.match, source.splitlines()) if m]
+    fig, ax = plt.subplots(figsize=(12, 7))
+    names = list(dict.fromkeys(n for a, b, _ in edges for n in (a, b)))
+    xy = {n: STATE_XY.get(n, (i * 1.5, -1.2)) for i, n in enumerate(names)}
+    for n, (x, y) in xy.items():
+        start = n == "[*]"
+        ax.text(x, y, "" if start else n.replace("_", " "), ha="center", va="center", fontsize=11,
+                bbox=dict(boxstyle="circle" if start else "round,pad=0.5", fc="black" if start else
+                          ("#f4c7c3" if n == "protective_stop" else "#d9ead3"), ec="black"))
+    count: dict = {}
+    legend: list[str] = []
+    for a, b, label in edges:
+        (x0, y0), (x1, y1) = xy[a], xy[b]
+        if b == "[*]":
+            continue
+        k = count[frozenset((a, b))] = count.get(frozenset((a, b)), -1) + 1
+        rad = 0.1 + 0.22 * k
+        ax.add_patch(FancyArrowPatch((x0, y0), (x1, y1), connectionstyle=f"arc3,rad={rad}", arrowstyle="-|>",
+                                     mutation_scale=14, shrinkA=30, shrinkB=30, color="#444"))
+        if label:  # a number at the arc's middle (the Bezier's control point is mid + rad * (dy, -dx)), the text below
+            legend.append(label)
+            mx, my = (x0 + x1) / 2 + 0.5 * rad * (y1 - y0), (y0 + y1) / 2 - 0.5 * rad * (x1 - x0)
+            ax.text(mx, my, str(len(legend)), ha="center", va="center", fontsize=8, fontweight="bold",
+                    bbox=dict(boxstyle="circle,pad=0.25", fc="white", ec="#444"))
+    ax.text(-1.8, -0.9, "\n".join(f"{i}. {t}" for i, t in enumerate(legend, 1)), ha="left", va="top", fontsize=8.5)
+    ax.set_xlim(-2.0, 11.8)
+    ax.set_ylim(-0.6 - 0.32 * len(legend), 3.6)
+    ax.axis("off")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)

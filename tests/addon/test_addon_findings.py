@@ -41,3 +41,46 @@ def test_findings_list_select_and_frame():
     c2b.store_design(scene, d)
     assert bpy.ops.skinsafe.check(poses=2) == {"FINISHED"} and len(scene.skinsafe_findings) == 0
     assert not bpy.ops.skinsafe.show_finding.poll()
+
+
+def test_uncovered_overlay_points_are_off_every_module_and_a_covered_link_has_none():
+    from scipy.spatial import cKDTree
+
+    from skinsafe.addon import findings
+    from skinsafe.core.design.surface import cached_surfaces
+
+    bpy.ops.wm.read_homefile(use_empty=True)
+    b2c.clear_caches()
+    scene = bpy.context.scene
+    bpy.ops.skinsafe.import_robot(source="ur5")
+    assert len(findings.uncovered_world(scene)) == 0  # no design, no coverage report yet
+    for x in (-0.3, -0.1):
+        assert bpy.ops.skinsafe.place_module(body="forearm_link", anchor=(x, 0, E + 0.04), direction=(-1, 0, 0),
+                                             use_cursor=False) == {"FINISHED"}
+    assert bpy.ops.skinsafe.check(poses=2) == {"FINISHED"}
+    d = b2c.design_of(scene)
+    W = np.array(b2c.body_objects(scene)["forearm_link"].matrix_world)
+    taxels = d.taxels.positions @ W[:3, :3].T + W[:3, 3]  # both modules' taxels, world
+    surface = cached_surfaces(b2c.robot_for(scene).model, ["forearm_link"])["forearm_link"].vertices
+    pts = findings.uncovered_world(scene)
+    # the forearm's bare part (world), each point farther than the modules' pitch (1 cm) from every taxel
+    assert 0 < len(pts) < len(surface) and cKDTree(taxels).query(pts)[0].min() > d.modules[0].pitch
+    assert cKDTree(surface @ W[:3, :3].T + W[:3, 3]).query(pts)[0].max() < 1e-9  # on the link's surface
+    # the modules' own surroundings are not in it: the surface within 5 mm of a taxel holds no point
+    near = (surface @ W[:3, :3].T + W[:3, 3])[cKDTree(taxels).query(surface @ W[:3, :3].T + W[:3, 3])[0] < 0.005]
+    assert len(near) > 100 and cKDTree(pts).query(near)[0].min() > 0.005
+    # a taxel on every vertex of the forearm's surface: the link is covered, the overlay has nothing on it
+    idx = np.arange(len(surface)) % d.n_taxels
+    cover = d.taxels.subset(idx)
+    cover.positions[:] = surface
+    c2b.store_design(scene, d.with_taxels(cover))
+    assert len(findings.uncovered_world(scene)) == 0
+    # the Check panel's toggle, and the draw handler added and removed cleanly (never added in background mode)
+    scene.skinsafe_show_uncovered = True
+    assert findings._overlay is None
+    findings.overlay_on()
+    handle = findings._overlay
+    findings.overlay_on()
+    assert handle is not None and findings._overlay is handle  # once
+    findings.overlay_off()
+    assert findings._overlay is None

@@ -150,9 +150,19 @@ def _script(cmds: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-@pytest.mark.xdist_group("docs-blocks")  # one worker, in order: a block may use an earlier block's files
-@pytest.mark.parametrize("page,line,cmds", BLOCKS, ids=[f"{p}:{n}-{c[0].split(' #')[0][:40]}" if c else f"{p}:{n}"
-                                                         for p, n, c in BLOCKS])
+def block_group(page: str) -> str:
+    """The pytest-xdist group of a page's blocks: one worker runs a group's blocks in order (a block may use an
+    earlier one's files); the groups never use each other's files (the simulate pages make the map the deploy page
+    deploys, the run page the map the live view shows), so two workers can run two groups at once."""
+    parts = page.split("/")
+    if len(parts) < 3:
+        return "docs-" + parts[-1].removesuffix(".md").lower()
+    return "docs-" + {"deploy": "simulate"}.get(parts[1], parts[1])
+
+
+@pytest.mark.parametrize("page,line,cmds", [pytest.param(p, n, c, marks=pytest.mark.xdist_group(block_group(p)))
+                                             for p, n, c in BLOCKS],
+                         ids=[f"{p}:{n}-{c[0].split(' #')[0][:40]}" if c else f"{p}:{n}" for p, n, c in BLOCKS])
 def test_docs_bash_block_runs_as_written(clone, page, line, cmds, tmp_path, request):
     if any(LOOP.search(c) for c in cmds):  # the control loop: never beside the `realtime` group's (pytest-xdist)
         request.getfixturevalue("realtime_host")

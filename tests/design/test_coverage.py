@@ -45,3 +45,38 @@ def test_link_area_is_the_visual_surface_counted_once(tmp_path):
     robot = load_robot(RobotRef("urdf", "r", str(tmp_path / "r.urdf")))
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.05).area
     assert np.isclose(body_area(robot.model, "arm"), sphere, rtol=1e-6)
+
+
+def test_uncovered_points_are_off_every_module_and_a_covered_link_has_none():
+    from scipy.spatial import cKDTree
+
+    from skinsafe.core.design.coverage import reach, uncovered_points
+    from skinsafe.core.design.surface import cached_surfaces
+
+    robot = build_ur5()
+    design = make_sample_design("ur5", robot=robot)
+    fi = design.bodies.index("forearm_link")
+    on = design.taxels.body == fi
+    assert np.isclose(reach(design, fi), 0.01)  # the modules' 1 cm pitch
+    full = uncovered_points(design, robot.model, fi)
+    surface = cached_surfaces(robot.model, ["forearm_link"])["forearm_link"].vertices
+    # the bare caps and tube ends (densely tessellated): some, not all, of the surface's vertices; each point
+    # > 1 cm from every taxel of the link
+    assert 0 < len(full) < len(surface)
+    assert cKDTree(design.taxels.positions[on]).query(full)[0].min() > 0.01
+    assert np.isin(full.view([("", full.dtype)] * 3), surface.view([("", surface.dtype)] * 3)).all()
+    # drop the taxels on one side: the bare strip's points join, all on that side (y > 0, beyond 1 cm)
+    keep = ~(on & (design.taxels.positions[:, 1] > 0.0))
+    half = uncovered_points(design.with_taxels(design.taxels.subset(keep)), robot.model, fi)
+    extra = half[~np.isin(half.view([("", half.dtype)] * 3), full.view([("", full.dtype)] * 3)).ravel()]
+    assert len(extra) > 100 and extra[:, 1].min() > 0.0
+    # a taxel on every surface vertex (same modules, same reach): the link is covered, nothing bare on it
+    idx = np.flatnonzero(on)[np.arange(len(surface)) % on.sum()]
+    cover = design.taxels.subset(idx)
+    cover.positions[:] = surface
+    covered = design.with_taxels(cover)
+    assert reach(covered, fi) == reach(design, fi) and len(uncovered_points(covered, robot.model, fi)) == 0
+    # a link without taxels: all of it is bare
+    ui = design.bodies.index("upper_arm_link")
+    bare = design.with_taxels(design.taxels.subset(design.taxels.body != ui))
+    assert len(uncovered_points(bare, robot.model, ui)) == len(cached_surfaces(robot.model, ["upper_arm_link"])["upper_arm_link"].vertices)
