@@ -2,6 +2,7 @@
 viewer reads while the robot moves, the exclusion policy (excluded taxels are 0 N to the layers, a NaN
 anywhere else stops the robot), the robot-state watchdog, and `--seconds`."""
 import threading
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -62,11 +63,12 @@ def test_the_tap_shows_every_tick_to_a_viewer_without_blocking(ur5):
     drv, rt = _runtime(ur5)
     seen, done = [], threading.Event()
 
-    def viewer():
+    def viewer():  # polls as a viewer does, giving the loop's thread the interpreter between looks
         while not done.is_set():
             f = rt.tap.latest()
             if f is not None and (not seen or f is not seen[-1]):
                 seen.append(f)
+            time.sleep(0.001)
 
     th = threading.Thread(target=viewer)
     th.start()
