@@ -366,7 +366,21 @@ class SKINSAFE_OT_export_mjcf(bpy.types.Operator):
         return _ok(self, scene, f"wrote {path}" + (f" ({len(caught)} warnings)" if caught else ""))
 
 
-class SKINSAFE_OT_export_urdf(bpy.types.Operator, ExportHelper):
+class _ExportSkinFile(ExportHelper):
+    """An export of the design on its robot to one file by an exporter `export(design, robot, path) -> path`."""
+
+    poll = classmethod(lambda cls, context: _has_skin(context))
+
+    def execute(self, context):
+        scene = context.scene
+        try:
+            path = self.exporter()(b2c.design_of(scene), b2c.robot_for(scene), bpy.path.abspath(self.filepath))
+        except (ValueError, OSError) as e:  # DesignError is a ValueError
+            return _fail(self, scene, e)
+        return _ok(self, scene, f"wrote {path}")
+
+
+class SKINSAFE_OT_export_urdf(_ExportSkinFile, bpy.types.Operator):
     """Export the robot with its skin as a URDF (the robot's links with their meshes beside it, a link and a
     tactile sensor per taxel)"""
 
@@ -374,20 +388,14 @@ class SKINSAFE_OT_export_urdf(bpy.types.Operator, ExportHelper):
     bl_label = "Export URDF"
     filename_ext = ".urdf"
 
-    poll = classmethod(lambda cls, context: _has_skin(context))
-
-    def execute(self, context):
+    @staticmethod
+    def exporter():
         from skinsafe.exporters.urdf import export_urdf
 
-        scene = context.scene
-        try:
-            path = export_urdf(b2c.design_of(scene), b2c.robot_for(scene), bpy.path.abspath(self.filepath))
-        except (ValueError, OSError) as e:  # DesignError is a ValueError
-            return _fail(self, scene, e)
-        return _ok(self, scene, f"wrote {path}")
+        return export_urdf
 
 
-class SKINSAFE_OT_export_taxel_csv(bpy.types.Operator, ExportHelper):
+class SKINSAFE_OT_export_taxel_csv(_ExportSkinFile, bpy.types.Operator):
     """Export the taxels as the CSV the GenTact Toolbox writes for Isaac Sim (Index, X, Y, Z, Radius, Parent:
     link-frame positions, the link's path)"""
 
@@ -395,17 +403,11 @@ class SKINSAFE_OT_export_taxel_csv(bpy.types.Operator, ExportHelper):
     bl_label = "Export Taxel CSV (GenTact)"
     filename_ext = ".csv"
 
-    poll = classmethod(lambda cls, context: _has_skin(context))
-
-    def execute(self, context):
+    @staticmethod
+    def exporter():
         from skinsafe.exporters.gentact import export_csv
 
-        scene = context.scene
-        try:
-            path = export_csv(b2c.design_of(scene), b2c.robot_for(scene), bpy.path.abspath(self.filepath))
-        except (DesignError, OSError) as e:
-            return _fail(self, scene, e)
-        return _ok(self, scene, f"wrote {path}")
+        return export_csv
 
 
 class SKINSAFE_OT_toggle_frames(bpy.types.Operator):
