@@ -7,6 +7,8 @@ from __future__ import annotations
 import threading
 import time
 
+import bpy
+
 
 class Cancel:
     """Set by Esc; work that takes it (the boards' deploy) stops at its next step: `requested`, `name`."""
@@ -41,12 +43,26 @@ class Job:
     def elapsed(self) -> float:
         return time.monotonic() - self.t0
 
+    def outcome(self):
+        """The result, or the exception `fn` raised, raised here."""
+        if self.error is not None:
+            raise self.error
+        return self.result
+
 
 class Modal:
     """Mixin for an operator whose `execute` hands long work to `start(context, job, finish)`: a timer polls
     the job; `finish(context, job)` runs in Blender's thread when it is done; Esc cancels."""
 
     _job = _timer = _finish = None
+
+    def run(self, context, job: Job, what: str, modal: bool = True):
+        """`job` with progress and Esc where Blender has an event loop (and `modal`); else waited for here. Either
+        way `self.finish(context, job)` ends it."""
+        if modal and not bpy.app.background:
+            return self.start(context, job, self.finish, what)
+        job.wait()
+        return self.finish(context, job)
 
     def start(self, context, job: Job, finish, what: str):
         self._job, self._finish, self._what = job, finish, what

@@ -80,17 +80,12 @@ class SKINSAFE_OT_cover_link(background.Modal, bpy.types.Operator):
         except DesignError as e:
             return self._fail(scene, e)
         self.rev = scene.skinsafe.design_rev
-        if not bpy.app.background:
-            return self.start(context, job, self.finish, f"covering {self.link}")
-        job.wait()
-        return self.finish(context, job)
+        return self.run(context, job, f"covering {self.link}")
 
     def finish(self, context, job):
         scene = context.scene
         try:
-            if job.error is not None:
-                raise job.error
-            objects, r = keep_cover(scene, self.link, self.rev, job.result)
+            objects, r = keep_cover(scene, self.link, self.rev, job.outcome())
         except DesignError as e:
             return self._fail(scene, e)
         scene.skinsafe.error = ""

@@ -92,16 +92,12 @@ class SKINSAFE_OT_import_robot(background.Modal, bpy.types.Operator, ImportHelpe
         # one validation (joints, every mesh by link and file) before the scene changes; with a window the
         # reading runs off Blender's thread (xacro and meshes take seconds), Esc cancels
         job = background.Job(b2c.preload, self.ref, True)
-        if not bpy.app.background and self.source == "FILE":  # an event loop to poll it from
-            return self.start(context, job, self.finish, f"importing {self.ref.name}")
-        job.wait()
-        return self.finish(context, job)
+        return self.run(context, job, f"importing {self.ref.name}", modal=self.source == "FILE")
 
     def finish(self, context, job):
         scene = context.scene
         try:
-            if job.error is not None:
-                raise job.error
+            job.outcome()
             root = c2b.build_robot(scene, self.ref)
         except DesignError as e:
             return _fail(self, scene, e)
@@ -296,17 +292,12 @@ class SKINSAFE_OT_check(background.Modal, bpy.types.Operator):
             findings.fill(scene, [str(e)])
             return _fail(self, scene, e)
         self.rev = scene.skinsafe.design_rev
-        if not bpy.app.background:
-            return self.start(context, job, self.finish, "checking the skin")
-        job.wait()
-        return self.finish(context, job)
+        return self.run(context, job, "checking the skin")
 
     def finish(self, context, job):
         scene = context.scene
         try:
-            if job.error is not None:
-                raise job.error
-            problems = designer.keep_check(scene, self.rev, job.result)
+            problems = designer.keep_check(scene, self.rev, job.outcome())
         except DesignError as e:
             findings.fill(scene, [str(e)])
             return _fail(self, scene, e)
