@@ -57,8 +57,9 @@ def test_the_view_processes_are_found_paused_and_resumed_and_nothing_else(tmp_pa
     browser.symlink_to(shutil.which("yes"))  # busy: it uses CPU while it is not paused
     # a shell (not the view) starting the "browser", and one named as the view's publisher module
     shell = subprocess.Popen(["bash", "-c", f"{browser} > /dev/null & wait"], start_new_session=True)
-    publisher = subprocess.Popen(["bash", "-c", "sleep 30; true", "skinsafe.core.runtime.view_share"],
-                                 start_new_session=True)
+    # (a process that does not fork: a forked shell carries its parent's argv until it execs, a third match)
+    publisher = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)",
+                                  "skinsafe.core.runtime.view_share"], start_new_session=True)
     other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"], start_new_session=True)
     try:
         deadline = time.monotonic() + 10
