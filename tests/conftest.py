@@ -112,6 +112,35 @@ def pytest_sessionstart(session):
     session.config._skinsafe_started = time.monotonic()
 
 
+def _cpu_s() -> float:
+    import resource
+
+    return sum(r.ru_utime + r.ru_stime for r in (resource.getrusage(resource.RUSAGE_SELF),
+                                                 resource.getrusage(resource.RUSAGE_CHILDREN)))
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """Each test's CPU seconds (this process and the children it waited for) as the user property `cpu_s` of its
+    reports (with SKINSAFE_TEST_TIMES)."""
+    import os
+
+    if not os.environ.get("SKINSAFE_TEST_TIMES"):
+        return (yield)
+    item.user_properties.append(("cpu_start", _cpu_s()))
+    return (yield)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_teardown(item, nextitem):
+    try:
+        return (yield)
+    finally:
+        start = dict(item.user_properties).get("cpu_start")
+        if start is not None:
+            item.user_properties.append(("cpu_s", _cpu_s() - start))
+
+
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
     """With SKINSAFE_TEST_TIMES=FILE: the run's wall time, its outcome counts and the 20 slowest tests (setup + call +
     teardown) as JSON, the figures of docs/contributing.md (`SKINSAFE_TEST_TIMES=results/tests/times.json make test`)."""
@@ -122,11 +151,13 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
     path = os.environ.get("SKINSAFE_TEST_TIMES")
     if not path or os.environ.get("PYTEST_XDIST_WORKER"):
         return
-    per_test, counts = {}, {}
+    per_test, counts, cpu = {}, {}, {}
     for outcome, reports in terminalreporter.stats.items():
         for r in reports:
             if getattr(r, "when", None) in ("setup", "call", "teardown"):
                 per_test[r.nodeid] = per_test.get(r.nodeid, 0.0) + r.duration
+                if r.when == "teardown":
+                    cpu[r.nodeid] = dict(r.user_properties).get("cpu_s", 0.0)
                 if r.when == "call" or outcome == "skipped":
                     counts[outcome] = counts.get(outcome, 0) + 1
     slowest = sorted(per_test.items(), key=lambda kv: -kv[1])[:20]
@@ -137,5 +168,8 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
         "date": time.strftime("%Y-%m-%d"), "cpus": os.cpu_count(), "workers": workers,
         "load_average": [round(x, 1) for x in os.getloadavg()], "exit_status": int(exitstatus),
         "wall_s": round(time.monotonic() - config._skinsafe_started, 1), "counts": counts,
-        "rows": [{"test": k.split("::", 1)[1] if "::" in k else k, "file": k.split("::", 1)[0], "s": round(v, 1)}
-                    for k, v in slowest]}, indent=1))
+        "cpu_s": round(sum(cpu.values()), 1),
+        "rows": [{"test": k.split("::", 1)[1] if "::" in k else k, "file": k.split("::", 1)[0], "s": round(v, 1),
+                  "cpu_s": round(cpu.get(k, 0.0), 1)} for k, v in slowest],
+        "cpu_rows": [{"test": k.split("::", 1)[1] if "::" in k else k, "file": k.split("::", 1)[0],
+                      "cpu_s": round(v, 1)} for k, v in sorted(cpu.items(), key=lambda kv: -kv[1])[:20]]}, indent=1))

@@ -27,6 +27,7 @@ from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.skin import taxel_map
 from skinsafe.core.skin.model import Module
 
+pytestmark = pytest.mark.xdist_group("clean-install")  # one worker: the module's clean Blender session runs once
 ROOT = Path(__file__).resolve().parents[2]
 SESSION = Path(__file__).with_name("clean_install_session.py")
 E = 0.13585 - 0.1197  # UR5 forearm capsule axis height (body frame)

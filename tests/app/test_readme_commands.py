@@ -153,7 +153,14 @@ def _script(cmds: list[str]) -> str:
 def block_group(page: str) -> str:
     """The pytest-xdist group of a page's blocks: one worker runs a group's blocks in order (a block may use an
     earlier one's files); the groups never use each other's files (the simulate pages make the map the deploy page
-    deploys, the run page the map the live view shows), so two workers can run two groups at once."""
+    deploys, the run page the map the live view shows), so two workers can run two groups at once. A page whose
+    blocks run the control loop joins the `realtime` group (the tests that run it too): one worker runs them all in
+    turn, none waits for the machine's real-time slot (`realtime_host`) while the other holds it."""
+    loop = {_section(p) for p, _, cmds in BLOCKS if any(LOOP.search(c) for c in cmds)}
+    return "realtime" if _section(page) in loop else _section(page)
+
+
+def _section(page: str) -> str:
     parts = page.split("/")
     if len(parts) < 3:
         return "docs-" + parts[-1].removesuffix(".md").lower()

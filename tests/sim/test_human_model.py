@@ -5,7 +5,7 @@ region's k in total."""
 import mujoco
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from skinsafe.core.design.sample import make_sample_design
@@ -46,10 +46,12 @@ def _step(model, data, human, n):
     return np.array(forces)
 
 
-def _impact(ur5, reg, m_ball, v, steps=40, damping=0.1):
+def _impact(ur5, reg, m_ball, v, steps=40, damping=0.1, dt=None):
     human = Human([Part(reg, "capsule", (0.04, 0.12), pos=(1.0, 1.0, 0.5), quat=QUAT)], contact_damping=damping)
     ball = Obstacle("ball", "sphere", (0.04,), pos=(1.0, 0.9, 0.5), free=True, mass=m_ball)
     model, data = _scene(ur5, human, [ball])
+    if dt is not None:
+        model.opt.timestep = dt
     data.qvel[model.jnt_dofadr[model.joint("ball_free").id] + 1] = v
     f = _step(model, data, human, steps)  # the first impact (the muscles pull the arm back later)
     return model, data, human, float(f[:, 0].max())
@@ -57,15 +59,19 @@ def _impact(ur5, reg, m_ball, v, steps=40, damping=0.1):
 
 @settings(max_examples=12, deadline=None)
 @given(st.sampled_from(["lower_arm", "hand", "chest", "upper_arm", "neck"]), st.floats(1.0, 60.0), st.floats(0.3, 1.5))
+@example("hand", 8.0, 0.6328125)  # read 0.847 of ISO's force at 2 ms steps
 def test_transient_force_follows_the_iso_spring_for_any_robot_mass(ur5, reg, m_ball, v):
     """The spring is k for the region at any robot mass (one robot mass for every region made the
-    chest 2.08-2.77x too stiff)."""
-    model, data, human, peak = _impact(ur5, reg, m_ball, v, steps=int(0.2 / 0.002))
+    chest 2.08-2.77x too stiff). The impact is stepped at 1/20 of its half-period (2 ms at most): the
+    hand's stiff spring gives an 8.6 ms pulse that 2 ms steps sample in four and read up to 15% low
+    (hand, 8 kg at 0.63 m/s: 0.847 of ISO's force; 0.92 at 0.43 ms steps)."""
     r = REGIONS[reg]
-    assert model.body_mass[human.body[0]] == r.mass_kg
     mu = 1 / (1 / r.mass_kg + 1 / m_ball)
+    dt = min(0.002, np.pi * np.sqrt(mu / r.k_N_per_m) / 20)
+    model, data, human, peak = _impact(ur5, reg, m_ball, v, steps=int(0.2 / dt), dt=dt)
+    assert model.body_mass[human.body[0]] == r.mass_kg
     want = v * np.sqrt(mu * r.k_N_per_m)
-    assert 0.85 * want < peak < 1.05 * want, (peak, want)  # light contact damping, 2 ms steps
+    assert 0.85 * want < peak < 1.05 * want, (peak, want)  # light contact damping
 
 
 def test_push_moves_the_person_and_the_muscles_pull_back(ur5):
