@@ -192,7 +192,7 @@ def add_arguments(p) -> None:
     p.add_argument("--redesign", action="store_true", help="place the skin's person modules again")
     p.add_argument("--skin", default=None,
                    help="a taxel map to run on as it is (default: OUT/collaboration_skin.json, designed when missing)")
-    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="local Ray CPUs (default %(default)s)")
+    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="local Ray CPUs (default %(default)s; 0: the tasks in this process, no Ray)")
     p.add_argument("--address", default=None, help="join this Ray cluster instead of starting a local Ray")
     p.add_argument("--fresh", action="store_true", help="re-run every cell instead of reusing finished ones")
     p.add_argument("--seed", type=int, default=D.seed)
@@ -213,7 +213,7 @@ def check_args(args) -> None:
               ("--push", args.push, args.push > 0, "a force > 0 (N)"),
               ("--samples", args.samples, args.samples >= 10, "at least 10 static samples"),
               ("--steps", args.steps, args.steps >= 1, "at least 1 training step"),
-              ("--workers", args.workers, args.workers >= 1, "at least 1"),
+              ("--workers", args.workers, args.workers >= 0, "0 (in this process) or more"),
               ("--cover-rounds", args.cover_rounds, args.cover_rounds >= 0, "0 or more rounds"))
     for name, value, ok, want in checks:
         if not (np.isfinite(value) and ok):

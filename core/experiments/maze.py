@@ -149,7 +149,7 @@ def add_arguments(p) -> None:
     p.add_argument("--tdm-unseen-max", type=float, help="-TDM agents: most danger the filter gives an untried move (default 0.8)")
     p.add_argument("--tdm-prior-count", type=float,
                    help="-TDM agents: tries of a move after which the filter trusts the TDM's danger half-way (default 0.01)")
-    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="local Ray CPUs (default %(default)s)")
+    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="local Ray CPUs (default %(default)s; 0: the tasks in this process, no Ray)")
     p.add_argument("--address", default=None, help="join this Ray cluster instead of starting a local Ray")
     p.add_argument("--fresh", action="store_true", help="re-run every task instead of reusing finished ones")
     p.add_argument("--no-progress", action="store_true")

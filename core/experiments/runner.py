@@ -9,8 +9,10 @@ and only runs the rest (a changed default in an agent re-runs its tasks). A run 
 (code, configuration, seed): every task runs with torch and BLAS on one thread (`_one_thread`), and
 `provenance()` (the hash of the package's sources and those versions) goes into every result file. A
 task given twice in one call runs once. Ray is local by default (`workers` CPUs, a private instance that
-stops at the end); `address` joins a cluster instead (every node needs skinsafe installed). Progress is
-shown as tasks finish.
+stops at the end); `address` joins a cluster instead (every node needs skinsafe installed); `workers=0`
+runs the tasks one after another in this process, with no Ray (a debugger reaches them; a smoke run skips
+Ray's start, seconds more than its tasks): the same rows, as tests/experiments/test_determinism.py checks.
+Progress is shown as tasks finish.
 """
 from __future__ import annotations
 
@@ -142,6 +144,8 @@ def run_tasks(fn: Callable[..., dict], tasks: list[dict], cache: str | Path, add
     estimate of a task's run time, submits the longest first (so that no long task starts last and
     runs alone on an otherwise idle machine). `keep_ray` leaves a Ray it started running for the next
     stage (the caller then ends it with `ray.shutdown()`)."""
+    if workers is not None and workers < 0:
+        raise SystemExit(f"--workers {workers}: give 0 (the tasks in this process) or more")
     cache = Path(cache)
     cache.mkdir(parents=True, exist_ok=True)
     results: list[dict | None] = [None if fresh else cached(cache, t) for t in tasks]
@@ -153,7 +157,17 @@ def run_tasks(fn: Callable[..., dict], tasks: list[dict], cache: str | Path, add
     if cost is not None:
         todo.sort(key=lambda i: -cost(tasks[i]))
     bar = tqdm(total=len(tasks), initial=len(tasks) - len(todo), desc=desc, disable=not progress, file=sys.stderr)
-    if todo:
+    def done(i: int, result: dict, sources: dict, libs: dict) -> None:
+        results[i] = result
+        atomic_write(task_file(cache, tasks[i]), json.dumps({"task": tasks[i], "result": result, "sources": sources,
+                                                             "versions": libs}))
+        bar.set_postfix_str(f"{tasks[i]['method']} seed {tasks[i]['seed']}")
+        bar.update()
+
+    if todo and workers == 0 and not address:
+        for i in todo:
+            done(i, *traced(fn, tasks[i]))
+    elif todo:
         import ray
 
         started = not ray.is_initialized()
@@ -164,14 +178,9 @@ def run_tasks(fn: Callable[..., dict], tasks: list[dict], cache: str | Path, add
             refs = {remote.remote(fn, tasks[i]): i for i in todo}
             pending = list(refs)
             while pending:
-                done, pending = ray.wait(pending, num_returns=1)
-                for ref in done:
-                    i = refs[ref]
-                    results[i], sources, libs = ray.get(ref)
-                    atomic_write(task_file(cache, tasks[i]), json.dumps({"task": tasks[i], "result": results[i],
-                                                                         "sources": sources, "versions": libs}))
-                    bar.set_postfix_str(f"{tasks[i]['method']} seed {tasks[i]['seed']}")
-                    bar.update()
+                finished, pending = ray.wait(pending, num_returns=1)
+                for ref in finished:
+                    done(refs[ref], *ray.get(ref))
         finally:
             if started and not keep_ray:
                 ray.shutdown()

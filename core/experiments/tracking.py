@@ -534,7 +534,7 @@ def add_arguments(p) -> None:
     p.add_argument("--rollout-dts", help="n-step grid: rollout steps in s (a list, e.g. 0.05,0.15; default 0.15)")
     p.add_argument("--replicate-seeds", help="run the grid again on these seeds (a range or a list; full default "
                                              "20-29): verdicts per replicate and whether they agree")
-    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="local Ray CPUs (default %(default)s)")
+    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="local Ray CPUs (default %(default)s; 0: the tasks in this process, no Ray)")
     p.add_argument("--address", default=None, help="join this Ray cluster instead of starting a local Ray")
     p.add_argument("--fresh", action="store_true", help="re-run every task instead of reusing finished ones")
     p.add_argument("--no-progress", action="store_true")

@@ -75,7 +75,7 @@ def test_command_writes_the_result(tmp_path):
 
     shutil.copy(SKIN, tmp_path / "collaboration_skin.json")
     assert main(["experiment", "collaboration", "--out", str(tmp_path), "--no-sweep", "--stacks", "none",
-                 "--samples", "50", "--steps", "10", "--stay", "0.5", "--finish", "0.3", "--workers", "1",
+                 "--samples", "50", "--steps", "10", "--stay", "0.5", "--finish", "0.3", "--workers", "0",
                  "--no-progress"]) == 0
     res = json.loads((tmp_path / "collaboration.json").read_text())
     assert (tmp_path / "collaboration.png").read_bytes()[:4] == b"\x89PNG"

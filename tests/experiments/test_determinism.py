@@ -1,5 +1,5 @@
-"""A run is a pure function of (code, configuration, seed): the same small maze and tracking runs in two
-fresh processes, one on one Ray worker and one on two, give identical result rows."""
+"""A run is a pure function of (code, configuration, seed): the same small maze and tracking runs in three
+fresh processes, one on one Ray worker, one on two and one with no Ray (`workers=0`), give identical result rows."""
 import json
 import subprocess
 import sys
@@ -39,8 +39,8 @@ def _rows(workers: int) -> list:
 
 
 def test_small_maze_and_tracking_runs_repeat_exactly_across_processes_and_workers():
-    one, two = _rows(1), _rows(2)
-    assert one == two
+    one, two, here = _rows(1), _rows(2), _rows(0)
+    assert one == two == here
     maze, track = one[:3], one[3:]
     assert [r["method"] for r in maze] == ["AC-TDM", "SAC", "SQRL"] and len(track) == 2
     assert maze[0]["fits"] and maze[0]["fits"][0]["train_loss"] > 0  # the TDM's fit records repeat to the last digit

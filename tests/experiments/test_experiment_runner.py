@@ -171,7 +171,7 @@ def test_full_protocol_tunes_evaluates_on_held_out_seeds_and_ablates(tmp_path, m
     maze.add_arguments(p)
     args = p.parse_args(["--out", str(tmp_path), "--methods", "AC-TDM,CPO", "--trials", "3", "--tuning-seeds", "0",
                          "--seeds", "10-11", "--episodes", "2", "--tuning-episodes", "1", "--max-steps", "8", "--ablation-seeds", "10-11",
-                         "--ablation-episodes", "1", "--workers", "1", "--no-progress"])
+                         "--ablation-episodes", "1", "--workers", "0", "--no-progress"])
     assert maze.run(args) == 0
     doc = json.loads((tmp_path / "maze_results.json").read_text())
     assert doc["eval_seeds"] == [10, 11]

@@ -29,7 +29,7 @@ pytestmark = pytest.mark.xdist_group("tracking-experiment")  # one worker builds
 def quick_results():
     cfg = TrackingConfig.quick()
     cfg.label_sets = ("binary", "soft")  # the paper's labels and the soft extension, on the same seed
-    return cfg, run_experiment(cfg, progress=False, workers=1)
+    return cfg, run_experiment(cfg, progress=False, workers=0)
 
 
 def test_both_label_sets_learn_apart_on_one_vanilla_run(quick_results):

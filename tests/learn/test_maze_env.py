@@ -172,7 +172,7 @@ def experiment_maze_args(out):
     import argparse
     p = argparse.ArgumentParser()
     experiment_maze.add_arguments(p)
-    return p.parse_args(["--quick", "--out", str(out), "--workers", "1", "--no-progress", "--methods", ",".join(QUICK_METHODS)])
+    return p.parse_args(["--quick", "--out", str(out), "--workers", "0", "--no-progress", "--methods", ",".join(QUICK_METHODS)])
 
 
 def _maze_agent(name, seed=0):
