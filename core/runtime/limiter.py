@@ -5,8 +5,9 @@ arm can stop before it, |qd| <= sqrt(2 qdd_max d)), velocity, acceleration and, 
 states a jerk limit (the FR3), libfranka's `limitRate` rule with its margin. The runtime tells the
 stack what was sent (its next tick's limits and no-push rows start from it), and a replay runs the
 same limiter from the record's configuration. Both drivers get its output: the FR3 driver then sends
-it unchanged and rate-limits only its own ramp to zero. The FR3's velocity limits are its published
-constants, not libfranka's position-dependent ones. numpy only (hardware/ imports it).
+it unchanged and rate-limits only its own ramp to zero. A driver whose `limits()` names position-dependent
+velocity bounds (`qd_bounds`: "fr3", libfranka's, see `fr3_velocity_bounds`) has every joint kept inside them
+too, and the name goes into the record so a replay uses the same bounds. numpy only (hardware/ imports it).
 """
 from __future__ import annotations
 
@@ -15,33 +16,65 @@ import numpy as np
 MARGIN = 1e-3  # libfranka's kLimitEps: stay this fraction inside each limit (with a jerk limit)
 KEYS = ("q_min", "q_max", "qd_max", "qdd_max", "qddd_max")
 
+# libfranka 0.21.3, include/franka/rate_limiting.h (Apache-2.0, Copyright (c) 2023 Franka Robotics GmbH),
+# computeUpperLimitsJointVelocity / computeLowerLimitsJointVelocity (the FR3's, after
+# https://frankarobotics.github.io/docs/control_parameters.html#limits-for-franka-research-3), per joint:
+#   upper = min(v_max, max(0, -offset + sqrt(max(0, k * (q_upper - q))))) - kJointVelocityLimitsTolerance
+#   lower = max(-v_max, min(0, offset - sqrt(max(0, k * (q - q_lower))))) + kJointVelocityLimitsTolerance
+# with kJointVelocityLimitsTolerance = kLimitEps (1e-3; no packets lost on the FR3) and these constants:
+_FR3_V_MAX = np.array([2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26])
+_FR3_OFFSET = np.array([0.30, 0.20, 0.20, 0.30, 0.35, 0.35, 0.35])
+_FR3_K = np.array([12.0, 5.17, 7.00, 8.00, 34.0, 11.0, 34.0])  # 2 x the joint's deceleration limit
+_FR3_Q_UPPER = np.array([2.75010, 1.79180, 2.90650, -0.1458, 2.81010, 4.52050, 3.01960])
+_FR3_Q_LOWER = np.array([-2.750100, -1.791800, -2.906500, -3.048100, -2.810100, 0.54092, -3.019600])
+
+
+def fr3_velocity_bounds(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """libfranka's position-dependent FR3 joint velocity limits at q (7,): (lower, upper), rad/s."""
+    up = np.minimum(_FR3_V_MAX, np.maximum(0.0, -_FR3_OFFSET + np.sqrt(np.maximum(0.0, _FR3_K * (_FR3_Q_UPPER - q)))))
+    lo = np.maximum(-_FR3_V_MAX, np.minimum(0.0, _FR3_OFFSET - np.sqrt(np.maximum(0.0, _FR3_K * (q - _FR3_Q_LOWER)))))
+    return lo + MARGIN, up - MARGIN
+
+
+BOUNDS = {"fr3": fr3_velocity_bounds}  # a driver's `qd_bounds` name -> its position-dependent velocity bounds
+
 
 def rate_limit(qd_cmd: np.ndarray, qd_last: np.ndarray, qdd_last: np.ndarray, dt: float, qd_max: np.ndarray,
-               qdd_max: np.ndarray, qddd_max: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+               qdd_max: np.ndarray, qddd_max: np.ndarray, qd_min: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """libfranka's `limitRate` for joint velocities: the command reached from the last one with bounded jerk and
-    acceleration, inside the velocity limit. Returns (velocity, acceleration)."""
-    qd_max, qdd_max, qddd_max = (x * (1 - MARGIN) for x in (qd_max, qdd_max, qddd_max))
+    acceleration, inside the velocity limits [-qd_max, qd_max] (kept MARGIN inside), or [qd_min, qd_max] as given
+    (position-dependent bounds, which carry their own tolerance). Returns (velocity, acceleration)."""
+    qdd_max, qddd_max = qdd_max * (1 - MARGIN), qddd_max * (1 - MARGIN)
+    if qd_min is None:
+        qd_max = qd_max * (1 - MARGIN)
+        qd_min = -qd_max
     jerk = np.clip(((qd_cmd - qd_last) / dt - qdd_last) / dt, -qddd_max, qddd_max)
     acc = qdd_last + jerk * dt
     hi = np.minimum(qddd_max / qdd_max * (qd_max - qd_last), qdd_max)
-    lo = np.maximum(qddd_max / qdd_max * (-qd_max - qd_last), -qdd_max)
+    lo = np.maximum(qddd_max / qdd_max * (qd_min - qd_last), -qdd_max)
     acc = np.clip(acc, lo, hi)
     return qd_last + acc * dt, acc
 
 
 def limits_config(limits: dict) -> dict:
     """A driver's limits as JSON (a record's configuration): lists, None for an unbounded value or a missing key."""
-    return {k: None if k not in limits else [None if not np.isfinite(x) else float(x) for x in limits[k]]
-            for k in KEYS}
+    out = {k: None if k not in limits else [None if not np.isfinite(x) else float(x) for x in limits[k]] for k in KEYS}
+    return {**out, "qd_bounds": limits.get("qd_bounds")}
 
 
 class Limiter:
-    """The limiter for a driver's `limits()` (q_min, q_max, qd_max, qdd_max and optionally qddd_max, (n,) each)."""
+    """The limiter for a driver's `limits()` (q_min, q_max, qd_max, qdd_max and optionally qddd_max, (n,) each; and
+    optionally qd_bounds, a name in BOUNDS)."""
 
     def __init__(self, limits: dict):
         get = {k: None if limits.get(k) is None else np.array([np.inf if x is None else x for x in limits[k]], float)
                for k in KEYS}
         self.q_min, self.q_max, self.qd_max, self.qdd_max, self.qddd_max = (get[k] for k in KEYS)
+        name = limits.get("qd_bounds")
+        if name is not None and name not in BOUNDS:
+            raise ValueError(f"limits: qd_bounds {name!r} is not one of {sorted(BOUNDS)}; record it with this skinsafe")
+        self.bounds = None if name is None else BOUNDS[name]
         self.last = np.zeros(len(self.qd_max))
         self.acc = np.zeros(len(self.qd_max))
         self.changed = 0  # ticks whose command it changed
@@ -50,9 +83,17 @@ class Limiter:
         """The command to send for the layers' `v` at measured q, dt s after the last one."""
         room = np.sqrt(2 * self.qdd_max * np.maximum(self.q_max - q, 0.0))
         back = np.sqrt(2 * self.qdd_max * np.maximum(q - self.q_min, 0.0))
-        out = np.clip(v, np.maximum(-self.qd_max, -back), np.minimum(self.qd_max, room))
-        if self.qddd_max is not None:
+        lo, hi = np.maximum(-self.qd_max, -back), np.minimum(self.qd_max, room)
+        if self.bounds is not None:
+            b_lo, b_hi = self.bounds(q)
+            lo, hi = np.maximum(lo, b_lo), np.minimum(hi, b_hi)
+        out = np.clip(v, lo, hi)
+        if self.qddd_max is not None and self.bounds is None:
             out, self.acc = rate_limit(out, self.last, self.acc, dt, self.qd_max, self.qdd_max, self.qddd_max)
+        elif self.qddd_max is not None:  # the bounds at q hold this tick even where braking to them needs more jerk
+            out, _ = rate_limit(out, self.last, self.acc, dt, b_hi, self.qdd_max, self.qddd_max, qd_min=b_lo)
+            out = np.clip(out, b_lo, b_hi)
+            self.acc = (out - self.last) / dt
         else:
             out = np.clip(out, self.last - self.qdd_max * dt, self.last + self.qdd_max * dt)
             self.acc = (out - self.last) / dt
