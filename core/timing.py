@@ -1,11 +1,10 @@
-"""Timing for benchmarks (medians of repeated runs in one process: machines here are noisy), and one thread
-for numpy's BLAS in control ticks (`single_thread_blas`).
+"""Timing for benchmarks: medians of repeated runs in one process, interleaved blocks and pooled intervals
+(machines here are noisy). The host's real-time settings are core/realtime.py's.
 
-A leaf of the package: numpy and the standard library only, so every core layer and `hardware`
-(whose benchmark times the serial path) may import it (import-linter: the lowest layer)."""
+A leaf of the package: numpy and the standard library only, so every core layer may import it
+(import-linter: the lowest layer)."""
 from __future__ import annotations
 
-import ctypes
 import time
 from typing import Callable
 
@@ -64,28 +63,3 @@ def pooled_change_ci95(a: list[np.ndarray], b: list[np.ndarray], draws: np.ndarr
     `draws` holds rows of pair indices drawn with replacement; draws without samples are left out."""
     ratio = [pct(np.concatenate([a[k] for k in d]), p) / pct(np.concatenate([b[k] for k in d]), p) - 1 for d in draws]
     return [round(float(x), 4) for x in np.nanpercentile(ratio, [2.5, 97.5])]
-
-
-def loop_cores(cpus) -> tuple[set[int], set[int]]:
-    """`cpus` split into the control loop's core (the first) and the rest, for everything else."""
-    first, *rest = sorted(cpus)
-    return {first}, set(rest)
-
-
-def single_thread_blas() -> bool:
-    """Pin numpy's OpenBLAS to one thread (for control ticks of single-row products: on a busy
-    machine its worker threads make a 0.3 ms tick take 15 ms). True if a BLAS was found."""
-    try:
-        with open("/proc/self/maps") as f:
-            paths = {line.split()[-1] for line in f if "openblas" in line.lower() and line.strip().endswith(".so")
-                     or "openblas" in line.lower() and ".so" in line.split()[-1]}
-    except OSError:
-        return False
-    done = False
-    for path in paths:
-        lib = ctypes.CDLL(path)
-        for name in ("openblas_set_num_threads64_", "openblas_set_num_threads", "scipy_openblas_set_num_threads64_"):
-            if hasattr(lib, name):
-                getattr(lib, name)(1)
-                done = True
-    return done

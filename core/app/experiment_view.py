@@ -109,10 +109,10 @@ def record_collaboration(result: str | Path, out: str | Path, scenario: str = "d
     from skinsafe.core.experiments.arm_scene import JOINTS
     from skinsafe.core.experiments.collaboration_person import learn_person
     from skinsafe.core.experiments.collaboration_result import contact_events
+    from skinsafe.core.realtime import single_thread_blas
     from skinsafe.core.robot.kinematics import TaxelKinematics
     from skinsafe.core.robot.models import build_ur5
     from skinsafe.core.skin.taxel_map import load
-    from skinsafe.core.timing import single_thread_blas
 
     for name, value, known in (("scenario", scenario, co.SCENARIOS), ("stack", stack, co.STACKS)):
         if value not in known:

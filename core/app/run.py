@@ -31,26 +31,34 @@ from pathlib import Path
 
 import numpy as np
 
+from skinsafe.core.realtime import background, below_host, is_realtime, loop_priority, one_thread, realtime
 from skinsafe.core.runtime.commands import CommandError, Trajectory, command_source
 from skinsafe.core.runtime.layers import build_stack, run_config
 from skinsafe.core.runtime.limiter import Limiter
 from skinsafe.core.runtime.loop import Runtime, warm_up
-from skinsafe.core.runtime.monitor import AFTER_CONTACT, Monitor, Timing, fastest_taxel_speed, table
+from skinsafe.core.runtime.monitor import (
+    AFTER_CONTACT,
+    OVERRUN_PERIODS,
+    OVERRUNS,
+    Monitor,
+    Timing,
+    fastest_taxel_speed,
+    table,
+)
 from skinsafe.core.runtime.tap import Tap
 from skinsafe.core.runtime.view_stream import DEFAULT_PORT
 from skinsafe.core.safety.retraction import RetractionParams
 from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.model import DesignError
-from skinsafe.core.timing import loop_cores, single_thread_blas
 
-RT_PRIORITY = 10  # this process and what it starts (the boards' reader, the emulator)
-LOOP_PRIORITY = RT_PRIORITY + 1  # the loop's thread while the robot moves: above everything it started
-EMULATOR_PRIORITY = RT_PRIORITY - 1  # emulated boards: below the host's reader and loop
+LINK_LATENCY_FREE = 0.05  # s of --link-latency accepted without --allow-link-latency
+LINK_LATENCY_MAX = 10.0
 SWITCH_S = 0.0005  # the interpreter's thread switch interval while the robot moves (default 5 ms)
 EXIT_CODES = {0: "ran as planned, robot stopped", 1: "a watchdog or the driver stopped the robot (named)",
               2: "bad input", 3: "pre-flight refused (the robot never moved)", 130: "Ctrl-C", 143: "SIGTERM"}
 SIM_FAULTS = {"sim-freeze": "freeze_at", "sim-die": "die_at", "sim-clock-freeze": "clock_freeze_at",
-              "sim-clock-back": "clock_back_at"}
+              "sim-clock-back": "clock_back_at", "sim-overrun": "overrun_at"}
+SOURCE_FAULTS = ("stack-nan", "stack-qp-fail", "reading-nan")  # at their source, from S s after the hand-over on
 READER_FAULTS = ("reader-kill", "reader-stall")  # at S s after the robot is handed over (before the boards settle)
 
 
@@ -70,11 +78,19 @@ def add_arguments(p) -> None:
     p.add_argument("--link-latency", type=float, default=0.0, metavar="S",
                    help="how late the host's serial input may deliver a board's frames before the board is named silent, "
                         "on top of 2 frame periods (default 0: silent after 2 frame periods); a loaded host's kernel "
-                        "holds serial input for tens to hundreds of ms (README, 'Running a robot')")
+                        "holds serial input for tens to hundreds of ms (docs: Run a robot safely); above "
+                        f"{LINK_LATENCY_FREE:g} s only with --allow-link-latency")
+    p.add_argument("--allow-link-latency", action="store_true",
+                   help=f"accept a --link-latency above {LINK_LATENCY_FREE:g} s (up to {LINK_LATENCY_MAX:g} s): a board "
+                        "may then be blind that much longer before it is named silent (the start prints each bound and "
+                        "the distance a taxel travels blind within it)")
     p.add_argument("--realtime", choices=("auto", "off"), default="auto",
                    help="auto: run the loop, the skin reader and the emulated boards at real-time priority "
                         "(SCHED_FIFO 10), and keep idle cores out of their sleep states while the robot moves "
                         "(/dev/cpu_dma_latency 0), where the system allows it, as libfranka's hosts do (default)")
+    p.add_argument("--allow-non-realtime", action="store_true",
+                   help="fr3: move without real-time scheduling (refused otherwise): for a simulated robot such as "
+                        "franky-sim, never for a real arm")
     p.add_argument("--baud", type=int, default=1_000_000, help="board link speed (real boards)")
     p.add_argument("--tare-frames", type=int, default=100, help="frames per board for the tare and health checks")
     p.add_argument("--noise-fraction", type=float, default=0.25,
@@ -98,9 +114,15 @@ def add_arguments(p) -> None:
                      help="fault injection for tests and `bench runtime --faults`: board-unplug, frame-delay (50 ms, or 3 "
                           "frame periods + --link-latency, the longer), frame-lag, "
                           "frame-replay, foreign-uid, crc-storm (on the emulated boards' links), sim-freeze, sim-die, "
-                          "sim-clock-freeze, sim-clock-back; reader-kill (SIGKILL), reader-stall (SIGSTOP for a silence "
-                          "+ 0.1 s) on the boards' reader, S s after the robot is handed over (0: before the boards "
-                          "settle)")
+                          "sim-clock-freeze, sim-clock-back, sim-overrun (the state's clock 3 periods a tick); "
+                          "reader-kill (SIGKILL), reader-stall (SIGSTOP for a silence + 0.1 s) on the boards' reader, "
+                          "S s after the robot is handed over (0: before the boards settle); from S s after the "
+                          "hand-over: stack-nan (the layers' command non-finite), stack-qp-fail (the retraction's QP "
+                          "solve fails at the next retraction tick), reading-nan (a NaN reading on the first taxel not "
+                          "excluded)")
+    p.add_argument("--overruns", type=int, default=OVERRUNS, metavar="K",
+                   help=f"stop after K consecutive overruns: ticks more than {OVERRUN_PERIODS:g} control periods apart "
+                        f"on the robot's own clock, its states missed (default {OVERRUNS}; 0: off)")
     p.add_argument("--feed", metavar="NAME", help="with --boards emulate: the emulated boards stream this existing "
                    "shared-memory feed of simulated contacts (e.g. franky-sim's world, `feed NAME`; default: a fresh "
                    "one the sim driver writes)")
@@ -111,17 +133,6 @@ def add_arguments(p) -> None:
                    help="--view: where the view stream is published (port 0: any free one)")
     p.add_argument("--stats", metavar="FILE.json", help="write the run's figures (loop, latency, world, stop) as JSON")
     p.epilog = "exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items())
-
-
-def _realtime(mode: str) -> str:
-    """Real-time priority for this process and what it starts (threads, the emulator), where allowed."""
-    if mode == "off" or not hasattr(os, "sched_setscheduler"):
-        return "normal priority"
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RT_PRIORITY))
-    except (PermissionError, OSError):
-        return "normal priority (real-time not allowed here)"
-    return f"real-time priority SCHED_FIFO {RT_PRIORITY}"
 
 
 def _contact(text: str):
@@ -145,8 +156,14 @@ def _check(args) -> None:
         raise DesignError(f"--seconds {args.seconds}: give a positive duration")
     if not 1 <= args.rate <= 65535:
         raise DesignError(f"--rate {args.rate}: give frames per second per board, 1..65535")
-    if not (math.isfinite(args.link_latency) and 0 <= args.link_latency <= 10):
-        raise DesignError(f"--link-latency {args.link_latency}: give 0..10 s")
+    if not (math.isfinite(args.link_latency) and 0 <= args.link_latency <= LINK_LATENCY_MAX):
+        raise DesignError(f"--link-latency {args.link_latency}: give 0..{LINK_LATENCY_MAX:g} s")
+    if args.link_latency > LINK_LATENCY_FREE and not args.allow_link_latency:
+        raise DesignError(f"--link-latency {args.link_latency:g}: above {LINK_LATENCY_FREE:g} s a board may be blind "
+                          "that long before it is named silent; pass --allow-link-latency to accept it (the start "
+                          "prints the distance a taxel travels blind)")
+    if args.overruns < 0:
+        raise DesignError(f"--overruns {args.overruns}: give 0 (off) or the consecutive overruns that stop")
     if args.tare_frames < 2:
         raise DesignError(f"--tare-frames {args.tare_frames}: give at least 2")
     if not (0 <= args.max_excluded < 1) or not args.noise_fraction > 0:
@@ -187,7 +204,7 @@ def _injections(items: list[str]) -> list[tuple[str, float, int | None]]:
             b = int(board) if board else None
         except ValueError:
             raise DesignError(f"--inject {item!r}: give FAULT@SECONDS[:BOARD], e.g. board-unplug@0.5:1") from None
-        kinds = LINK_FAULTS + tuple(SIM_FAULTS) + READER_FAULTS
+        kinds = LINK_FAULTS + tuple(SIM_FAULTS) + READER_FAULTS + SOURCE_FAULTS
         if kind not in kinds or not (math.isfinite(t) and t >= 0):
             raise DesignError(f"--inject {item!r}: faults are {', '.join(kinds)}, at a time >= 0 s")
         out.append((kind, t, b))
@@ -228,7 +245,7 @@ def _ports(args, design, stack: contextlib.ExitStack, feed) -> dict[int, str]:
     if args.boards == ["emulate"]:
         flash = stack.enter_context(tempfile.TemporaryDirectory(prefix="skinsafe-flash-"))
         em = stack.enter_context(EmulatorProcess([], flash, "--map", str(args.map), "--feed", feed.name))
-        _below_host(em.proc.pid)
+        below_host(em.proc.pid)
         ports = {b.id: em.ports[b.uid] for b in design.boards}
         bad = [r.line() for r in deploy(design, ports) if not r.ok]
         if bad:
@@ -256,14 +273,14 @@ def _view(args, stack: contextlib.ExitStack, design, driver, map_path: Path, map
                 str(map_path.resolve()), map_hash.hex(), driver.period_s, board_period_s=1.0 / args.rate)
     frames = SharedFrames.create(design.n_taxels, len(driver.joint_names), [b.uid for b in design.boards])
     stack.callback(frames.close)
-    pub, address = start_publisher(frames, msg, host or "127.0.0.1", int(port), preexec=_background)
+    pub, address = start_publisher(frames, msg, host or "127.0.0.1", int(port), preexec=background)
     stack.callback(_end, pub)
     where = f"{address[0]}:{address[1]}"
     print(f"skinsafe run: view stream at {where} (Blender: Skin > Live > Attach)", file=sys.stderr)
     if args.view_port:
         page = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", "view", where, "--port",
                                  str(args.view_port), "--until-ended"],
-                                stdout=subprocess.PIPE, text=True, preexec_fn=_background)
+                                stdout=subprocess.PIPE, text=True, preexec_fn=background)
         stack.callback(_end, page)
         line = "-"
         while line and not line.startswith("skinsafe view:"):  # the page says where it is once it serves
@@ -272,95 +289,6 @@ def _view(args, stack: contextlib.ExitStack, design, driver, map_path: Path, map
             raise ValueError(f"the view page did not start (exit {page.wait()})")
         print(f"skinsafe run: the view page at {line.split(' at ')[-1].strip()}", file=sys.stderr)
     return SharedTap(frames)
-
-
-def _below_host(pid: int) -> None:
-    """The emulated boards stand for hardware outside this computer: at real-time priority (if this process has
-    it) they run below the boards' reader and the loop, never in their way (every thread of process `pid`)."""
-    if os.sched_getscheduler(0) == os.SCHED_FIFO:
-        _each_thread(pid, os.sched_setscheduler, os.SCHED_FIFO, os.sched_param(EMULATOR_PRIORITY))
-
-
-@contextlib.contextmanager
-def _loop_priority(rt: str):
-    """While the robot moves: the loop's thread (only it: Linux schedules threads) above the reader and emulator
-    processes, so a tick is never queued behind their frames, as a robot controller's thread is; with two cores
-    or more, the loop keeps the first of them and the processes it started move to the others; idle cores stay
-    awake (`_cpus_awake`). Restored after (an in-process caller runs again)."""
-    if not rt.startswith("real-time"):
-        yield
-        return
-    cpus, policy, param = os.sched_getaffinity(0), os.sched_getscheduler(0), os.sched_getparam(0)
-    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(LOOP_PRIORITY))
-    if len(cpus) >= 2:
-        loop, rest = loop_cores(cpus)
-        os.sched_setaffinity(0, loop)
-        for pid in _children():
-            _each_thread(pid, os.sched_setaffinity, rest)
-    awake = _cpus_awake()
-    try:
-        yield
-    finally:
-        if awake is not None:
-            os.close(awake)
-        os.sched_setscheduler(0, policy, param)
-        os.sched_setaffinity(0, cpus)
-
-
-def _cpus_awake() -> int | None:
-    """Ask the kernel to keep idle cores out of their sleep states while the file stays open (the PM QoS
-    request of /dev/cpu_dma_latency at 0 us, as cyclictest and real-time robot hosts do): a core woken from a
-    sleep state (on a virtual machine: the host's HLT exit) starts a tick or reads a frame tens to hundreds of
-    microseconds late, and more so the quieter the machine. The open descriptor, or None where not allowed."""
-    try:
-        fd = os.open("/dev/cpu_dma_latency", os.O_WRONLY)
-    except OSError:
-        return None
-    try:
-        os.write(fd, (0).to_bytes(4, sys.byteorder))
-    except OSError:
-        os.close(fd)
-        return None
-    return fd
-
-
-def _children() -> list[int]:
-    """This process's child processes (every thread's)."""
-    out = []
-    for tid in _threads(os.getpid()):
-        with contextlib.suppress(OSError), open(f"/proc/{os.getpid()}/task/{tid}/children") as f:
-            out += [int(p) for p in f.read().split()]
-    return out
-
-
-def _threads(pid: int) -> list[int]:
-    try:
-        return [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-    except OSError:
-        return []
-
-
-def _each_thread(pid: int, call, *args) -> None:
-    """`call(tid, *args)` for every thread of process `pid` (one that ended meanwhile is skipped)."""
-    for tid in _threads(pid):
-        with contextlib.suppress(OSError):
-            call(tid, *args)
-
-
-def _one_thread() -> None:
-    """The loop's numerical libraries on its own thread: BLAS (and torch with --tdm) worker threads would wait for the
-    cores the boards' reader and the emulator run on, and a tick's small products with them."""
-    single_thread_blas()
-    if "torch" in sys.modules:
-        sys.modules["torch"].set_num_threads(1)
-
-
-def _background() -> None:
-    """In the view's processes before they start: the normal scheduler (not the run's real-time one, which a
-    child inherits: a page at SCHED_FIFO starved the emulated boards, stopped as silent) at nice 10."""
-    if hasattr(os, "sched_setscheduler"):
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    os.nice(10)
 
 
 def _end(proc) -> None:
@@ -402,7 +330,14 @@ def _run(args, feed, ports, on_moving, signals: contextlib.ExitStack) -> int:
         design = load(map_path, robot.body_names)
     except (DesignError, OSError) as e:
         return fail(2, str(e))
-    rt = _realtime(args.realtime)
+    rt = realtime(args.realtime)
+    if args.robot == "fr3" and not is_realtime():
+        if not args.allow_non_realtime:
+            return fail(2, f"--robot fr3 needs real-time scheduling (SCHED_FIFO), and this process has {rt}: run as a "
+                        "user allowed rtprio (/etc/security/limits.conf) with --realtime auto, or pass "
+                        "--allow-non-realtime for a simulated robot such as franky-sim")
+        print(f"skinsafe run: WARNING: the FR3 without real-time scheduling ({rt}; --allow-non-realtime)",
+              file=sys.stderr)
     with contextlib.ExitStack() as stack:
         try:
             if feed is None:
@@ -418,7 +353,7 @@ def _run(args, feed, ports, on_moving, signals: contextlib.ExitStack) -> int:
             stack.callback(command.close)
             ports = ports or _ports(args, design, stack, feed)
             links = None
-            link_faults = [f for f in inject if not f[0].startswith(("sim-", "reader-"))]
+            link_faults = [f for f in inject if f[0] not in (*SIM_FAULTS, *READER_FAULTS, *SOURCE_FAULTS)]
             if link_faults:
                 from skinsafe.hardware.link_faults import DELAY_S, LinkFaults
 
@@ -459,9 +394,10 @@ def _run(args, feed, ports, on_moving, signals: contextlib.ExitStack) -> int:
             except (OSError, ValueError) as e:
                 return fail(2, f"--view: {e}")
         runtime = Runtime(driver, source, layers, command, source.excluded, design.taxels.thresholds["force"],
-                          recorder, tap, seconds=seconds, monitor=Monitor(args.after_contact), limiter=Limiter(limits))
-        _print_bounds(Timing(driver.period_s, 1.0 / args.rate, source.silence_s, command.stale_s), arm, design,
-                      limits["qd_max"])
+                          recorder, tap, seconds=seconds, monitor=Monitor(args.after_contact), limiter=Limiter(limits),
+                          overruns=args.overruns)
+        _print_bounds(Timing(driver.period_s, 1.0 / args.rate, source.silence_s, command.stale_s,
+                             overruns=args.overruns), arm, design, limits["qd_max"])
         if links is not None:
             links.arm()
 
@@ -473,15 +409,16 @@ def _run(args, feed, ports, on_moving, signals: contextlib.ExitStack) -> int:
         print(f"skinsafe run: {driver.name} robot moving under '{command.spec}' ({driver.period_s * 1e3:g} ms period, "
               f"boards at {args.rate} Hz, {rt}); Ctrl-C stops it", file=sys.stderr, flush=True)
         injected = _reader_faults(stack, inject, source, source.silence_s + 0.1)
+        _source_faults(stack, inject, layers, source, injected)
         if on_moving is not None:
             on_moving(runtime)
         switch = sys.getswitchinterval()
         sys.setswitchinterval(SWITCH_S)
-        _one_thread()
+        one_thread()
         gc.freeze()  # no collector pause while the robot moves (what the loop allocates is freed by refcount)
         gc.disable()
         try:
-            with _loop_priority(rt):
+            with loop_priority(rt):
                 outcome = runtime.run()
         finally:
             gc.enable()
@@ -561,6 +498,56 @@ def _reader_faults(stack: contextlib.ExitStack, inject, source, stall_s: float) 
         else:
             later(at, hit, kind)
     return done
+
+
+def _source_faults(stack: contextlib.ExitStack, inject, layers, source, done: dict) -> None:
+    """--inject stack-nan / stack-qp-fail / reading-nan at their source, from S s after the hand-over (host clock): the
+    layers' tick returns a non-finite command; the defensiveness layer's QP solver (wrapped for the run) reports its
+    solve failed, at the next retraction tick; the readings source's frames read from then on carry NaN on the first
+    taxel not excluded. `done[kind]`: when it first took effect (reading-nan: that frame's read time)."""
+    from skinsafe.core.safety import defensiveness
+
+    for kind, at, _ in (f for f in inject if f[0] in SOURCE_FAULTS):
+        begin = time.monotonic() + at
+        if kind == "stack-nan":
+            layers.tick = _nan_command(layers.tick, begin, done)
+        elif kind == "reading-nan":
+            source.newest = _nan_reading(source.newest, begin, int(np.flatnonzero(~source.excluded)[0]), done)
+        else:
+            solver = defensiveness.prioritised
+            defensiveness.prioritised = _failed_solve(solver, begin, done)
+            stack.callback(setattr, defensiveness, "prioritised", solver)
+
+
+def _nan_command(tick, begin: float, done: dict):
+    def nan_tick(*args, **kw):
+        v = tick(*args, **kw)
+        if time.monotonic() < begin:
+            return v
+        done.setdefault("stack-nan", time.monotonic())
+        return np.full_like(v, np.nan)
+    return nan_tick
+
+
+def _failed_solve(solver, begin: float, done: dict):
+    def failed(*args, **kw):
+        out = solver(*args, **kw)
+        if time.monotonic() >= begin:
+            out.solver_failed = True
+            done.setdefault("stack-qp-fail", time.monotonic())
+        return out
+    return failed
+
+
+def _nan_reading(newest, begin: float, taxel: int, done: dict):
+    def nan_newest():
+        r = newest()
+        if r.t >= begin:  # a frame read from S on
+            r.force = r.force.copy()
+            r.force[taxel] = np.nan
+            done.setdefault("reading-nan", r.t)
+        return r
+    return nan_newest
 
 
 def _signal(pid: int, signum: int) -> None:

@@ -8,8 +8,10 @@ sim driver, readings source, stack, recorder, signal handling) with one fault, a
 0.1-0.8 s after the robot starts moving, each of `KINDS` in turn, injected at its source at a known
 time.monotonic() (the onset): a board's link closed (the host's side of its pseudo-terminal), its
 frames held 50 ms, ever later (frame-lag), replayed, foreign or corrupt (on the link proxy), the
-simulation failed, its state frozen or its clock gone back, the boards' reader killed (SIGKILL), the
-teleop leader silent, SIGINT to this process. Per run: the fault kind the monitor named (is it the
+simulation failed, its state frozen, its clock gone back or missing states (overruns), the boards' reader killed
+(SIGKILL), a NaN reading from the readings source, the layers' command non-finite, the retraction's QP solve failed
+(that run has a poke: a retraction), the teleop leader silent, SIGINT to this process (once, or twice 10 ms apart:
+one stop). Per run: the fault kind the monitor named (is it the
 one injected: `EXPECT`, no text matched), onset -> the time the driver sent zero velocity (not the
 detection), any traceback, is the record readable (every message decodes with mcap-ros2-support and
 the last one is the stop's diagnostics), was the stop latched (the monitor's protective stop)?
@@ -36,9 +38,14 @@ from tqdm import tqdm
 
 EXPECT = {"board-unplug": "link-lost", "frame-delay": "board-silent", "frame-lag": "board-late",
           "frame-replay": "counter-back", "foreign-uid": "foreign-uid", "crc-storm": "crc-storm", "sim-die": "driver",
-          "sim-freeze": "robot-frozen", "sim-clock-back": "robot-clock-back", "reader-kill": "reader-died",
-          "command-silent": "command-stale", "ctrl-c": "operator"}  # injected -> the monitor's kind that names it
-KINDS = {"sim": tuple(EXPECT), "fr3": tuple(k for k in EXPECT if not k.startswith("sim-"))}  # per driver
+          "sim-freeze": "robot-frozen", "sim-clock-back": "robot-clock-back", "sim-overrun": "overrun",
+          "reader-kill": "reader-died", "command-silent": "command-stale", "ctrl-c": "operator",
+          "ctrl-c-twice": "operator", "reading-nan": "reading-nonfinite", "stack-nan": "stack-nonfinite",
+          "stack-qp-fail": "stack-latch"}  # injected -> the monitor's kind that names it
+# per driver. fr3 has no sim-* faults (the robot's side is franky-sim's own process), nor stack-qp-fail: its world
+# has no hand or obstacle in the storm, so no retraction happens and the retraction's QP is never solved
+KINDS = {"sim": tuple(EXPECT), "fr3": tuple(k for k in EXPECT if not k.startswith("sim-") and k != "stack-qp-fail")}
+SIGNALS = {"ctrl-c": (0.0,), "ctrl-c-twice": (0.0, 0.01)}  # SIGINTs to this process, s after the fault's time
 
 
 def _readable(record: Path) -> bool:
@@ -88,28 +95,28 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
     command, extra, stop = "hold", [], threading.Event()
     timers, done = [], {}
 
-    def at_once(call, *args):  # the harness's own injections: the onset is when it acts
-        done["onset"] = time.monotonic()
+    def at_once(call, *args):  # the harness's own injections: the onset is when it first acts
+        done.setdefault("onset", time.monotonic())
         call(*args)
     if kind == "command-silent":
         port = _free_port()
         command = f"teleop:{port}"
         threading.Thread(target=stream, args=(("127.0.0.1", port), np.array([0.0, 1.0]), np.stack([home, home]), stop),
                          daemon=True).start()
-    elif kind != "ctrl-c":
-        extra = ["--inject", f"{kind}@{at:.3f}"]
+    elif kind not in SIGNALS:
+        extra = ["--inject", f"{kind}@{at:.3f}"] + (["--contact", "poke"] if kind == "stack-qp-fail" else [])
 
     def moving(runtime):
         if kind == "command-silent":
             timers.append(threading.Timer(at, at_once, (stop.set,)))
-        elif kind == "ctrl-c":
-            timers.append(threading.Timer(at, at_once, (os.kill, os.getpid(), signal.SIGINT)))
+        for later in SIGNALS.get(kind, ()):
+            timers.append(threading.Timer(at + later, at_once, (os.kill, os.getpid(), signal.SIGINT)))
         for t in timers:
             t.start()
 
     args = module_args(run_cmd, "skinsafe run", "", [str(map_path), *robot, "--boards", "emulate", "--command", command,
                                                      "--rate", str(rate), "--link-latency", str(link_latency),
-                                                     "--tare-frames", "10", "--seconds", "3",
+                                                     "--allow-link-latency", "--tare-frames", "10", "--seconds", "3",
                                                      "--record", str(record), "--stats", str(stats), *extra], "run")
     err, tb = io.StringIO(), ""
     t0 = time.monotonic()
@@ -171,7 +178,8 @@ def _setup(driver: str, tmp: Path):
                     raise SystemExit("runtime faults: designing the FR3 skin failed")
             world = stack.enter_context(WorldProcess(tmp / "skin.json", tmp / "world.json", realtime=True))
             feed = stack.enter_context(ForceFeed.attach(world.feed))
-            home, options = np.array(INITIAL_Q), ("--robot", "fr3", "--host", world.host, "--feed", world.feed)
+            home, options = np.array(INITIAL_Q), ("--robot", "fr3", "--host", world.host, "--feed", world.feed,
+                                                   "--allow-non-realtime")
         design = load(tmp / "skin.json")
         em = stack.enter_context(EmulatorProcess([], tmp / "flash", "--map", str(tmp / "skin.json"), "--feed",
                                                  feed.name))
@@ -194,10 +202,10 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from skinsafe.core.app.run import _realtime
+    from skinsafe.core.realtime import realtime
 
     rng = np.random.default_rng(args.seed)
-    _realtime("auto")  # before the emulator starts: it inherits the priority, as under `skinsafe run`
+    realtime("auto")  # before the emulator starts: it inherits the priority, as under `skinsafe run`
     signal.signal(signal.SIGINT, lambda *_: None)  # a run's own handler takes Ctrl-C; a late one lands here
     rows = []
     kinds = KINDS[args.driver]

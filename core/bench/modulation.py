@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from skinsafe.core.realtime import single_thread_blas
 from skinsafe.core.safety.modulation import ModulationLayer, modulate
 from skinsafe.core.safety.potential import (
     DangerPotential,
@@ -36,7 +37,7 @@ from skinsafe.core.safety.potential import (
 )
 from skinsafe.core.safety.stack import PRIOR, SafetyStack, StrategyFilter
 from skinsafe.core.safety.tdm import TactileDangerModel
-from skinsafe.core.timing import interleaved_ms, median_ms, single_thread_blas
+from skinsafe.core.timing import interleaved_ms, median_ms
 
 DT = 0.002  # s: the control period of the benched ticks (a 500 Hz robot)
 

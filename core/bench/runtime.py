@@ -188,7 +188,7 @@ def _run(args, map_path: Path, command: str, stats: Path, seconds: float, *extra
     view's processes paused and resumed every `args.block` s; "alternating-remote": so, with the page open on
     another computer instead of a browser here."""
     cmd = [SKINSAFE, "run", str(map_path), "--boards", "emulate", "--command", command,
-           "--seconds", str(seconds), "--rate", str(args.rate), "--link-latency", str(args.link_latency),
+           "--seconds", str(seconds), "--rate", str(args.rate), "--link-latency", str(args.link_latency), "--allow-link-latency",
            "--after-contact", "always-resume",  # the rows measure every contact of a sweep, flagged or not
            "--stats", str(stats), *extra]
     if view != "off":
@@ -233,7 +233,7 @@ def _with_browser(cmd: list[str], shared: bool = False, block: float | None = No
 
     from skinsafe.core.bench.browser import CHROMIUM_ARGS, niced, require_chromium
     from skinsafe.core.bench.view_pause import REMOTE_VIEWER, Pauser
-    from skinsafe.core.timing import loop_cores
+    from skinsafe.core.realtime import loop_cores
 
     exe = None if remote else require_chromium("bench runtime --view")
     cpus = os.sched_getaffinity(0)
@@ -468,7 +468,8 @@ def fr3_rows(args) -> list[dict]:
             hand = hand_in_reach(str(path), INITIAL_Q)
             with WorldProcess(path, tmp / "world.json", hand=hand, realtime=args.realtime) as world:
                 r, stale = _retried(lambda: _run(args, path, f"trajectory:{still}", tmp / "stats.json", seconds,
-                                                 "--robot", "fr3", "--host", world.host, "--feed", world.feed))
+                                                 "--robot", "fr3", "--host", world.host, "--feed", world.feed,
+                                                 "--allow-non-realtime"))
                 w = world.stop()
             out.append(fr3_row(r, w, stale, args))
     return out

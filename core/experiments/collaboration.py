@@ -70,9 +70,9 @@ def cell(method: str, seed: int, scenario: str, damping_ratio: float, attachment
     """One scenario at one (damping, attachment, timestep) with each stack: its contact events, and
     with `detail` the force and pan traces and the task times (with and without the person). `config`:
     `CollabConfig.to_json()` (a Ray task's JSON), its seed `seed`."""
+    from skinsafe.core.realtime import single_thread_blas
     from skinsafe.core.robot.kinematics import TaxelKinematics
     from skinsafe.core.skin.taxel_map import load
-    from skinsafe.core.timing import single_thread_blas
 
     torch.set_num_threads(1)
     single_thread_blas()

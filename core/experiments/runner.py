@@ -103,7 +103,7 @@ def _one_thread() -> None:
     """torch and BLAS on one thread in this process (a run's numbers must not depend on thread counts)."""
     import torch
 
-    from skinsafe.core.timing import single_thread_blas
+    from skinsafe.core.realtime import single_thread_blas
 
     torch.set_num_threads(1)
     single_thread_blas()

@@ -25,6 +25,7 @@ import torch
 from tqdm.auto import tqdm
 
 from skinsafe.core.experiments.arm_scene import STATE, Scene
+from skinsafe.core.realtime import single_thread_blas
 from skinsafe.core.safety.modulation import ModulationLayer
 from skinsafe.core.safety.potential import (
     DangerPotential,
@@ -37,7 +38,6 @@ from skinsafe.core.safety.potential import (
 from skinsafe.core.safety.stack import SafetyStack
 from skinsafe.core.safety.tdm import TactileDangerModel
 from skinsafe.core.skin.files import atomic_write, write_png
-from skinsafe.core.timing import single_thread_blas
 
 # ------------------------------------------------------------------------------------------ desk
 

@@ -52,6 +52,7 @@ from skinsafe.core.experiments.runner import provenance, run_tasks
 from skinsafe.core.experiments.stats import compare, mean_ci, parse_seeds, ratio_ci
 from skinsafe.core.learn.tdm_training import FitConfig, TDMTrainer
 from skinsafe.core.learn.tracking_env import MOVING, TrackingEnv, TrackingScene, TrackingTask
+from skinsafe.core.realtime import single_thread_blas
 from skinsafe.core.safety.modulation import ModulationLayer
 from skinsafe.core.safety.potential import (
     DangerPotential,
@@ -62,7 +63,6 @@ from skinsafe.core.safety.potential import (
 )
 from skinsafe.core.safety.tdm import TactileDangerModel
 from skinsafe.core.skin.files import atomic_write, write_png
-from skinsafe.core.timing import single_thread_blas
 
 METHODS = ("vanilla", "tdm", "tdm2")
 LABEL_SETS = {"binary": "binary", "soft": "distance"}  # result name -> `TrackingConfig.labels`

@@ -4,7 +4,8 @@
 1. every fault source reports to the safety monitor (core/runtime/monitor.py) as a typed fault: the
    command source (a non-finite plan), the skin source's faults (the reader's death from its pidfd, a
    board lost, silent, late by its own clock, replayed, foreign, a CRC storm), the robot's own clock
-   (unchanged for `state_periods` ticks, or going back: never a host counter), a stale command source
+   (unchanged for `state_periods` ticks, or going back: never a host counter; `overruns` ticks in a row more
+   than 1.5 periods apart on it: its states were missed), a stale command source
    (`age() > stale_s`), anything non-finite (robot clock, q, qd, a reading of a taxel that is not
    excluded); the monitor alone decides the stop;
 2. the readings (excluded taxels as 0 N, read after the plan so that a frame arriving while it was
@@ -28,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from skinsafe.core.runtime.limiter import Limiter
-from skinsafe.core.runtime.monitor import Fault, Kind, Monitor
+from skinsafe.core.runtime.monitor import OVERRUN_PERIODS, OVERRUNS, Fault, Kind, Monitor
 from skinsafe.core.runtime.protocol import StopRobot
 from skinsafe.core.runtime.tap import Frame, Tap
 from skinsafe.core.runtime.tick_figures import Figure
@@ -64,7 +65,8 @@ class Runtime:
 
     def __init__(self, driver, source, stack, command, excluded: np.ndarray, thresholds: np.ndarray,
                  recorder=None, tap: Tap | None = None, seconds: float | None = None, state_periods: int = 2,
-                 stale_s: float | None = None, monitor: Monitor | None = None, limiter: Limiter | None = None):
+                 stale_s: float | None = None, monitor: Monitor | None = None, limiter: Limiter | None = None,
+                 overruns: int = OVERRUNS):
         self.driver, self.source, self.stack, self.command = driver, source, stack, command
         self.excluded = np.asarray(excluded, bool)
         self.thresholds = np.asarray(thresholds, float)
@@ -82,6 +84,9 @@ class Runtime:
         self.latency_at = Figure()  # the index of each such latency's tick
         self._t0 = self._prev_t = self._start = self._last_t = self._first_start = None
         self._repeats = 0
+        self.overruns = int(overruns)  # consecutive overruns that stop (0: off)
+        self._overran, self._overrun_onset = 0, 0.0  # the current run of overruns, its first tick's start
+        self.overrun_ticks = self.overrun_run_max = 0
         self._reading_seq = None
         self._force = None
         self._stopped = False
@@ -99,6 +104,7 @@ class Runtime:
         else:
             self.period.add(start - self._start)
             self.robot_period.add(t - self._last_t)
+            self._overrun(t - self._last_t, start)
         planned = self._plan(t, q)
         r = self.source.newest()  # after the plan: a frame that arrived meanwhile is this tick's
         self._state = (state, r)
@@ -179,6 +185,22 @@ class Runtime:
         if self.stale_s is not None and age > self.stale_s:
             m.report(Fault(Kind.COMMAND_STALE, "command", f"command: {self.command.spec} silent for {age:.3f} s "
                            f"(> {self.stale_s:g} s)", time.monotonic() - (age - self.stale_s)))
+
+    def _overrun(self, gap: float, start: float) -> None:
+        """A tick more than OVERRUN_PERIODS after the last on the robot's clock: its states were missed; `overruns`
+        in a row stop (onset: the first one's start)."""
+        if not gap > OVERRUN_PERIODS * self.driver.period_s:  # NaN or a clock going back: _watch names them
+            self._overran = 0
+            return
+        self._overran += 1
+        self._overrun_onset = start if self._overran == 1 else self._overrun_onset
+        self.overrun_ticks += 1
+        self.overrun_run_max = max(self.overrun_run_max, self._overran)
+        if self.overruns and self._overran >= self.overruns:
+            self.monitor.report(Fault(Kind.OVERRUN, "robot", f"robot: {self._overran} consecutive overruns (its clock "
+                                      f"advanced {gap * 1e3:.1f} ms in the last tick, more than {OVERRUN_PERIODS:g} "
+                                      f"periods of {self.driver.period_s * 1e3:g} ms: its states were missed)",
+                                      self._overrun_onset))
 
     def _judge(self, v: np.ndarray, now: float) -> None:
         """The layers' command: non-finite, or the retraction's QP solve failed, latches a stop."""
@@ -270,7 +292,8 @@ class Runtime:
                 "latency_ms_p99": ms(lat, 99, np.nan), "latency_ms_max": lat.max * 1e3 if lat.n else np.nan,
                 "latency_ms_all": every(lat), "latency_wait_ms_all": every(self.waited), "period_ms_all": every(period),
                 "latency_tick_all": [] if self.latency_at.exact() is None else self.latency_at.exact().astype(int).tolist(),
-                "start_mono": self._first_start}
+                "start_mono": self._first_start, "overrun_ticks": self.overrun_ticks,
+                "overrun_run_max": self.overrun_run_max}
 
 
 def speed_factor(v: np.ndarray, planned: np.ndarray | None) -> float:

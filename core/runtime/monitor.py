@@ -23,6 +23,9 @@ from enum import Enum
 import numpy as np
 
 HANDOFF_S = 0.005  # the boards' reader's wake-up on an event and its message through the pipe to the loop
+OVERRUNS = 3  # consecutive overruns that stop (bound: K periods while the host's ticks are on time; a late host adds
+# its lateness to each)
+OVERRUN_PERIODS = 1.5  # a tick more than this many control periods after the last, on the robot's clock, is an overrun
 
 
 class State(str, Enum):
@@ -54,6 +57,7 @@ class Kind(str, Enum):
     COMMAND_BAD = "command-bad"
     STACK_NONFINITE = "stack-nonfinite"
     STACK_LATCH = "stack-latch"
+    OVERRUN = "overrun"
     OPERATOR = "operator"
     AFTER_CONTACT = "after-contact"
 
@@ -93,9 +97,10 @@ SPECS = {
     Kind.CRC_STORM: Spec("a board silent with corrupt frames since its last good one, or 5 corrupt frames within 1 s",
                          STOP,
                          "tests/runtime/test_runtime_closed_loop.py::test_every_watchdog_stops_the_robot_naming_why"),
-    Kind.READING_NONFINITE: Spec("a non-finite reading on a taxel that is not excluded", STOP,
-                                 "tests/runtime/test_runtime_loop.py::test_excluded_taxels_read_zero_and_a_nan_anywhere"
-                                 "_else_stops_the_robot"),
+    Kind.READING_NONFINITE: Spec("a non-finite reading on a taxel that is not excluded, at the loop's next tick after "
+                                 "its frame", STOP,
+                                 "tests/runtime/test_runtime_safety.py::test_stack_and_reading_faults_are_named_from_"
+                                 "their_source"),
     Kind.ROBOT_FROZEN: Spec("the robot's own clock unchanged for 2 periods (not a host counter)", STOP,
                             "tests/runtime/test_runtime_safety.py::test_the_robot_watchdog_watches_the_robots_own_clock"),
     Kind.ROBOT_CLOCK_BACK: Spec("the robot's own clock going back", STOP,
@@ -111,10 +116,18 @@ SPECS = {
     Kind.COMMAND_BAD: Spec("a non-finite plan or teleop target", STOP,
                            "tests/runtime/test_runtime_safety.py::test_a_non_finite_robot_state_or_teleop_target_is_"
                            "typed"),
-    Kind.STACK_NONFINITE: Spec("a non-finite command from the layers", STOP, "none yet (not injected by a test)"),
-    Kind.STACK_LATCH: Spec("the retraction's QP solve failed (at once; not injected by a test yet), or a retraction with "
-                           "ticks flagged infeasible ended (it never resumes the plan)", STOP,
-                           "tests/runtime/test_runtime_closed_loop.py::test_a_trajectory_into_the_post_is_turned_back"),
+    Kind.STACK_NONFINITE: Spec("a non-finite command from the layers, in the tick that made it", STOP,
+                               "tests/runtime/test_runtime_safety.py::test_stack_and_reading_faults_are_named_from_"
+                               "their_source"),
+    Kind.STACK_LATCH: Spec("the retraction's QP solve failed (in that tick), or a retraction with ticks flagged "
+                           "infeasible ended (it never resumes the plan)", STOP,
+                           "tests/runtime/test_runtime_safety.py::test_stack_and_reading_faults_are_named_from_their_"
+                           "source; tests/runtime/test_runtime_closed_loop.py::test_a_trajectory_into_the_post_is_"
+                           "turned_back"),
+    Kind.OVERRUN: Spec("--overruns K (default 3) consecutive ticks, each more than 1.5 control periods after the last "
+                       "on the robot's own clock (its states missed, as libfranka counts them); onset: the first's "
+                       "start", STOP,
+                       "tests/runtime/test_runtime_safety.py::test_consecutive_overruns_on_the_robots_clock_stop_it"),
     Kind.OPERATOR: Spec("SIGINT or SIGTERM (each further signal only sets the same flag)", STOP,
                         "tests/runtime/test_fr3_driver.py::test_fr3_ctrl_c_twice_stops_once_and_keeps_the_record"),
     Kind.AFTER_CONTACT: Spec("a retraction ended under --after-contact hold", STOP,
@@ -131,6 +144,7 @@ class Timing:
     silence_s: float  # a board is silent after this long (2 frame periods + --link-latency)
     stale_s: float | None = None  # the command source's timeout (teleop)
     state_periods: int = 2
+    overruns: int = OVERRUNS  # consecutive overruns that stop (0: off)
 
 
 def bounds(tm: Timing) -> dict[Kind, float]:
@@ -139,10 +153,10 @@ def bounds(tm: Timing) -> dict[Kind, float]:
     return {Kind.READER_DIED: 2 * p + HANDOFF_S, Kind.READER_STALLED: tm.silence_s + 2 * p, Kind.LINK_LOST: board,
             Kind.BOARD_SILENT: tm.silence_s + board, Kind.BOARD_LATE: tm.silence_s + tm.frame_period_s + board,
             Kind.COUNTER_BACK: board, Kind.FOREIGN_UID: board, Kind.CRC_STORM: tm.silence_s + board,
-            Kind.READING_NONFINITE: p, Kind.ROBOT_FROZEN: (tm.state_periods + 1) * p, Kind.ROBOT_CLOCK_BACK: p,
+            Kind.READING_NONFINITE: 2 * p, Kind.ROBOT_FROZEN: (tm.state_periods + 1) * p, Kind.ROBOT_CLOCK_BACK: p,
             Kind.ROBOT_NONFINITE: p, Kind.DRIVER: p,
             Kind.COMMAND_STALE: (tm.stale_s or 0.0) + p, Kind.COMMAND_BAD: p, Kind.STACK_NONFINITE: p,
-            Kind.STACK_LATCH: p, Kind.OPERATOR: 2 * p, Kind.AFTER_CONTACT: p}
+            Kind.STACK_LATCH: p, Kind.OVERRUN: tm.overruns * p, Kind.OPERATOR: 2 * p, Kind.AFTER_CONTACT: p}
 
 
 def fastest_taxel_speed(J: np.ndarray, qd_max: np.ndarray) -> float:
@@ -155,7 +169,7 @@ def table(tm: Timing, speed: float = 0.0) -> list[tuple[str, float, float, str]]
     """[(kind, bound ms, blind distance mm = speed x bound, detection)] for the kinds that apply."""
     b = bounds(tm)
     return [(k.value, b[k] * 1e3, speed * b[k] * 1e3, SPECS[k].detection) for k in Kind
-            if k is not Kind.COMMAND_STALE or tm.stale_s is not None]
+            if (k is not Kind.COMMAND_STALE or tm.stale_s is not None) and (k is not Kind.OVERRUN or tm.overruns)]
 
 
 @dataclass

@@ -44,6 +44,7 @@ RETRACT_SPEED = 1e-3  # m/s out of the contact: the measured motion follows the 
 TAXEL_FAULTS = ("stuck", "noisy")  # sensor faults on demand: stuck reads STUCK_N always, noisy adds U(0, threshold)
 STUCK_N = 5.0
 CLOCK_BACK_S = 0.01
+OVERRUN_STEP = 3  # periods the state's clock advances per tick under an injected overrun (states missed)
 
 
 @dataclass
@@ -80,13 +81,16 @@ class Contact:
 @dataclass
 class SimFaults:
     """Faults of the robot's side for the fault bench: the state stops updating, its clock freezes or goes back (as
-    a robot's would, while the driver's own counter still counts every read, as the FR3 driver's does), or the
-    physics dies. `WorldStats.fault_mono`: host time the first one took effect."""
+    a robot's would, while the driver's own counter still counts every read, as the FR3 driver's does), it advances
+    OVERRUN_STEP periods per tick (a robot whose states the host missed: every tick an overrun; the sim's own clock
+    advances one period per tick, whatever the host's load), or the physics dies. `WorldStats.fault_mono`: host time
+    the first one took effect."""
 
     freeze_at: float | None = None  # s (sim clock): the state stops updating (the control still runs)
     die_at: float | None = None  # s: the simulation fails (the driver stops, naming it)
     clock_freeze_at: float | None = None  # s: the state's clock stays (q, qd and seq go on)
     clock_back_at: float | None = None  # s: the state's clock jumps CLOCK_BACK_S back, once
+    overrun_at: float | None = None  # s: from here the state's clock advances OVERRUN_STEP periods per tick
 
 
 @dataclass
@@ -180,6 +184,7 @@ class SimDriver:
         self._publish()
         self._stop: str | None = None
         self._seq = 0
+        self._skew = 0.0  # s the state's clock runs ahead of the sim's (an injected overrun)
         self._contact_p0 = None
         self._first = False  # the first contact goes on
         self._moving = False  # until `run`, the arm stands still and its skin keeps streaming (pre-flight, tare)
@@ -260,6 +265,10 @@ class SimDriver:
         elif f.clock_back_at is not None and s.t >= f.clock_back_at and self.stats.fault_mono is None:
             self.stats.fault_mono = time.monotonic()
             s.t -= CLOCK_BACK_S
+        elif f.overrun_at is not None and s.t >= f.overrun_at:
+            self.stats.fault_mono = self.stats.fault_mono or time.monotonic()
+            self._skew += (OVERRUN_STEP - 1) * self.period_s
+            s.t += self._skew
         return s
 
     # -- the world ---------------------------------------------------------------------------

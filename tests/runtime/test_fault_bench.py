@@ -15,20 +15,26 @@ pytestmark = [pytest.mark.xdist_group("realtime"), pytest.mark.usefixtures("real
 SKINSAFE = str(Path(sys.executable).with_name("skinsafe"))
 KEYS = {"fault", "driver", "runs", "detect_bound_ms", "onset_to_zero_ms_p50", "onset_to_zero_ms_max", "over_bound",
         "named_as_injected", "unnamed", "tracebacks", "records_readable", "latched"}
-# process death, a link hang-up, a signal, the robot's own faults: within 2 control periods + 5 ms at any link latency
-PROMPT = {"reader-kill", "board-unplug", "ctrl-c", "sim-die", "sim-clock-back"}
+# process death, a link hang-up, signals, the robot's own faults, non-finite and stack faults: within 2 control periods
+# + 5 ms at any link latency
+PROMPT = {"reader-kill", "board-unplug", "ctrl-c", "ctrl-c-twice", "sim-die", "sim-clock-back", "reading-nan",
+          "stack-nan", "stack-qp-fail"}
+NEW = {"ctrl-c-twice": "operator", "reading-nan": "reading-nonfinite", "stack-nan": "stack-nonfinite",
+       "stack-qp-fail": "stack-latch", "sim-overrun": "overrun"}  # issue 39's rows
 
 
 def test_every_sim_fault_kind_is_one_row_stopped_within_its_bound():
-    out = subprocess.run([SKINSAFE, "bench", "runtime", "--faults", "--runs", "12", "--link-latency", "0.5", "--json"],
+    out = subprocess.run([SKINSAFE, "bench", "runtime", "--faults", "--runs", "17", "--link-latency", "0.5", "--json"],
                          capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "Traceback" not in out.stderr
     rows = json.loads(out.stdout)
-    assert len(rows) == 12 and {r["fault"] for r in rows} >= PROMPT  # 12 runs: each sim kind once
+    assert len(rows) == 17 and {r["fault"] for r in rows} >= PROMPT | set(NEW)  # 17 runs: each sim kind once
     bound = bounds(Timing(0.002, 1 / 50, 2 / 50 + 0.5, 0.1))
     for r in rows:
         assert KEYS <= set(r) and r["driver"] == "sim" and r["runs"] == 1
+        if r["fault"] in NEW:  # timed against the bound of the kind that names it
+            assert r["detect_bound_ms"] == round(bound[Kind(NEW[r["fault"]])] * 1e3, 2), r
         assert (r["unnamed"], r["tracebacks"], r["records_readable"], r["latched"]) == (0, 0, 1.0, 1.0), r
         assert r["named_as_injected"] == 1.0 and r["over_bound"] == 0, r
         assert r["onset_to_zero_ms_max"] <= r["detect_bound_ms"], r

@@ -59,7 +59,7 @@ def run_fr3(fr3_map, world, tmp_path, seconds, when_moving=None):
     still = write_still(tmp_path / "still.csv", franka.JOINT_NAMES, INITIAL_Q)
     stats, record = tmp_path / "stats.json", tmp_path / "run.mcap"
     args = ["run", fr3_map, "--robot", "fr3", "--host", world.host, "--boards", "emulate", "--feed", world.feed,
-            "--command", f"trajectory:{still}", "--seconds", seconds, "--link-latency", LINK_LATENCY,
+            "--command", f"trajectory:{still}", "--seconds", seconds, "--link-latency", LINK_LATENCY, "--allow-link-latency", "--allow-non-realtime",
             "--tare-frames", 20, "--record", record, "--stats", stats,
             "--after-contact", "always-resume"]  # the hand comes back every Hand.period s; a retraction it flags
     # infeasible would latch a protective stop under the default (tests/runtime/test_runtime_closed_loop.py's post)

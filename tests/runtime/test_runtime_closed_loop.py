@@ -45,7 +45,7 @@ def skinsafe(*args, timeout=60, **kw):
 def run(skin, tmp_path, *extra, command="hold", seconds=1.5, when_moving=None):
     """`skinsafe run` with the emulated boards; `when_moving(proc)` is called once the robot moves."""
     stats, record = tmp_path / "stats.json", tmp_path / "run.mcap"
-    args = ["run", skin, "--robot", "sim", "--boards", "emulate", "--command", command, "--link-latency", LINK_LATENCY, "--tare-frames", 10,
+    args = ["run", skin, "--robot", "sim", "--boards", "emulate", "--command", command, "--link-latency", LINK_LATENCY, "--allow-link-latency", "--tare-frames", 10,
             "--seconds", seconds, "--record", record, "--stats", stats, *extra]
     code, out, err = start_run(args, when_moving)
     p = subprocess.CompletedProcess(args, code, out, err)

@@ -1,7 +1,9 @@
 """The safety monitor decides every stop from a typed fault at its source: the boards' reader's death seen from its
 pidfd after a stall used up the old one-shot check, steadily late frames judged by the board's own clock, the robot's
 own clock frozen or going back (while a host counter still counts, as the FR3 driver's does), a retraction's end
-under --after-contact hold latches the stop; the one command limiter after the layers."""
+under --after-contact hold latches the stop; faults injected at their source (the layers' command, the retraction's
+QP solve, a reading) named from the tick they take effect in; consecutive overruns on the robot's own clock (never
+the host's lateness); the one command limiter after the layers."""
 import json
 import socket
 import time
@@ -112,3 +114,54 @@ def test_a_non_finite_robot_state_or_teleop_target_is_typed(ur5):
             rt.control(SimState(0.0, robot.home.copy(), np.zeros(6), 0))
     rt.command.close()
     assert rt.monitor.fault.kind is Kind.COMMAND_BAD and rt.ticks == 0
+
+
+@pytest.mark.parametrize("fault, kind, extra", [
+    ("stack-nan", "stack-nonfinite", ()), ("stack-qp-fail", "stack-latch", ("--contact", "poke:at=0.4")),
+    ("reading-nan", "reading-nonfinite", ())])
+def test_stack_and_reading_faults_are_named_from_their_source(skin, tmp_path, fault, kind, extra):
+    """From 0.2 s after the hand-over the layers' tick returns NaN, the retraction's QP solver reports failure (first
+    at the poke's retraction, its contact at 0.5 s), or the readings source's frames carry a NaN: named as such,
+    stopped at the tick that met it (decided after the onset, before the zero), no non-finite command recorded."""
+    p, s, record = run(skin, tmp_path, "--inject", f"{fault}@0.2", *extra, seconds=3.0)
+    _stopped_by(p, s, record, kind)
+    onset = s["injected"][fault]
+    assert onset <= s["detected_mono"] < s["world"]["zero_mono"], s
+    cmd = np.array([m.velocity for t, m in messages(record) if t == "/skinsafe/command"])
+    assert len(cmd) > 50 and np.isfinite(cmd).all()
+    if fault == "stack-qp-fail":  # the poke's retraction was the first QP solve after 0.2 s: the stop came after it
+        assert "QP solve failed" in s["reason"] and s["t"] >= s["world"]["onset_t"] >= 0.4, s
+    if fault == "reading-nan":
+        assert "non-finite reading on 1 taxel(s)" in s["reason"]
+
+
+def test_consecutive_overruns_on_the_robots_clock_stop_it(skin, tmp_path):
+    """From 0.3 s the sim's state clock advances 3 periods a tick (states missed): the third overrun in a row stops the
+    robot, its onset the first one's start; --overruns 0 lets the same run end as planned, counting them."""
+    p, s, record = run(skin, tmp_path, "--inject", "sim-overrun@0.3", seconds=1.0)
+    _stopped_by(p, s, record, "overrun")
+    assert "3 consecutive overruns" in s["reason"] and s["overrun_run_max"] == s["overrun_ticks"] == 3
+    assert s["world"]["fault_mono"] <= s["onset_mono"] < s["detected_mono"]
+    assert 0.3 + 2 * 0.002 - 1e-9 <= s["world"]["stop_t"] <= 0.3 + 3 * 0.002 + 1e-9  # the sim's clock at the third
+    p, s, _ = run(skin, tmp_path, "--inject", "sim-overrun@0.3", "--overruns", "0", seconds=1.0)
+    assert p.returncode == 0 and s["kind"] == "end" and s["overrun_ticks"] == s["overrun_run_max"] > 50, p.stderr
+
+
+def test_a_slow_host_never_makes_the_sim_overrun(ur5):
+    """The sim steps one period per tick on its own clock, however late the host's ticks are (here every tick takes
+    3 periods): the host's lateness is counted (the driver's overruns), the robot's clock shows no missed state."""
+    drv, rt = _runtime(ur5, seconds=0.1)
+    drv.realtime = True
+    tick = rt.stack.tick
+
+    def slow(*args, **kw):
+        time.sleep(3 * drv.period_s)
+        return tick(*args, **kw)
+    rt.stack.tick = slow
+    out = rt.run(settle_s=0.0)
+    assert out.kind == "end" and rt.overrun_ticks == 0 and drv.stats.overruns > 40, out.reason
+    drv, rt = _runtime(ur5, faults=SimFaults(overrun_at=0.1), seconds=0.3)
+    rt.overruns = 5  # --overruns 5: the fifth in a row stops
+    out = rt.run(settle_s=0.0)
+    assert out.watchdog == "overrun" and rt.overrun_run_max == 5, out.reason
+    assert 0.1 + 4 * 0.002 - 1e-9 <= drv.stats.stop_t <= 0.1 + 5 * 0.002 + 1e-9  # the fifth tick from the first overrun's

@@ -170,7 +170,7 @@ def test_health_policy_finds_exactly_the_faulty_taxels(seed, frames, n):
 def test_while_the_robot_moves_idle_cores_are_kept_awake_then_released():
     import os
 
-    from skinsafe.core.app.run import _loop_priority
+    from skinsafe.core.realtime import loop_priority
 
     def target() -> int:  # the kernel's CPU latency target (PM QoS), us
         with open("/dev/cpu_dma_latency", "rb") as f:
@@ -178,10 +178,10 @@ def test_while_the_robot_moves_idle_cores_are_kept_awake_then_released():
     if not os.access("/dev/cpu_dma_latency", os.R_OK | os.W_OK):
         pytest.skip("/dev/cpu_dma_latency is not open to this user (the run goes on without it)")
     before = target()
-    with _loop_priority("normal priority"):
+    with loop_priority("normal priority"):
         assert target() == before  # only a real-time run asks
     try:
-        with _loop_priority("real-time priority SCHED_FIFO 10"):
+        with loop_priority("real-time priority SCHED_FIFO 10"):
             assert target() == 0
     except PermissionError:
         pytest.skip("real-time priority not allowed here")

@@ -119,7 +119,7 @@ def test_run_view_live_then_the_record_scrubs_to_the_poke_and_the_taxel_turns_ho
               "--view-port", 8391, "--view-stream", "127.0.0.1:0",  # (0: no page); taken: viser tries the next
               # the browser drawing 16k points in software WebGL can starve the boards' reader for seconds on
               # a 2-core machine (CI: 1.8 s once): this test is about the view; tests/runtime holds the watchdogs
-              "--link-latency", 5)
+              "--link-latency", 5, "--allow-link-latency")
     try:
         page = browser.new_page(viewport={"width": W, "height": H})
         for line in run.stderr:  # the page is served before the robot moves
