@@ -27,6 +27,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -309,17 +310,56 @@ def run(args, feed=None, ports=None, on_moving=None) -> int:
         return _run(args, feed, ports, on_moving, signals)
 
 
-def _run(args, feed, ports, on_moving, signals: contextlib.ExitStack) -> int:
-    from skinsafe.core.robot.models import load_robot, only_joints
-    from skinsafe.core.runtime.record import Recorder
-    from skinsafe.core.skin.force_feed import FeedError, ForceFeed
-    from skinsafe.core.skin.taxel_map import load
-    from skinsafe.hardware.client import BoardError
-    from skinsafe.hardware.skin_source import PreflightRefused, SkinSource
+class _Refused(Exception):
+    """A run refused before the robot moved: its exit code and one line."""
 
-    def fail(code: int, msg: str) -> int:
-        print(f"skinsafe run: {msg}", file=sys.stderr)
-        return code
+    def __init__(self, code: int, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass
+class _Parts:
+    """What one run wired: the robot's driver and arm, the boards' source, the stack's loop and its record."""
+
+    driver: object
+    arm: object
+    limits: dict
+    source: object
+    report: dict
+    runtime: Runtime
+    recorder: object
+    links: object
+    link_faults: list
+
+
+def _run(args, feed, ports, on_moving, signals: contextlib.ExitStack) -> int:
+    """Load, wire, move, report; a refusal is one line and its exit code."""
+    try:
+        inject, map_path, map_hash, robot, design = _load(args)
+        rt = _scheduling(args)
+        with contextlib.ExitStack() as stack:
+            p = _wire(args, stack, feed, ports, inject, map_path, map_hash, robot, design)
+            outcome, injected = _move(args, stack, p, design, inject, rt, signals, on_moving)
+            p.source.close()  # the robot has stopped: the boards stop, and the reader says what any silence was
+            lost, skin = p.source.frames_lost(), p.source.summary
+            if p.links is not None:
+                injected.update({k: p.links.onsets.get(b if b is not None else min(p.links.ports))
+                                 for k, _, b in p.link_faults})
+            rec = p.recorder.close({"reason": outcome.reason, "kind": outcome.kind, "watchdog": outcome.watchdog,
+                                    "t": outcome.t, "ns": time.time_ns(), "ticks": outcome.ticks,
+                                    "dropped": p.recorder.dropped, "frames_lost": lost}) if p.recorder else None
+    except _Refused as e:
+        print(f"skinsafe run: {e}", file=sys.stderr)
+        return e.code
+    _report(args, p, design, outcome, injected, lost, skin, rec)
+    return outcome.exit_code
+
+
+def _load(args):
+    """(injections, map path, its sha256, robot, design), or refused (2)."""
+    from skinsafe.core.robot.models import load_robot
+    from skinsafe.core.skin.taxel_map import load
 
     try:
         _check(args)
@@ -327,109 +367,127 @@ def _run(args, feed, ports, on_moving, signals: contextlib.ExitStack) -> int:
         map_path = Path(args.map)
         map_hash = hashlib.sha256(map_path.read_bytes()).digest()
         robot = load_robot(load(map_path).robot, base_dir=map_path.parent)
-        design = load(map_path, robot.body_names)
+        return inject, map_path, map_hash, robot, load(map_path, robot.body_names)
     except (DesignError, OSError) as e:
-        return fail(2, str(e))
+        raise _Refused(2, str(e)) from None
+
+
+def _scheduling(args) -> str:
+    """The real-time scheduling asked for (core/realtime.py); the FR3 without it is refused (2) unless allowed."""
     rt = realtime(args.realtime)
     if args.robot == "fr3" and not is_realtime():
         if not args.allow_non_realtime:
-            return fail(2, f"--robot fr3 needs real-time scheduling (SCHED_FIFO), and this process has {rt}: run as a "
-                        "user allowed rtprio (/etc/security/limits.conf) with --realtime auto, or pass "
-                        "--allow-non-realtime for a simulated robot such as franky-sim")
+            raise _Refused(2, f"--robot fr3 needs real-time scheduling (SCHED_FIFO), and this process has {rt}: run as "
+                           "a user allowed rtprio (/etc/security/limits.conf) with --realtime auto, or pass "
+                           "--allow-non-realtime for a simulated robot such as franky-sim")
         print(f"skinsafe run: WARNING: the FR3 without real-time scheduling ({rt}; --allow-non-realtime)",
               file=sys.stderr)
-    with contextlib.ExitStack() as stack:
-        try:
-            if feed is None:
-                feed = stack.enter_context(ForceFeed.attach(args.feed) if args.feed else
-                                           ForceFeed.create(None, design.n_taxels))
-                if feed.n != design.n_taxels:
-                    raise DesignError(f"--feed {args.feed} holds {feed.n} taxels, the map {design.n_taxels}")
-            driver = _driver(args, design, robot, feed, inject)
-            stack.callback(driver.close)
-            arm = only_joints(robot, driver.joint_names)  # the joints the driver moves (the FR3: not its fingers)
-            limits = driver.limits()
-            command = command_source(args.command, driver.joint_names, limits, args.command_timeout)
-            stack.callback(command.close)
-            ports = ports or _ports(args, design, stack, feed)
-            links = None
-            link_faults = [f for f in inject if f[0] not in (*SIM_FAULTS, *READER_FAULTS, *SOURCE_FAULTS)]
-            if link_faults:
-                from skinsafe.hardware.link_faults import DELAY_S, LinkFaults
+    return rt
 
-                links = stack.enter_context(LinkFaults(ports, link_faults, max(DELAY_S, 3.0 / args.rate + args.link_latency)))
-                ports = links.ports
-            source = SkinSource(design, ports, args.rate, args.noise_fraction, args.max_excluded,
-                                link_latency=args.link_latency, baud=args.baud)
-            stack.callback(source.close)
-            report = source.preflight(map_hash, args.tare_frames)
-        except (DesignError, CommandError, FeedError) as e:
-            return fail(2, str(e))
-        except (PreflightRefused, BoardError) as e:
-            return fail(3, f"pre-flight refused: {e}")
-        print(f"skinsafe run: pre-flight passed: {len(report['boards'])} boards run this map, tared over "
-              f"{args.tare_frames} frames; excluded {report['excluded']} taxels (dead {report['dead'][:8]}, stuck "
-              f"{report['stuck'][:8]}, noisy {report['noisy'][:8]}, disabled in the map {report['disabled_in_map']})",
-              file=sys.stderr)
-        params = RetractionParams(alpha=args.alpha)
-        try:
-            layers = build_stack(design, arm.model, limits["qd_max"], limits["qdd_max"], driver.period_s, params,
-                                 args.tdm)
-        except (ValueError, OSError) as e:
-            return fail(2, f"--tdm: {e}")
-        warm_up(layers, arm.home, design.taxels.thresholds["force"], driver.period_s)
-        seconds = args.seconds or (command.duration + 1.0 if isinstance(command, Trajectory) else None)
-        recorder = None
-        if args.record:
-            config = run_config(map_path, driver, limits, params, source.excluded, command.spec, args.tdm)
-            config["board_period_s"] = 1.0 / args.rate  # for the view's board health
-            try:
-                recorder = Recorder(args.record, driver.joint_names, config)
-            except OSError as e:
-                return fail(2, f"--record {args.record}: {e.strerror or e}; choose a folder you can write to")
-        tap = Tap()
-        if args.view:
-            try:
-                tap = _view(args, stack, design, driver, map_path, map_hash)
-            except (OSError, ValueError) as e:
-                return fail(2, f"--view: {e}")
-        runtime = Runtime(driver, source, layers, command, source.excluded, design.taxels.thresholds["force"],
-                          recorder, tap, seconds=seconds, monitor=Monitor(args.after_contact), limiter=Limiter(limits),
-                          overruns=args.overruns)
-        _print_bounds(Timing(driver.period_s, 1.0 / args.rate, source.silence_s, command.stale_s,
-                             overruns=args.overruns), arm, design, limits["qd_max"])
-        if links is not None:
-            links.arm()
 
-        def on_signal(signum, _frame):  # only sets the monitor's flag, the first time and every time after
-            runtime.stop_by_operator(signum, signal.Signals(signum).name)
+def _wire(args, stack, feed, ports, inject, map_path, map_hash, robot, design) -> _Parts:
+    """Driver, command source, boards (pre-flight), stack, recorder and view, each closed by `stack`; refused with
+    2 (bad input) or 3 (the pre-flight)."""
+    from skinsafe.core.robot.models import only_joints
+    from skinsafe.core.runtime.record import Recorder
+    from skinsafe.core.skin.force_feed import FeedError, ForceFeed
+    from skinsafe.hardware.client import BoardError
+    from skinsafe.hardware.skin_source import PreflightRefused, SkinSource
 
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            signals.callback(signal.signal, signum, signal.signal(signum, on_signal))
-        print(f"skinsafe run: {driver.name} robot moving under '{command.spec}' ({driver.period_s * 1e3:g} ms period, "
-              f"boards at {args.rate} Hz, {rt}); Ctrl-C stops it", file=sys.stderr, flush=True)
-        injected = _reader_faults(stack, inject, source, source.silence_s + 0.1)
-        _source_faults(stack, inject, layers, source, injected)
-        if on_moving is not None:
-            on_moving(runtime)
-        switch = sys.getswitchinterval()
-        sys.setswitchinterval(SWITCH_S)
-        one_thread()
-        gc.freeze()  # no collector pause while the robot moves (what the loop allocates is freed by refcount)
-        gc.disable()
+    try:
+        if feed is None:
+            feed = stack.enter_context(ForceFeed.attach(args.feed) if args.feed else
+                                       ForceFeed.create(None, design.n_taxels))
+            if feed.n != design.n_taxels:
+                raise DesignError(f"--feed {args.feed} holds {feed.n} taxels, the map {design.n_taxels}")
+        driver = _driver(args, design, robot, feed, inject)
+        stack.callback(driver.close)
+        arm = only_joints(robot, driver.joint_names)  # the joints the driver moves (the FR3: not its fingers)
+        limits = driver.limits()
+        command = command_source(args.command, driver.joint_names, limits, args.command_timeout)
+        stack.callback(command.close)
+        ports = ports or _ports(args, design, stack, feed)
+        links = None
+        link_faults = [f for f in inject if f[0] not in (*SIM_FAULTS, *READER_FAULTS, *SOURCE_FAULTS)]
+        if link_faults:
+            from skinsafe.hardware.link_faults import DELAY_S, LinkFaults
+
+            links = stack.enter_context(LinkFaults(ports, link_faults, max(DELAY_S, 3.0 / args.rate + args.link_latency)))
+            ports = links.ports
+        source = SkinSource(design, ports, args.rate, args.noise_fraction, args.max_excluded,
+                            link_latency=args.link_latency, baud=args.baud)
+        stack.callback(source.close)
+        report = source.preflight(map_hash, args.tare_frames)
+    except (DesignError, CommandError, FeedError) as e:
+        raise _Refused(2, str(e)) from None
+    except (PreflightRefused, BoardError) as e:
+        raise _Refused(3, f"pre-flight refused: {e}") from None
+    print(f"skinsafe run: pre-flight passed: {len(report['boards'])} boards run this map, tared over "
+          f"{args.tare_frames} frames; excluded {report['excluded']} taxels (dead {report['dead'][:8]}, stuck "
+          f"{report['stuck'][:8]}, noisy {report['noisy'][:8]}, disabled in the map {report['disabled_in_map']})",
+          file=sys.stderr)
+    params = RetractionParams(alpha=args.alpha)
+    try:
+        layers = build_stack(design, arm.model, limits["qd_max"], limits["qdd_max"], driver.period_s, params, args.tdm)
+    except (ValueError, OSError) as e:
+        raise _Refused(2, f"--tdm: {e}") from None
+    warm_up(layers, arm.home, design.taxels.thresholds["force"], driver.period_s)
+    seconds = args.seconds or (command.duration + 1.0 if isinstance(command, Trajectory) else None)
+    recorder = None
+    if args.record:
+        config = run_config(map_path, driver, limits, params, source.excluded, command.spec, args.tdm)
+        config["board_period_s"] = 1.0 / args.rate  # for the view's board health
         try:
-            with loop_priority(rt):
-                outcome = runtime.run()
-        finally:
-            gc.enable()
-            sys.setswitchinterval(switch)
-        source.close()  # the robot has stopped: the boards stop, and the reader says what any silence was
-        lost, skin = source.frames_lost(), source.summary
-        injected.update({k: links.onsets.get(b if b is not None else min(links.ports)) for k, _, b in link_faults}
-                        if links is not None else {})
-        rec = recorder.close({"reason": outcome.reason, "kind": outcome.kind, "watchdog": outcome.watchdog,
-                              "t": outcome.t, "ns": time.time_ns(), "ticks": outcome.ticks,
-                              "dropped": recorder.dropped, "frames_lost": lost}) if recorder else None
+            recorder = Recorder(args.record, driver.joint_names, config)
+        except OSError as e:
+            raise _Refused(2, f"--record {args.record}: {e.strerror or e}; choose a folder you can write to") from None
+    tap = Tap()
+    if args.view:
+        try:
+            tap = _view(args, stack, design, driver, map_path, map_hash)
+        except (OSError, ValueError) as e:
+            raise _Refused(2, f"--view: {e}") from None
+    runtime = Runtime(driver, source, layers, command, source.excluded, design.taxels.thresholds["force"],
+                      recorder, tap, seconds=seconds, monitor=Monitor(args.after_contact), limiter=Limiter(limits),
+                      overruns=args.overruns)
+    return _Parts(driver, arm, limits, source, report, runtime, recorder, links, link_faults)
+
+
+def _move(args, stack, p: _Parts, design, inject, rt: str, signals: contextlib.ExitStack, on_moving):
+    """The operator's signals to the monitor, the injected faults started, the loop at its priority with no
+    collector pause until the robot stops: (outcome, injected faults' onsets)."""
+    runtime, driver, source = p.runtime, p.driver, p.source
+    _print_bounds(Timing(driver.period_s, 1.0 / args.rate, source.silence_s, runtime.command.stale_s,
+                         overruns=args.overruns), p.arm, design, p.limits["qd_max"])
+    if p.links is not None:
+        p.links.arm()
+
+    def on_signal(signum, _frame):  # only sets the monitor's flag, the first time and every time after
+        runtime.stop_by_operator(signum, signal.Signals(signum).name)
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signals.callback(signal.signal, signum, signal.signal(signum, on_signal))
+    print(f"skinsafe run: {driver.name} robot moving under '{runtime.command.spec}' ({driver.period_s * 1e3:g} ms "
+          f"period, boards at {args.rate} Hz, {rt}); Ctrl-C stops it", file=sys.stderr, flush=True)
+    injected = _reader_faults(stack, inject, source, source.silence_s + 0.1)
+    _source_faults(stack, inject, runtime.stack, source, injected)
+    if on_moving is not None:
+        on_moving(runtime)
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(SWITCH_S)
+    one_thread()
+    gc.freeze()  # no collector pause while the robot moves (what the loop allocates is freed by refcount)
+    gc.disable()
+    try:
+        with loop_priority(rt):
+            return runtime.run(), injected
+    finally:
+        gc.enable()
+        sys.setswitchinterval(switch)
+
+
+def _report(args, p: _Parts, design, outcome, injected: dict, lost: int, skin: dict, rec: dict | None) -> None:
+    """The stop and the run's figures for the operator; with --stats, everything as JSON."""
     t = outcome.stats
     head = {"end": "stopped as planned", "operator": "STOPPED by the operator", "fault": "STOPPED by a watchdog",
             "driver": "STOPPED by the robot"}[outcome.kind]
@@ -446,16 +504,16 @@ def _run(args, feed, ports, on_moving, signals: contextlib.ExitStack) -> int:
               + (f"; record {rec.get('path', rec.get('error'))}: {rec['written']} messages, {rec['dropped']} ticks dropped"
                  if rec else ""))
     if args.stats:
+        driver = p.driver
         world = getattr(driver, "stats", None)
         world = world if isinstance(world, dict) or world is None else vars(world)
         out = {"reason": outcome.reason, "kind": outcome.kind, "watchdog": outcome.watchdog, "t": outcome.t,
                "detected_mono": outcome.detected_mono, "onset_mono": outcome.onset_mono, "state": outcome.state,
-               "exit": outcome.exit_code, "injected": injected, "frames_lost": lost, "preflight": report,
+               "exit": outcome.exit_code, "injected": injected, "frames_lost": lost, "preflight": p.report,
                "record": rec, "period_s": driver.period_s, "robot": driver.name, "taxels": design.n_taxels,
                "boards": len(design.boards), **t, "skin": skin,
                "world": {k: v for k, v in world.items() if k != "extra"} if world is not None else {}}
         atomic_write(Path(args.stats), json.dumps(out, default=_plain))
-    return outcome.exit_code
 
 
 def _print_bounds(tm: Timing, arm, design, qd_max) -> None:

@@ -146,7 +146,7 @@ def serve_record(args, stop: threading.Event) -> int:
     def on_time(t):
         state["i"] = rec.index(t)
         page.show(*rec.frame(state["i"]))
-        tap.publish(rec.tap_frame(state["i"]))
+        tap.publish(rec.tick(state["i"]))
 
     step = float(cfg.get("period_s") or np.median(np.diff(rec.t)) if len(rec.t) > 1 else 0.01)
     page = Page(design, robot.model, args.host, args.port, args.vmax, f"skinsafe {Path(args.source).name}",

@@ -13,18 +13,19 @@ import time
 
 import numpy as np
 
-from skinsafe.core.runtime.tap import Frame
+from skinsafe.core.runtime.tick import Tick
 from skinsafe.core.runtime.view_share import SharedFrames
 from skinsafe.core.runtime.view_stream import frame_message
 
 JOINTS, BOARDS = 6, 16
 
 
-def _tick(n: int, pool: int, rng: np.random.Generator) -> Frame:
+def _tick(n: int, pool: int, rng: np.random.Generator) -> Tick:
     """A retracting tick of `n` taxels with `pool` of them in the pool (none: not retracting)."""
     q = rng.normal(size=JOINTS)
-    return Frame(1.0, q, rng.random(n) * 40, -q, pool > 0, pool, ("limited",) if pool else (), "", q * 2,
-                 rng.permutation(n)[:pool] if pool else None, 0.3, 0.8, {b: 0.004 for b in range(BOARDS)}, 0)
+    return Tick(t=1.0, q=q, force=rng.random(n) * 40, command=-q, retracting=pool > 0, pool=pool,
+                flags=("limited",) if pool else (), planned=q * 2, pool_taxels=rng.permutation(n)[:pool] if pool else None,
+                potential=0.3, speed_factor=0.8, board_age_s={b: 0.004 for b in range(BOARDS)})
 
 
 def _figures(us: list[float], key: str) -> dict:

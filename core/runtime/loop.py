@@ -31,7 +31,8 @@ import numpy as np
 from skinsafe.core.runtime.limiter import Limiter
 from skinsafe.core.runtime.monitor import OVERRUN_PERIODS, OVERRUNS, Fault, Kind, Monitor
 from skinsafe.core.runtime.protocol import StopRobot
-from skinsafe.core.runtime.tap import Frame, Tap
+from skinsafe.core.runtime.tap import Tap
+from skinsafe.core.runtime.tick import Tick
 from skinsafe.core.runtime.tick_figures import Figure
 from skinsafe.core.safety.limits import finite
 
@@ -141,13 +142,14 @@ class Runtime:
             self.latency_at.add(self.ticks)
         self.ticks += 1
         self.work.add(now - start)
-        frame = Frame(t, q, self._force, v, retracting, pool, info.flags, "", planned, d.pool if retracting else None,
-                      self.stack.last_f, speed_factor(v, planned), r.board_age_s, r.frames_lost)
-        self.tap.publish(frame)
+        tick = Tick(t=t, q=q, qd=qd, dt=dt, command=v, force=self._force, force_new=new, reading_seq=float(r.seq),
+                    planned=planned, retracting=retracting, pool=pool, pool_taxels=d.pool if retracting else None,
+                    flags=info.flags, potential=self.stack.last_f, speed_factor=speed_factor(v, planned),
+                    board_age_s=r.board_age_s, frames_lost=r.frames_lost, command_age=self.command.age(),
+                    index=self.ticks, ns=time.time_ns())
+        self.tap.publish(tick)
         if self.recorder is not None:
-            self.recorder.put((time.time_ns(), self.ticks, t, dt, q, qd, self._force if new else None, float(r.seq),
-                               planned, v, info.flags, retracting, pool, r.board_age_s, r.frames_lost,
-                               self.command.age(), 1.0, frame.potential, frame.speed_factor, frame.pool_taxels))
+            self.recorder.put(tick)
         return v
 
     def _plan(self, t: float, q: np.ndarray) -> np.ndarray | None:
@@ -219,12 +221,13 @@ class Runtime:
         """The stop's tick for the tap and the record: zero velocity, the stack not ticked."""
         self._stopped = True
         zero = np.zeros(len(state.q))
-        self.tap.publish(Frame(state.t, state.q, self._force, zero, False, 0, (), reason, None, None, 0.0, 0.0,
-                               r.board_age_s, r.frames_lost))
+        tick = Tick(t=state.t, q=state.q, qd=state.qd, command=zero, force=self._force, reading_seq=float(r.seq),
+                    planned=zero, flags=("stop",), speed_factor=0.0, stop=reason, ticked=False,
+                    board_age_s=r.board_age_s, frames_lost=r.frames_lost, command_age=self.command.age(),
+                    index=self.ticks + 1, ns=time.time_ns())
+        self.tap.publish(tick)
         if self.recorder is not None:
-            self.recorder.put((time.time_ns(), self.ticks + 1, state.t, 0.0, state.q, state.qd, None,
-                               float(r.seq), zero, zero, ("stop",), False, 0, r.board_age_s, r.frames_lost,
-                               self.command.age(), 0.0))
+            self.recorder.put(tick)
 
     # -- the run ---------------------------------------------------------------------------------
     def stop_by_operator(self, signum: int, name: str) -> None:

@@ -40,6 +40,8 @@ import numpy as np
 from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
+from skinsafe.core.runtime.tick import Tick
+
 TIME = "================================================================================\nMSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n"
 HEADER = ("================================================================================\nMSG: std_msgs/Header\n"
           "builtin_interfaces/Time stamp\nstring frame_id\n") + TIME
@@ -163,11 +165,11 @@ class Recorder:
         self.thread = threading.Thread(target=self._work, name="recorder", daemon=True)
         self.thread.start()
 
-    def put(self, item: tuple, wait: bool = False) -> None:
-        """Enqueue one tick (see `_tick`); dropped and counted when the writer is behind, unless `wait` (a
+    def put(self, tick: Tick, wait: bool = False) -> None:
+        """Enqueue one tick; dropped and counted when the writer is behind, unless `wait` (a
         writer with no loop to keep: core/runtime/sim_record.py)."""
         try:
-            self.q.put(item, block=wait)
+            self.q.put(tick, block=wait)
         except queue.Full:
             self.dropped += 1
 
@@ -192,10 +194,10 @@ class Recorder:
             if self.error:
                 continue
             try:
-                if item[0] == "stop":
-                    self._stop(item[1])
+                if isinstance(item, Tick):
+                    self._tick(item)
                 else:
-                    self._tick(*item)
+                    self._stop(item[1])
             except Exception as e:  # a disk that fills up must not take the loop down: named at the end
                 self.error = f"{self.part}: recording failed ({e})"
 
@@ -203,33 +205,34 @@ class Recorder:
         self.writer.add_message(self.channels[topic], log_time=ns, data=data, publish_time=ns, sequence=self.written)
         self.written += 1
 
-    def _tick(self, ns, tick, t, dt, q, qd, force, reading_seq, planned, command, flags, retracting, pool,
-              ages, lost, command_age, ticked, potential=0.0, factor=1.0, pool_taxels=None, obstacles=None) -> None:
-        """One tick; `ticked` 0.0: a stop (the stack was not ticked, zero velocity sent); `obstacles`: their
-        (P, 7) poses, or None (they stand still)."""
-        self._raw("/joint_states", self.joints(t, q, qd), ns)
-        self._raw("/skinsafe/planned", self.joints(t, (), planned), ns)
-        self._raw("/skinsafe/command", self.joints(t, (), command), ns)
-        if force is not None:
-            self._raw("/skinsafe/taxels", encode_float64_array(force), ns)
-        if obstacles is not None:
+    def _tick(self, k: Tick) -> None:
+        """One tick: its forces only when new, its obstacles' poses when they move."""
+        ns, t = k.ns, k.t
+        self._raw("/joint_states", self.joints(t, k.q, np.zeros_like(k.q) if k.qd is None else k.qd), ns)
+        self._raw("/skinsafe/planned", self.joints(t, (), k.command if k.planned is None else k.planned), ns)
+        self._raw("/skinsafe/command", self.joints(t, (), k.command), ns)
+        if k.force_new and k.force is not None:
+            self._raw("/skinsafe/taxels", encode_float64_array(k.force), ns)
+        if k.obstacles is not None:
             if OBSTACLES not in self.channels:
                 self.channels[OBSTACLES] = self.writer.register_channel(
                     OBSTACLES, MessageEncoding.CDR, self.schemas["std_msgs/msg/Float64MultiArray"])
-            self._raw(OBSTACLES, encode_float64_array(np.ravel(obstacles)), ns)
-        self._raw("/skinsafe/tick", encode_float64_array(np.array([t, dt, reading_seq, tick, ticked], float)), ns)
-        k = 0 if pool_taxels is None else len(pool_taxels)
-        layers = np.empty(4 + k)
-        layers[:4] = potential, factor, float(retracting), k
-        layers[4:] = () if pool_taxels is None else pool_taxels
+            self._raw(OBSTACLES, encode_float64_array(np.ravel(k.obstacles)), ns)
+        self._raw("/skinsafe/tick", encode_float64_array(
+            np.array([t, k.dt, k.reading_seq, k.index, float(k.ticked)], float)), ns)
+        pool = () if k.pool_taxels is None else k.pool_taxels
+        layers = np.empty(4 + len(pool))
+        layers[:4] = k.potential, k.speed_factor, float(k.retracting), len(pool)
+        layers[4:] = pool
         self._raw("/skinsafe/layers", encode_float64_array(layers), ns)
-        if flags != self._flags or t - self._diag_t >= DIAG_EVERY_S:
-            self._flags, self._diag_t = flags, t
-            layers = [("retracting", str(retracting)), ("pool", str(pool)), ("flags", ",".join(flags))]
-            skin = [(f"board {uid:#x} age_ms", f"{a * 1e3:.2f}") for uid, a in ages.items()] + [("frames_lost", str(lost))]
-            self._diag(ns, t, [("skinsafe/layers", WARN if flags else OK, "retracting" if retracting else "ok", layers),
-                               ("skinsafe/skin", OK, "streaming", skin),
-                               ("skinsafe/command", OK, "fresh", [("age_s", f"{command_age:.4f}")])])
+        if k.flags != self._flags or t - self._diag_t >= DIAG_EVERY_S:
+            self._flags, self._diag_t = k.flags, t
+            layers = [("retracting", str(k.retracting)), ("pool", str(k.pool)), ("flags", ",".join(k.flags))]
+            skin = [(f"board {uid:#x} age_ms", f"{a * 1e3:.2f}") for uid, a in (k.board_age_s or {}).items()]
+            skin.append(("frames_lost", str(k.frames_lost)))
+            self._diag(ns, t, [("skinsafe/layers", WARN if k.flags else OK, "retracting" if k.retracting else "ok",
+                                layers), ("skinsafe/skin", OK, "streaming", skin),
+                               ("skinsafe/command", OK, "fresh", [("age_s", f"{k.command_age:.4f}")])])
 
     def _stop(self, stop: dict) -> None:
         level = OK if stop.get("kind") in ("end", None) else ERROR

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from skinsafe.core.runtime.replay import ReplayError, read_record
-from skinsafe.core.runtime.tap import Frame
+from skinsafe.core.runtime.tick import Tick
+from skinsafe.core.runtime.view_stream import frame_header
 
 
 class Recording:
@@ -56,8 +57,9 @@ class Recording:
         self.retracting = np.array([x[2] for x in self.layers])
         # (ticks, P, 7) poses of the metadata's obstacles, or None: they stand still (runs, older records)
         self.obstacles = np.array(poses) if all(p is not None for p in poses) else None
-        self.diag_t = np.array([d[0] for d in diag])
-        self.diag = [d[1] for d in diag]
+        ticks = [d for d in diag if "skinsafe/layers" in d[1]]  # the ticks' diagnostics (not the stop's)
+        self.diag_t = np.array([d[0] for d in ticks])
+        self.diag = [d[1] for d in ticks]
         self.stop = next((d["skinsafe/watchdog"]["message"] for _, d in diag[::-1] if "skinsafe/watchdog" in d), "")
         peak = np.array([np.nanmax(f) if f.size else 0.0 for f in self.forces])
         self.peak = np.where(self.force_at >= 0, peak[np.maximum(self.force_at, 0)], 0.0)
@@ -70,25 +72,30 @@ class Recording:
         i = int(np.clip(np.searchsorted(self.t, t), 1, max(1, len(self.t) - 1)))
         return i - 1 if len(self.t) < 2 or t - self.t[i - 1] <= self.t[i] - t else i
 
-    def frame(self, i: int) -> tuple[dict, np.ndarray]:
-        """Tick i in the view stream's frame format (header, forces)."""
+    def tick(self, i: int) -> Tick:
+        """Tick i as the loop made it (forces: the newest reading by then, NaN before the first)."""
         k = self.force_at[i]
         force = self.forces[k].astype(float) if k >= 0 else np.full(self.forces.shape[1], np.nan)
         lay = self.layers[i]
         d = self.diag[max(0, int(np.searchsorted(self.diag_t, self.t[i], side="right")) - 1)] if self.diag else {}
         layers = d.get("skinsafe/layers", {}).get("values", {})
         skin = d.get("skinsafe/skin", {}).get("values", {})
-        ages = {k.split()[1]: float(v) for k, v in skin.items() if k.startswith("board ")}
-        last = i == len(self.t) - 1
-        h = {"kind": "frame", "seq": i + 1, "t": float(self.t[i]), "q": self.q[i].tolist(),
-             "command": self.command[i].tolist(), "planned": None if self.planned[i] is None else self.planned[i].tolist(),
-             "retracting": bool(lay[2]), "pool": [int(x) for x in lay[4:]], "potential": float(lay[0]),
-             "speed_factor": float(lay[1]), "flags": [f for f in layers.get("flags", "").split(",") if f],
-             "stop": self.stop if last else "", "board_age_ms": {str(int(u, 16)): a for u, a in ages.items()},
-             "frames_lost": int(skin.get("frames_lost", 0))}
-        if self.obstacles is not None:
-            h["obstacles"] = self.obstacles[i].tolist()
-        return h, force
+        ages = {int(k.split()[1], 16): float(v) / 1e3 for k, v in skin.items() if k.startswith("board ")}
+        pool = np.asarray(lay[4:], int)
+        return Tick(t=float(self.t[i]), q=self.q[i], command=self.command[i], planned=self.planned[i], force=force,
+                    retracting=bool(lay[2]), pool=len(pool), pool_taxels=pool, potential=float(lay[0]),
+                    speed_factor=float(lay[1]), flags=tuple(f for f in layers.get("flags", "").split(",") if f),
+                    stop=self.stop if i == len(self.t) - 1 else "", board_age_s=ages,
+                    frames_lost=int(skin.get("frames_lost", 0)), index=i + 1,
+                    obstacles=None if self.obstacles is None else self.obstacles[i])
+
+    def frame(self, i: int) -> tuple[dict, np.ndarray]:
+        """Tick i in the view stream's frame format (header, forces)."""
+        k = self.tick(i)
+        h = frame_header(i + 1, k)
+        if k.obstacles is not None:
+            h["obstacles"] = k.obstacles.tolist()
+        return h, k.force
 
     def next_contact(self, t: float) -> float | None:
         """The time of the largest reading of the next contact (`active`) after `t` (None: no more)."""
@@ -100,13 +107,6 @@ class Recording:
         start = int(on[0])
         end = start + int(np.argmax(self.active[start:] == 0)) if (self.active[start:] == 0).any() else len(self.t)
         return float(self.t[start + int(np.argmax(self.peak[start:end]))])
-
-    def tap_frame(self, i: int) -> Frame:
-        """Tick i as the runtime's tap frame (for `--publish`)."""
-        h, force = self.frame(i)
-        return Frame(h["t"], self.q[i], force, self.command[i], h["retracting"], len(h["pool"]), tuple(h["flags"]),
-                     h["stop"], self.planned[i], np.array(h["pool"]), h["potential"], h["speed_factor"],
-                     {int(k): v / 1e3 for k, v in h["board_age_ms"].items()}, h["frames_lost"])
 
 
 def _diagnostics(msg) -> dict:

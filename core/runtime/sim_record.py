@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from skinsafe.core.runtime.record import Recorder
+from skinsafe.core.runtime.tick import Tick
 
 PRIMITIVES = ("sphere", "capsule", "ellipsoid", "cylinder", "box")  # the obstacle kinds the views draw
 
@@ -64,10 +65,12 @@ class SimRecord:
         factor = float(np.linalg.norm(command)) / norm if norm > 1e-12 else 1.0
         pool = np.asarray(pool_taxels, float)
         self.ticks += 1
-        self.rec.put((self.t0_ns + int(t * 1e9), self.ticks, float(t), dt, q, qd,
-                      None if force is None else np.asarray(force, float), float(self.ticks), planned, command,
-                      tuple(flags), bool(retracting), len(pool), {}, 0, 0.0, 1.0, float(potential), factor, pool,
-                      None if obstacles is None else np.array(obstacles, float)), wait=True)
+        self.rec.put(Tick(t=float(t), q=q, qd=qd, dt=dt, command=command, planned=planned,
+                          force=None if force is None else np.asarray(force, float), force_new=force is not None,
+                          reading_seq=float(self.ticks), retracting=bool(retracting), pool=len(pool), pool_taxels=pool,
+                          flags=tuple(flags), potential=float(potential), speed_factor=factor, board_age_s={},
+                          index=self.ticks, ns=self.t0_ns + int(t * 1e9),
+                          obstacles=None if obstacles is None else np.array(obstacles, float)), wait=True)
         self.prev = (t, q)
 
     def close(self, reason: str = "the episode ended") -> dict:

@@ -6,33 +6,14 @@ keep it.
 """
 from __future__ import annotations
 
-from typing import NamedTuple
-
-import numpy as np
-
-
-class Frame(NamedTuple):
-    t: float  # the robot's clock, s
-    q: np.ndarray  # measured joint positions
-    force: np.ndarray  # taxel forces the layers saw (N)
-    command: np.ndarray  # joint velocity sent
-    retracting: bool
-    pool: int  # retracting taxels
-    flags: tuple  # the layers' flags of this tick
-    stop: str  # the stop reason once the robot was stopped, else ""
-    planned: np.ndarray | None = None  # the command source's velocity
-    pool_taxels: np.ndarray | None = None  # the retracting taxels, highest priority first
-    potential: float = 0.0  # the TDM's danger potential f the modulation saw (0 without --tdm)
-    speed_factor: float = 1.0  # |command| / |planned|: how much the layers slowed the plan (1: not at all)
-    board_age_s: dict | None = None  # per board uid: seconds since its last frame
-    frames_lost: int = 0
+from skinsafe.core.runtime.tick import Tick
 
 
 class Tap:
-    frame: Frame | None = None
+    frame: Tick | None = None
 
-    def publish(self, frame: Frame) -> None:
+    def publish(self, frame: Tick) -> None:
         self.frame = frame  # one reference store: atomic for any reader thread
 
-    def latest(self) -> Frame | None:
+    def latest(self) -> Tick | None:
         return self.frame

@@ -20,7 +20,8 @@ from multiprocessing import resource_tracker, shared_memory
 
 import numpy as np
 
-from skinsafe.core.runtime.tap import Frame, Tap
+from skinsafe.core.runtime.tap import Tap
+from skinsafe.core.runtime.tick import Tick
 from skinsafe.core.runtime.view_stream import ViewPublisher, decode
 from skinsafe.core.skin.force_feed import release
 
@@ -73,7 +74,7 @@ class SharedFrames:
         resource_tracker.unregister(shm._name, "shared_memory")  # only the creator removes the block
         return cls(shm, False, n_taxels, n_joints, boards)
 
-    def write(self, f: Frame) -> bool:
+    def write(self, f: Tick) -> bool:
         """Publish the tick `f`; False (nothing written) when it does not fit the block (a pool longer than the
         taxels, other joints, flags over TEXT bytes)."""
         pool = () if f.pool_taxels is None else f.pool_taxels
@@ -103,7 +104,7 @@ class SharedFrames:
         """Whether a reader took a tick within the last LEASE_S (the writer's test before copying one)."""
         return int(self._word[3]) > time.monotonic_ns()
 
-    def newest(self) -> Frame | None:
+    def newest(self) -> Tick | None:
         """The newest tick (the same object until a newer one is written), None before the first; the reader wants
         ticks for LEASE_S more."""
         w = self._word
@@ -120,13 +121,15 @@ class SharedFrames:
             time.sleep(0)
         return self._frame  # the writer stopped mid-write: keep the last whole one
 
-    def _read(self, n_pool: int, n_text: int) -> Frame:
+    def _read(self, n_pool: int, n_text: int) -> Tick:
         v, nj, k = self._f64.copy(), self.nj, self.SCALARS
         stop, *flags = self._text[:n_text].tobytes().decode(errors="replace").split("\x1e")
         ages = {b: float(a) for b, a in zip(self.boards, v[k + 3 * nj:]) if a == a}
-        return Frame(float(v[0]), v[k:k + nj], self._force.copy(), v[k + nj:k + 2 * nj], bool(v[1]), int(v[2]),
-                     tuple(flags), stop, v[k + 2 * nj:k + 3 * nj] if v[6] else None,
-                     self._pool[:n_pool].copy() if v[1] else None, float(v[3]), float(v[4]), ages, int(v[5]))
+        return Tick(t=float(v[0]), q=v[k:k + nj], force=self._force.copy(), command=v[k + nj:k + 2 * nj],
+                    retracting=bool(v[1]), pool=int(v[2]), flags=tuple(flags), stop=stop,
+                    planned=v[k + 2 * nj:k + 3 * nj] if v[6] else None,
+                    pool_taxels=self._pool[:n_pool].copy() if v[1] else None, potential=float(v[3]),
+                    speed_factor=float(v[4]), board_age_s=ages, frames_lost=int(v[5]))
 
     def close(self) -> None:
         self._word = self._f64 = self._force = self._pool = self._text = None  # no view left on the block

@@ -64,18 +64,22 @@ def hello(n_taxels: int, ids, joint_names, boards: dict, map_path: str = "", map
                   np.ascontiguousarray(ids, "<i8").tobytes())
 
 
+def frame_header(seq: int, f) -> dict:
+    """A `Tick`'s frame header (module docstring)."""
+    ages = f.board_age_s or {}
+    return {"kind": "frame", "seq": seq, "t": float(f.t), "q": _floats(f.q), "command": _floats(f.command),
+            "planned": _floats(f.planned), "retracting": bool(f.retracting),
+            "pool": [] if f.pool_taxels is None else [int(i) for i in f.pool_taxels],
+            "potential": float(f.potential), "speed_factor": float(f.speed_factor), "flags": list(f.flags),
+            "stop": f.stop, "board_age_ms": {str(k): round(v * 1e3, 3) for k, v in ages.items()},
+            "frames_lost": int(f.frames_lost)}
+
+
 def frame_message(seq: int, f) -> bytes:
-    """One tap `Frame` as a stream message."""
+    """One `Tick` as a stream message."""
     n = len(f.force) if f.force is not None else 0
     force = np.full(n, np.nan, "<f4") if f.force is None else np.asarray(f.force, "<f4")
-    ages = f.board_age_s or {}
-    return encode({"kind": "frame", "seq": seq, "t": float(f.t), "q": _floats(f.q), "command": _floats(f.command),
-                   "planned": _floats(f.planned), "retracting": bool(f.retracting),
-                   "pool": [] if f.pool_taxels is None else [int(i) for i in f.pool_taxels],
-                   "potential": float(f.potential), "speed_factor": float(f.speed_factor),
-                   "flags": list(f.flags), "stop": f.stop,
-                   "board_age_ms": {str(k): round(v * 1e3, 3) for k, v in ages.items()},
-                   "frames_lost": int(f.frames_lost)}, force.tobytes())
+    return encode(frame_header(seq, f), force.tobytes())
 
 
 def decode(buf: bytearray) -> tuple[list[tuple[dict, bytes]], int]:

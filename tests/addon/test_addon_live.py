@@ -19,7 +19,8 @@ from skinsafe.addon import blender_to_core as b2c
 from skinsafe.addon import live
 from skinsafe.addon.core_to_blender import srgb_to_linear
 from skinsafe.core.runtime.sim_record import SimRecord
-from skinsafe.core.runtime.tap import Frame, Tap
+from skinsafe.core.runtime.tap import Tap
+from skinsafe.core.runtime.tick import Tick
 from skinsafe.core.runtime.view_scale import colours
 from skinsafe.core.runtime.view_stream import ViewPublisher, hello
 
@@ -84,7 +85,7 @@ def stream(scene):
         for i, f in force_by_design_index.items():
             force[at[int(design.taxels.ids[i])]] = f
         clock[0] += 0.01
-        tap.publish(Frame(clock[0], robot.home if q is None else q, force, np.zeros(6), False, 0, (), ""))
+        tap.publish(Tick(t=clock[0], q=robot.home if q is None else q, force=force, command=np.zeros(6)))
         deadline = time.monotonic() + 10
         while live._link.last is None or live._link.last["t"] != pytest.approx(clock[0]):
             live.step(scene)

@@ -51,4 +51,6 @@ def test_fr3_with_the_flag_goes_on_to_the_robot(skin):
     assert p.returncode == 2 and "Traceback" not in p.stderr
     assert "WARNING: the FR3 without real-time scheduling" in p.stderr
     assert "needs real-time scheduling" not in p.stderr
-    assert "fr3: cannot connect to 127.0.0.1" in p.stderr or "missing system part" in p.stderr
+    # no robot there, or (a franky-sim of another test listening) one whose joints are not the UR5 map's
+    assert any(m in p.stderr for m in ("fr3: cannot connect to 127.0.0.1", "missing system part",
+                                       "has no joint(s) fr3_joint1"))

@@ -1,5 +1,6 @@
 """The live view stream of `skinsafe run --view`: the loop's tap shares the newest tick through shared memory
 at the view's rate, and a publisher in its own process sends it to a viewer (the page, Blender)."""
+import dataclasses
 import subprocess
 import sys
 import time
@@ -11,7 +12,7 @@ from hypothesis import strategies as st
 
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.models import build_ur5
-from skinsafe.core.runtime.tap import Frame
+from skinsafe.core.runtime.tick import Tick
 from skinsafe.core.runtime.view_share import SharedFrames, SharedTap, start_publisher
 from skinsafe.core.runtime.view_stream import ViewClient, frame_message, hello
 from skinsafe.core.skin.taxel_map import save
@@ -19,9 +20,10 @@ from skinsafe.core.skin.taxel_map import save
 N = 5000
 
 
-def frame(t: float, force: np.ndarray, pool=None) -> Frame:
-    return Frame(t, np.arange(6.0) * t, force, np.full(6, -t), pool is not None, 0 if pool is None else len(pool),
-                 ("limited",), "", None, pool, 0.25, 0.5, {7: 0.004}, 3)
+def frame(t: float, force: np.ndarray, pool=None) -> Tick:
+    return Tick(t=t, q=np.arange(6.0) * t, force=force, command=np.full(6, -t), retracting=pool is not None,
+                pool=0 if pool is None else len(pool), flags=("limited",), pool_taxels=pool, potential=0.25,
+                speed_factor=0.5, board_age_s={7: 0.004}, frames_lost=3)
 
 
 def newest(client: ViewClient, timeout: float = 10.0):
@@ -78,8 +80,8 @@ def test_a_tick_that_does_not_fit_the_block_is_skipped_and_counted_never_half_wr
         first = frames.newest()
         for bad in (frame(2.0, np.ones(10), pool=np.arange(11)),  # a pool longer than the taxels
                     frame(2.0, np.ones(11)),  # other taxels
-                    frame(2.0, np.ones(10))._replace(q=np.zeros(7)),  # other joints
-                    frame(2.0, np.ones(10))._replace(flags=("x" * 5000,))):  # flags over the block's text
+                    dataclasses.replace(frame(2.0, np.ones(10)), q=np.zeros(7)),  # other joints
+                    dataclasses.replace(frame(2.0, np.ones(10)), flags=("x" * 5000,))):  # flags over the block's text
             time.sleep(0.002)
             tap.publish(bad)
         assert tap.skipped == 4 and frames.newest() is first and frames.newest().t == 1.0
@@ -127,7 +129,7 @@ def test_nothing_is_copied_for_a_page_nobody_has_open(tmp_path):
     def copies(seconds):
         seq, end = tap.seq, time.monotonic() + seconds
         while time.monotonic() < end:
-            tap.publish(Frame(time.monotonic(), robot.home, np.ones(n), 0 * robot.home, False, 0, (), ""))
+            tap.publish(Tick(t=time.monotonic(), q=robot.home, force=np.ones(n), command=0 * robot.home))
             time.sleep(0.005)
         return tap.seq - seq
 
@@ -168,10 +170,11 @@ def ticks(draw):
     boards = draw(st.lists(st.integers(0, 2**31), max_size=6, unique=True))
     ages = {b: draw(st.floats(0, 10)) for b in boards if draw(st.booleans())}
     flags = tuple(draw(st.lists(st.sampled_from(["limited", "pfl:transient", "stale:board 3", "ñ"]), max_size=4)))
-    f = Frame(draw(floats), arr(nj), None if draw(st.booleans()) else arr(n), arr(nj), retracting,
-              0 if pool is None else len(pool), flags, draw(st.sampled_from(["", "skin-silent", "operator"])),
-              None if draw(st.booleans()) else arr(nj), pool, draw(floats), draw(floats), ages,
-              draw(st.integers(0, 2**40)))
+    f = Tick(t=draw(floats), q=arr(nj), force=None if draw(st.booleans()) else arr(n), command=arr(nj),
+             retracting=retracting, pool=0 if pool is None else len(pool), flags=flags,
+             stop=draw(st.sampled_from(["", "skin-silent", "operator"])),
+             planned=None if draw(st.booleans()) else arr(nj), pool_taxels=pool, potential=draw(floats),
+             speed_factor=draw(floats), board_age_s=ages, frames_lost=draw(st.integers(0, 2**40)))
     return n, nj, boards, f
 
 
@@ -182,7 +185,7 @@ def test_the_publisher_process_sends_exactly_the_message_the_loop_would_have_enc
     (forces as float32, every float of q / command / planned, the pool, flags, stop, board ages); a tick without
     forces yet has every taxel NaN ("no fresh reading"), not an empty blob."""
     n, nj, boards, f = case
-    sent = f if f.force is not None else f._replace(force=np.full(n, np.nan))
+    sent = f if f.force is not None else dataclasses.replace(f, force=np.full(n, np.nan))
     frames = SharedFrames.create(n, nj, boards)
     try:
         with np.errstate(over="ignore"):  # forces beyond float32 are inf in both
