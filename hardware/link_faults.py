@@ -11,7 +11,9 @@ a fault lands between frames. Faults, `at` seconds after `arm()` on one board (d
 - frame-replay: a frame is sent again 20 ms after it first went through (its counter is older);
 - foreign-uid: a copy of a frame with another board's uid;
 - crc-storm: the next 10 frames arrive with one byte of their payload flipped.
-`onsets`: board id -> host time.monotonic() its fault took effect (the first bad, held or lost byte).
+`onsets`: board id -> host time.monotonic() its fault took effect (the first bad, held or lost byte; a frame-lag, a
+ramp, once the newest frame passed to the host is older than the run's silence since the board sent it,
+measured on the frames the proxy passed: `arm(silence_s)`).
 """
 from __future__ import annotations
 
@@ -40,7 +42,9 @@ class _Link:
         self.port = os.ttyname(self.slave)
         self.parser = P.FrameParser(P.MAX_PAYLOAD)
         self.framed = False
-        self.held: list[tuple[float, bytes]] = []  # (due time, bytes) to the host
+        self.held: list[tuple[float, bytes, float]] = []  # (due time, bytes, time read from the board) to the host
+        self.passed: list[tuple[float, float]] = []  # a frame-lag's frames: (read from the board, written to the host)
+        self.silence_s: float | None = None
         self.fault = None  # (kind, start time)
         self.storm = 0
         self.replay = None  # bytes of a frame to send again
@@ -51,11 +55,11 @@ class _Link:
         if self.unplugged:
             return
         if not self.framed:
-            self.held.append((now, data))
+            self.held.append((now, data, now))
             return
         for f in self.parser.feed(data):
             raw = P.encode_frame(f.type, f.seq, f.uid, f.payload, f.version)
-            self.held.append((now, self._apply(raw, f, now)))
+            self.held.append((now, self._apply(raw, f, now), now))
 
     def _apply(self, raw: bytes, f: P.Frame, now: float) -> bytes:
         kind, start = self.fault or ("", float("inf"))
@@ -63,16 +67,15 @@ class _Link:
             return raw
         if kind == "frame-delay" and now < start + self.delay_s:
             self.onset = self.onset or now
-            self.held.append((start + self.delay_s, raw))
+            self.held.append((start + self.delay_s, raw, now))
             return b""
         if kind == "frame-lag":
-            self.onset = self.onset or now
-            self.held.append((now + (now - start) * LAG_RATE, raw))
+            self.held.append((now + (now - start) * LAG_RATE, raw, now))
             return b""
         if kind == "frame-replay" and self.replay is None:
             self.replay = raw
             self.onset = now + REPLAY_AFTER_S
-            self.held.append((now + REPLAY_AFTER_S, raw))
+            self.held.append((now + REPLAY_AFTER_S, raw, now))
         elif kind == "foreign-uid" and self.replay is None:
             self.replay, self.onset = raw, now
             return raw + P.encode_frame(f.type, f.seq, f.uid ^ 0x1000, f.payload, f.version)
@@ -91,14 +94,27 @@ class _Link:
             os.close(self.master)
             self.held = []
             return
-        due = [b for t, b in self.held if t <= now]
-        self.held = [(t, b) for t, b in self.held if t > now]
-        data = b"".join(due)
+        due = [(b, read) for t, b, read in self.held if t <= now]
+        self.held = [h for h in self.held if h[0] > now]
+        data = b"".join(b for b, _ in due)
+        if self.fault and self.fault[0] == "frame-lag":
+            self.passed += [(read, now) for b, read in due if b]
+            self._lag_onset()
         if data and not self.unplugged:
             try:
                 os.write(self.master, data)
             except (BlockingIOError, OSError):
                 pass  # a host that does not read loses data, as on a full USB buffer
+
+    def _lag_onset(self) -> None:
+        """The first time the newest frame written to the host was older than the silence (since read from the board)."""
+        if self.onset is not None or self.silence_s is None:
+            return
+        for (read, wrote), (_, later) in zip(self.passed, self.passed[1:]):
+            if later >= self.fault[1] and read + self.silence_s < later:
+                self.onset = max(wrote, read + self.silence_s)
+                return
+        self.passed = self.passed[-1:]  # the newest is all a later onset needs
 
     def close(self) -> None:
         for fd in (self.board, self.slave) + (() if self.unplugged else (self.master,)):
@@ -128,12 +144,13 @@ class LinkFaults:
     def onsets(self) -> dict[int, float]:
         return {b: x.onset for b, x in self.links.items() if x.onset is not None}
 
-    def arm(self) -> None:
-        """Start the fault clock (the robot starts moving)."""
+    def arm(self, silence_s: float | None = None) -> None:
+        """Start the fault clock (the robot starts moving); `silence_s`: the run's, for a frame-lag's onset."""
         now = time.monotonic()
         for kind, at, b in self.faults:
             self.links[b].fault = (kind, now + at)
             self.links[b].framed = True
+            self.links[b].silence_s = silence_s
 
     def _pump(self) -> None:
         while self._run:

@@ -67,6 +67,7 @@ class _Board:
     lags: deque = field(default_factory=lambda: deque(maxlen=100_000))  # per read: host read time - board stamps, s
     silence: dict | None = None  # the open silence: what its next frames tell
     late: bool = False  # its newest frames are late by its own clock (taxels NaN until they are on time again)
+    sent: float = -np.inf  # host time its newest good frame was sent, by its own clock (stamp + offset)
 
 
 class BoardsReader:
@@ -79,6 +80,9 @@ class BoardsReader:
         self.silent_periods, self.link_latency, self.crc_storm = silent_periods, link_latency, crc_storm
         self.frame_period_s = 1.0 / self.rate_hz
         self.silence_s = silent_periods * self.frame_period_s + link_latency
+        # the newest frame's age by the board's own clock that names it late between arrivals: half a frame period
+        # over the silence, so that a plain silence (its last frame came with the usual delay) is named silent
+        self.stale_s = self.silence_s + self.frame_period_s / 2
         self.n_taxels = design.n_taxels
         self.stream: SkinStream | None = None
         self.baseline = np.zeros(self.n_taxels)
@@ -175,7 +179,8 @@ class BoardsReader:
             self.gaps.append(now - last)
             last = now
             beat.write(np.array([now]), now)
-            due = [b.arrived + self.silence_s - now for b in self.boards.values() if not (b.dead or b.silent_at)]
+            due = [min(b.arrived + self.silence_s, b.sent + self.stale_s) - now for b in self.boards.values()
+                   if not (b.dead or b.silent_at)]
             wait = min([self.frame_period_s, *due])
             got = self._read(max(wait, 1e-4), rx)
             now = time.monotonic()
@@ -188,7 +193,7 @@ class BoardsReader:
                 np.maximum(f, 0.0, out=f)
                 f[b.excluded] = np.nan
                 self.force[b.rows] = f
-            named = self._silent(now) or self._lost
+            named = self._silent(now) | self._stale(now) or self._lost
             self._lost = False
             for fault in self._take_faults():  # before the readings they explain (a silent board's NaN): the loop
                 tx.send(("fault", *fault))  # that reads those finds its name waiting
@@ -223,6 +228,22 @@ class BoardsReader:
                         + (f"; {corrupt} corrupt frames since its last good one (a CRC storm)" if corrupt else ""),
                         b.arrived + self.frame_period_s, again=True)
             self.silences.append(b.silence)
+            named = True
+        return named
+
+    def _stale(self, now: float) -> bool:
+        """Name every board whose newest frame, by its own clock, is older than `stale_s` while frames still arrive
+        (late frames a little apart never go silent by arrival); its taxels read NaN until one comes on time."""
+        named = False
+        for b in self.boards.values():
+            if b.dead or b.silent_at or b.late or b.silence is not None or now - b.sent <= self.stale_s:
+                continue
+            b.late = True
+            self.force[b.rows] = np.nan
+            self._fault("board-late", b, f"late by the board's own clock: its newest frame is {(now - b.sent) * 1e3:.1f} "
+                        f"ms old (the last arrived {(now - b.arrived) * 1e3:.1f} ms ago), more than "
+                        f"{self.silence_s * 1e3:.1f} ms (frames arriving steadily but stale)", b.sent + self.silence_s,
+                        again=True)
             named = True
         return named
 
@@ -344,6 +365,7 @@ class BoardsReader:
         b.lags.append(lag)
         b.offset = min(b.offset, float(lag.min()))
         b.arrived = now
+        b.sent = max(b.sent, float(stamps[-1]) + b.offset)
         if self.running:
             self._late(b, lag - b.offset, stamps)
         if b.silence is not None:  # the first frames since the board was named silent

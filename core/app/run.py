@@ -460,7 +460,7 @@ def _move(args, stack, p: _Parts, design, inject, rt: str, signals: contextlib.E
     _print_bounds(Timing(driver.period_s, 1.0 / args.rate, source.silence_s, runtime.command.stale_s,
                          overruns=args.overruns), p.arm, design, p.limits["qd_max"])
     if p.links is not None:
-        p.links.arm()
+        p.links.arm(source.silence_s)
 
     def on_signal(signum, _frame):  # only sets the monitor's flag, the first time and every time after
         runtime.stop_by_operator(signum, signal.Signals(signum).name)

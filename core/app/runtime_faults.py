@@ -15,8 +15,9 @@ one stop). Per run: the fault kind the monitor named (is it the
 one injected: `EXPECT`, no text matched), onset -> the time the driver sent zero velocity (not the
 detection), any traceback, is the record readable (every message decodes with mcap-ros2-support and
 the last one is the stop's diagnostics), was the stop latched (the monitor's protective stop)?
-A frame-lag is a ramp: its onset is when the loop's newest frame became older than a board's silence
-(the lag's start + a silence x (1 + 1 / LAG_RATE)), not its first late byte.
+A frame-lag is a ramp: its onset is when the newest frame the link proxy had passed to the host became older
+than the run's silence since the board sent it (hardware/link_faults.py, measured on the frames), not its
+first late byte.
 """
 from __future__ import annotations
 
@@ -89,7 +90,6 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
     from skinsafe.core.app import run as run_cmd
     from skinsafe.core.app.cli import module_args
     from skinsafe.core.runtime.leader import stream
-    from skinsafe.hardware.link_faults import LAG_RATE
 
     record, stats = out / f"run{k}.mcap", out / f"run{k}.json"
     command, extra, stop = "hold", [], threading.Event()
@@ -133,8 +133,6 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
     reason = s.get("reason", "")
     world = s.get("world", {})
     onset = done.get("onset") or s.get("injected", {}).get(kind) or world.get("fault_mono")
-    if kind == "frame-lag" and onset:  # a ramp: the loop's newest frame is older than a silence from here on
-        onset += (2.0 / rate + link_latency) * (1 + 1 / LAG_RATE)
     zero = world.get("zero_mono")
     return {"run": k, "fault": kind, "driver": robot[1], "period_s": s.get("period_s"), "at_s": round(at, 3),
             "exit": code, "reason": reason,

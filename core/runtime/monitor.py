@@ -87,8 +87,8 @@ SPECS = {
                          "tests/runtime/test_runtime_closed_loop.py::test_every_watchdog_stops_the_robot_naming_why"),
     Kind.BOARD_SILENT: Spec("no frame for 2 frame periods + --link-latency; that board's taxels read NaN", STOP,
                             "tests/runtime/test_runtime_closed_loop.py::test_every_watchdog_stops_the_robot_naming_why"),
-    Kind.BOARD_LATE: Spec("a frame older than the silence bound by the board's own clock (not by arrival); taxels "
-                          "NaN", STOP, "tests/runtime/test_runtime_safety.py::test_late_but_steady_frames_stop_the_robot"),
+    Kind.BOARD_LATE: Spec("a frame older than the silence bound by the board's own clock (not by arrival), or "
+                          "between arrivals its newest frame older than that + half a frame period; taxels NaN", STOP, "tests/runtime/test_runtime_safety.py::test_late_but_steady_frames_stop_the_robot"),
     Kind.COUNTER_BACK: Spec("a frame counter not ahead of the last (replayed or stale frame, board reset); every "
                             "frame of a burst", STOP,
                             "tests/runtime/test_runtime_closed_loop.py::test_every_watchdog_stops_the_robot_naming_why"),
@@ -148,14 +148,16 @@ class Timing:
 
 
 def bounds(tm: Timing) -> dict[Kind, float]:
-    """Each kind's detection bound, s: from its onset to the tick that stops (the zero goes out in that tick)."""
+    """Each kind's detection bound, s: from its onset to the tick that stops (the zero goes out in that tick). A kind
+    the loop judges from a time (the command source's age) is seen by the tick after the time passes, whose zero
+    goes out at the end of its work: 2 periods."""
     p, board = tm.period_s, 2 * tm.period_s + HANDOFF_S  # a reader's event reaches the loop's next tick
     return {Kind.READER_DIED: 2 * p + HANDOFF_S, Kind.READER_STALLED: tm.silence_s + 2 * p, Kind.LINK_LOST: board,
             Kind.BOARD_SILENT: tm.silence_s + board, Kind.BOARD_LATE: tm.silence_s + tm.frame_period_s + board,
             Kind.COUNTER_BACK: board, Kind.FOREIGN_UID: board, Kind.CRC_STORM: tm.silence_s + board,
             Kind.READING_NONFINITE: 2 * p, Kind.ROBOT_FROZEN: (tm.state_periods + 1) * p, Kind.ROBOT_CLOCK_BACK: p,
             Kind.ROBOT_NONFINITE: p, Kind.DRIVER: p,
-            Kind.COMMAND_STALE: (tm.stale_s or 0.0) + p, Kind.COMMAND_BAD: p, Kind.STACK_NONFINITE: p,
+            Kind.COMMAND_STALE: (tm.stale_s or 0.0) + 2 * p, Kind.COMMAND_BAD: p, Kind.STACK_NONFINITE: p,
             Kind.STACK_LATCH: p, Kind.OVERRUN: tm.overruns * p, Kind.OPERATOR: 2 * p, Kind.AFTER_CONTACT: p}
 
 

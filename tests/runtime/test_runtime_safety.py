@@ -55,6 +55,10 @@ def test_late_but_steady_frames_stop_the_robot(skin, tmp_path):
     p, s, record = run(skin, tmp_path, "--inject", "frame-lag@0.3", seconds=3.0)
     _stopped_by(p, s, record, "board-late")
     assert "late by the board's own clock" in s["reason"] and "board 'board0'" in s["reason"]
+    # the onset measured on the link proxy's frames (the newest one passed to the host older than the silence,
+    # 2 frame periods at 100 Hz + the link latency) comes before the zero, within the kind's bound
+    onset, bound = s["injected"]["frame-lag"], bounds(Timing(s["period_s"], 0.01, 0.02 + closed_loop.LINK_LATENCY))
+    assert 0 < s["world"]["zero_mono"] - onset <= bound[Kind.BOARD_LATE]
 
 
 @pytest.mark.parametrize("fault, kind", [("clock_freeze_at", "robot-frozen"), ("clock_back_at", "robot-clock-back")])
