@@ -32,14 +32,20 @@ print(json.dumps(rows))
 """
 
 
-def _rows(workers: int) -> list:
-    out = subprocess.run([sys.executable, "-c", SCRIPT, str(workers)], capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-2000:]
-    return json.loads(out.stdout.strip().splitlines()[-1])
+def _rows(*workers: int) -> list[list]:
+    """The rows of one fresh process per entry of `workers`, the processes side by side (Ray's start-up waits)."""
+    procs = [subprocess.Popen([sys.executable, "-c", SCRIPT, str(w)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True) for w in workers]
+    out = []
+    for p in procs:
+        stdout, stderr = p.communicate(timeout=300)
+        assert p.returncode == 0, stderr[-2000:]
+        out.append(json.loads(stdout.strip().splitlines()[-1]))
+    return out
 
 
 def test_small_maze_and_tracking_runs_repeat_exactly_across_processes_and_workers():
-    one, two, here = _rows(1), _rows(2), _rows(0)
+    one, two, here = _rows(1, 2, 0)
     assert one == two == here
     maze, track = one[:3], one[3:]
     assert [r["method"] for r in maze] == ["AC-TDM", "SAC", "SQRL"] and len(track) == 2
