@@ -91,7 +91,10 @@ def desk(args) -> dict:
     pots, stops, by_clearance = _learn_desk(sc, desk_geom, args)
     forces = sorted(set(args.forces) | {args.touch})
     depth = _press_depths(sc, park, probe_geom, forces)
-    out = {"gap_m": args.gap, "touch_N": args.touch, "stop_levels": stops, "margin_m": args.margin,
+    # the potentials learn soft (distance) labels, and the modulation's tangent gain is the command line's: the paper
+    # trains on binary contact events with the tangent gain 1 + f (Fig. 14's row names both)
+    out = {"labels": "soft", "tangent_gain": args.tangent_gain, "gap_m": args.gap, "touch_N": args.touch,
+           "stop_levels": stops, "margin_m": args.margin,
            "potential_by_clearance": by_clearance, "runs": {}, "sweep": []}
     stacks = [(name, pot, stops[name]) for name, pot in zip(DESK_STACKS, (None,) + pots)]
     stacks += [(name + UNSTOPPED, pot, None) for name, pot in zip(DESK_STACKS[1:], pots)]

@@ -253,3 +253,4 @@ def test_scenes_run_and_report(tmp_path, scene):
         assert worst["TDM modulation, no stop"] < worst["TDM modulation"]  # the stop level keeps it off the desk
         assert worst["TDM modulation"] > 0 and worst["2-step TDM modulation"] > 0
         assert all(abs(r["touch_N"] - 300) < 30 for r in res["sweep"])  # the probe presses with the force asked
+        assert (res["labels"], res["tangent_gain"]) == ("soft", 0.0)  # Fig. 14's row says what it ran with
