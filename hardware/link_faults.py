@@ -144,7 +144,7 @@ class LinkFaults:
     def onsets(self) -> dict[int, float]:
         return {b: x.onset for b, x in self.links.items() if x.onset is not None}
 
-    def arm(self, silence_s: float | None = None) -> None:
+    def arm(self, silence_s: float) -> None:
         """Start the fault clock (the robot starts moving); `silence_s`: the run's, for a frame-lag's onset."""
         now = time.monotonic()
         for kind, at, b in self.faults:
