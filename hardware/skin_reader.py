@@ -179,8 +179,8 @@ class BoardsReader:
             self.gaps.append(now - last)
             last = now
             beat.write(np.array([now]), now)
-            due = [min(b.arrived + self.silence_s, b.sent + self.stale_s) - now for b in self.boards.values()
-                   if not (b.dead or b.silent_at)]
+            due = [min(b.arrived + self.silence_s, np.inf if b.late else b.sent + self.stale_s) - now
+                   for b in self.boards.values() if not (b.dead or b.silent_at)]
             wait = min([self.frame_period_s, *due])
             got = self._read(max(wait, 1e-4), rx)
             now = time.monotonic()
