@@ -252,3 +252,25 @@ def test_deploy_names_every_board_it_did_not_reach_and_why(tmp_path, capsys):
     assert f"{bad} (link: " in out[1] and "cannot open the serial port" in out[1]
     assert out[2] == "deployed 1 of 2 boards; 1 failed or not found; boards untouched 1, committed 1"
     assert not any("problem" in x for x in out)  # the port's trouble is said once, in the board's line
+
+
+@pytest.mark.parametrize("period, silence, rate", [(0.02, 0.04, 0.5), (0.01, 0.52, 0.5), (0.001, 0.002, 0.1)])
+def test_a_frame_lags_onset_is_when_the_newest_frame_the_host_has_is_older_than_the_silence(period, silence, rate):
+    """The proxy's onset of a frame-lag, from the frames it passed (read from the board, written to the host), against
+    a brute-force scan of the host's newest frame's age on a fine clock."""
+    from skinsafe.hardware.link_faults import _Link
+
+    start = 1.0
+    n = int((3 * silence / rate + 10 * period) / period)
+    reads = start - 5 * period + period * (np.arange(n) + np.random.default_rng(0).uniform(-0.2, 0.2, n))  # jitter
+    writes = np.where(reads < start, reads, reads + (reads - start) * rate)
+    link = object.__new__(_Link)  # its bookkeeping only: no ports
+    link.onset, link.silence_s, link.fault, link.passed = None, silence, ("frame-lag", start), []
+    for r, w in zip(reads, writes):  # written in order, as the proxy flushes them
+        link.passed.append((r, w))
+        link._lag_onset()
+    clock = np.arange(start, writes[-1], 1e-6)
+    newest = reads[np.searchsorted(writes, clock, side="right") - 1]  # the newest frame the host has at each instant
+    expected = clock[np.argmax(clock - newest > silence)]
+    assert link.onset == pytest.approx(expected, abs=2e-6)
+    assert link.onset > start + silence  # a ramp: nothing is stale at its start
