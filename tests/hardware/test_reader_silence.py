@@ -32,3 +32,26 @@ def test_a_second_silence_of_the_same_length_is_named_again():
     reader._fault("crc-storm", b, "CRC storm")
     reader._fault("crc-storm", b, "CRC storm")  # a fault seen on every pass is still named once
     assert [f[:2] for f in reader._take_faults()] == [("crc-storm", "board 'board0'")]
+
+
+def test_frames_arriving_steadily_but_stale_are_named_late_between_arrivals_and_a_plain_silence_silent():
+    """Board 0's frames keep arriving (the last 10 ms ago) but its newest was sent 51 ms ago by its own clock: late
+    (onset: when that frame became older than the 40 ms silence), its taxels NaN; board 1's last frame came with the
+    usual delay 41 ms ago: the silence check names it silent, and the between-arrival check leaves it to that."""
+    d = flat_design(64, 2)
+    reader = BoardsReader(d, {}, 50, 0.25, 0.02, 2.0, 0.0, 5, {})
+    rows = [np.flatnonzero(d.taxels.board == b.id) for b in d.boards]
+    reader.boards = {b.id: _Board(b.uid, b.name, rows[k], k) for k, b in enumerate(d.boards)}
+    reader.force = np.zeros(d.n_taxels)
+    late, quiet = reader.boards[d.boards[0].id], reader.boards[d.boards[1].id]
+    now = 10.0
+    late.arrived, late.sent = now - 0.010, now - 0.051
+    quiet.arrived, quiet.sent = now - 0.041, now - 0.0415
+    assert reader.stale_s == pytest.approx(0.05)  # the silence + half a frame period
+    assert reader._silent(now) | reader._stale(now)
+    faults = {f[1]: f for f in reader._take_faults()}
+    kind, _, text, onset = faults["board 'board0'"]
+    assert kind == "board-late" and "late by the board's own clock" in text and onset == pytest.approx(now - 0.011)
+    assert faults["board 'board1'"][0] == "board-silent"
+    assert np.isnan(reader.force).all() and late.late
+    assert not reader._stale(now + 0.1) and not reader._take_faults()  # named once per episode
