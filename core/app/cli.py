@@ -147,8 +147,8 @@ def main(argv: list[str] | None = None) -> int:
         print("skinsafe: interrupted", file=sys.stderr)
         return 130
     finally:
-        if not interrupted:
-            signal.signal(signal.SIGINT, previous)
+        if not interrupted:  # the `skinsafe` command is ending: a late Ctrl-C must not interrupt its shutdown
+            signal.signal(signal.SIGINT, signal.SIG_IGN if sys.excepthook is _interrupted else previous)
 
 
 def _main(argv: list[str] | None) -> int:
