@@ -198,14 +198,17 @@ def _chosen(rec: dict) -> str:
 
 def maze_grid(root: Path) -> str:
     """The full maze grid on the held-out seeds: contacts per method (mean and 95% interval, online and
-    offline apart, per seed), goal rates per seed, the configuration tuning chose."""
+    offline apart, per seed), goal rates per seed, the configuration tuning chose; beside it each further
+    replicate's mean total contacts ("defaults": its tuning met no criterion)."""
     data = load(root, "results/maze/maze_results.json")
     summary, tuning = data["summary"], data.get("tuning", {})
     tdm = {m for m in summary["methods"] if m.endswith("-TDM")}
-    seeds = data["eval_seeds"]
+    seeds, reps = data["eval_seeds"], data.get("replicates", [])[1:]
+    other = "".join(f" replicate {k + 2} (tuning seeds {r['tuning_seeds'][0]}-{r['tuning_seeds'][-1]}): total contacts |"
+                    for k, r in enumerate(reps))
     lines = [f"| method | total contacts, mean [95% CI] over seeds {seeds[0]}-{seeds[-1]} | online / offline | per seed "
-             "(total) | goal rate, last 20 episodes (per seed) | tuned configuration |",
-             "| --- | ---: | ---: | --- | --- | --- |"]
+             f"(total) | goal rate, last 20 episodes (per seed) | tuned configuration |{other}",
+             "| --- | ---: | ---: | --- | --- | --- |" + " ---: |" * len(reps)]
     for method, s in summary["methods"].items():
         mine = sorted((r for r in data["per_seed"] if r["method"] == method), key=lambda r: r["seed"])
         per_seed = " / ".join(fmt(int(r["total_contacts"])) for r in mine)
@@ -217,7 +220,9 @@ def maze_grid(root: Path) -> str:
         split = f"{s['online_contacts_mean']:,.1f} / {s['offline_contacts_mean']:,.1f}"
         chosen = _chosen(tuning[method]) if method in tuning else "—"
         name = f"**{method}**" if method in tdm else method
-        lines.append(f"| {name} | {'**' + cell + '**' if method in tdm else cell} | {split} | {per_seed} | {goal} | {chosen} |")
+        more = "".join(f" {r['total_contacts_mean'][method]:,.1f}" + ("" if r["met_criterion"][method] else " (defaults)") + " |"
+                       for r in reps)
+        lines.append(f"| {name} | {'**' + cell + '**' if method in tdm else cell} | {split} | {per_seed} | {goal} | {chosen} |{more}")
     return "\n".join(lines)
 
 
@@ -274,6 +279,39 @@ def tracking_labels(root: Path) -> str:
                          f"[{_lo(r['contacts_ep6_10_ci95_low'], track):.1f}, {r['contacts_ep6_10_ci95_high']:.1f}] | "
                          f"{seeds} | {extra}{r['tracking_error_mm']:.0f} |")
     return "\n".join(lines)
+
+
+NSTEP = re.compile(r"tdm(\d+)@([0-9.]+)s")
+
+
+def tracking_nstep(root: Path) -> str:
+    """The n-step grid on the tuning seeds (`--horizons`, `--rollout-dts`), each label set alike: every (T, rollout
+    step) with its contact ticks, onsets and alignment, then per label set the 2-step TDM's rollout step chosen by
+    the lowest contact ticks over episodes 6-10, and the lowest setting of the whole grid."""
+    track = load(root, "results/tracking/nstep_grid/tracking.json")
+    cfg = track["config"]
+    lines = ["| labels | method | T | rollout step s | contact ticks, episodes 6-10 [95% CI] | onsets [95% CI] | "
+             "cos(n, -grad d) | tracking error mm |", "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    chosen = []
+    for labels, res in track["labels"].items():
+        grid = []
+        for r in res["summary"]:
+            m = NSTEP.fullmatch(r["method"])
+            T, dt = (int(m[1]), float(m[2])) if m else (cfg["horizon"], cfg["rollout_dt"]) if r["method"] == "tdm2" else (None, None)
+            if T is not None:
+                grid.append((r["contacts_ep6_10"], T, dt))
+            align = "—" if r["alignment_cos_ep6_10"] is None else f"{r['alignment_cos_ep6_10']:+.2f}"
+            lines.append(f"| {labels} | {r['method']} | {T or '—'} | {'—' if dt is None else f'{dt:g}'} | "
+                         f"{r['contacts_ep6_10']:.1f} [{r['contacts_ep6_10_ci95_low']:.1f}, {r['contacts_ep6_10_ci95_high']:.1f}] | "
+                         f"{r['onsets_ep6_10']:.1f} [{r['onsets_ep6_10_ci95_low']:.1f}, {r['onsets_ep6_10_ci95_high']:.1f}] | "
+                         f"{align} | {r['tracking_error_mm']:.0f} |")
+        two = min((g for g in grid if g[1] == 2), default=None)
+        best = min(grid, default=None)
+        if two and best:
+            chosen.append(f"{labels}: the 2-step TDM's rollout step {two[2]:g} s ({two[0]:.1f} contact ticks); the grid's lowest "
+                          f"T = {best[1]}, {best[2]:g} s ({best[0]:.1f})")
+    seeds = ", ".join(map(str, cfg["seeds"]))
+    return "\n".join(lines) + f"\n\nChosen on seeds {seeds} (lowest contact ticks over episodes 6-10): " + "; ".join(chosen) + "."
 
 
 def _soft(track: dict, name: dict) -> str:
@@ -458,7 +496,7 @@ def collaboration_sweep(root: Path) -> str:
     return sweep_table(load(root, COLLAB))
 
 
-FIGURES = {"maze-grid": maze_grid, "maze-ablation": maze_ablation, "tracking-labels": tracking_labels, "safety-audit": safety_audit, "paper-results": paper_results,
+FIGURES = {"maze-grid": maze_grid, "maze-ablation": maze_ablation, "tracking-labels": tracking_labels, "tracking-nstep": tracking_nstep, "safety-audit": safety_audit, "paper-results": paper_results,
            "collaboration": collaboration, "collaboration-sweep": collaboration_sweep}
 
 

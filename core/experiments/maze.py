@@ -23,7 +23,7 @@ The full protocol (the default; issue 31), the same effort for every method:
 
 Replicates (`--replicates`, default 2): tuning and evaluation run again with the next tuning seeds (0-1,
 then 2-3) and another sampler seed; each replicate's verdicts are recorded (`replicates`) and the claim
-is stated only where they agree (`verdict_agrees`; else "not settled"). Fig. 9c (faster convergence:
+is stated only where they agree (`verdict_agrees`; else "not settled"), Fig. 9c's too. Fig. 9c (faster convergence:
 `convergence`): per run the first episode from which the goal is reached in >= 80% of `WINDOW`
 episodes (never: episodes + 1), each -TDM variant against its plain method by Welch's interval.
 
@@ -52,6 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
+from skinsafe.core.experiments.maze_runs import run_one
 from skinsafe.core.experiments.runner import provenance, run_tasks
 from skinsafe.core.experiments.stats import compare, diff_ci, mean_ci, parse_seeds
 from skinsafe.core.skin.files import atomic_write
@@ -155,61 +156,6 @@ def add_arguments(p) -> None:
     p.add_argument("--no-progress", action="store_true")
 
 
-def run_one(method: str, seed: int, episodes: int, max_steps: int, agent_kw: dict | None = None) -> dict:
-    """Train one method with one seed; per-episode returns, contact events (costs), goals and lengths.
-    `agent_kw` overrides the agent's keyword arguments (`make_agent`); a TDM `fit` is a FitConfig dict.
-    Agents with an offline phase (RRL, SQRL) get their random transitions first; their contacts are
-    `offline_contacts`, apart from the online `costs`."""
-    import torch
-
-    from skinsafe.core.learn.baselines import make_agent
-    from skinsafe.core.learn.maze_env import MazeEnv, MazeFeatures, random_rollouts
-    from skinsafe.core.learn.tdm_training import FitConfig
-
-    torch.set_num_threads(1)
-    t0, c0 = time.perf_counter(), time.process_time()
-    env = MazeEnv(max_steps=max_steps)
-    kw = dict(agent_kw or {})
-    if "fit" in kw:
-        kw["fit"] = FitConfig(**kw["fit"])
-    agent = make_agent(method, 4, env.action_space.n, env.n_taxels, MazeFeatures(env.walls), seed=seed, **kw)
-    offline = {}
-    if getattr(agent, "offline_transitions", 0) > 0:
-        data = random_rollouts(env, agent.offline_transitions, np.random.default_rng(seed + 424242))
-        agent.pretrain(**data)
-        offline = {"offline_transitions": len(data["actions"]), "offline_contacts": int(data["costs"].sum())}
-    returns, costs, goals, steps = [], [], [], []
-    for ep in range(episodes):
-        obs, _ = env.reset(seed=seed * 100003 + ep)
-        ret = cost = 0.0
-        n = 0
-        while True:
-            a = agent.act(obs)
-            nxt, r, term, trunc, info = env.step(a)
-            agent.observe(obs, a, r, info["cost"], info["taxel_danger"], nxt, term, trunc)
-            obs, ret, cost, n = nxt, ret + r, cost + info["cost"], n + 1
-            if term or trunc:
-                break
-        agent.end_episode()
-        returns.append(ret)
-        costs.append(cost)
-        goals.append(bool(term))
-        steps.append(n)
-    stats = agent.stats()
-    stats.get("tdm", {}).pop("last", None)  # the fit records go in whole (thinned) below
-    fits = agent.shield.trainer.history if agent.shield is not None else []
-    return {"method": method, "seed": seed, "returns": returns, "costs": costs, "goals": goals, "steps": steps,
-            **offline, "stats": stats, "tdm_fits": _thin(fits), "seconds": time.perf_counter() - t0,
-            "cpu_seconds": time.process_time() - c0}
-
-
-def _thin(fits: list[dict], keep: int = 30) -> list[dict]:
-    """At most `keep` fit records, evenly spread (the result file stays small)."""
-    if len(fits) <= keep:
-        return fits
-    return [fits[int(i)] for i in np.linspace(0, len(fits) - 1, keep)]
-
-
 def _mean_std(x) -> tuple[float, float]:
     x = np.asarray(x, float)
     return float(x.mean()), float(x.std(ddof=1)) if len(x) > 1 else 0.0
@@ -302,6 +248,20 @@ def settle(claim: dict, reps: list[dict]) -> dict:
     if len(set(vo)) > 1:
         out["online_only"] = dict(claim["online_only"], verdict="not settled", holds=False)
     return out
+
+
+def settle_convergence(conv: dict, reps: list[dict]) -> dict:
+    """Fig. 9c as `settle` does the claim: each pair's verdict per replicate (`replicate_verdicts`); a pair
+    whose replicates differ is "not settled"."""
+    pairs = {}
+    for k, p in conv["pairs"].items():
+        v = [r["summary"]["convergence"]["pairs"].get(k, {}).get("verdict") for r in reps]
+        pairs[k] = dict(p, replicate_verdicts=v, verdict=p["verdict"] if len(set(v)) == 1 else "not settled")
+    s = conv["statement"]
+    if len(reps) > 1:
+        s += " Replicates: " + "; ".join(f"{k}: {', '.join(map(str, p['replicate_verdicts']))}" + (
+            "" if p["verdict"] != "not settled" else " (not settled)") for k, p in pairs.items()) + "."
+    return dict(conv, pairs=pairs, statement=s)
 
 
 def replicate_record(rep: dict, runs: list[dict]) -> dict:
@@ -730,9 +690,10 @@ def run(args) -> int:
     stage_runs["evaluation"], stage_runs["ablation"] = [r for rr in rep_runs for r in rr], abl_runs
     for rep, rr in zip(reps, rep_runs):
         rep["summary"] = summarise(rr, methods, rep["tuning"])
-    summary = reps[0]["summary"]
+    summary = dict(reps[0]["summary"])  # a copy: the replicates' own verdicts stay in `reps`
     if full:
         summary["claim"] = settle(summary["claim"], reps)
+        summary["convergence"] = settle_convergence(summary["convergence"], reps)
     for m in methods:
         summary["methods"][m]["agent_kw"] = chosen[m]
     summary["config"] = {k: cfg[k] for k in ("seeds", "episodes", "max_steps")}

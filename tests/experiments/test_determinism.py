@@ -13,7 +13,8 @@ from dataclasses import asdict
 import ray
 
 from skinsafe.core.experiments import runner
-from skinsafe.core.experiments.maze import run_one, run_row
+from skinsafe.core.experiments.maze import run_row
+from skinsafe.core.experiments.maze_runs import run_one
 from skinsafe.core.experiments.tracking import TrackingConfig, run_method
 
 cfg = TrackingConfig.quick()

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from skinsafe.core.experiments import maze, runner
-from skinsafe.core.experiments.maze import run_one
+from skinsafe.core.experiments.maze_runs import run_one
 
 
 def test_tasks_run_on_ray_are_cached_and_reused(tmp_path, monkeypatch):
@@ -29,7 +29,8 @@ def test_tasks_run_on_ray_are_cached_and_reused(tmp_path, monkeypatch):
     assert runner.cached(tmp_path, changed) is None and runner.cached(tmp_path, tasks[0]) == again[0]
     # a result run by other code is not taken either: every loaded skinsafe source is recorded
     doc = json.loads(runner.task_file(tmp_path, tasks[1]).read_text())
-    assert {"core/learn/agents.py", "core/learn/maze_env.py", "core/experiments/maze.py"} <= set(doc["sources"])
+    assert {"core/learn/agents.py", "core/learn/maze_env.py", "core/experiments/maze_runs.py"} <= set(doc["sources"])
+    assert "core/experiments/maze.py" not in doc["sources"]  # the protocol's report can change without voiding runs
     doc["sources"]["core/learn/agents.py"] = "0" * 40
     runner.task_file(tmp_path, tasks[1]).write_text(json.dumps(doc))
     assert runner.cached(tmp_path, tasks[1]) is None and runner.cached(tmp_path, tasks[2]) == again[2]
@@ -158,6 +159,11 @@ def test_convergence_and_replicate_verdicts_from_numbers():
     assert out["online_only"]["verdict"] == "does not hold"  # both replicates agree on it
     same = maze.settle(claim, reps[:1] * 2)
     assert same["verdict"] == "holds" and same["verdict_agrees"]
+    slower = {"pairs": {"AC-TDM vs AC": dict(p, verdict="not resolved")}}
+    reps = [{"summary": {"convergence": c}}, {"summary": {"convergence": slower}}]
+    settled = maze.settle_convergence(c, reps)["pairs"]["AC-TDM vs AC"]
+    assert settled["verdict"] == "not settled" and settled["replicate_verdicts"] == ["faster", "not resolved"]
+    assert maze.settle_convergence(c, reps[:1] * 2)["pairs"]["AC-TDM vs AC"]["verdict"] == "faster"
 
 
 def test_full_protocol_tunes_evaluates_on_held_out_seeds_and_ablates(tmp_path, monkeypatch):
@@ -187,6 +193,8 @@ def test_full_protocol_tunes_evaluates_on_held_out_seeds_and_ablates(tmp_path, m
     assert len(doc["replicates"]) == 2 and [r["tuning_seeds"] for r in doc["replicates"]] == [[0], [1]]
     assert doc["verdict_agrees"] == (len({(r["verdict"], r["online_only_verdict"]) for r in doc["replicates"]}) == 1)
     assert doc["summary"]["claim"]["replicate_verdicts"] == [r["verdict"] for r in doc["replicates"]]
+    for r in doc["replicates"]:  # each replicate keeps its own verdict and statement, not the settled claim's
+        assert r["verdict"] != "not settled" and "Replicates:" not in r["statement"]
     assert {"code_sha1", "versions"} <= set(doc["provenance"]) and "AC-TDM vs AC" not in doc["summary"]["convergence"]["pairs"]
     never = [m for m in ("AC-TDM", "CPO") if not doc["tuning"][m]["met_criterion"]]
     assert doc["summary"]["claim"].get("never_met_criterion", []) == never

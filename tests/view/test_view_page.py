@@ -115,7 +115,9 @@ def test_run_view_live_then_the_record_scrubs_to_the_poke_and_the_taxel_turns_ho
     record = tmp_path / "poke.mcap"
     # runs until Ctrl-C: the live phase takes as long as this machine needs to draw the page, no longer
     run = cli("run", skin, "--boards", "emulate", "--command", "hold", "--rate", 10, "--tare-frames", 10,
-              "--contact", f"poke:at={POKE_S},taxel={taxel}", "--seconds", 120, "--record", record, "--view",
+              # held 0.5 s: the boards sample at 10 Hz on the host's clock, and a loaded host can run the sim's 0.13 s
+              # of a default poke between two frames (seen once in `make test`: a record without a reading)
+              "--contact", f"poke:at={POKE_S},taxel={taxel},hold=0.5", "--seconds", 120, "--record", record, "--view",
               "--view-port", 8391, "--view-stream", "127.0.0.1:0",  # (0: no page); taken: viser tries the next
               # the browser drawing 16k points in software WebGL can starve the boards' reader for seconds on
               # a 2-core machine (CI: 1.8 s once): this test is about the view; tests/runtime holds the watchdogs
