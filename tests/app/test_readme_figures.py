@@ -75,3 +75,27 @@ def test_skinsafe_readme_check_exits_1_on_a_stale_readme(tmp_path, capsys):
     assert readme.run(args) == 0 and path.read_text() == "v = <!-- fig:value results/r.json v -->2<!-- /fig -->\n"
     args.check = True
     assert readme.run(args) == 0
+
+
+def test_the_nstep_figure_chooses_each_label_sets_step_from_its_rows(tmp_path):
+    """Per label set: the 2-step TDM's rollout step is the T = 2 row with the fewest contact ticks, the grid's lowest
+    is over every n-step row (`tdm2` is the configured T and step; the one-step TDM and vanilla are not in the grid)."""
+    import json
+
+    from skinsafe.core.app.readme import tracking_nstep
+
+    def row(method, c):
+        return {"method": method, "contacts_ep6_10": c, "contacts_ep6_10_ci95_low": c - 1, "contacts_ep6_10_ci95_high": c + 1,
+                "onsets_ep6_10": 1.0, "onsets_ep6_10_ci95_low": 0.5, "onsets_ep6_10_ci95_high": 1.5,
+                "alignment_cos_ep6_10": None, "tracking_error_mm": 50.0}
+
+    rows = {"binary": [row("vanilla", 1.0), row("tdm", 2.0), row("tdm2", 70.0), row("tdm2@0.05s", 60.0), row("tdm3@0.05s", 30.0)],
+            "soft": [row("vanilla", 1.0), row("tdm2", 5.0), row("tdm2@0.05s", 6.0), row("tdm1@0.15s", 40.0)]}
+    path = tmp_path / "results/tracking/nstep_grid/tracking.json"
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps({"config": {"horizon": 2, "rollout_dt": 0.15, "seeds": [0, 1, 2]},
+                                "labels": {k: {"summary": v} for k, v in rows.items()}}))
+    text = tracking_nstep(tmp_path)
+    assert "binary: the 2-step TDM's rollout step 0.05 s (60.0 contact ticks); the grid's lowest T = 3, 0.05 s (30.0)" in text
+    assert "soft: the 2-step TDM's rollout step 0.15 s (5.0 contact ticks); the grid's lowest T = 2, 0.15 s (5.0)" in text
+    assert "| binary | tdm2 | 2 | 0.15 | 70.0 [69.0, 71.0] |" in text and "| soft | vanilla | — | — |" in text
