@@ -77,6 +77,18 @@ def classify(frames: np.ndarray, threshold: np.ndarray, saturation: float, noise
     return base, {"dead": dead, "stuck": stuck, "noisy": noisy, "pressed": pressed}
 
 
+def ending_status(pid: int) -> int | None:
+    """The exit status (as `Popen.returncode` gives it) of a process that is ending but not yet reapable: the kernel
+    sets it (/proc/PID/stat, field 52) before it closes the process's files, so a pipe's hang-up can be named at
+    once; None when there is none to read (still running, gone, or ending with status 0)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            status = int(f.read().rsplit(")", 1)[1].split()[49])
+    except (OSError, IndexError, ValueError):
+        return None
+    return -(status & 0x7F) if status & 0x7F else (status >> 8) or None
+
+
 class SkinSource:
     """Readings of a design's boards on `ports` (board id -> port), streamed at `rate_hz`; the pre-flight and the
     reading run in the boards' reader process (module docstring)."""
@@ -174,6 +186,7 @@ class SkinSource:
         faults = self._take_faults()
         if self._gone.poll(0):
             code = self._proc.poll()
+            code = ending_status(self._proc.pid) if code is None else code
             how = f"exit code {code}" if code is not None else "its pipe closed"
             faults.insert(0, ("reader-died", "skin", f"the boards' reader ended ({how})", None))
         elif now - beat > self.silence_s:

@@ -106,10 +106,24 @@ def realtime_host(tmp_path_factory):
         yield
 
 
+def _host_cpu_s() -> tuple[float, float]:
+    """(busy, idle) CPU seconds of the whole machine since boot, all cores (/proc/stat; zeros where there is none)."""
+    import os
+
+    try:
+        with open("/proc/stat") as f:
+            ticks = [int(x) for x in f.readline().split()[1:]]
+    except OSError:
+        return 0.0, 0.0
+    hz, idle = os.sysconf("SC_CLK_TCK"), ticks[3] + ticks[4]  # idle + iowait
+    return (sum(ticks[:8]) - idle) / hz, idle / hz
+
+
 def pytest_sessionstart(session):
     import time
 
     session.config._skinsafe_started = time.monotonic()
+    session.config._skinsafe_host = _host_cpu_s()
 
 
 def _cpu_s() -> float:
@@ -142,8 +156,9 @@ def pytest_runtest_teardown(item, nextitem):
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
-    """With SKINSAFE_TEST_TIMES=FILE: the run's wall time, its outcome counts and the 20 slowest tests (setup + call +
-    teardown) as JSON, the figures of docs/contributing.md (`SKINSAFE_TEST_TIMES=results/tests/times.json make test`)."""
+    """With SKINSAFE_TEST_TIMES=FILE: the run's wall time, its outcome counts, the machine's busy and idle CPU seconds
+    over the run (every process, not only the tests'), and the 20 slowest tests (setup + call + teardown) as JSON,
+    the figures of docs/contributing.md (`SKINSAFE_TEST_TIMES=results/tests/times.json make test`)."""
     import json
     import os
     import time
@@ -169,6 +184,8 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
         "load_average": [round(x, 1) for x in os.getloadavg()], "exit_status": int(exitstatus),
         "wall_s": round(time.monotonic() - config._skinsafe_started, 1), "counts": counts,
         "cpu_s": round(sum(cpu.values()), 1),
+        "host_busy_s": round(_host_cpu_s()[0] - config._skinsafe_host[0], 1),
+        "host_idle_s": round(_host_cpu_s()[1] - config._skinsafe_host[1], 1),
         "rows": [{"test": k.split("::", 1)[1] if "::" in k else k, "file": k.split("::", 1)[0], "s": round(v, 1),
                   "cpu_s": round(cpu.get(k, 0.0), 1)} for k, v in slowest],
         "cpu_rows": [{"test": k.split("::", 1)[1] if "::" in k else k, "file": k.split("::", 1)[0],

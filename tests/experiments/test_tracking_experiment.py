@@ -254,3 +254,15 @@ def test_scenes_run_and_report(tmp_path, scene):
         assert worst["TDM modulation"] > 0 and worst["2-step TDM modulation"] > 0
         assert all(abs(r["touch_N"] - 300) < 30 for r in res["sweep"])  # the probe presses with the force asked
         assert (res["labels"], res["tangent_gain"]) == ("soft", 0.0)  # Fig. 14's row says what it ran with
+
+
+@pytest.mark.parametrize("duration", [0.2, 0.25, 0.0, float("nan")])
+def test_desk_shorter_than_its_settling_is_refused_by_name(tmp_path, duration):
+    """The desk measures clearance from 0.25 s on: a run that ends before then is refused naming why (it was a
+    numpy traceback on an empty clearance trace)."""
+    from skinsafe.core.experiments import scenes as es
+
+    args = argparse.Namespace(command_name="desk", out=str(tmp_path), duration=duration)
+    with pytest.raises(SystemExit, match=r"--duration is .* s: the clearance is measured from 0.25 s on"):
+        es.run(args)
+    assert not any(tmp_path.iterdir())

@@ -55,3 +55,31 @@ def test_frames_arriving_steadily_but_stale_are_named_late_between_arrivals_and_
     assert faults["board 'board1'"][0] == "board-silent"
     assert np.isnan(reader.force).all() and late.late
     assert not reader._stale(now + 0.1) and not reader._take_faults()  # named once per episode
+
+
+def test_an_ending_reader_is_named_by_its_exit_status_before_it_can_be_reaped():
+    """The kernel sets an ending process's status before it closes its pipes: a pipe's hang-up seen first still names
+    the exit code (SIGKILL: -9; exit(3): 3), and a running process has none (the race a loaded host showed: the
+    reader's death named only as 'its pipe closed')."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from skinsafe.hardware.skin_source import ending_status
+
+    p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    q = subprocess.Popen([sys.executable, "-c", "import sys; sys.exit(3)"])
+    try:
+        time.sleep(0.2)
+        assert ending_status(p.pid) is None
+        os.kill(p.pid, signal.SIGKILL)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and (ending_status(p.pid) is None or ending_status(q.pid) is None):
+            time.sleep(0.01)
+        assert ending_status(p.pid) == -9 and ending_status(q.pid) == 3
+    finally:
+        p.kill()
+        assert p.wait() == -9 and q.wait() == 3
+    assert ending_status(p.pid) is None  # reaped: nothing to read
