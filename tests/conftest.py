@@ -177,6 +177,7 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
                     counts[outcome] = counts.get(outcome, 0) + 1
     slowest = sorted(per_test.items(), key=lambda kv: -kv[1])[:20]
     workers = getattr(config.option, "numprocesses", None) or 1
+    busy, idle = _host_cpu_s()  # one reading of the machine's counters, for both figures
     from skinsafe.core.skin.files import atomic_write
 
     atomic_write(path, json.dumps({
@@ -184,8 +185,7 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
         "load_average": [round(x, 1) for x in os.getloadavg()], "exit_status": int(exitstatus),
         "wall_s": round(time.monotonic() - config._skinsafe_started, 1), "counts": counts,
         "cpu_s": round(sum(cpu.values()), 1),
-        "host_busy_s": round(_host_cpu_s()[0] - config._skinsafe_host[0], 1),
-        "host_idle_s": round(_host_cpu_s()[1] - config._skinsafe_host[1], 1),
+        "host_busy_s": round(busy - config._skinsafe_host[0], 1), "host_idle_s": round(idle - config._skinsafe_host[1], 1),
         "rows": [{"test": k.split("::", 1)[1] if "::" in k else k, "file": k.split("::", 1)[0], "s": round(v, 1),
                   "cpu_s": round(cpu.get(k, 0.0), 1)} for k, v in slowest],
         "cpu_rows": [{"test": k.split("::", 1)[1] if "::" in k else k, "file": k.split("::", 1)[0],
