@@ -54,9 +54,14 @@ def world(fr3_map):
         yield w
 
 
-def run_fr3(fr3_map, world, tmp_path, seconds, when_moving=None):
-    """`skinsafe run --robot fr3` holding franky-sim's start pose (the arm goes back after each retraction)."""
+def run_fr3(fr3_map, world, tmp_path, seconds, when_moving=None, swing=False):
+    """`skinsafe run --robot fr3` holding franky-sim's start pose (the arm goes back after each retraction), or
+    with `swing` turning the base joint away from it at 0.2 rad/s: moving before the hand comes (0.5 s), so a stop
+    asked then ramps a free arm to rest (one asked in the hand's push would measure the hand)."""
     still = write_still(tmp_path / "still.csv", franka.JOINT_NAMES, INITIAL_Q)
+    if swing:  # the CSV's second row (t = 1 s) becomes t = 2 s with the base joint 0.4 rad on
+        head, start, _ = still.read_text().splitlines()
+        still.write_text("\n".join([head, start, ",".join(f"{x:.9g}" for x in (2.0, *(INITIAL_Q + SWING * 4 / 3)))]))
     stats, record = tmp_path / "stats.json", tmp_path / "run.mcap"
     args = ["run", fr3_map, "--robot", "fr3", "--host", world.host, "--boards", "emulate", "--feed", world.feed,
             "--command", f"trajectory:{still}", "--seconds", seconds, "--link-latency", LINK_LATENCY, "--allow-link-latency", "--allow-non-realtime",
@@ -117,8 +122,8 @@ def test_fr3_run_senses_the_hand_retracts_and_replays(fr3_map, world, tmp_path):
 
 
 def test_fr3_ctrl_c_stops_the_robot_first_then_exits_130(fr3_map, world, tmp_path):
-    code, err, s, record = run_fr3(fr3_map, world, tmp_path, seconds=30, when_moving=lambda proc: threading.Timer(
-        1.0, proc.send_signal, (signal.SIGINT,)).start())
+    code, err, s, record = run_fr3(fr3_map, world, tmp_path, seconds=30, swing=True, when_moving=lambda proc: threading.Timer(
+        0.3, proc.send_signal, (signal.SIGINT,)).start())
     assert code == 130, err
     assert "STOPPED by the operator" in err and "SIGINT" in err
     assert s["kind"] == "operator" and s["t"] < 10  # long before --seconds
@@ -132,9 +137,9 @@ def test_fr3_ctrl_c_twice_stops_once_and_keeps_the_record(fr3_map, world, tmp_pa
     """Two SIGINTs 10 ms apart while the arm moves: the second only sets the same flag (it used to raise
     KeyboardInterrupt through the ramp: no stop reason, no report, the record lost as .part)."""
     def twice(proc):
-        for at in (1.0, 1.01):
+        for at in (0.3, 0.31):
             threading.Timer(at, proc.send_signal, (signal.SIGINT,)).start()
-    code, err, s, record = run_fr3(fr3_map, world, tmp_path, seconds=30, when_moving=twice)
+    code, err, s, record = run_fr3(fr3_map, world, tmp_path, seconds=30, swing=True, when_moving=twice)
     assert code == 130, err
     assert "STOPPED by the operator" in err and s["kind"] == "operator" and s["watchdog"] == "operator"
     assert s["world"]["ramp_ticks"] > 0 and s["world"]["rest_qd"] < 0.05
