@@ -157,7 +157,8 @@ def pytest_runtest_teardown(item, nextitem):
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
     """With SKINSAFE_TEST_TIMES=FILE: the run's wall time, its outcome counts, the machine's busy and idle CPU seconds
-    over the run (every process, not only the tests'), and the 20 slowest tests (setup + call + teardown) as JSON,
+    over the run (every process, not only the tests'), the 20 slowest tests (setup + call + teardown) and every test's
+    [node id, wall s, CPU s] as JSON,
     the figures of docs/contributing.md (`SKINSAFE_TEST_TIMES=results/tests/times.json make test`)."""
     import json
     import os
@@ -189,4 +190,5 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
         "rows": [{"test": k.split("::", 1)[1] if "::" in k else k, "file": k.split("::", 1)[0], "s": round(v, 1),
                   "cpu_s": round(cpu.get(k, 0.0), 1)} for k, v in slowest],
         "cpu_rows": [{"test": k.split("::", 1)[1] if "::" in k else k, "file": k.split("::", 1)[0],
-                      "cpu_s": round(v, 1)} for k, v in sorted(cpu.items(), key=lambda kv: -kv[1])[:20]]}, indent=1))
+                      "cpu_s": round(v, 1)} for k, v in sorted(cpu.items(), key=lambda kv: -kv[1])[:20]],
+        "every_test": [[k, round(v, 2), round(cpu.get(k, 0.0), 2)] for k, v in sorted(per_test.items())]}, indent=1))

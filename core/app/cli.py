@@ -12,14 +12,17 @@ import sys
 
 
 def _interrupted(kind, value, tb, default=sys.excepthook) -> None:
-    """Ctrl-C while this module still loads (before main's handler is in place): one line, no traceback."""
+    """Ctrl-C while this module still loads (before main's handler is in place): one line, no traceback, exit 130
+    (nothing has run yet that an exit without clean-up could leave half-done)."""
     if issubclass(kind, KeyboardInterrupt):
-        print("skinsafe: interrupted", file=sys.stderr)
-    else:
-        default(kind, value, tb)
+        print("skinsafe: interrupted", file=sys.stderr, flush=True)
+        import os
+
+        os._exit(130)
+    default(kind, value, tb)
 
 
-if sys.argv and sys.argv[0].endswith("skinsafe"):  # the `skinsafe` command, not a program importing this module
+if __name__ == "__main__" or sys.argv and sys.argv[0].endswith("skinsafe"):  # the command, not an importing program
     sys.excepthook = _interrupted
 
 import signal  # noqa: E402  (after the hook: nothing else loads before main installs its Ctrl-C handler)
@@ -139,16 +142,32 @@ def main(argv: list[str] | None = None) -> int:
 
     previous = signal.signal(signal.SIGINT, on_sigint)
     try:
-        return _main(argv)
-    except BaseException:
-        if not interrupted:
-            raise
+        try:
+            code = _main(argv)
+        except BaseException:
+            if not interrupted:
+                raise
+        if not interrupted:  # (or a Ctrl-C some code swallowed: importlib ignores what its lock callback raises)
+            return code
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # one Ctrl-C, one clean exit
         print("skinsafe: interrupted", file=sys.stderr)
+        _handled_interrupt()
         return 130
     finally:
         if not interrupted:  # the `skinsafe` command is ending: a late Ctrl-C must not interrupt its shutdown
             signal.signal(signal.SIGINT, signal.SIG_IGN if sys.excepthook is _interrupted else previous)
+
+
+def _handled_interrupt() -> None:
+    """Tell CPython the KeyboardInterrupt was handled: one raised inside code a C extension ran with PyRun_*
+    (pybind11's exec while mujoco or torch import) sets `_Py_UnhandledKeyboardInterrupt` even when caught, and
+    at exit CPython then kills itself with SIGINT (exit -2, seen 1 in 40 interrupts during imports) instead of
+    exiting 130. Python 3.11 exports the flag; elsewhere this does nothing."""
+    import contextlib
+    import ctypes
+
+    with contextlib.suppress(ValueError, AttributeError):
+        ctypes.c_int.in_dll(ctypes.pythonapi, "_Py_UnhandledKeyboardInterrupt").value = 0
 
 
 def _main(argv: list[str] | None) -> int:

@@ -11,6 +11,8 @@ from skinsafe.core.design.surface import body_surface
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.skin.model import Module
 
+pytestmark = pytest.mark.xdist_group("franka-map")  # the session's Franka skin (tests/app/conftest.franka_map), made once
+
 ASSET = Path(__file__).resolve().parents[2] / "blend_assets" / "franka_description"
 
 

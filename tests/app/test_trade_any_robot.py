@@ -9,6 +9,8 @@ import pytest
 from skinsafe.core.app import trade
 from skinsafe.core.app.cli import main
 
+pytestmark = pytest.mark.xdist_group("franka-map")  # the session's Franka skin (tests/app/conftest.franka_map), made once
+
 
 @pytest.fixture(scope="module")
 def skin(franka_map) -> str:

@@ -12,6 +12,7 @@ from skinsafe.core.robot.urdf_import import VISUAL_GROUP
 from skinsafe.exporters.urdf import URDF_FILE, mesh_dir_of
 
 MESH = mujoco.mjtGeom.mjGEOM_MESH
+pytestmark = pytest.mark.xdist_group("public-robots")  # the session's UR5e skin (conftest.public_skin), made once
 
 
 @pytest.fixture(scope="module")
