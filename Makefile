@@ -4,12 +4,17 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: test demo bench clean readme-figures robots franky-sim docs
+.PHONY: test demo bench clean readme-figures robots franky-sim docs bpy-only
+
+# the set-up steps a target needs run two at a time (two cores: the installs overlap; each step's own
+# prerequisites still come first)
+MAKEFLAGS += --jobs=2
 
 # franky-sim 1.0.4 (the FR3 over the libfranka protocol, MuJoCo inside) needs numpy >= 2, which bpy
 # forbids: it gets its own environment, with the numpy/numba parts of skinsafe that its world runs
 # (core/sim/franky_world.py: the skin readout and the force feed).
 FRANKY       := .venv-franky
+FRANKY_PKGS_STAMP := $(FRANKY)/.packages-stamp
 FRANKY_STAMP := $(FRANKY)/.installed-stamp
 FRANKY_PKGS  := franky-sim==1.0.4 mujoco==4.0.0 pin==4.1.0 numpy==2.4.6 numba==0.68.1 scipy==1.17.1 pyserial==3.5 \
                tqdm==4.70.1 pytest==9.2.0 hypothesis==6.170.17
@@ -20,10 +25,14 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e ".[test]"
 	touch $(STAMP)
 
-$(FRANKY_STAMP): pyproject.toml Makefile
+$(FRANKY_PKGS_STAMP): Makefile
 	test -x $(FRANKY)/bin/python || $(PYTHON) -m venv $(FRANKY)
 	$(FRANKY)/bin/python -m pip install -q --upgrade pip
 	$(FRANKY)/bin/python -m pip install -q $(FRANKY_PKGS)
+	touch $(FRANKY_PKGS_STAMP)
+
+# skinsafe itself after .venv's editable install (two at once would build its metadata in the same tree)
+$(FRANKY_STAMP): $(FRANKY_PKGS_STAMP) $(STAMP) pyproject.toml
 	$(FRANKY)/bin/python -m pip install -q --no-deps -e .
 	touch $(FRANKY_STAMP)
 
@@ -35,7 +44,11 @@ robots: $(ROBOTS_STAMP)
 $(ROBOTS_STAMP): blend_assets/robots/fetch.py $(STAMP)
 	$(BIN)/python blend_assets/robots/fetch.py
 
-test: $(STAMP) $(ROBOTS_STAMP) $(FRANKY_STAMP) test-numpy2 docs
+# the clean-Blender test's bpy-only environment (under $SKINSAFE_CACHE; at once when it is there)
+bpy-only: $(STAMP)
+	$(BIN)/python tests/addon/bpy_only.py > /dev/null
+
+test: $(STAMP) $(ROBOTS_STAMP) $(FRANKY_STAMP) test-numpy2 docs bpy-only
 	$(BIN)/lint-imports
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q -n auto --dist loadgroup --durations=20

@@ -4,21 +4,19 @@ Blender (a virtual environment holding only bpy, a fresh user folder), enables, 
 writes a taxel map, exports a MuJoCo scene and paints the PFL map, with nothing of this
 project's environment on its path. The map it wrote is then checked with the core from here.
 
-The bpy-only environment is kept between runs under the user's cache folder, keyed by the bpy
-version (`$SKINSAFE_CACHE`, default `~/.cache/skinsafe`; built in about 40 s when missing)."""
-import fcntl
+The bpy-only environment (`bpy_only.py`: kept between runs under the user's cache folder, keyed by the bpy
+version) is built by `make test` beside its other installs, or here when missing (about 40 s)."""
 import json
-import os
 import shutil
 import subprocess
 import sys
 import sysconfig
 import textwrap
-from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
 import pytest
+from bpy_only import bpy_only_python
 
 from skinsafe.core.design.audit import audit
 from skinsafe.core.design.placement import place_module
@@ -34,24 +32,6 @@ E = 0.13585 - 0.1197  # UR5 forearm capsule axis height (body frame)
 INERTIA = '<inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial>'
 BUNDLED = {"skinsafe", "mujoco", "scipy", "trimesh", "collada", "dateutil", "six", "xacro", "yaml", "pymeshlab",
            "numba", "llvmlite"}  # import names of the zip's wheels
-
-
-def bpy_only_python() -> Path:
-    """The python of a venv holding bpy (this project's pinned version) and its own dependencies only."""
-    bpy_version = version("bpy")
-    cache = Path(os.environ.get("SKINSAFE_CACHE", Path.home() / ".cache" / "skinsafe"))
-    venv = cache / f"venv-bpy-{bpy_version}-py{sys.version_info.major}{sys.version_info.minor}"
-    python, ready = venv / "bin" / "python", venv / ".ready"
-    cache.mkdir(parents=True, exist_ok=True)
-    with open(cache / f"{venv.name}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # one builder at a time
-        if not (ready.exists() and python.exists()):
-            base = getattr(sys, "_base_executable", sys.executable)
-            subprocess.run([base, "-m", "venv", "--clear", str(venv)], check=True)
-            subprocess.run([str(python), "-m", "pip", "install", "-q", "--disable-pip-version-check",
-                            f"bpy=={bpy_version}"], check=True)
-            ready.write_text(bpy_version)
-    return python
 
 
 def _xacro_robot(folder: Path) -> Path:
