@@ -66,11 +66,10 @@ def _probe_path(poke: Poke, t: float) -> float:
     return max(0.0, reach - (s - t_in - poke.hold) * poke.speed_out)
 
 
-def simulate(design: SkinDesign, robot: Robot, pokes: list[Poke], params: RetractionParams, duration: float,
-             stiffness: float = PROBE_STIFFNESS) -> dict:
-    """Run the pokes; returns per-tick times, joint positions, commands and the layer's record
-    of every taxel it retracted (trigger time, peak force, normal, position at the trigger)."""
-    from skinsafe.core.sim.readout import SkinReadout
+def poke_scene(design: SkinDesign, robot: Robot, pokes: list[Poke], stiffness: float = PROBE_STIFFNESS):
+    """The robot at home with one sprung probe per poke, `gap` out along its taxel's normal: (compiled model,
+    each probe's (start, normal)). A poke's depth and speeds only drive the probe, so pokes on the same taxels
+    from the same gaps share one scene."""
     from skinsafe.core.sim.scene import Obstacle, SceneOptions, build_scene
 
     kin0 = TaxelKinematics(robot.model, design)
@@ -83,7 +82,17 @@ def simulate(design: SkinDesign, robot: Robot, pokes: list[Poke], params: Retrac
         starts.append((c, n))
         obstacles.append(Obstacle(f"probe{k}", "sphere", (PROBE_RADIUS,), pos=tuple(c), quat=_quat_z_to(n),
                                   mocap=True, spring=stiffness))
-    model = build_scene(design, robot, obstacles, SceneOptions(timestep=DT)).compile()
+    return build_scene(design, robot, obstacles, SceneOptions(timestep=DT)).compile(), starts
+
+
+def simulate(design: SkinDesign, robot: Robot, pokes: list[Poke], params: RetractionParams, duration: float,
+             stiffness: float = PROBE_STIFFNESS, scene=None) -> dict:
+    """Run the pokes (in `scene`, a `poke_scene` of the same taxels and gaps, or a new one); returns per-tick
+    times, joint positions, commands and the layer's record of every taxel it retracted (trigger time, peak force,
+    normal, position at the trigger)."""
+    from skinsafe.core.sim.readout import SkinReadout
+
+    model, starts = scene or poke_scene(design, robot, pokes, stiffness)
     data = mujoco.MjData(model)
     nq = robot.model.nq  # the probes' spring joints come after the robot's
     data.qpos[:nq] = robot.home
@@ -171,8 +180,9 @@ def force_sweep(design, robot, params, depths, body: str | None = None, stiffnes
     body = body or poke_bodies(design, robot)[0]
     i = pick_taxel(design, robot, body)
     out = {"taxel": i, "body": body, "force": [], "distance": [], "desired": [], "curves": []}
+    scene = poke_scene(design, robot, [Poke(i, 0.0)], stiffness)  # one taxel, one gap: the depths share one scene
     for depth in tqdm(depths, desc="pokes", leave=False):
-        run = simulate(design, robot, [Poke(i, depth)], params, 0.05 + params.T + 0.25, stiffness)
+        run = simulate(design, robot, [Poke(i, depth)], params, 0.05 + params.T + 0.25, stiffness, scene)
         rec = max(run["record"].items(), key=lambda kv: kv[1]["f"]) if run["record"] else None
         if rec is None:
             continue

@@ -5,7 +5,15 @@ import numpy as np
 
 from skinsafe.core.app.cli import main
 from skinsafe.core.design.sample import make_sample_design
-from skinsafe.core.experiments.poke import compare_forms, force_sweep, multicontact
+from skinsafe.core.experiments.poke import (
+    Poke,
+    compare_forms,
+    force_sweep,
+    multicontact,
+    pick_taxel,
+    poke_scene,
+    simulate,
+)
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.safety.retraction import RetractionParams
 
@@ -26,6 +34,23 @@ def test_heavier_poke_retracts_further_linearly():
     assert rows[0]["into_contact_mm"] <= 0.5  # the prioritised QP never carries a taxel into its contact
     forms = compare_forms(design, robot, params, stride=200)
     assert forms["3d"]["achieved_median"] > 0.95 > 0.5 > forms["6d"]["achieved_median"]
+
+
+def test_pokes_of_other_depths_share_one_scene_and_give_the_same_run():
+    """force_sweep builds the probe's scene once for all its depths: a run in it repeats a run in its own scene
+    exactly (a depth only drives the probe), and a deeper poke pushes harder."""
+    robot = build_ur5()
+    design = make_sample_design("ur5", robot=robot)
+    params = RetractionParams(alpha=0.01)
+    i = pick_taxel(design, robot, "forearm_link")
+    shared = poke_scene(design, robot, [Poke(i, 0.0)])
+    runs = {}
+    for depth in (0.0005, 0.0015):
+        alone = simulate(design, robot, [Poke(i, depth)], params, 0.3)
+        runs[depth] = simulate(design, robot, [Poke(i, depth)], params, 0.3, scene=shared)
+        for key in ("t", "q", "force"):
+            np.testing.assert_array_equal(runs[depth][key], alone[key])
+    assert runs[0.0015]["force"].max() > 2 * runs[0.0005]["force"].max() > 0
 
 
 def test_poke_cli_writes_plots_and_numbers(tmp_path, capsys):
