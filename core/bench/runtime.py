@@ -150,8 +150,7 @@ def write_trajectory(path: Path, robot, seconds: float = SECONDS, sweep: float |
     t = np.linspace(0.0, seconds, int(seconds * (100 if sweep else 10)) + 1)
     q = np.repeat(robot.home[None], len(t), 0)
     q[:, 0] += PAN_SPEED * t if sweep is None else PAN_SPEED * sweep / np.pi * (1 - np.cos(2 * np.pi * t / sweep)) / 2
-    path.write_text("t," + ",".join(names) + "\n" + "\n".join(",".join(f"{x:.9g}" for x in (a, *b)) for a, b in zip(t, q)))
-    return path
+    return write_waypoints(path, names, t, q)
 
 
 def _contact():
@@ -438,10 +437,15 @@ def _shown(ci: list[list[float]], suffix: str = "") -> dict:
             f"shown_not_slower_5pct{suffix}": all(hi <= VIEW_TOLERANCE for _, hi in ci)}
 
 
+def write_waypoints(path: Path, joints: list[str], t, q) -> Path:
+    """A `--command trajectory:` CSV: joint positions q (one row per time in t, s) of `joints`."""
+    path.write_text("t," + ",".join(joints) + "\n" + "\n".join(",".join(f"{x:.9g}" for x in (a, *b)) for a, b in zip(t, q)))
+    return path
+
+
 def write_still(path: Path, joints: list[str], q) -> Path:
     """A trajectory that holds pose q: the arm goes back to it after every retraction."""
-    path.write_text("t," + ",".join(joints) + "\n" + "\n".join(",".join(f"{x:.9g}" for x in (t, *q)) for t in (0.0, 1.0)))
-    return path
+    return write_waypoints(path, joints, (0.0, 1.0), (q, q))
 
 
 def fr3_rows(args) -> list[dict]:

@@ -20,7 +20,7 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from skinsafe.core.app.cli import main as skinsafe
-from skinsafe.core.bench.runtime import write_still
+from skinsafe.core.bench.runtime import write_still, write_waypoints
 from skinsafe.core.sim.franky_world import INITIAL_Q, MISSED_LIMIT, WorldProcess, franky_python, hand_in_reach
 from skinsafe.core.skin import taxel_map
 from skinsafe.hardware import franka
@@ -58,10 +58,8 @@ def run_fr3(fr3_map, world, tmp_path, seconds, when_moving=None, swing=False):
     """`skinsafe run --robot fr3` holding franky-sim's start pose (the arm goes back after each retraction), or
     with `swing` turning the base joint away from it at 0.2 rad/s: moving before the hand comes (0.5 s), so a stop
     asked then ramps a free arm to rest (one asked in the hand's push would measure the hand)."""
-    still = write_still(tmp_path / "still.csv", franka.JOINT_NAMES, INITIAL_Q)
-    if swing:  # the CSV's second row (t = 1 s) becomes t = 2 s with the base joint 0.4 rad on
-        head, start, _ = still.read_text().splitlines()
-        still.write_text("\n".join([head, start, ",".join(f"{x:.9g}" for x in (2.0, *(INITIAL_Q + SWING * 4 / 3)))]))
+    still = (write_waypoints(tmp_path / "swing.csv", franka.JOINT_NAMES, (0.0, 2.0), (INITIAL_Q, INITIAL_Q + 0.4 * np.eye(7)[0]))
+             if swing else write_still(tmp_path / "still.csv", franka.JOINT_NAMES, INITIAL_Q))
     stats, record = tmp_path / "stats.json", tmp_path / "run.mcap"
     args = ["run", fr3_map, "--robot", "fr3", "--host", world.host, "--boards", "emulate", "--feed", world.feed,
             "--command", f"trajectory:{still}", "--seconds", seconds, "--link-latency", LINK_LATENCY, "--allow-link-latency", "--allow-non-realtime",
