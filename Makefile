@@ -48,7 +48,13 @@ $(ROBOTS_STAMP): blend_assets/robots/fetch.py $(STAMP)
 bpy-only: $(STAMP)
 	$(BIN)/python tests/addon/bpy_only.py > /dev/null
 
-test: $(STAMP) $(ROBOTS_STAMP) $(FRANKY_STAMP) test-numpy2 docs bpy-only
+# numba's kernels compiled into its cache once, before anything runs them: a fresh clone's test processes would
+# otherwise each compile those they meet before the cache holds them (a second when the cache is already full)
+.PHONY: precompile
+precompile: $(STAMP)
+	$(BIN)/skinsafe precompile --quiet
+
+test: $(STAMP) $(ROBOTS_STAMP) $(FRANKY_STAMP) test-numpy2 docs bpy-only precompile
 	$(BIN)/lint-imports
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q -n auto --dist loadgroup --durations=20

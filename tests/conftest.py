@@ -123,6 +123,7 @@ def pytest_sessionstart(session):
     import time
 
     session.config._skinsafe_started = time.monotonic()
+    session.config._skinsafe_started_epoch = time.time()
     session.config._skinsafe_host = _host_cpu_s()
 
 
@@ -136,12 +137,14 @@ def _cpu_s() -> float:
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_protocol(item, nextitem):
     """Each test's CPU seconds (this process and the children it waited for) as the user property `cpu_s` of its
-    reports (with SKINSAFE_TEST_TIMES)."""
+    reports, with when it started and on which worker (with SKINSAFE_TEST_TIMES)."""
     import os
+    import time
 
     if not os.environ.get("SKINSAFE_TEST_TIMES"):
         return (yield)
-    item.user_properties.append(("cpu_start", _cpu_s()))
+    item.user_properties += [("cpu_start", _cpu_s()), ("started", time.time()),
+                             ("worker", os.environ.get("PYTEST_XDIST_WORKER", "main"))]
     return (yield)
 
 
@@ -158,7 +161,7 @@ def pytest_runtest_teardown(item, nextitem):
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
     """With SKINSAFE_TEST_TIMES=FILE: the run's wall time, its outcome counts, the machine's busy and idle CPU seconds
     over the run (every process, not only the tests'), the 20 slowest tests (setup + call + teardown) and every test's
-    [node id, wall s, CPU s] as JSON,
+    [node id, wall s, CPU s, start s after the run's, worker] as JSON,
     the figures of docs/contributing.md (`SKINSAFE_TEST_TIMES=results/tests/times.json make test`)."""
     import json
     import os
@@ -167,13 +170,15 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
     path = os.environ.get("SKINSAFE_TEST_TIMES")
     if not path or os.environ.get("PYTEST_XDIST_WORKER"):
         return
-    per_test, counts, cpu = {}, {}, {}
+    per_test, counts, cpu, start = {}, {}, {}, {}
     for outcome, reports in terminalreporter.stats.items():
         for r in reports:
             if getattr(r, "when", None) in ("setup", "call", "teardown"):
                 per_test[r.nodeid] = per_test.get(r.nodeid, 0.0) + r.duration
                 if r.when == "teardown":
-                    cpu[r.nodeid] = dict(r.user_properties).get("cpu_s", 0.0)
+                    props = dict(r.user_properties)
+                    cpu[r.nodeid] = props.get("cpu_s", 0.0)
+                    start[r.nodeid] = (props.get("started"), props.get("worker"))
                 if r.when == "call" or outcome == "skipped":
                     counts[outcome] = counts.get(outcome, 0) + 1
     slowest = sorted(per_test.items(), key=lambda kv: -kv[1])[:20]
@@ -191,4 +196,12 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
                   "cpu_s": round(cpu.get(k, 0.0), 1)} for k, v in slowest],
         "cpu_rows": [{"test": k.split("::", 1)[1] if "::" in k else k, "file": k.split("::", 1)[0],
                       "cpu_s": round(v, 1)} for k, v in sorted(cpu.items(), key=lambda kv: -kv[1])[:20]],
-        "every_test": [[k, round(v, 2), round(cpu.get(k, 0.0), 2)] for k, v in sorted(per_test.items())]}, indent=1))
+        "every_test": [[k, round(v, 2), round(cpu.get(k, 0.0), 2), *_started(start.get(k), config)]
+                       for k, v in sorted(per_test.items())]}, indent=1))
+
+
+def _started(at, config) -> list:
+    """[seconds from the run's start, worker] of a test that reported when it started, else []."""
+    if not at or at[0] is None:
+        return []
+    return [round(at[0] - config._skinsafe_started_epoch, 1), at[1]]

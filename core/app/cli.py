@@ -44,6 +44,8 @@ COMMANDS = {
     "replay": ("skinsafe.core.app.replay", "re-run the layers on a `run --record` MCAP and compare the commands"),
     "pfl": ("skinsafe.core.app.pfl", "ISO/TS 15066: effective mass and safe approach speed per taxel, at a pose or along a trajectory"),
     "trade": ("skinsafe.core.app.trade", "sweep speed-vs-accuracy knobs (Ray) and plot the Pareto front"),
+    "precompile": ("skinsafe.core.app.precompile", "compile the numba kernels into numba's cache now (once per "
+                   "install: no later run waits for them)"),
     "readme": ("skinsafe.core.app.readme", "fill the README's figures from the results files (make readme-figures)"),
 }
 EXPERIMENTS = {

@@ -33,7 +33,7 @@ def build_stack(design: SkinDesign, robot_model, qd_max, qdd_max, period_s: floa
     modulation = strategy = joints = None
     if tdm_path:
         from skinsafe.core.safety.modulation import ModulationLayer
-        from skinsafe.core.safety.potential import DangerPotential, FastPotential
+        from skinsafe.core.safety.potential import DangerPotential
         from skinsafe.core.safety.stack import StrategyFilter
         from skinsafe.core.safety.tdm import load_tdm
 
@@ -42,7 +42,7 @@ def build_stack(design: SkinDesign, robot_model, qd_max, qdd_max, period_s: floa
             raise ValueError(f"--tdm {tdm_path}: the model predicts {tdm.config()['n_taxels']} taxels, the map has "
                              f"{design.n_taxels}; train it on this map")
         joints = np.arange(tdm.config()["state_dim"])
-        modulation = ModulationLayer(FastPotential(DangerPotential(tdm)))
+        modulation = ModulationLayer(DangerPotential(tdm))  # it evaluates the potential through FastPotential
         strategy = StrategyFilter(tdm)
     return SafetyStack(qd_max, d, modulation, strategy, joints=joints, acc_limits=qdd_max, dt=period_s)
 

@@ -96,3 +96,34 @@ def test_a_robot_state_that_stops_updating_stops_the_robot(ur5):
     out = rt.run(settle_s=0.0)
     assert out.watchdog == "robot-frozen" and "state not updating" in out.reason
     assert drv.stats.stop_t == pytest.approx(0.2, abs=0.01)  # within a few periods of the freeze
+
+
+def test_run_tdm_puts_the_strategy_filter_and_the_modulation_on_the_plan(ur5, tmp_path):
+    """`skinsafe run --tdm FILE` (build_stack with a learned danger model): a plan is filtered by the TDM's strategy
+    filter and then modulated by its danger potential, exactly as the two layers do on their own (it once crashed on
+    the first warm-up tick: the modulation was handed an already wrapped potential)."""
+    import torch
+
+    from skinsafe.core.safety.modulation import ModulationLayer
+    from skinsafe.core.safety.potential import DangerPotential
+    from skinsafe.core.safety.stack import StrategyFilter
+    from skinsafe.core.safety.tdm import TactileDangerModel, load_tdm, save_tdm
+
+    robot, design = ur5
+    torch.manual_seed(3)
+    save_tdm(TactileDangerModel(6, 6, design.n_taxels, hidden=(16, 16)), tmp_path / "tdm.pt")
+    qd_max, qdd_max = np.full(6, 3.0), np.full(6, 10.0)
+    stack = build_stack(design, robot.model, qd_max, qdd_max, 0.002, tdm_path=str(tmp_path / "tdm.pt"))
+    warm_up(stack, robot.home, design.taxels.thresholds["force"], 0.002)
+    plan = np.array([0.01, -0.01, 0.005, 0.0, 0.01, -0.005])  # within one tick's acceleration from rest
+    v = stack.tick(0.0, robot.home, {"force": np.zeros(design.n_taxels)}, plan, 0.002)
+    tdm = load_tdm(tmp_path / "tdm.pt")
+    want, f = ModulationLayer(DangerPotential(tdm))(robot.home, StrategyFilter(tdm)(robot.home, plan))
+    assert 0.0 < f < 1.0 and np.isclose(stack.last_f, f, rtol=1e-5)
+    np.testing.assert_allclose(v, want, rtol=1e-5, atol=1e-9)
+    assert not stack.flags, stack.flags
+
+    wrong = TactileDangerModel(6, 6, design.n_taxels + 1, hidden=(16, 16))
+    save_tdm(wrong, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match=f"predicts {design.n_taxels + 1} taxels, the map has {design.n_taxels}"):
+        build_stack(design, robot.model, qd_max, qdd_max, 0.002, tdm_path=str(tmp_path / "other.pt"))
