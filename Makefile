@@ -49,12 +49,13 @@ bpy-only: $(STAMP)
 	$(BIN)/python tests/addon/bpy_only.py > /dev/null
 
 # numba's kernels compiled into its cache once, before anything runs them: a fresh clone's test processes would
-# otherwise each compile those they meet before the cache holds them (a second when the cache is already full)
+# otherwise each compile those they meet before the cache holds them (a second when the cache is already full);
+# first after .venv's install, the longest of the steps that follow it
 .PHONY: precompile
 precompile: $(STAMP)
 	$(BIN)/skinsafe precompile --quiet
 
-test: $(STAMP) $(ROBOTS_STAMP) $(FRANKY_STAMP) test-numpy2 docs bpy-only precompile
+test: $(STAMP) precompile $(ROBOTS_STAMP) $(FRANKY_STAMP) test-numpy2 docs bpy-only
 	$(BIN)/lint-imports
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q -n auto --dist loadgroup --durations=20

@@ -12,6 +12,7 @@ import serial
 from skinsafe.hardware import protocol as P
 
 BITS_PER_BYTE = 10  # 8N1
+MAX_BAUD = 12_000_000  # the fastest USB-serial bridges (FT232H); above it a port refuses or overflows
 
 
 class BoardError(Exception):
@@ -58,7 +59,7 @@ class BoardClient:
         try:
             self.ser = serial.Serial(port, baud, timeout=0.005, write_timeout=2.0)
             self.ser.reset_input_buffer()
-        except (serial.SerialException, OSError, ValueError) as e:
+        except (serial.SerialException, OSError, ValueError, OverflowError) as e:
             raise BoardError(f"{port}: cannot open the serial port ({e}); check the path and permissions",
                              kind="link") from None
         self.parser = P.FrameParser(P.MAX_SHORT_PAYLOAD, runs=True)  # widened by identify

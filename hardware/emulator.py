@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import math
 import os
 import select
 import signal
@@ -23,10 +24,12 @@ import numpy as np
 
 from skinsafe.hardware import protocol as P
 from skinsafe.hardware.board_config import channel_rows
+from skinsafe.hardware.client import MAX_BAUD
 from skinsafe.hardware.emulated_board import BoardSpec, EmulatedBoard, Faults, NotABoard, flash_path
 
 __all__ = ["EmulatorProcess", "add_arguments", "flash_path", "main", "serve"]
 STOP_S = 0.5  # how long the board threads get to finish once the emulator stops
+MAX_DELAY_S = 60.0  # a --delay beyond it only hangs the host side
 SWITCH_S = 0.0005  # with --feed: the interpreter's thread switch interval (default 5 ms)
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -104,6 +107,16 @@ def _spec(uid: int, n: int, opts: dict, where: str) -> BoardSpec:
     for k in ("delay", "lost_start_answers", "unplug_after", "streaming"):
         if opts[k] < 0:
             raise SystemExit(f"{where}: {k.replace('_', '-')} {opts[k]} is negative")
+    if not (math.isfinite(opts["delay"]) and opts["delay"] <= MAX_DELAY_S):
+        raise SystemExit(f"{where}: delay {opts['delay']} s: give 0..{MAX_DELAY_S:g} s")
+    if opts["reset_at_chunk"] is not None and opts["reset_at_chunk"] < 1:
+        raise SystemExit(f"{where}: reset-at-chunk {opts['reset_at_chunk']}: give the chunk, 1 or more")
+    if opts["resets"] < -1:
+        raise SystemExit(f"{where}: resets {opts['resets']}: give a count, or -1 for every transfer")
+    if not 0 <= opts["protocol"] <= 255:
+        raise SystemExit(f"{where}: protocol {opts['protocol']}: give 0..255 (the frame's 8-bit version field)")
+    if not 1 <= opts["max_rate_hz"] <= 65535:
+        raise SystemExit(f"{where}: max rate {opts['max_rate_hz']} Hz: give 1..65535 (the 16-bit identity field)")
     if opts["streaming"] > opts["max_rate_hz"]:
         raise SystemExit(f"{where}: streaming at {opts['streaming']} Hz exceeds the board's max rate {opts['max_rate_hz']}")
     if opts["config_len"] is not None and not 0 <= opts["config_len"] < 2 ** 32:
@@ -119,8 +132,10 @@ def _spec(uid: int, n: int, opts: dict, where: str) -> BoardSpec:
 def _specs(args):
     """(BoardSpec, the map's Board or None) per emulated board, and the map (or None)."""
     base = {k: getattr(args, k) for k in OVERRIDES} | {"seed": args.seed}
-    if args.baud is not None and args.baud <= 0:
-        raise SystemExit(f"--baud {args.baud}: give a positive rate, e.g. 1000000")
+    if args.seed < 0 or args.not_a_board < 0:
+        raise SystemExit(f"--seed {args.seed}, --not-a-board {args.not_a_board}: give numbers >= 0")
+    if args.baud is not None and not 0 < args.baud <= MAX_BAUD:
+        raise SystemExit(f"--baud {args.baud}: give 1..{MAX_BAUD} bit/s, e.g. 1000000")
     out = []
     for b in args.board:
         uid, _, rest = b.partition(":")

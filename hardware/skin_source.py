@@ -152,19 +152,24 @@ class SkinSource:
 
     def _answer(self, timeout: float):
         """The reader's next message; PreflightRefused naming why when it ends or stays silent instead."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
+        deadline, ended = time.monotonic() + timeout, False
+        while not ended and time.monotonic() < deadline:
             if self._rx.poll(0.1):
                 try:
                     return self._rx.recv()
                 except EOFError:
-                    break
-            if self._proc.poll() is not None:
-                break
+                    ended = True
+            ended = ended or self._proc.poll() is not None
         code = self._proc.poll()
-        raise PreflightRefused("the boards' reader " + (f"ended with exit code {code}" if code is not None else
-                                                        f"did not answer within {timeout:.0f} s") +
-                               " before the pre-flight finished; run it again, or check the serial ports")
+        if ended and code is None:  # its pipe closed on its way out: the exit code follows
+            try:
+                code = self._proc.wait(timeout=1.0)
+            except subprocess.TimeoutExpired:
+                code = ending_status(self._proc.pid)
+        why = (f"ended with exit code {code}" if code is not None else "ended (its pipe closed)") if ended else \
+            f"did not answer within {timeout:.0f} s"
+        raise PreflightRefused(f"the boards' reader {why} before the pre-flight finished; run it again, or check the "
+                               "serial ports")
 
     # -- running -------------------------------------------------------------------------------
     def start(self) -> None:

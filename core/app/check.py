@@ -3,12 +3,14 @@
 link at every sampled pose) and print the coverage summary. Exit code 1 when the audit fails."""
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
 from skinsafe.core.design.audit import audit
 from skinsafe.core.design.coverage import coverage_report, format_report
 from skinsafe.core.robot.models import load_robot
+from skinsafe.core.skin.model import DesignError
 from skinsafe.core.skin.taxel_map import load
 
 
@@ -18,7 +20,14 @@ def add_arguments(p) -> None:
     p.add_argument("--tol", type=float, default=0.002, help="m a taxel may sit off its link's surface")
 
 
+MAX_POSES = 10_000
+
+
 def run(args) -> int:
+    if not 1 <= args.poses <= MAX_POSES:
+        raise DesignError(f"--poses {args.poses}: give 1..{MAX_POSES} (the home pose and sampled ones)")
+    if not (math.isfinite(args.tol) and args.tol >= 0):
+        raise DesignError(f"--tol {args.tol}: give a finite distance >= 0 in m, e.g. 0.002")
     path = Path(args.map)
     design = load(path)
     robot = load_robot(design.robot, base_dir=path.parent)

@@ -6,6 +6,7 @@ above it, or an incomplete record (ticks dropped by the recorder); 2 a record or
 from __future__ import annotations
 
 import json
+import math
 import sys
 
 from skinsafe.core.runtime.layers import stack_from_config
@@ -20,6 +21,9 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
+    if not (math.isfinite(args.tol) and args.tol >= 0):
+        print(f"skinsafe replay: --tol {args.tol}: give a finite difference >= 0 in rad/s, e.g. 1e-9", file=sys.stderr)
+        return 2
     try:
         r = replay(args.record, stack_from_config, args.map)
     except (ReplayError, ValueError) as e:

@@ -213,8 +213,27 @@ def _collaboration_record(args) -> str:
     return str(out)
 
 
+def _check(args) -> None:
+    """The numbers, before anything is served (ValueError: exit 2 with the message)."""
+    if not 0 <= args.port <= 65535:
+        raise ValueError(f"--port {args.port}: give 1..65535, or 0 for any free port")
+    if not (np.isfinite(args.fps) and 0 < args.fps <= 1000):
+        raise ValueError(f"--fps {args.fps}: give page updates per second in (0, 1000]")
+    for name, x in (("--vmax", args.vmax), ("--seconds", args.seconds)):
+        if x is not None and not (np.isfinite(x) and x > 0):
+            raise ValueError(f"{name} {x}: give a finite number > 0")
+    for name, x in (("--seed", args.seed), ("--episode", args.episode)):
+        if x is not None and x < 0:
+            raise ValueError(f"{name} {x}: give a number >= 0")
+
+
 def run(args) -> int:
     stop = threading.Event()
+    try:
+        _check(args)
+    except ValueError as e:
+        print(f"skinsafe view: {e}", file=sys.stderr)
+        return 2
     if args.seconds is not None:
         timer = threading.Timer(args.seconds, stop.set)
         timer.daemon = True

@@ -37,6 +37,7 @@ from skinsafe.core.skin.model import SkinDesign
 PROBE_RADIUS = 0.012  # m
 PROBE_STIFFNESS = 20e3  # N/m: 20 N per mm of the holder's travel past the skin (a firm finger or a force gauge)
 DT = 0.002  # s, control period
+MAX_T = 10.0  # s: the longest retraction duration a poke simulates
 
 
 @dataclass
@@ -357,6 +358,9 @@ def run(args) -> int:
         params = RetractionParams(alpha=args.alpha, T=args.T, form=args.form)
     except ValueError as e:
         raise SystemExit(f"skinsafe poke: {e}")
+    if args.T > MAX_T:
+        raise SystemExit(f"skinsafe poke: --T {args.T:g}: give a retraction duration up to {MAX_T:g} s (each poke "
+                         "simulates it)")
     if not depths or min(depths) <= 0 or not all(np.isfinite(depths)):
         raise SystemExit("skinsafe poke: --depths must be positive distances in m")
     if not (np.isfinite(args.probe_stiffness) and args.probe_stiffness > 0) or args.forms_stride < 1:

@@ -7,9 +7,11 @@ import pytest
 
 from skinsafe.core.app.cli import main
 from skinsafe.core.design.placement import PlacementError, place_module
+from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.design.surface import body_surface
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.skin.model import Module
+from skinsafe.core.skin.taxel_map import save
 
 pytestmark = pytest.mark.xdist_group("franka-map")  # the session's Franka skin (tests/app/conftest.franka_map), made once
 
@@ -69,7 +71,6 @@ def test_check_refuses_taxels_buried_more_than_a_tenth_of_a_millimetre(tmp_path,
     from skinsafe.core.app.design import robot_ref
     from skinsafe.core.design.placement import build_design
     from skinsafe.core.robot.models import load_robot
-    from skinsafe.core.skin.taxel_map import save
 
     out = tmp_path / "skin.json"
     ref = robot_ref(str(_mating_robot(tmp_path, overlap)), [], out)
@@ -96,3 +97,17 @@ def test_design_leaves_the_mating_face_bare(tmp_path, capsys):
     top = pos[:, 2] > 0.0499
     assert top.any() and not (top & (np.hypot(pos[:, 0], pos[:, 1]) < 0.05)).any()  # none under the cylinder
     assert main(["check", str(out)]) == 0
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["check", "{map}", "--tol", "nan"], "--tol nan: give a finite distance >= 0 in m"),  # NaN once passed every taxel
+    (["check", "{map}", "--poses", "-1"], "--poses -1: give 1..10000"),  # was a traceback
+    (["replay", "{dir}/none.mcap", "--tol", "nan"], "--tol nan: give a finite difference >= 0"),
+    (["view", "{dir}/none.mcap", "--port", "-1"], "--port -1: give 1..65535, or 0 for any free port"),  # hung
+    (["view", "{dir}/none.mcap", "--fps", "nan"], "--fps nan: give page updates per second in (0, 1000]"),
+])
+def test_bad_numbers_are_refused_in_one_line(tmp_path, capsys, argv, message):
+    save(make_sample_design("ur5"), tmp_path / "skin.json")
+    assert main([a.format(map=tmp_path / "skin.json", dir=tmp_path) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err, err

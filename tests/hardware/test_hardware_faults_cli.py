@@ -109,6 +109,8 @@ def test_malformed_answer_mid_deploy_names_board_and_byte(tmp_path, capsys):
     (["stream", "{map}", "--port", "/dev/null", "--rate", "-1"], "--rate -1"),
     (["deploy", "{map}", "--port", "/dev/null", "--retries", "-2"], "--retries -2: give 0..20"),
     (["deploy", "{map}", "--port", "/dev/null", "--timeout", "nan"], "--timeout nan"),
+    (["deploy", "{map}", "--port", "/dev/null", "--baud", "99999999999"], "--baud 99999999999: give 1..12000000"),
+    (["stream", "{map}", "--port", "/dev/null", "--baud", "0"], "--baud 0: give 1..12000000"),
 ])
 def test_bad_options_refused_before_any_io(tmp_path, capsys, argv, message):
     save(flat_design(8, 1), tmp_path / "skin.json")
@@ -184,6 +186,12 @@ def test_emulator_ends_by_itself_on_sigterm_and_sigint(tmp_path):
     (["--max-chunk", "8"], "max chunk 8 outside 16..65530"),
     (["--board", "0x5:8:drop=2"], "drop 2.0 is a probability; give 0..1"),
     (["--board", "0x5:8:colour=red"], "give UID:CHANNELS[:KEY=VALUE,...]"),
+    (["--delay", "nan"], "delay nan s: give 0..60 s"),  # a NaN delay once passed the `< 0` check
+    (["--seed", "-1"], "--seed -1, --not-a-board 0: give numbers >= 0"),  # was numpy's traceback
+    (["--protocol", "256"], "protocol 256: give 0..255"),
+    (["--max-rate", "-1"], "max rate -1 Hz: give 1..65535"),
+    (["--reset-at-chunk", "0"], "reset-at-chunk 0: give the chunk, 1 or more"),
+    (["--baud", "99999999999"], "--baud 99999999999: give 1..12000000 bit/s"),
 ])
 def test_emulator_refuses_options_that_cannot_work(tmp_path, extra, message):
     r = subprocess.run([sys.executable, "-m", "skinsafe.hardware.emulator", "--flash-dir", str(tmp_path),

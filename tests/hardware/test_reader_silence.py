@@ -83,3 +83,28 @@ def test_an_ending_reader_is_named_by_its_exit_status_before_it_can_be_reaped():
         p.kill()
         assert p.wait() == -9 and q.wait() == 3
     assert ending_status(p.pid) is None  # reaped: nothing to read
+
+
+def test_a_reader_that_dies_in_the_preflight_is_named_by_its_exit_code(tmp_path):
+    """The pre-flight names a reader that ended before it answered by its exit code, at once (its pipe closes
+    before it can be reaped: once named 'did not answer within 5000000030 s' after a 1.5 s crash)."""
+    import time
+
+    from skinsafe.core.skin.taxel_map import save
+    from skinsafe.hardware.deploy import deploy
+    from skinsafe.hardware.emulator import EmulatorProcess
+    from skinsafe.hardware.skin_source import PreflightRefused, SkinSource
+
+    d = flat_design(64, 1)
+    save(d, tmp_path / "skin.json")
+    with EmulatorProcess([], tmp_path / "flash", "--map", str(tmp_path / "skin.json")) as em:
+        ports = {b.id: em.ports[b.uid] for b in d.boards}
+        assert [r.status for r in deploy(d, ports)] == ["updated"]
+        source = SkinSource(d, ports, rate_hz=100)
+        t = time.monotonic()
+        try:
+            with pytest.raises(PreflightRefused, match="the boards' reader ended with exit code 1 before the pre-flight"):
+                source.preflight(b"\0" * 32, 10 ** 15)  # the reader cannot keep 10^15 frames: MemoryError, exit 1
+        finally:
+            source.close()
+        assert time.monotonic() - t < 30

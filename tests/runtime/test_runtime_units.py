@@ -186,3 +186,24 @@ def test_while_the_robot_moves_idle_cores_are_kept_awake_then_released():
     except PermissionError:
         pytest.skip("real-time priority not allowed here")
     assert target() == before > 0
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--period", "0"], "--period 0.0: give the sim's control period, 0.0002..0.05 s"),
+    (["--period", "nan"], "--period nan"),
+    (["--alpha", "-0.1"], "--alpha -0.1: give a finite number >= 0"),
+    (["--alpha", "inf"], "--alpha inf"),
+    (["--command-timeout", "0"], "--command-timeout 0.0: give a positive number of seconds"),
+    (["--tare-frames", "1"], "--tare-frames 1: give 2..10000"),
+    (["--tare-frames", "99999999999"], "--tare-frames 99999999999: give 2..10000"),  # the reader ran out of memory
+    (["--baud", "99999999999"], "--baud 99999999999: give 1..12000000 bit/s"),  # pyserial's OverflowError
+])
+def test_run_refuses_bad_numbers_in_one_line_before_anything_starts(tmp_path, capsys, argv, message):
+    from skinsafe.core.app.cli import main
+    from skinsafe.core.design.sample import make_sample_design
+    from skinsafe.core.skin.taxel_map import save
+
+    save(make_sample_design("ur5"), tmp_path / "skin.json")
+    assert main(["run", str(tmp_path / "skin.json"), "--boards", "emulate", "--command", "hold", *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
