@@ -196,8 +196,19 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
                   "cpu_s": round(cpu.get(k, 0.0), 1)} for k, v in slowest],
         "cpu_rows": [{"test": k.split("::", 1)[1] if "::" in k else k, "file": k.split("::", 1)[0],
                       "cpu_s": round(v, 1)} for k, v in sorted(cpu.items(), key=lambda kv: -kv[1])[:20]],
+        "groups": _groups(per_test),
         "every_test": [[k, round(v, 2), round(cpu.get(k, 0.0), 2), *_started(start.get(k), config)]
                        for k, v in sorted(per_test.items())]}, indent=1))
+
+
+def _groups(per_test: dict) -> dict:
+    """xdist group -> the wall seconds of its tests (one worker runs a group's tests one after another)."""
+    out = {}
+    for k, v in per_test.items():
+        if k.rfind("@") > k.rfind("]"):
+            g = k.rsplit("@", 1)[1]
+            out[g] = round(out.get(g, 0.0) + v, 1)
+    return dict(sorted(out.items(), key=lambda kv: -kv[1]))
 
 
 def _started(at, config) -> list:
