@@ -14,7 +14,7 @@ from tqdm import tqdm
 from skinsafe.core.skin.model import DesignError, SkinDesign
 from skinsafe.core.skin.taxel_map import load
 from skinsafe.hardware.board_config import board_configs
-from skinsafe.hardware.client import MAX_BAUD
+from skinsafe.hardware.client import baud_problem
 from skinsafe.hardware.deploy import BoardReport, candidate_ports, deploy, discover, missing_reports, plan
 from skinsafe.hardware.interrupt import Interrupt, for_command
 
@@ -54,8 +54,8 @@ def check_link_options(args) -> None:
         raise DesignError(f"--retries {args.retries}: give 0..{MAX_RETRIES}")
     if not (math.isfinite(args.timeout) and 0 < args.timeout <= 60):
         raise DesignError(f"--timeout {args.timeout}: give seconds in (0, 60]")
-    if not 0 < args.baud <= MAX_BAUD:
-        raise DesignError(f"--baud {args.baud}: give 1..{MAX_BAUD} bit/s, e.g. 1000000")
+    if baud_problem(args.baud):
+        raise DesignError(baud_problem(args.baud))
 
 
 def find_ports(design: SkinDesign, args, cancel=None

@@ -15,6 +15,11 @@ BITS_PER_BYTE = 10  # 8N1
 MAX_BAUD = 12_000_000  # the fastest USB-serial bridges (FT232H); above it a port refuses or overflows
 
 
+def baud_problem(baud: int) -> str | None:
+    """Why `--baud` cannot be a link speed (the line to print), or None."""
+    return None if 0 < baud <= MAX_BAUD else f"--baud {baud}: give 1..{MAX_BAUD} bit/s, e.g. 1000000"
+
+
 class BoardError(Exception):
     """A board refused a request, stopped answering, answered malformed, or speaks another protocol.
 

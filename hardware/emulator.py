@@ -24,7 +24,7 @@ import numpy as np
 
 from skinsafe.hardware import protocol as P
 from skinsafe.hardware.board_config import channel_rows
-from skinsafe.hardware.client import MAX_BAUD
+from skinsafe.hardware.client import baud_problem
 from skinsafe.hardware.emulated_board import BoardSpec, EmulatedBoard, Faults, NotABoard, flash_path
 
 __all__ = ["EmulatorProcess", "add_arguments", "flash_path", "main", "serve"]
@@ -134,8 +134,8 @@ def _specs(args):
     base = {k: getattr(args, k) for k in OVERRIDES} | {"seed": args.seed}
     if args.seed < 0 or args.not_a_board < 0:
         raise SystemExit(f"--seed {args.seed}, --not-a-board {args.not_a_board}: give numbers >= 0")
-    if args.baud is not None and not 0 < args.baud <= MAX_BAUD:
-        raise SystemExit(f"--baud {args.baud}: give 1..{MAX_BAUD} bit/s, e.g. 1000000")
+    if args.baud is not None and baud_problem(args.baud):
+        raise SystemExit(baud_problem(args.baud))
     out = []
     for b in args.board:
         uid, _, rest = b.partition(":")

@@ -51,7 +51,7 @@ from skinsafe.core.runtime.view_stream import DEFAULT_PORT
 from skinsafe.core.safety.retraction import RetractionParams
 from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.model import DesignError
-from skinsafe.hardware.client import MAX_BAUD
+from skinsafe.hardware.client import baud_problem
 
 LINK_LATENCY_FREE = 0.05  # s of --link-latency accepted without --allow-link-latency
 LINK_LATENCY_MAX = 10.0
@@ -169,14 +169,17 @@ def _check(args) -> None:
         raise DesignError(f"--overruns {args.overruns}: give 0 (off) or the consecutive overruns that stop")
     if not 2 <= args.tare_frames <= MAX_TARE_FRAMES:
         raise DesignError(f"--tare-frames {args.tare_frames}: give 2..{MAX_TARE_FRAMES} (each taxel's frames are kept)")
-    if not 0 < args.baud <= MAX_BAUD:
-        raise DesignError(f"--baud {args.baud}: give 1..{MAX_BAUD} bit/s, e.g. 1000000")
-    if not (math.isfinite(args.period) and 0.0002 <= args.period <= 0.05):
-        raise DesignError(f"--period {args.period}: give the sim's control period, 0.0002..0.05 s")
-    if not (math.isfinite(args.alpha) and args.alpha >= 0):
-        raise DesignError(f"--alpha {args.alpha}: give a finite number >= 0 (m of retraction per N; 0: none)")
-    if not (math.isfinite(args.command_timeout) and args.command_timeout > 0):
-        raise DesignError(f"--command-timeout {args.command_timeout}: give a positive number of seconds")
+    if baud_problem(args.baud):
+        raise DesignError(baud_problem(args.baud))
+    if args.robot == "sim":
+        from skinsafe.core.sim.robot_driver import PERIOD_S
+
+        if not (math.isfinite(args.period) and PERIOD_S[0] <= args.period <= PERIOD_S[1]):
+            raise DesignError(f"--period {args.period}: give the sim's control period, {PERIOD_S[0]}..{PERIOD_S[1]} s")
+    try:
+        RetractionParams(alpha=args.alpha)
+    except ValueError as e:
+        raise DesignError(f"--alpha {args.alpha}: {e}") from None
     if not (0 <= args.max_excluded < 1) or not args.noise_fraction > 0:
         raise DesignError("--max-excluded must be in [0, 1) and --noise-fraction positive")
     if args.boards != ["emulate"] and "emulate" in args.boards:

@@ -44,6 +44,7 @@ RETRACT_SPEED = 1e-3  # m/s out of the contact: the measured motion follows the 
 TAXEL_FAULTS = ("stuck", "noisy")  # sensor faults on demand: stuck reads STUCK_N always, noisy adds U(0, threshold)
 STUCK_N = 5.0
 CLOCK_BACK_S = 0.01
+PERIOD_S = (0.0002, 0.05)  # the control periods the sim steps at (s)
 OVERRUN_STEP = 3  # periods the state's clock advances per tick under an injected overrun (states missed)
 
 
@@ -150,8 +151,8 @@ class SimDriver:
     def __init__(self, design: SkinDesign, robot: Robot, feed=None, period_s: float = 0.002,
                  contact: Contact | None = None, realtime: bool = True, faults: SimFaults | None = None,
                  taxel_faults: dict[int, str] | None = None):
-        if not (np.isfinite(period_s) and 0.0002 <= period_s <= 0.05):
-            raise ValueError(f"sim period {period_s} s: give 0.0002..0.05 s")
+        if not (np.isfinite(period_s) and PERIOD_S[0] <= period_s <= PERIOD_S[1]):
+            raise ValueError(f"sim period {period_s} s: give {PERIOD_S[0]}..{PERIOD_S[1]} s")
         self.design, self.robot, self.feed, self.period_s = design, robot, feed, float(period_s)
         self.contact, self.realtime, self.faults = contact, realtime, faults or SimFaults()
         obstacles = []
