@@ -306,10 +306,12 @@ def speed_factor(v: np.ndarray, planned: np.ndarray | None) -> float:
 
 
 def warm_up(stack, q: np.ndarray, thresholds: np.ndarray, dt: float, ticks: int = 20) -> None:
-    """Tick the stack through contacts before the robot moves, then forget it all: numba compiles its
-    kernels on the first retraction (seconds on a fresh install) and the QP solver loads on the first
-    level where a constraint binds (milliseconds): neither may land on the robot's first contact. The
-    contacts come while the arm moves fast each way, so the limits and no-push rows bind."""
+    """Tick the stack through contacts and through a plan before the robot moves, then forget it all:
+    numba compiles (or loads from its cache: tens of ms) each kernel on its first call, and the QP
+    solver loads on the first level where a constraint binds: none of it may land on the robot's first
+    tick or first contact. The contacts come while the arm moves fast each way, so the limits and
+    no-push rows bind; the plan, with no contact, runs the strategy filter and the modulation of a plan
+    (kernels a retraction never calls)."""
     n = len(thresholds)
     zero = np.zeros(len(stack.vel_limits))
     for sign in (1.0, -1.0):
@@ -321,6 +323,9 @@ def warm_up(stack, q: np.ndarray, thresholds: np.ndarray, dt: float, ticks: int 
                 stack.tick(k * dt, q, {"force": force if k < 2 else np.zeros(n)}, zero, dt,
                            qdot=moving if k < 3 else zero)
             stack.reset()
+        for k in range(3):
+            stack.tick(k * dt, q, {"force": np.zeros(n)}, sign * 0.1 * stack.vel_limits, dt)
+        stack.reset()
     stack.flags.clear()
     if stack.defensiveness is not None:
         stack.defensiveness.flags.clear()

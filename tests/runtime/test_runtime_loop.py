@@ -127,3 +127,40 @@ def test_run_tdm_puts_the_strategy_filter_and_the_modulation_on_the_plan(ur5, tm
     save_tdm(wrong, tmp_path / "other.pt")
     with pytest.raises(ValueError, match=f"predicts {design.n_taxels + 1} taxels, the map has {design.n_taxels}"):
         build_stack(design, robot.model, qd_max, qdd_max, 0.002, tdm_path=str(tmp_path / "other.pt"))
+
+
+WARM_CHECK = """
+import json, sys
+import numpy as np, torch
+from skinsafe.core.app.precompile import cached_kernels
+from skinsafe.core.design.sample import make_sample_design
+from skinsafe.core.robot.models import build_ur5
+from skinsafe.core.runtime.layers import build_stack
+from skinsafe.core.runtime.loop import warm_up
+from skinsafe.core.safety.tdm import TactileDangerModel, save_tdm
+
+robot = build_ur5()
+design = make_sample_design("ur5", robot=robot)
+torch.manual_seed(3)
+save_tdm(TactileDangerModel(6, 6, design.n_taxels, hidden=(16, 16)), sys.argv[1])
+stack = build_stack(design, robot.model, np.full(6, 3.0), np.full(6, 10.0), 0.002, tdm_path=sys.argv[1])
+warm_up(stack, robot.home, design.taxels.thresholds["force"], 0.002)
+loaded = lambda: {f"{k.__name__}{s}" for ks in cached_kernels().values() for k in ks for s in k.signatures}
+before = loaded()
+stack.tick(0.0, robot.home.copy(), {"force": np.zeros(design.n_taxels)}, np.full(6, 0.01), 0.002)
+print(json.dumps(sorted(loaded() - before)))
+"""
+
+
+def test_after_the_warm_up_the_robots_first_tick_loads_no_kernel(tmp_path):
+    """`warm_up` runs every kernel the first ticks call, the plan's too (strategy filter, modulation of a plan): a
+    kernel's first call loads it from numba's cache (tens of ms) or compiles it (seconds) on the loop's core, which
+    once starved the boards' reader on the first tick of `skinsafe run --tdm` (a watchdog stop, 1 run in 4). A fresh
+    process: no earlier test may have loaded them."""
+    import json
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", WARM_CHECK, str(tmp_path / "tdm.pt")], capture_output=True, text=True,
+                         check=True, timeout=300).stdout
+    assert json.loads(out.strip().splitlines()[-1]) == []
