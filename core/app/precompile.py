@@ -60,7 +60,7 @@ def _stack(robot, design, out: Path) -> None:
 
 def _calls(robot, design, out: Path) -> None:
     """The kernels behind library calls the runs above make in other modes: full Jacobians, one retraction per
-    taxel and their merge, and a learned potential scoring the strategy filter's candidates and a batch."""
+    taxel and their merge, and a learned potential over a batch (the warm-up covers its few-row calls)."""
     from skinsafe.core.robot.kinematics import TaxelKinematics
     from skinsafe.core.safety.potential import DangerPotential, FastPotential
     from skinsafe.core.safety.potential_kernels import FUSED_ROWS
@@ -74,10 +74,7 @@ def _calls(robot, design, out: Path) -> None:
     merge(single_qdots(J, up, np.ones(3), params), J[:, 2, :], 1e-3)
     pot = FastPotential(DangerPotential(load_tdm(out / "tdm.pt")))
     nq = robot.model.nq
-    s, acts = robot.home.copy(), np.linspace(-1.0, 1.0, 3 * nq).reshape(3, nq)
-    pot.log_safety(s[None], acts)
-    pot(s, acts[1])  # a candidate scored above: its normal from the kept sigmoids
-    pot(np.tile(s, (FUSED_ROWS + 1, 1)), np.ones((FUSED_ROWS + 1, nq)))
+    pot(np.tile(robot.home, (FUSED_ROWS + 1, 1)), np.ones((FUSED_ROWS + 1, nq)))
 
 
 def _pfl(robot, design) -> None:
