@@ -38,6 +38,9 @@ COMMANDS = {
     "stream": ("skinsafe.hardware.cli_stream", "stream readings from the boards, mapped to taxels"),
     "emulate": ("skinsafe.hardware.cli_emulate", "run a board emulator on a pseudo-terminal"),
     "run": ("skinsafe.core.app.run", "the safety runtime: boards -> the three layers -> a robot (sim or FR3), with watchdogs"),
+    "teleop-key": ("skinsafe.core.app.teleop_key", "make a shared key (mode 0600) for `run --command teleop:` and its "
+                   "leader"),
+    "teleop-send": ("skinsafe.core.app.teleop_send", "a stand-in leader arm: a trajectory as signed teleop datagrams"),
     "view": ("skinsafe.core.app.view", "see a run live (`run --view` stream) or a record in the browser"),
     "faults": ("skinsafe.core.app.runtime_faults", "inject each fault kind at its source into short runs and time "
                "onset -> zero command (`bench runtime --faults` summarises it)"),

@@ -47,6 +47,7 @@ from skinsafe.core.runtime.monitor import (
     table,
 )
 from skinsafe.core.runtime.tap import Tap
+from skinsafe.core.runtime.teleop import INTRUDER_DATAGRAMS, INTRUDER_WINDOW_S, Teleop, load_key
 from skinsafe.core.runtime.view_stream import DEFAULT_PORT
 from skinsafe.core.safety.retraction import RetractionParams
 from skinsafe.core.skin.files import atomic_write
@@ -72,7 +73,8 @@ def add_arguments(p) -> None:
     p.add_argument("--host", help="fr3: the robot's (or franky-sim's) address")
     p.add_argument("--boards", nargs="+", required=True, metavar="emulate|PORT",
                    help="'emulate': emulated boards fed by the simulation; or the serial port of every board")
-    p.add_argument("--command", required=True, metavar="SOURCE", help="hold | trajectory:FILE.csv | teleop:[HOST:]PORT")
+    p.add_argument("--command", required=True, metavar="SOURCE", help="hold | trajectory:FILE.csv | teleop:[HOST:]PORT "
+                   "(default host 127.0.0.1; another only with --teleop-key)")
     p.add_argument("--seconds", type=float, help="stop after this long on the robot's clock (default: a trajectory's "
                    "end plus 1 s; otherwise until Ctrl-C)")
     p.add_argument("--record", metavar="FILE.mcap", help="record the run (MCAP, ROS 2 messages); `skinsafe replay` re-runs it")
@@ -101,6 +103,10 @@ def add_arguments(p) -> None:
     p.add_argument("--max-excluded", type=float, default=0.02,
                    help="refuse to move when more than this fraction of the taxels is dead, stuck or noisy")
     p.add_argument("--command-timeout", type=float, default=0.1, help="teleop: stop when no datagram came for this long, s")
+    p.add_argument("--teleop-key", metavar="FILE", help="teleop: the shared key file (`skinsafe teleop-key FILE`) the "
+                   "leader signs its datagrams with; needed to listen beyond loopback")
+    p.add_argument("--teleop-leader", metavar="HOST[:PORT]", help="teleop: the leader's address; datagrams from any other "
+                   "are refused and named (default: the first sender whose datagram is valid is pinned)")
     p.add_argument("--tdm", help="a TDM checkpoint (skinsafe's torch format) for the strategy and modulation layers")
     p.add_argument("--alpha", type=float, default=RetractionParams.alpha, help="retraction sensitivity, m/N")
     p.add_argument("--after-contact", choices=tuple(AFTER_CONTACT), default="resume",
@@ -359,14 +365,29 @@ def _run(args, feed, ports, on_moving, signals: contextlib.ExitStack) -> int:
             if p.links is not None:
                 injected.update({k: p.links.onsets.get(b if b is not None else min(p.links.ports))
                                  for k, _, b in p.link_faults})
+            teleop = _teleop(p.runtime.command)
             rec = p.recorder.close({"reason": outcome.reason, "kind": outcome.kind, "watchdog": outcome.watchdog,
                                     "t": outcome.t, "ns": time.time_ns(), "ticks": outcome.ticks,
-                                    "dropped": p.recorder.dropped, "frames_lost": lost}) if p.recorder else None
+                                    "dropped": p.recorder.dropped, "frames_lost": lost,
+                                    **({"teleop": teleop["line"]} if teleop else {})}) if p.recorder else None
     except _Refused as e:
         print(f"skinsafe run: {e}", file=sys.stderr)
         return e.code
-    _report(args, p, design, outcome, injected, lost, skin, rec)
+    _report(args, p, design, outcome, injected, lost, skin, rec, teleop)
     return outcome.exit_code
+
+
+def _teleop(command) -> dict | None:
+    """Teleop's tally (who led, who was refused and why) with its one line for the operator and the record."""
+    if not isinstance(command, Teleop):
+        return None
+    s = command.summary()
+    refused = "; ".join(f"{x['address']} {x['datagrams']} ({x['why']})" for x in s["senders"]) or "none"
+    leader = f"{s['leader']} ({'given' if s['pinned'] == 'given' else 'pinned: its first valid datagram'})" \
+        if s["leader"] else "none (no valid datagram came)"
+    key = f"key id {s['key_id']}" if s["key_id"] else "no key"
+    return s | {"line": f"leader {leader}, {key}: {s['accepted']} datagrams accepted, {s['refused']} refused: "
+                        f"{refused}"}
 
 
 def _load(args):
@@ -417,7 +438,9 @@ def _wire(args, stack, feed, ports, inject, map_path, map_hash, robot, design) -
         stack.callback(driver.close)
         arm = only_joints(robot, driver.joint_names)  # the joints the driver moves (the FR3: not its fingers)
         limits = driver.limits()
-        command = command_source(args.command, driver.joint_names, limits, args.command_timeout)
+        key = load_key(args.teleop_key) if args.teleop_key else None
+        command = command_source(args.command, driver.joint_names, limits, args.command_timeout, key,
+                                 args.teleop_leader)
         stack.callback(command.close)
         ports = ports or _ports(args, design, stack, feed)
         links = None
@@ -450,6 +473,8 @@ def _wire(args, stack, feed, ports, inject, map_path, map_hash, robot, design) -
     if args.record:
         config = run_config(map_path, driver, limits, params, source.excluded, command.spec, args.tdm)
         config["board_period_s"] = 1.0 / args.rate  # for the view's board health
+        if isinstance(command, Teleop):  # who may drive it, and with which key (its id, never its value)
+            config["teleop"] = {"leader": args.teleop_leader or "", "key": command.key.path, "key_id": command.key.key_id}
         try:
             recorder = Recorder(args.record, driver.joint_names, config)
         except OSError as e:
@@ -480,6 +505,12 @@ def _move(args, stack, p: _Parts, design, inject, rt: str, signals: contextlib.E
 
     for signum in (signal.SIGINT, signal.SIGTERM):
         signals.callback(signal.signal, signum, signal.signal(signum, on_signal))
+    if isinstance(runtime.command, Teleop):
+        c = runtime.command
+        print(f"skinsafe run: teleop: listening at {c.spec}, " + (f"key id {c.key.key_id}" if c.key.secret else
+              "no key (loopback only)") + "; leader " + (f"{c.leader_name} (given)" if c.pinned == "given" else
+              "not given: the first sender whose datagram is valid is pinned (--teleop-leader names it)") +
+              f"; {INTRUDER_DATAGRAMS} datagrams refused within {INTRUDER_WINDOW_S:g} s stop the robot", file=sys.stderr)
     print(f"skinsafe run: {driver.name} robot moving under '{runtime.command.spec}' ({driver.period_s * 1e3:g} ms "
           f"period, boards at {args.rate} Hz, {rt}); Ctrl-C stops it", file=sys.stderr, flush=True)
     injected = _reader_faults(stack, inject, source, source.silence_s + 0.1)
@@ -499,7 +530,8 @@ def _move(args, stack, p: _Parts, design, inject, rt: str, signals: contextlib.E
         sys.setswitchinterval(switch)
 
 
-def _report(args, p: _Parts, design, outcome, injected: dict, lost: int, skin: dict, rec: dict | None) -> None:
+def _report(args, p: _Parts, design, outcome, injected: dict, lost: int, skin: dict, rec: dict | None,
+            teleop: dict | None = None) -> None:
     """The stop and the run's figures for the operator; with --stats, everything as JSON."""
     t = outcome.stats
     head = {"end": "stopped as planned", "operator": "STOPPED by the operator", "fault": "STOPPED by a watchdog",
@@ -508,6 +540,8 @@ def _report(args, p: _Parts, design, outcome, injected: dict, lost: int, skin: d
     for silence in skin.get("silences", []):
         print(f"skinsafe run: board '{silence['board']}' silent for {silence['silent_ms']} ms: {silence['cause']}",
               file=sys.stderr)
+    if teleop:
+        print(f"skinsafe run: teleop: {teleop['line']}", file=sys.stderr if teleop["refused"] else sys.stdout)
     if not t:  # stopped before the robot moved: no loop figures
         print("the robot never moved" + (f"; record {rec.get('path', rec.get('error'))}" if rec else ""))
     else:
@@ -524,7 +558,7 @@ def _report(args, p: _Parts, design, outcome, injected: dict, lost: int, skin: d
                "detected_mono": outcome.detected_mono, "onset_mono": outcome.onset_mono, "state": outcome.state,
                "exit": outcome.exit_code, "injected": injected, "frames_lost": lost, "preflight": p.report,
                "record": rec, "period_s": driver.period_s, "robot": driver.name, "taxels": design.n_taxels,
-               "boards": len(design.boards), **t, "skin": skin,
+               "boards": len(design.boards), **t, "skin": skin, "teleop": teleop,
                "world": {k: v for k, v in world.items() if k != "extra"} if world is not None else {}}
         atomic_write(Path(args.stats), json.dumps(out, default=_plain))
 

@@ -4,19 +4,15 @@
 - `trajectory:FILE`: joint positions over time from a CSV file (format below), tracked from the
   first tick (`TrajectorySource`: `qd_d(t) + gain * clip(q_d - q, +-max_error)`); after its last
   row it holds the last position;
-- `teleop:[HOST:]PORT`: joint targets streamed over UDP (datagram below), as the paper's leader arm;
-  the newest target is tracked the same way; nothing before the first datagram.
+- `teleop:[HOST:]PORT`: joint targets streamed over UDP by the leader alone, signed, as the paper's
+  leader arm (core/runtime/teleop.py: the datagram, the key, what is refused); the newest target is
+  tracked the same way; nothing before the first datagram.
 
 Trajectory CSV: a header `t,<joint name>,...` naming every joint of the robot once (any order),
 then one row per sample: time in s from the start (the first 0, strictly increasing) and joint
 positions in rad (m for a slide joint); `#` starts a comment line. Refused with the row and column
 named: a missing or unknown joint, a non-number or non-finite value, time not increasing, a
 position outside the robot's range, a step faster than its velocity limit.
-
-Teleop datagram (little-endian): `b"SKT1"`, u32 sequence number, u16 joint count n, then n float64
-joint targets in the robot's joint order (`skinsafe run` prints it). Datagrams with another magic,
-length or count are rejected and counted; an older sequence number is ignored (reordered); a
-non-finite target stops the robot (`StopRobot`).
 
 Staleness: `age()` is how old the source's data is (host clock). Hold and trajectory are computed
 in the loop each tick (age 0); teleop's age is the time since its last accepted datagram, and the
@@ -26,32 +22,21 @@ from __future__ import annotations
 
 import csv
 import math
-import socket
-import struct
-import time
 from pathlib import Path
 
 import numpy as np
 
-from skinsafe.core.runtime.protocol import StopRobot
 from skinsafe.core.safety.stack import TrajectorySource
-
-TELEOP_HEAD = struct.Struct("<4sIH")
-TELEOP_MAGIC = b"SKT1"
 
 
 class CommandError(ValueError):
     """A command source that cannot be used: one line naming what is wrong and the fix."""
 
 
-def teleop_datagram(seq: int, targets) -> bytes:
-    """One teleop datagram (module docstring)."""
-    q = np.asarray(targets, dtype="<f8")
-    return TELEOP_HEAD.pack(TELEOP_MAGIC, seq & 0xFFFFFFFF, len(q)) + q.tobytes()
-
-
 class Hold:
     spec, stale_s = "hold", None
+    refused = 0  # datagrams refused (teleop)
+    intrusion = None  # teleop: a sender that keeps trying (core/runtime/teleop.py `Intrusion`)
 
     def __init__(self, n: int):
         self.zero = np.zeros(n)
@@ -152,82 +137,13 @@ def read_trajectory(path: str | Path, joint_names: list[str], limits: dict[str, 
     return t, q
 
 
-class Teleop(Hold):
-    """Joint targets over UDP (module docstring), tracked; `age()` since the last accepted datagram."""
-
-    def __init__(self, address: str, joint_names: list[str], limits: dict[str, np.ndarray], stale_s: float = 0.1):
-        super().__init__(len(joint_names))
-        host, _, port = address.rpartition(":")
-        try:
-            port = int(port)
-            if not 0 <= port <= 65535:
-                raise ValueError
-        except ValueError:
-            raise CommandError(f"teleop:{address}: give a UDP port 0..65535, e.g. teleop:9870 or "
-                               "teleop:127.0.0.1:9870") from None
-        self.limits, self.stale_s = limits, float(stale_s)
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            self.sock.bind((host or "127.0.0.1", port))
-        except OSError as e:
-            self.sock.close()
-            raise CommandError(f"teleop:{address}: cannot listen there ({e}); choose a free port") from None
-        self.sock.setblocking(False)
-        self.port = self.sock.getsockname()[1]
-        self.spec = f"teleop:{host or '127.0.0.1'}:{self.port}"
-        self.size = TELEOP_HEAD.size + 8 * len(joint_names)
-        self.target = None
-        self.seq = None
-        self.last = None  # host time of the last accepted datagram
-        self.accepted = self.rejected = 0
-        self.reject_reason = ""
-        self.track = TrajectorySource(lambda t: (self.target, self.zero))
-
-    def _receive(self) -> None:
-        while True:
-            try:
-                data = self.sock.recv(65536)
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError as e:  # e.g. ICMP port unreachable echoes: not ours to act on
-                self._reject(f"socket error {e}")
-                continue
-            now = time.monotonic()
-            if len(data) != self.size or data[:4] != TELEOP_MAGIC:
-                self._reject(f"a datagram of {len(data)} bytes starting {data[:4]!r}; expected {self.size} bytes "
-                             f"starting {TELEOP_MAGIC!r}")
-                continue
-            _, seq, n = TELEOP_HEAD.unpack_from(data)
-            if n != len(self.zero):
-                self._reject(f"a datagram for {n} joints; the robot has {len(self.zero)}")
-                continue
-            if self.seq is not None and (seq - self.seq) & 0xFFFFFFFF >= 1 << 31:
-                continue  # older than the newest: reordered
-            q = np.frombuffer(data, "<f8", n, TELEOP_HEAD.size).astype(float)
-            if not np.isfinite(q).all():
-                raise StopRobot(f"command: teleop datagram {seq} holds a non-finite joint target")
-            self.target = np.clip(q, self.limits["q_min"], self.limits["q_max"])
-            self.seq, self.last = seq, now
-            self.accepted += 1
-
-    def _reject(self, why: str) -> None:
-        self.rejected += 1
-        self.reject_reason = self.reject_reason or why
-
-    def __call__(self, t: float, q: np.ndarray) -> np.ndarray:
-        self._receive()
-        return self.zero if self.target is None else self.track(t, q)
-
-    def age(self) -> float:
-        return 0.0 if self.last is None else time.monotonic() - self.last
-
-    def close(self) -> None:
-        self.sock.close()
-
-
-def command_source(spec: str, joint_names: list[str], limits: dict[str, np.ndarray], stale_s: float = 0.1):
-    """The source a `--command` spec names (module docstring)."""
+def command_source(spec: str, joint_names: list[str], limits: dict[str, np.ndarray], stale_s: float = 0.1,
+                   key=None, leader: str | None = None):
+    """The source a `--command` spec names (module docstring); teleop's `key` (core/runtime/teleop.py `TeleopKey`)
+    and `leader` (HOST[:PORT]); either given to another source is refused."""
     kind, _, arg = spec.partition(":")
+    if kind != "teleop" and (key is not None or leader):
+        raise CommandError(f"--teleop-key and --teleop-leader are for --command teleop:[HOST:]PORT, not {spec!r}")
     if kind == "hold" and not arg:
         return Hold(len(joint_names))
     if kind == "trajectory" and arg:
@@ -235,5 +151,7 @@ def command_source(spec: str, joint_names: list[str], limits: dict[str, np.ndarr
     if kind == "teleop" and arg:
         if not (math.isfinite(stale_s) and stale_s > 0):
             raise CommandError(f"command timeout {stale_s} s: give a positive number of seconds")
-        return Teleop(arg, joint_names, limits, stale_s)
+        from skinsafe.core.runtime.teleop import NO_KEY, Teleop
+
+        return Teleop(arg, joint_names, limits, stale_s, key or NO_KEY, leader)
     raise CommandError(f"--command {spec!r}: use hold, trajectory:FILE.csv or teleop:[HOST:]PORT")

@@ -6,7 +6,7 @@
    board lost, silent, late by its own clock, replayed, foreign, a CRC storm), the robot's own clock
    (unchanged for `state_periods` ticks, or going back: never a host counter; `overruns` ticks in a row more
    than 1.5 periods apart on it: its states were missed), a stale command source
-   (`age() > stale_s`), anything non-finite (robot clock, q, qd, a reading of a taxel that is not
+   (`age() > stale_s`), a sender other than the teleop leader that keeps trying (`intrusion`), anything non-finite (robot clock, q, qd, a reading of a taxel that is not
    excluded); the monitor alone decides the stop;
 2. the readings (excluded taxels as 0 N, read after the plan so that a frame arriving while it was
    computed is used), the command source's planned velocity at the robot's clock since the start, and
@@ -146,7 +146,7 @@ class Runtime:
                     planned=planned, retracting=retracting, pool=pool, pool_taxels=d.pool if retracting else None,
                     flags=info.flags, potential=self.stack.last_f, speed_factor=speed_factor(v, planned),
                     board_age_s=r.board_age_s, frames_lost=r.frames_lost, command_age=self.command.age(),
-                    index=self.ticks, ns=time.time_ns())
+                    command_refused=self.command.refused, index=self.ticks, ns=time.time_ns())
         self.tap.publish(tick)
         if self.recorder is not None:
             self.recorder.put(tick)
@@ -183,6 +183,9 @@ class Runtime:
                                f"for {self._repeats + 1} periods of {self.driver.period_s * 1e3:g} ms)", time.monotonic()))
         else:
             self._repeats = 0
+        intrusion = self.command.intrusion
+        if intrusion is not None:
+            m.report(Fault(Kind.COMMAND_INTRUDER, "command", intrusion.message, intrusion.onset))
         age = self.command.age()
         if self.stale_s is not None and age > self.stale_s:
             m.report(Fault(Kind.COMMAND_STALE, "command", f"command: {self.command.spec} silent for {age:.3f} s "
@@ -224,7 +227,7 @@ class Runtime:
         tick = Tick(t=state.t, q=state.q, qd=state.qd, command=zero, force=self._force, reading_seq=float(r.seq),
                     planned=zero, flags=("stop",), speed_factor=0.0, stop=reason, ticked=False,
                     board_age_s=r.board_age_s, frames_lost=r.frames_lost, command_age=self.command.age(),
-                    index=self.ticks + 1, ns=time.time_ns())
+                    command_refused=self.command.refused, index=self.ticks + 1, ns=time.time_ns())
         self.tap.publish(tick)
         if self.recorder is not None:
             self.recorder.put(tick)

@@ -55,6 +55,7 @@ class Kind(str, Enum):
     DRIVER = "driver"
     COMMAND_STALE = "command-stale"
     COMMAND_BAD = "command-bad"
+    COMMAND_INTRUDER = "command-intruder"
     STACK_NONFINITE = "stack-nonfinite"
     STACK_LATCH = "stack-latch"
     OVERRUN = "overrun"
@@ -116,6 +117,10 @@ SPECS = {
     Kind.COMMAND_BAD: Spec("a non-finite plan or teleop target", STOP,
                            "tests/runtime/test_runtime_safety.py::test_a_non_finite_robot_state_or_teleop_target_is_"
                            "typed"),
+    Kind.COMMAND_INTRUDER: Spec("3 teleop datagrams refused within 1 s (not from the leader, malformed, failing the "
+                                "key's HMAC, replayed, jumped ahead, off the clock), at the next tick; none of them "
+                                "moves the robot; onset: the first's arrival", STOP,
+                                "tests/runtime/test_teleop.py::test_an_intruder_never_moves_the_robot_and_is_named"),
     Kind.STACK_NONFINITE: Spec("a non-finite command from the layers, in the tick that made it", STOP,
                                "tests/runtime/test_runtime_safety.py::test_stack_and_reading_faults_are_named_from_"
                                "their_source"),
@@ -157,7 +162,7 @@ def bounds(tm: Timing) -> dict[Kind, float]:
             Kind.COUNTER_BACK: board, Kind.FOREIGN_UID: board, Kind.CRC_STORM: tm.silence_s + board,
             Kind.READING_NONFINITE: 2 * p, Kind.ROBOT_FROZEN: (tm.state_periods + 1) * p, Kind.ROBOT_CLOCK_BACK: p,
             Kind.ROBOT_NONFINITE: p, Kind.DRIVER: p,
-            Kind.COMMAND_STALE: (tm.stale_s or 0.0) + 2 * p, Kind.COMMAND_BAD: p, Kind.STACK_NONFINITE: p,
+            Kind.COMMAND_STALE: (tm.stale_s or 0.0) + 2 * p, Kind.COMMAND_BAD: p, Kind.COMMAND_INTRUDER: 2 * p, Kind.STACK_NONFINITE: p,
             Kind.STACK_LATCH: p, Kind.OVERRUN: tm.overruns * p, Kind.OPERATOR: 2 * p, Kind.AFTER_CONTACT: p}
 
 
@@ -171,7 +176,7 @@ def table(tm: Timing, speed: float = 0.0) -> list[tuple[str, float, float, str]]
     """[(kind, bound ms, blind distance mm = speed x bound, detection)] for the kinds that apply."""
     b = bounds(tm)
     return [(k.value, b[k] * 1e3, speed * b[k] * 1e3, SPECS[k].detection) for k in Kind
-            if (k is not Kind.COMMAND_STALE or tm.stale_s is not None) and (k is not Kind.OVERRUN or tm.overruns)]
+            if (k not in (Kind.COMMAND_STALE, Kind.COMMAND_INTRUDER) or tm.stale_s is not None) and (k is not Kind.OVERRUN or tm.overruns)]
 
 
 @dataclass

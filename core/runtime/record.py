@@ -232,7 +232,8 @@ class Recorder:
             skin.append(("frames_lost", str(k.frames_lost)))
             self._diag(ns, t, [("skinsafe/layers", WARN if k.flags else OK, "retracting" if k.retracting else "ok",
                                 layers), ("skinsafe/skin", OK, "streaming", skin),
-                               ("skinsafe/command", OK, "fresh", [("age_s", f"{k.command_age:.4f}")])])
+                               ("skinsafe/command", WARN if k.command_refused else OK, "fresh",
+                                [("age_s", f"{k.command_age:.4f}"), ("refused", str(k.command_refused))])])
 
     def _stop(self, stop: dict) -> None:
         level = OK if stop.get("kind") in ("end", None) else ERROR

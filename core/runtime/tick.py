@@ -33,6 +33,7 @@ class Tick:
     board_age_s: dict | None = None  # per board uid: seconds since its last frame
     frames_lost: int = 0
     command_age: float = 0.0  # seconds since the command source's last update
+    command_refused: int = 0  # teleop datagrams refused so far (not from the leader, forged, replayed, ...)
     index: int = 0  # the tick's number in the run
     ns: int = 0  # host wall clock, ns (the record's log time)
     obstacles: np.ndarray | None = None  # (P, 7) poses of moving obstacles (None: they stand still)

@@ -13,10 +13,10 @@ import pytest
 import test_runtime_closed_loop as closed_loop
 import test_runtime_loop as loop
 
-from skinsafe.core.runtime.commands import Teleop, teleop_datagram
 from skinsafe.core.runtime.limiter import Limiter, limits_config
 from skinsafe.core.runtime.monitor import Kind, Monitor, Timing, bounds
 from skinsafe.core.runtime.protocol import StopRobot
+from skinsafe.core.runtime.teleop import NO_KEY, Teleop, datagram, now_us
 from skinsafe.core.sim.robot_driver import SimFaults, SimState
 from skinsafe.hardware.skin_reader import KINDS
 
@@ -112,7 +112,7 @@ def test_a_non_finite_robot_state_or_teleop_target_is_typed(ur5):
     rt.command = Teleop("127.0.0.1:0", drv.joint_names, drv.limits())
     rt.stale_s = None
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as out:
-        out.sendto(teleop_datagram(1, [np.nan] + [0.0] * 5), ("127.0.0.1", rt.command.port))
+        out.sendto(datagram([np.nan] + [0.0] * 5, NO_KEY, now_us()), ("127.0.0.1", rt.command.port))
         time.sleep(0.05)
         with pytest.raises(StopRobot, match="non-finite joint target"):
             rt.control(SimState(0.0, robot.home.copy(), np.zeros(6), 0))

@@ -14,10 +14,11 @@ from hypothesis import strategies as st
 from mcap.reader import make_reader
 from mcap_ros2.writer import Writer as Ros2Writer
 
-from skinsafe.core.runtime.commands import CommandError, Teleop, Trajectory, read_trajectory, teleop_datagram
+from skinsafe.core.runtime.commands import CommandError, Trajectory, read_trajectory
 from skinsafe.core.runtime.protocol import StopRobot
 from skinsafe.core.runtime.record import SCHEMAS, JointStateEncoder, encode_diagnostics, encode_float64_array
 from skinsafe.core.runtime.replay import decode_float64_array
+from skinsafe.core.runtime.teleop import NO_KEY, Refusal, Teleop, datagram, now_us
 from skinsafe.core.skin.force_feed import FeedError, ForceFeed
 from skinsafe.hardware.skin_source import classify
 
@@ -84,19 +85,21 @@ def test_teleop_over_udp_tracks_rejects_and_goes_stale():
         q = np.zeros(3)
         assert src(0.0, q).tolist() == [0, 0, 0] and src.age() == 0.0  # nothing before the first datagram
         addr = ("127.0.0.1", src.port)
-        out.sendto(teleop_datagram(7, [0.1, -0.05, 9.0]), addr)
-        out.sendto(b"SKT1garbage", addr)
-        out.sendto(teleop_datagram(8, [0.1, 0.2]), addr)
+        t = now_us()
+        out.sendto(datagram([0.1, -0.05, 9.0], NO_KEY, t), addr)
+        out.sendto(b"SKT2garbage", addr)
+        out.sendto(datagram([0.1, 0.2], NO_KEY, t + 1), addr)
         time.sleep(0.05)
         v = src(0.0, q)
         assert v == pytest.approx([0.3, -0.15, 0.45])  # 3 x error, clipped at 0.15; target clipped to q_max
-        assert src.accepted == 1 and src.rejected == 2 and "2 joints" not in src.reject_reason
-        out.sendto(teleop_datagram(6, [0.0, 0.0, 0.0]), addr)  # older: ignored
+        assert src.accepted == 1 and src.refused == 2 and src.intrusion is None
+        assert src.senders[f"127.0.0.1:{out.getsockname()[1]}"].why is Refusal.MALFORMED
+        out.sendto(datagram([0.0, 0.0, 0.0], NO_KEY, t - 1), addr)  # older: refused (the third within 1 s)
         time.sleep(0.02)
-        assert src(0.0, q) == pytest.approx(v)
+        assert src(0.0, q) == pytest.approx(v) and src.intrusion is not None
         time.sleep(0.06)
         assert src.age() > src.stale_s
-        out.sendto(teleop_datagram(9, [np.nan, 0, 0]), addr)
+        out.sendto(datagram([np.nan, 0, 0], NO_KEY, now_us()), addr)
         time.sleep(0.02)
         with pytest.raises(StopRobot, match="non-finite"):
             src(0.0, q)
