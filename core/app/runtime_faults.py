@@ -10,7 +10,9 @@ time.monotonic() (the onset): a board's link closed (the host's side of its pseu
 frames held 50 ms, ever later (frame-lag), replayed, foreign or corrupt (on the link proxy), the
 simulation failed, its state frozen, its clock gone back or missing states (overruns), the boards' reader killed
 (SIGKILL), a NaN reading from the readings source, the layers' command non-finite, the retraction's QP solve failed
-(that run has a poke: a retraction), the teleop leader silent, SIGINT to this process (once, or twice 10 ms apart:
+(that run has a poke: a retraction), the teleop leader silent, a second sender beside the teleop leader (its shoulder
+target +0.4 rad at 100 Hz: unsigned with stamps 2^30 us ahead, signed with another key, the leader's datagram
+replayed; the onset its first datagram), SIGINT to this process (once, or twice 10 ms apart:
 one stop). Per run: the fault kind the monitor named (is it the
 one injected: `EXPECT`, no text matched), onset -> the time the driver sent zero velocity (not the
 detection), any traceback, is the record readable (every message decodes with mcap-ros2-support and
@@ -37,12 +39,15 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from skinsafe.core.runtime.teleop import INTRUDER_DATAGRAMS, NO_KEY, datagram, make_key, now_us
+
 EXPECT = {"board-unplug": "link-lost", "frame-delay": "board-silent", "frame-lag": "board-late",
           "frame-replay": "counter-back", "foreign-uid": "foreign-uid", "crc-storm": "crc-storm", "sim-die": "driver",
           "sim-freeze": "robot-frozen", "sim-clock-back": "robot-clock-back", "sim-overrun": "overrun",
           "reader-kill": "reader-died", "command-silent": "command-stale", "ctrl-c": "operator",
           "ctrl-c-twice": "operator", "reading-nan": "reading-nonfinite", "stack-nan": "stack-nonfinite",
-          "stack-qp-fail": "stack-latch"}  # injected -> the monitor's kind that names it
+          "stack-qp-fail": "stack-latch", "teleop-intruder": "command-intruder"}  # injected -> the monitor's kind
+INTRUDER_HZ = 100.0  # the intruder's datagrams per second (the issue's hijack)
 # per driver. fr3 has no sim-* faults (the robot's side is franky-sim's own process), nor stack-qp-fail: its world
 # has no hand or obstacle in the storm, so no retraction happens and the retraction's QP is never solved
 KINDS = {"sim": tuple(EXPECT), "fr3": tuple(k for k in EXPECT if not k.startswith("sim-") and k != "stack-qp-fail")}
@@ -70,6 +75,42 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+class _Intruder:
+    """A second sender beside the leader: the hijack of issue 54 (module docstring), from `run()` until `stop`;
+    `done["onset"]`: its first datagram's send."""
+
+    def __init__(self, to, home, key, other_path: Path, stop: threading.Event, done: dict):
+        self.to, self.stop, self.done = to, stop, done
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.name = f"127.0.0.1:{self.sock.getsockname()[1]}"
+        self.bad = np.asarray(home, float) + np.eye(len(home))[0] * 0.4
+        self.other, self.captured = make_key(other_path, force=True), datagram(home, key, now_us())
+
+    def run(self) -> None:
+        k = 0
+        while not self.stop.is_set():
+            data = (datagram(self.bad, NO_KEY, now_us() + 2**30), datagram(self.bad, self.other, now_us()),
+                    self.captured)[k % 3]
+            self.done.setdefault("onset", time.monotonic())
+            with contextlib.suppress(OSError):
+                self.sock.sendto(data, self.to)
+            k += 1
+            self.stop.wait(1.0 / INTRUDER_HZ)
+
+    def row(self, teleop: dict) -> dict:
+        """followed_intruder: the run took a datagram of the intruder's (it became the leader); intruder_named: the
+        run's tally names it; the bound's extra: the intruder's time to send the datagrams that stop."""
+        named = {x["address"]: x["datagrams"] for x in teleop.get("senders", [])}
+        return {"followed_intruder": int(teleop.get("leader") == self.name), "intruder": self.name,
+                "intruder_named": self.name in named, "intruder_refused": named.get(self.name, 0),
+                "leader_accepted": teleop.get("accepted", 0),
+                "bound_extra_ms": (INTRUDER_DATAGRAMS - 1) / INTRUDER_HZ * 1e3}
+
+    def close(self) -> None:
+        self.sock.close()
+
+
 def _stop_boards(ports: dict[int, str]) -> None:
     """Leave every board idle for the next run (a run whose link was cut could not stop its board)."""
     from skinsafe.hardware.client import BoardClient, BoardError
@@ -93,7 +134,7 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
 
     record, stats = out / f"run{k}.mcap", out / f"run{k}.json"
     command, extra, stop = "hold", [], threading.Event()
-    timers, done = [], {}
+    timers, done, intruder = [], {}, None
 
     def at_once(call, *args):  # the harness's own injections: the onset is when it first acts
         done.setdefault("onset", time.monotonic())
@@ -103,12 +144,21 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
         command = f"teleop:{port}"
         threading.Thread(target=stream, args=(("127.0.0.1", port), np.array([0.0, 1.0]), np.stack([home, home]), stop),
                          daemon=True).start()
+    elif kind == "teleop-intruder":
+        port = _free_port()
+        key = make_key(out / "leader.key", force=True)
+        command, extra = f"teleop:{port}", ["--teleop-key", key.path]
+        intruder = _Intruder(("127.0.0.1", port), home, key, out / "other.key", stop, done)
+        threading.Thread(target=stream, args=(("127.0.0.1", port), np.array([0.0, 1.0]), np.stack([home, home]), stop,
+                                              100.0, key), daemon=True).start()
     elif kind not in SIGNALS:
         extra = ["--inject", f"{kind}@{at:.3f}"] + (["--contact", "poke"] if kind == "stack-qp-fail" else [])
 
     def moving(runtime):
         if kind == "command-silent":
             timers.append(threading.Timer(at, at_once, (stop.set,)))
+        if intruder is not None:
+            timers.append(threading.Timer(at, intruder.run))
         for later in SIGNALS.get(kind, ()):
             timers.append(threading.Timer(at + later, at_once, (os.kill, os.getpid(), signal.SIGINT)))
         for t in timers:
@@ -128,6 +178,8 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
     stop.set()
     for t in timers:
         t.cancel()
+    if intruder is not None:
+        intruder.close()
     _stop_boards(ports)
     s = json.loads(stats.read_text()) if stats.exists() else {}
     reason = s.get("reason", "")
@@ -141,7 +193,8 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
             "onset_to_zero_ms": (zero - onset) * 1e3 if onset and zero else None,
             "latched": s.get("state") == "protective_stop",
             "traceback": bool(tb) or "Traceback" in err.getvalue(), "record_readable": _readable(record),
-            "seconds": time.monotonic() - t0, "detail": tb.strip().splitlines()[-1] if tb else ""}
+            "seconds": time.monotonic() - t0, "detail": tb.strip().splitlines()[-1] if tb else ""} | \
+        (intruder.row(s.get("teleop") or {}) if intruder is not None else {})
 
 
 @contextlib.contextmanager
@@ -196,6 +249,8 @@ def add_arguments(p) -> None:
                    "delay is then 3 frame periods + this)")
     p.add_argument("--driver", choices=tuple(KINDS), default="sim", help="sim (default) or fr3 (franky-sim's FR3 in "
                    "its own process: `make franky-sim`); fr3 has no sim-* faults")
+    p.add_argument("--kinds", nargs="+", metavar="FAULT", help="only these fault kinds, in turn (default: every kind "
+                   "of the driver)")
     p.add_argument("--json", action="store_true", help="print the per-run rows as one JSON list")
 
 
@@ -207,6 +262,13 @@ def run(args) -> int:
     signal.signal(signal.SIGINT, lambda *_: None)  # a run's own handler takes Ctrl-C; a late one lands here
     rows = []
     kinds = KINDS[args.driver]
+    if args.kinds:
+        unknown = [k for k in args.kinds if k not in kinds]
+        if unknown:
+            print(f"skinsafe faults: --kinds {' '.join(unknown)}: the {args.driver} driver's kinds are "
+                  f"{', '.join(kinds)}", file=sys.stderr)
+            return 2
+        kinds = tuple(args.kinds)
     with tempfile.TemporaryDirectory(prefix="skinsafe-faults-") as tmp, _setup(args.driver, Path(tmp)) as world:
         map_path, feed, ports, home, options = world
         for k in tqdm(range(args.runs), desc=f"fault runs ({args.driver})", file=sys.stderr):

@@ -44,7 +44,10 @@ each block holds one whole sweep: the same contacts.
 driver (`--robot`: sim, or fr3 against franky-sim): runs, detect_bound_ms (the monitor's bound for the kind that names it), onset_to_zero_ms_p50 /
 _max (the injection's time -> the zero command the driver sent), over_bound (runs over the bound),
 named_as_injected (fraction named by that kind), unnamed, tracebacks, records_readable (fraction),
-latched (fraction left in the monitor's protective stop).
+latched (fraction left in the monitor's protective stop); `--fault-kinds` picks kinds. The `teleop-intruder` row's
+onset is the intruder's first datagram and its bound adds the time it takes to send the 3 that stop (at 100 Hz:
+20 ms); followed_intruder (runs whose leader became the intruder), intruder_named (fraction of runs whose tally
+names it), intruder_refused_min, leader_accepted_min.
 """
 from __future__ import annotations
 
@@ -103,6 +106,8 @@ def add_arguments(p) -> None:
                    "the tick's arrays copied against the stream message encoded (core/bench/view_tap.py; --seconds "
                    "each, default 2)")
     p.add_argument("--runs", type=int, default=204, help="--faults: runs (one fault each)")
+    p.add_argument("--fault-kinds", nargs="+", metavar="FAULT", help="--faults: only these kinds (`skinsafe faults "
+                   "--kinds`), e.g. teleop-intruder")
     p.add_argument("--fault-rate", type=int, default=50, help="--faults: board frames per second (a board is silent "
                    "after 2 frame periods: 40 ms, so a 50 ms delay trips it and the machine's stalls mostly do not)")
     p.add_argument("--seed", type=int, default=0)
@@ -507,7 +512,8 @@ def fault_rows(args) -> list[dict]:
     from skinsafe.core.runtime.monitor import Kind, Timing, bounds
 
     cmd = [SKINSAFE, "faults", "--runs", str(args.runs), "--seed", str(args.seed),
-           "--rate", str(args.fault_rate), "--link-latency", str(args.link_latency), "--driver", args.robot, "--json"]
+           "--rate", str(args.fault_rate), "--link-latency", str(args.link_latency), "--driver", args.robot, "--json",
+           *(["--kinds", *args.fault_kinds] if args.fault_kinds else [])]
     p = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, timeout=7200)
     if p.returncode:
         raise RuntimeError(f"bench runtime --faults: the fault storm exited {p.returncode}")
@@ -518,7 +524,7 @@ def fault_rows(args) -> list[dict]:
     rows = []
     for (fault, driver) in sorted({(r["fault"], r["driver"]) for r in runs}):
         these = [r for r in runs if r["fault"] == fault and r["driver"] == driver]
-        b = bound[Kind(these[0]["expected_kind"])] * 1e3
+        b = bound[Kind(these[0]["expected_kind"])] * 1e3 + max(r.get("bound_extra_ms", 0.0) for r in these)
         z = np.array([r["onset_to_zero_ms"] for r in these if r["onset_to_zero_ms"] is not None])
         rows.append({"fault": fault, "driver": driver, "runs": len(these), "detect_bound_ms": round(b, 2),
                      "onset_to_zero_ms_p50": round(float(np.median(z)), 2) if len(z) else None,
@@ -528,5 +534,10 @@ def fault_rows(args) -> list[dict]:
                      "unnamed": sum(not r["named"] for r in these), "tracebacks": sum(r["traceback"] for r in these),
                      "records_readable": float(np.mean([r["record_readable"] for r in these])),
                      "latched": float(np.mean([r["latched"] for r in these])),
-                     "rate_hz": args.fault_rate, "link_latency_ms": args.link_latency * 1e3})
+                     "rate_hz": args.fault_rate, "link_latency_ms": args.link_latency * 1e3}
+                    | ({"followed_intruder": sum(r["followed_intruder"] for r in these),
+                        "intruder_named": float(np.mean([r["intruder_named"] for r in these])),
+                        "intruder_refused_min": min(r["intruder_refused"] for r in these),
+                        "leader_accepted_min": min(r["leader_accepted"] for r in these)}
+                       if "followed_intruder" in these[0] else {}))
     return rows
