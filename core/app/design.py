@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from skinsafe.core.skin.model import DesignError, Module, RobotRef
 
-MODULE_KEYS = {"rows", "cols", "pitch", "taxel_diameter", "margin", "min_bend_radius", "template"}
+MODULE_KEYS = {"rows", "cols", "pitch", "taxel_diameter", "margin", "min_bend_radius", "max_strain", "template"}
 SPEC_KEYS = {"module", "bodies", "cover", "max_taxels", "board_capacity", "force_threshold"}
 
 

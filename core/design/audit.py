@@ -8,7 +8,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from skinsafe.core.design.placement import FAR_ANCHOR
+from skinsafe.core.design.placement import FAR_ANCHOR, module_grid
+from skinsafe.core.design.strain import module_strain
 from skinsafe.core.design.surface import cached_surfaces, surface_bodies
 from skinsafe.core.skin.model import SkinDesign
 
@@ -60,6 +61,7 @@ def audit(design: SkinDesign, model: mujoco.MjModel, home: np.ndarray, poses: in
             if gap > FAR_ANCHOR:
                 problems.append(f"module {m.id} on '{m.body}': placement anchor is {gap * 1e3:.0f} mm from the link's "
                                 f"surface (more than {FAR_ANCHOR * 1e3:.0f} mm); re-place the module on the link")
+    problems += strain_problems(design)
     buried = buried_taxels(design, model, home, poses)
     if buried.any():
         i = int(np.argmax(buried))
@@ -68,6 +70,44 @@ def audit(design: SkinDesign, model: mujoco.MjModel, home: np.ndarray, poses: in
                         f"(first: taxel {int(t.ids[i])} on '{design.bodies[t.body[i]]}', module {int(t.module[i])}); "
                         "they can never be touched: move those modules away from the joint")
     return problems
+
+
+def module_strains(design: SkinDesign) -> dict[int, tuple[float, str] | None]:
+    """Per module id: its largest in-plane strain and where (`strain.module_strain` of its taxels
+    against its flat pattern), or None where its taxels do not match its template's pads."""
+    t = design.taxels
+    out = {}
+    for m in design.modules:
+        on = np.flatnonzero(t.module == m.id)
+        grid = module_grid(m, len(on))
+        if grid is None:
+            out[m.id] = None
+            continue
+        s = module_strain(*grid, t.positions[on], t.frames[on, :, 2])
+        k = s.worst
+        where = "" if k < 0 else f"taxels {int(t.ids[on[s.a[k]]])} and {int(t.ids[on[s.b[k]]])}"
+        out[m.id] = (s.max, where)
+    return out
+
+
+def strain_problems(design: SkinDesign, show: int = 10) -> list[str]:
+    """A line per module that cannot be built as placed: in-plane strain over its `max_strain`
+    (worst first; `show` of them, then a count), or taxels that are not its template's pads."""
+    mods = {m.id: m for m in design.modules}
+    strains = module_strains(design)
+    odd = [i for i, v in strains.items() if v is None]
+    over = sorted(((v[0], i, v[1]) for i, v in strains.items() if v is not None and v[0] > mods[i].max_strain),
+                  reverse=True)
+    lines = [f"module {i} '{mods[i].name}' on '{mods[i].body}': in-plane strain {s * 100:.1f}% between {where} is over "
+             f"the FPC's {mods[i].max_strain * 100:.1f}% (a flat circuit cannot be wrapped there); re-place it smaller, "
+             "cut its outline to the patch, or re-run the design" for s, i, where in over[:show]]
+    if len(over) > show:
+        lines.append(f"... and {len(over) - show} more modules over their strain tolerance "
+                     f"({len(over)} of {len(mods)})")
+    lines += [f"module {i} '{mods[i].name}': its {int((design.taxels.module == i).sum())} taxels are not the pads of its "
+              f"{mods[i].template} {mods[i].rows}x{mods[i].cols} template, so its flat pattern is unknown; re-place it"
+              for i in odd[:show]]
+    return lines
 
 
 def outline_overhang(surface, positions, frames, half, min_bend) -> np.ndarray:

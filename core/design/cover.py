@@ -161,7 +161,7 @@ def cover_link(surface: Surface, home: _Home, template: Module, body: str, first
     order = raster_order(pts, axis, template.pitch)
     R = home.data.xmat[home.model.body(body).id].reshape(3, 3)  # body to world at home
     placed: list[PlacedModule] = []
-    refused = {"placement": 0, "overhang": 0, "buried": 0, "overlap": 0}
+    refused = {"placement": 0, "strain": 0, "overhang": 0, "buried": 0, "overlap": 0}
 
     def flat(uv, anchor, frames):
         """A module's taxels laid flat in the tangent plane (k anchors, k frames) -> (k, n, 3) world."""
@@ -172,8 +172,8 @@ def cover_link(surface: Surface, home: _Home, template: Module, body: str, first
         mod = replace(m, id=first_id + len(placed), name=f"{body}_m{len(placed)}", body=body)
         try:
             p = place_module(surface, mod, anchor, direction)
-        except PlacementError:
-            refused["placement"] += 1
+        except PlacementError as e:
+            refused["strain" if e.kind == "strain" else "placement"] += 1
             return None
         w, wn = home.world(body, p.positions), p.frames[:, :, 2] @ R.T
         reason = ("overlap" if home.meets(w, wn, gap) else

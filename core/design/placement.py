@@ -8,8 +8,14 @@ On a developable link (cylinder, cone, plane) that is the FPC's own isometric wr
 spacing measured on the surface equals the pitch. `projection` lays the flat grid in the anchor's
 tangent plane and drops each taxel to the closest surface point (spacing shrinks on curves).
 
+A flexible circuit bends but never stretches: every placement's in-plane strain is measured
+(`strain.module_strain`: surface length between neighbouring pads against the flat pattern, rows,
+columns and diagonals) and a module over its `max_strain` is refused, naming the pad pair, the
+strain and the largest centred cut of the module that fits there.
+
 Refusals (`PlacementError`, a `DesignError` carrying `where`): taxels falling off the surface,
-a bend radius below the module's minimum, and overlap with another module.
+a bend radius below the module's minimum, in-plane strain over the module's tolerance, and
+overlap with another module.
 """
 from __future__ import annotations
 
@@ -18,8 +24,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
+from skinsafe.core.design.strain import Strain, module_strain
 from skinsafe.core.design.surface import Surface
 from skinsafe.core.skin.boards import assign_boards, number_channels
+from skinsafe.core.skin.ids import stable_ids
 from skinsafe.core.skin.model import DesignError, Module, RobotRef, SkinDesign, Taxels, frames_from_normals
 
 TEMPLATES = ("rect", "strip", "curve")
@@ -34,7 +42,7 @@ class PlacementError(DesignError):
 
     def __init__(self, message: str, kind: str, where: tuple | None = None):
         super().__init__(message)
-        self.kind = kind  # "off_surface", "bend_radius", "overlap", "template", "far_anchor"
+        self.kind = kind  # "off_surface", "bend_radius", "strain", "overlap", "template", "far_anchor"
         self.where = where
 
 
@@ -50,6 +58,7 @@ class PlacedModule:
     min_bend_radius: float  # the tightest bend the placement asks of the FPC, m
     origin: np.ndarray | None = None  # (3,) the anchor on the surface
     origin_frame: np.ndarray | None = None  # (3,3) the module frame there (x along rows, z out)
+    strain: float = 0.0  # the largest in-plane strain the wrap asks of the FPC (`strain.module_strain`)
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -136,11 +145,73 @@ def place_module(surface: Surface, module: Module, anchor, direction, method: st
         pos, nrm, x = _project(surface, module, uv, row, col, p0, n0, x0)
     else:
         pos, nrm, x = _geodesic(surface, module, uv, row, col, p0, n0, x0, max_step)
+    strain = module_strain(uv, row, col, pos, nrm)
+    if strain.max > module.max_strain and method == "geodesic":
+        pos, nrm, strain = relax(surface, uv, row, col, pos, nrm, strain, module.max_strain)
     frames = frames_from_normals(nrm, x)
     radius = _check_bend(module, surface.name, uv, row, col, pos, frames)
-    placed = PlacedModule(module, pos, frames, row, col, radius, p0[0], frames_from_normals(n0, x0)[0])
+    if strain.max > module.max_strain:
+        raise _stretched(module, surface.name, uv, row, col, pos, strain)
+    placed = PlacedModule(module, pos, frames, row, col, radius, p0[0], frames_from_normals(n0, x0)[0], strain.max)
     check_overlap(placed, others)
     return placed
+
+
+RELAX_SWEEPS = 60
+
+
+def relax(surface: Surface, uv, row, col, pos, nrm, strain: Strain, tol: float):
+    """The least-strain wrap of a grid the walk stretched (a doubly curved patch): the circuit
+    settles where its stretched and crowded pad pairs balance. Jacobi sweeps of distance
+    constraints (position-based dynamics: each pair moves its two pads half its length error along
+    its chord), each sweep projected back onto the surface, until the strain is under half the
+    tolerance or stops improving. Returns (positions, normals, Strain)."""
+    a, b = strain.a, strain.b
+    flat = np.linalg.norm(uv[a] - uv[b], axis=1)
+    count = np.maximum(np.bincount(np.r_[a, b], minlength=len(pos)), 1)[:, None]
+    best, checked = (pos, nrm, strain), strain.max
+    for sweep in range(1, RELAX_SWEEPS + 1):
+        d = pos[b] - pos[a]
+        move = (0.5 * strain.strain * flat / np.maximum(np.linalg.norm(d, axis=1), 1e-12))[:, None] * d
+        delta = np.stack([np.bincount(a, move[:, k], len(pos)) - np.bincount(b, move[:, k], len(pos))
+                          for k in range(3)], axis=1)
+        pos, nrm = surface.closest(pos + 0.5 * delta / count)[:2]
+        strain = module_strain(uv, row, col, pos, nrm)
+        if strain.max < best[2].max:
+            best = (pos, nrm, strain)
+        if best[2].max < tol / 2 or sweep % 10 == 0 and best[2].max > 0.95 * checked:
+            break
+        checked = best[2].max if sweep % 10 == 0 else checked
+    return best
+
+
+def largest_fit(module: Module, uv: np.ndarray, row: np.ndarray, col: np.ndarray, strain: Strain) -> tuple[int, int]:
+    """The largest centred cut (rows, cols) of a placed grid whose pads' pairs all stay within the
+    module's tolerance ((0, 0) for none): same parity as the grid, so its pads are the grid's own."""
+    bad = np.abs(strain.strain) > module.max_strain
+    best = (0, 0)
+    for r in range(module.rows, 0, -2):
+        for c in range(module.cols, 0, -2):
+            if r * c <= best[0] * best[1] or r * c < 2:
+                continue
+            r0, c0 = (module.rows - r) // 2, (module.cols - c) // 2
+            inside = (row >= r0) & (row < r0 + r) & (col >= c0) & (col < c0 + c)
+            if not (bad & inside[strain.a] & inside[strain.b]).any():
+                best = (r, c)
+    return best
+
+
+def _stretched(module, body, uv, row, col, pos, strain: Strain) -> PlacementError:
+    k = strain.worst
+    i, j = int(strain.a[k]), int(strain.b[k])
+    fit = largest_fit(module, uv, row, col, strain) if module.template == "rect" else (0, 0)
+    offer = (f"a {fit[0]}x{fit[1]} module fits here" if fit[0] else "no cut of this grid fits here") + \
+        ", or cut the outline to the patch (the 'curve' template), or run strips along the link"
+    return PlacementError(
+        f"module {module.id} '{module.name}': in-plane strain {strain.strain[k] * 100:+.1f}% between taxels row "
+        f"{row[i]} col {col[i]} and row {row[j]} col {col[j]} on '{body}' at {_fmt(pos[i])} is over the FPC's "
+        f"{module.max_strain * 100:.1f}% (a flat circuit cannot wrap this doubly curved patch): {offer}", "strain",
+        (int(row[i]), int(col[i]), tuple(map(float, pos[i]))))
 
 
 def _off_surface(module, body, row, col, pos):
@@ -255,8 +326,8 @@ def check_overlap(placed: PlacedModule, others: list[PlacedModule]) -> None:
 
 def build_design(robot: RobotRef, placed: list[PlacedModule], capacity: int = 256, force_threshold: float = 2.0,
                  bodies: list[str] | None = None) -> SkinDesign:
-    """A validated SkinDesign from placed modules: taxel ids in module order, whole modules on
-    boards (`assign_boards`), channels numbered per board."""
+    """A validated SkinDesign from placed modules: stable taxel ids (`ids.stable_ids`: module id x
+    65,536 + index), whole modules on boards (`assign_boards`), channels numbered per board."""
     bodies = list(bodies or dict.fromkeys(p.module.body for p in placed))
     body_index = {b: i for i, b in enumerate(bodies)}
     sizes = {p.module.id: len(p) for p in placed}
@@ -265,7 +336,7 @@ def build_design(robot: RobotRef, placed: list[PlacedModule], capacity: int = 25
     mod = np.concatenate([np.full(len(p), p.module.id, np.int32) for p in placed]) if placed else np.zeros(0, np.int32)
     board = np.array([of[int(i)] for i in mod], dtype=np.int32)
     taxels = Taxels(
-        ids=np.arange(n, dtype=np.int64),
+        ids=stable_ids(mod),
         body=np.concatenate([np.full(len(p), body_index[p.module.body], np.int32) for p in placed]) if placed
         else np.zeros(0, np.int32),
         positions=np.concatenate([p.positions for p in placed]) if placed else np.zeros((0, 3)),
@@ -311,14 +382,29 @@ def replace_module(design: SkinDesign, placed: PlacedModule) -> SkinDesign:
                         float(np.median(t.thresholds["force"])) if len(t) else 2.0)
 
 
+def module_grid(module: Module, n: int):
+    """The flat pattern of a module of a design holding `n` taxels: (uv (n,2) m, row, col) in taxel
+    order, from its template (and the outline its placement recorded); None when the template does
+    not give `n` pads (the module was edited into another shape: it cannot be checked as a grid)."""
+    outline = module.placement.get("outline") if isinstance(module.placement, dict) else None
+    try:
+        uv, row, col = template_grid(module, None if outline is None else np.asarray(outline, float))
+    except PlacementError:
+        return None
+    return (uv, row, col) if len(uv) == n else None
+
+
 def placed_from_design(design: SkinDesign, module_id: int) -> PlacedModule:
     """A module's taxels of a design as a PlacedModule (for overlap checks and re-assembly)."""
     t = design.taxels
     on = t.module == module_id
     m = next(m for m in design.modules if m.id == module_id)
     k = int(on.sum())
-    idx = np.arange(k)
-    return PlacedModule(m, t.positions[on], t.frames[on], idx // max(m.cols, 1), idx % max(m.cols, 1), float("inf"))
+    grid = module_grid(m, k)
+    if grid is None:
+        idx = np.arange(k)
+        grid = (None, idx // max(m.cols, 1), idx % max(m.cols, 1))
+    return PlacedModule(m, t.positions[on], t.frames[on], grid[1], grid[2], float("inf"))
 
 
 def ring_layout(model, body: str, module: Module, poses=None) -> list[tuple[np.ndarray, np.ndarray]]:

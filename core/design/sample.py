@@ -15,6 +15,7 @@ from skinsafe.core.design.coverage import coverage_report, format_report
 from skinsafe.core.robot.models import BUILTIN, Robot, build_ur5
 from skinsafe.core.robot.shapes import inside_depth
 from skinsafe.core.skin.boards import assign_boards, number_channels
+from skinsafe.core.skin.ids import stable_ids
 from skinsafe.core.skin.model import DesignError, Module, RobotRef, SkinDesign, Taxels
 
 
@@ -114,7 +115,7 @@ def wrap_cylinder(model: mujoco.MjModel, geom: int, pitch: float, rows: int, col
         k0, k1 = 0, n_along
         if poses is not None:
             last = min(c0 + cols, n_around) - 1
-            edges = 2 * np.pi * (np.linspace(c0 - 0.5, last + 0.5, 3 * (last - c0 + 1) + 1)) / n_around
+            edges = np.linspace(c0 - 0.5, last + 0.5, 3 * (last - c0 + 1) + 1) * pitch / r
             span = exposed_span(model, poses, geom, pitch, margin, edges)
             free = np.flatnonzero((row_z >= span[0] - 1e-9) & (row_z <= span[1] + 1e-9)) if span else []
             if not len(free):
@@ -124,7 +125,7 @@ def wrap_cylinder(model: mujoco.MjModel, geom: int, pitch: float, rows: int, col
             ii, jj = np.meshgrid(np.arange(r0, min(r0 + rows, k1)), np.arange(c0, min(c0 + cols, n_around)),
                                  indexing="ij")
             ii, jj = ii.ravel(), jj.ravel()
-            phi = 2 * np.pi * jj / n_around
+            phi = jj * pitch / r  # the pitch in arc length: the FPC wraps without stretching
             z = row_z[ii]
             radial = np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], 1)
             tangent = np.stack([-np.sin(phi), np.cos(phi), np.zeros_like(phi)], 1)
@@ -186,6 +187,7 @@ def make_sample_design(robot_name: str = "ur5", pitch: float = 0.01, rows: int =
     modules = [Module(**{**m.__dict__, "board": of[m.id]}) for m in modules]
     taxels.board = np.array([of[int(m)] for m in taxels.module], dtype=np.int32)
     taxels.channel = number_channels(taxels.module, taxels.board)
+    taxels.ids = stable_ids(taxels.module)
     design = SkinDesign(RobotRef("builtin", robot_name), bodies, modules, boards, taxels)
     design.coverage = coverage_report(design, model)
     design.validate("sample skin", robot.body_names)
@@ -198,7 +200,7 @@ def design_with(n: int, robot=None):
     base = make_sample_design("ur5", robot=robot)
     idx = np.resize(np.arange(base.n_taxels), n)
     t = base.taxels.subset(np.sort(idx))
-    t.ids = np.arange(n, dtype=np.int64)
+    t.ids = stable_ids(t.module)
     return base.with_taxels(t), robot
 
 

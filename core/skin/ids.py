@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import warnings
+
 import numpy as np
 
 from skinsafe.core.skin.model import DesignError, SkinDesign
@@ -33,3 +35,25 @@ def stable_ids(module: np.ndarray) -> np.ndarray:
 def with_stable_ids(design: SkinDesign) -> SkinDesign:
     """The design with every taxel's id made stable (`stable_ids` of its module column)."""
     return design.with_taxels(replace(design.taxels, ids=stable_ids(design.taxels.module)))
+
+
+class IdRuleWarning(UserWarning):
+    """A taxel map written under another id rule was converted to the stable one on load."""
+
+
+def converted(design: SkinDesign, source: str) -> SkinDesign:
+    """The design with stable ids; where its ids followed another rule (0..N-1, as maps made on the
+    command line before the one rule), an `IdRuleWarning` names what changed and that the boards
+    deployed with the old ids need a new deploy."""
+    ids = stable_ids(design.taxels.module)
+    old = design.taxels.ids
+    changed = np.flatnonzero(old != ids)
+    if not len(changed):
+        return design
+    i = int(changed[0])
+    warnings.warn(IdRuleWarning(
+        f"{source}: {len(changed)} of {len(ids)} taxel ids followed another rule and were converted to the stable "
+        f"one (module id x 65,536 + index: e.g. taxel {int(old[i])} of module {int(design.taxels.module[i])} is now "
+        f"{int(ids[i])}); boards deployed with this map need a new `skinsafe deploy`, and saving the map keeps the "
+        "conversion"), stacklevel=3)
+    return design.with_taxels(replace(design.taxels, ids=ids))

@@ -55,6 +55,7 @@ class Module:
     margin: float = 0.002  # m from the outer taxels to the FPC edge
     min_bend_radius: float = 0.01  # m, the tightest curvature the FPC tolerates
     board: int = 0
+    max_strain: float = 0.01  # the in-plane strain the wrapped FPC tolerates (polyimide yields near 3%, traces earlier)
     placement: dict = field(default_factory=dict)  # how it was placed (origin, axes, ...)
 
 
@@ -209,6 +210,9 @@ def validate_design(d: SkinDesign, source: str = "design", robot_bodies: set[str
     module_ids = {m.id for m in d.modules}
     boards = {b.id: b for b in d.boards}
     for m in d.modules:
+        if not 0 < m.max_strain <= 0.2:
+            _fail(source, f"module {m.id} '{m.name}'", "max_strain", f"is {m.max_strain}",
+                  "give the in-plane strain the FPC tolerates, in (0, 0.2] (e.g. 0.01 for polyimide)")
         if m.board not in boards:
             _fail(source, f"module {m.id} '{m.name}'", "board", f"{m.board} is not a board of the design",
                   "assign the module to an existing board")

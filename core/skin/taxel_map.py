@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from skinsafe.core.skin.files import atomic_write
+from skinsafe.core.skin.ids import converted
 from skinsafe.core.skin.model import (
     ARRAY_DTYPES,
     ARRAY_FIELDS,
@@ -96,7 +97,7 @@ def from_dict(raw: dict, src: str = "taxel map", robot_bodies: set[str] | None =
         raise DesignError(f"{src}: field 'bodies' must be a list of body names")
     design = SkinDesign(robot, bodies, modules, boards, taxels, raw.get("coverage", {}))
     design.validate(src, robot_bodies)
-    return design
+    return converted(design, src)
 
 
 def _record(cls, value, src: str, where: str):

@@ -10,7 +10,7 @@ from skinsafe.core.robot.models import build_panda, build_ur5
 from skinsafe.core.sim.scene import build_scene
 
 
-@pytest.mark.parametrize("name,builder,taxels", [("ur5", build_ur5, 2149), ("panda", build_panda, 1378)])
+@pytest.mark.parametrize("name,builder,taxels", [("ur5", build_ur5, 2149), ("panda", build_panda, 1330)])
 def test_sample_skin_passes_the_audit_and_scenes_do_not_warn(name, builder, taxels):
     robot = builder()
     design = make_sample_design(name, robot=robot)
