@@ -86,6 +86,7 @@ class _Intruder:
         self.name = f"127.0.0.1:{self.sock.getsockname()[1]}"
         self.bad = np.asarray(home, float) + np.eye(len(home))[0] * 0.4
         self.other, self.captured = make_key(other_path, force=True), datagram(home, key, now_us())
+        self.sent: list[float] = []  # the first INTRUDER_DATAGRAMS sends, host time.monotonic()
 
     def run(self) -> None:
         k = 0
@@ -93,6 +94,8 @@ class _Intruder:
             data = (datagram(self.bad, NO_KEY, now_us() + 2**30), datagram(self.bad, self.other, now_us()),
                     self.captured)[k % 3]
             self.done.setdefault("onset", time.monotonic())
+            if len(self.sent) < INTRUDER_DATAGRAMS:
+                self.sent.append(time.monotonic())
             with contextlib.suppress(OSError):
                 self.sock.sendto(data, self.to)
             k += 1
@@ -100,12 +103,14 @@ class _Intruder:
 
     def row(self, teleop: dict) -> dict:
         """followed_intruder: the run took a datagram of the intruder's (it became the leader); intruder_named: the
-        run's tally names it; the bound's extra: the intruder's time to send the datagrams that stop."""
+        run's tally names it; the bound's extra: the time the intruder took to send the datagrams that stop (the
+        monitor's bound runs from the last of them)."""
         named = {x["address"]: x["datagrams"] for x in teleop.get("senders", [])}
         return {"followed_intruder": int(teleop.get("leader") == self.name), "intruder": self.name,
                 "intruder_named": self.name in named, "intruder_refused": named.get(self.name, 0),
                 "leader_accepted": teleop.get("accepted", 0),
-                "bound_extra_ms": (INTRUDER_DATAGRAMS - 1) / INTRUDER_HZ * 1e3}
+                "bound_extra_ms": (self.sent[-1] - self.sent[0]) * 1e3 if len(self.sent) == INTRUDER_DATAGRAMS else
+                (INTRUDER_DATAGRAMS - 1) / INTRUDER_HZ * 1e3}
 
     def close(self) -> None:
         self.sock.close()

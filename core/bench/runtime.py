@@ -45,8 +45,8 @@ driver (`--robot`: sim, or fr3 against franky-sim): runs, detect_bound_ms (the m
 _max (the injection's time -> the zero command the driver sent), over_bound (runs over the bound),
 named_as_injected (fraction named by that kind), unnamed, tracebacks, records_readable (fraction),
 latched (fraction left in the monitor's protective stop); `--fault-kinds` picks kinds. The `teleop-intruder` row's
-onset is the intruder's first datagram and its bound adds the time it takes to send the 3 that stop (at 100 Hz:
-20 ms); followed_intruder (runs whose leader became the intruder), intruder_named (fraction of runs whose tally
+onset is the intruder's first datagram and each run's bound adds the time the intruder took to send the 3 that
+stop (about 20 ms at its 100 Hz; detect_bound_ms: the longest); followed_intruder (runs whose leader became the intruder), intruder_named (fraction of runs whose tally
 names it), intruder_refused_min, leader_accepted_min.
 """
 from __future__ import annotations
@@ -524,12 +524,15 @@ def fault_rows(args) -> list[dict]:
     rows = []
     for (fault, driver) in sorted({(r["fault"], r["driver"]) for r in runs}):
         these = [r for r in runs if r["fault"] == fault and r["driver"] == driver]
-        b = bound[Kind(these[0]["expected_kind"])] * 1e3 + max(r.get("bound_extra_ms", 0.0) for r in these)
-        z = np.array([r["onset_to_zero_ms"] for r in these if r["onset_to_zero_ms"] is not None])
+        b = bound[Kind(these[0]["expected_kind"])] * 1e3
+        timed = [r for r in these if r["onset_to_zero_ms"] is not None]
+        z = np.array([r["onset_to_zero_ms"] for r in timed])
+        each = np.array([b + r.get("bound_extra_ms", 0.0) for r in timed])  # a run's own bound
+        b += max((r.get("bound_extra_ms", 0.0) for r in these), default=0.0)
         rows.append({"fault": fault, "driver": driver, "runs": len(these), "detect_bound_ms": round(b, 2),
                      "onset_to_zero_ms_p50": round(float(np.median(z)), 2) if len(z) else None,
                      "onset_to_zero_ms_max": round(float(z.max()), 2) if len(z) else None,
-                     "over_bound": int((z > b).sum()) + len(these) - len(z),
+                     "over_bound": int((z > each).sum()) + len(these) - len(z),
                      "named_as_injected": float(np.mean([r["named_as_injected"] for r in these])),
                      "unnamed": sum(not r["named"] for r in these), "tracebacks": sum(r["traceback"] for r in these),
                      "records_readable": float(np.mean([r["record_readable"] for r in these])),

@@ -22,7 +22,8 @@ which the monitor turns into a protective stop (`command-intruder`): the leader'
 be told apart, but the operator's picture of who talks to the robot is wrong (a second leader aimed at
 this robot, a leader with another key, a replayed capture, an attacker) and a person must look before it
 moves again. A non-finite target in an authenticated datagram stops the robot (`StopRobot`). At most
-`PER_TICK` datagrams are read per tick: a flood cannot hold the loop (the rest wait in the socket).
+`PER_TICK` datagrams are read per tick: a flood cannot hold the loop (the rest wait in the socket). What queued before the robot
+moves (the leader streaming while the run was wired) is dropped unread at `start`.
 
 Key file (`make_key`, `load_key`): JSON `{"schema_version": 1, "kind": "skinsafe-teleop-key", "key": 64 hex}`,
 written atomically with mode 0600 and refused when others may read it. A record keeps the key's path and
@@ -63,6 +64,7 @@ JUMP_MARGIN_S = 0.5  # a stamp at most the command timeout + this after the newe
 INTRUDER_DATAGRAMS = 3  # refused datagrams within INTRUDER_WINDOW_S that stop the robot
 INTRUDER_WINDOW_S = 1.0
 PER_TICK = 64  # datagrams read per tick at most
+DRAIN_MAX = 100_000  # datagrams queued before the robot moves, dropped unread at the start (bounded: a flood)
 MAX_SENDERS = 32  # refused senders tallied by name; more are counted together as "others"
 
 
@@ -247,7 +249,7 @@ class Teleop(Hold):
         self.target = None
         self.stamp = None  # the newest accepted stamp
         self.last = None  # host time of the last accepted datagram
-        self.accepted = self.refused = 0
+        self.accepted = self.refused = self.dropped = 0
         self.senders: dict[str, Sender] = {}
         self.recent: collections.deque = collections.deque(maxlen=INTRUDER_DATAGRAMS)  # (mono, sender) refused
         self.intrusion: Intrusion | None = None
@@ -325,6 +327,19 @@ class Teleop(Hold):
             names = dict.fromkeys(n for _, n in self.recent)
             self.intrusion = Intrusion(tuple(self.senders[n] for n in names), INTRUDER_DATAGRAMS, self.recent[0][0],
                                        self.leader_name, self.key.key_id)
+
+    def start(self, q0: np.ndarray) -> None:
+        """The robot is about to move: what queued while the run was wired (the pre-flight, the warm-up: seconds of
+        a leader's datagrams, stale by now) is dropped unread; the leader's next datagram is the first."""
+        self.dropped = 0
+        for _ in range(DRAIN_MAX):
+            try:
+                self.sock.recv(65536)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                continue
+            self.dropped += 1
 
     def __call__(self, t: float, q: np.ndarray) -> np.ndarray:
         self._receive()

@@ -111,13 +111,14 @@ def test_a_non_finite_robot_state_or_teleop_target_is_typed(ur5):
     drv, rt = _runtime(ur5)
     rt.command = Teleop("127.0.0.1:0", drv.joint_names, drv.limits())
     rt.stale_s = None
+    rt.control(SimState(0.0, robot.home.copy(), np.zeros(6), 0))  # the robot moves (what queued before: dropped)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as out:
         out.sendto(datagram([np.nan] + [0.0] * 5, NO_KEY, now_us()), ("127.0.0.1", rt.command.port))
         time.sleep(0.05)
         with pytest.raises(StopRobot, match="non-finite joint target"):
-            rt.control(SimState(0.0, robot.home.copy(), np.zeros(6), 0))
+            rt.control(SimState(0.002, robot.home.copy(), np.zeros(6), 1))
     rt.command.close()
-    assert rt.monitor.fault.kind is Kind.COMMAND_BAD and rt.ticks == 0
+    assert rt.monitor.fault.kind is Kind.COMMAND_BAD and rt.ticks == 1
 
 
 @pytest.mark.parametrize("fault, kind, extra", [

@@ -102,6 +102,21 @@ def test_an_intruder_never_moves_the_robot_and_is_named(key):
         rig.close()
 
 
+def test_what_queued_before_the_robot_moved_is_dropped_unread(key):
+    """A leader streams while the run is wired (seconds: pre-flight, warm-up); at the start that backlog, stale by
+    then, is dropped, not refused (it would read as an intruder, its stamps off the clock)."""
+    rig = Rig(key)
+    try:
+        for k in range(5):
+            rig.leader.sendto(datagram([0.1, 0.1, 0.1], key, T0 - 5_000_000 + k), rig.to)
+        assert select.select([rig.src.sock], [], [], 1.0)[0]
+        rig.src.start(np.zeros(3))
+        assert (rig.src.dropped, rig.src.refused, rig.src.accepted) == (5, 0, 0)
+        assert rig.send(rig.leader, datagram([0.2, 0.2, 0.2], key, T0)) == pytest.approx([0.2] * 3)
+    finally:
+        rig.close()
+
+
 def test_a_leader_with_another_key_is_refused_with_the_reason(key, tmp_path):
     rig = Rig(key)
     try:
