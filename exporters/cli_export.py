@@ -1,5 +1,6 @@
 """`skinsafe export MAP OUT_DIR`: a taxel map to a MuJoCo scene folder (scene.xml, meshes/, taxel_map.json),
-with `--urdf` also robot_skin.urdf and its own robot_skin_meshes/ (robot tree, taxel links, tactile sensors) for ROS."""
+with `--urdf` also robot_skin.urdf and its own robot_skin_meshes/ (robot tree, taxel links, tactile sensors) for ROS;
+with `--fab` only OUT_DIR/fab/, the FPC modules' fabrication files (`exporters.fab`), and no scene."""
 from __future__ import annotations
 
 import sys
@@ -9,6 +10,7 @@ from skinsafe.core.robot.models import load_robot
 from skinsafe.core.sim.scene import COLLISION_MODES, Obstacle, SceneOptions
 from skinsafe.core.skin import taxel_map
 from skinsafe.core.skin.model import DesignError
+from skinsafe.exporters.fab import FAB_DIR, PIN_PITCH_MM, count_files, write_fab
 from skinsafe.exporters.mjcf import export_scene
 from skinsafe.exporters.urdf import URDF_FILE, build_urdf, mesh_dir_of, write_urdf
 
@@ -29,9 +31,37 @@ def add_arguments(p) -> None:
                    help="add a mocap sphere 'probe' of this radius (m) to poke the skin with")
     p.add_argument("--urdf", action="store_true",
                    help=f"also write OUT_DIR/{URDF_FILE}: the robot, one fixed link per taxel, tactile sensors (ROS)")
+    p.add_argument("--fab", action="store_true",
+                   help=f"write only OUT_DIR/{FAB_DIR}/, quickly and without the scene: per FPC module its flat pattern "
+                        f"as a KiCad board (mm, y down), DXF and SVG, one PDF page each, bom.csv and fab.json "
+                        f"({PIN_PITCH_MM} mm pitch ZIF edge fingers); an older {FAB_DIR}/ is replaced whole")
+
+
+def run_fab(args) -> int:
+    """`--fab`: the map's fabrication files into OUT_DIR/fab (no robot, no scene)."""
+    if args.urdf:
+        print("skinsafe export: --fab writes only the fabrication files; run the export once with --fab and once "
+              "with --urdf", file=sys.stderr)
+        return 1
+    path = Path(args.map)
+    try:
+        design = taxel_map.load(path)
+        fab = write_fab(design, args.out_dir, name=path.stem, source=str(path))
+    except (DesignError, ValueError) as e:
+        print(f"skinsafe export: {e}", file=sys.stderr)
+        return 1
+    except OSError as e:
+        print(f"skinsafe export: cannot write {e.filename or args.out_dir}: {e.strerror}; pick a folder you can write",
+              file=sys.stderr)
+        return 1
+    print(f"wrote {fab}: {len(design.modules)} FPC modules ({design.n_taxels} taxels), {count_files(fab)} files "
+          f"(fab.json, bom.csv, sheets.pdf, a .kicad_pcb, .dxf and .svg per module)")
+    return 0
 
 
 def run(args) -> int:
+    if getattr(args, "fab", False):
+        return run_fab(args)
     path = Path(args.map)
     try:
         design = taxel_map.load(path)
