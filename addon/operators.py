@@ -401,6 +401,35 @@ class SKINSAFE_OT_export_taxel_csv(_ExportSkinFile, bpy.types.Operator):
         return export_csv
 
 
+class SKINSAFE_OT_export_fab(bpy.types.Operator):
+    """Export every FPC module's flat pattern for fabrication into FOLDER/fab: a KiCad board, DXF and SVG per
+    module, one PDF page each, bom.csv and fab.json (an older fab folder is replaced whole)"""
+
+    bl_idname = "skinsafe.export_fab"
+    bl_label = "Export FPC Fabrication Files"
+
+    directory: StringProperty(name="Folder", subtype="DIR_PATH")
+
+    poll = classmethod(lambda cls, context: _has_skin(context))
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        from skinsafe.exporters.fab import count_files, write_fab
+
+        scene = context.scene
+        try:
+            design = b2c.design_of(scene)
+            path = write_fab(design, bpy.path.abspath(self.directory), name=Path(bpy.data.filepath).stem or None,
+                             source=f"scene '{scene.name}'")
+        except (DesignError, OSError) as e:
+            return _fail(self, scene, e)
+        n = len(design.modules)
+        return _ok(self, scene, f"wrote {path}: {n} FPC module{'s' * (n != 1)}, {count_files(path)} files")
+
+
 class SKINSAFE_OT_toggle_frames(bpy.types.Operator):
     """Draw the taxel frames (axes or normals) in the viewport"""
 
@@ -420,10 +449,11 @@ class SKINSAFE_OT_toggle_frames(bpy.types.Operator):
 CLASSES = (SKINSAFE_OT_import_robot, SKINSAFE_OT_set_pose, SKINSAFE_OT_place_module, SKINSAFE_OT_regenerate,
            SKINSAFE_OT_remove_module, SKINSAFE_OT_assign_boards, SKINSAFE_OT_map_jacobians, SKINSAFE_OT_coverage,
            SKINSAFE_OT_check, SKINSAFE_OT_export_taxel_map, SKINSAFE_OT_export_mjcf, SKINSAFE_OT_export_urdf,
-           SKINSAFE_OT_export_taxel_csv, SKINSAFE_OT_toggle_frames)
+           SKINSAFE_OT_export_taxel_csv, SKINSAFE_OT_export_fab, SKINSAFE_OT_toggle_frames)
 EXPORTS = ((SKINSAFE_OT_export_taxel_map, "skinsafe Taxel Map (.json)"),
            (SKINSAFE_OT_export_mjcf, "skinsafe MuJoCo Scene (folder)"), (SKINSAFE_OT_export_urdf, "skinsafe URDF (.urdf)"),
-           (SKINSAFE_OT_export_taxel_csv, "skinsafe Taxel CSV, GenTact (.csv)"))
+           (SKINSAFE_OT_export_taxel_csv, "skinsafe Taxel CSV, GenTact (.csv)"),
+           (SKINSAFE_OT_export_fab, "skinsafe FPC fabrication (folder)"))
 
 
 def export_menu(self, context):

@@ -54,7 +54,8 @@ def run_fab(args) -> int:
         print(f"skinsafe export: cannot write {e.filename or args.out_dir}: {e.strerror}; pick a folder you can write",
               file=sys.stderr)
         return 1
-    print(f"wrote {fab}: {len(design.modules)} FPC modules ({design.n_taxels} taxels), {count_files(fab)} files "
+    n = len(design.modules)
+    print(f"wrote {fab}: {n} FPC module{'s' * (n != 1)} ({design.n_taxels} taxels), {count_files(fab)} files "
           f"(fab.json, bom.csv, sheets.pdf, a .kicad_pcb, .dxf and .svg per module)")
     return 0
 

@@ -1,7 +1,7 @@
 """The add-on's operators and manifest as Blender reads them: every operator that writes the design
 has UNDO and a poll that refuses a scene without a robot or skin; File > Export holds the taxel map,
-MuJoCo scene, URDF and GenTact taxel CSV entries, the URDF entry writes a file MuJoCo compiles and the
-CSV holds every taxel as the design has it; the manifest passes
+MuJoCo scene, URDF, GenTact taxel CSV and FPC fabrication entries (the last tested in test_addon_fab), the
+URDF entry writes a file MuJoCo compiles and the CSV holds every taxel as the design has it; the manifest passes
 Blender's own strict validator and declares the network permission (Live opens TCP)."""
 import csv
 import importlib.util
@@ -29,7 +29,7 @@ def _classes():
 
 def test_design_writers_have_undo_and_every_operator_a_poll_that_refuses_an_empty_scene():
     ops = _classes()
-    assert len(ops) == 21
+    assert len(ops) == 22
     for name in WRITERS:
         assert {"REGISTER", "UNDO"} <= set(ops[name].bl_options), name
     assert all(any("poll" in vars(k) for k in c.__mro__ if k.__module__.startswith("skinsafe")) for c in ops.values())
@@ -46,7 +46,8 @@ def test_file_export_menu_and_the_urdf_entry(tmp_path):
     drawn = [f for f in bpy.types.TOPBAR_MT_file_export.draw._draw_funcs if f is operators.export_menu]
     assert len(drawn) == 1
     assert [op.bl_idname for op, _ in operators.EXPORTS] == ["skinsafe.export_taxel_map", "skinsafe.export_mjcf",
-                                                             "skinsafe.export_urdf", "skinsafe.export_taxel_csv"]
+                                                             "skinsafe.export_urdf", "skinsafe.export_taxel_csv",
+                                                             "skinsafe.export_fab"]
     bpy.ops.wm.read_homefile(use_empty=True)
     b2c.clear_caches()
     bpy.ops.skinsafe.import_robot(source="ur5")
