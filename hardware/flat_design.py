@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from skinsafe.core.skin.ids import stable_ids
 from skinsafe.core.skin.model import Board, Module, RobotRef, SkinDesign, Taxels, frames_from_normals
 
 
@@ -16,7 +17,7 @@ def flat_design(n_taxels: int, n_boards: int, threshold: float = 5.0, uid_base: 
         RobotRef(), ["forearm_link"],
         [Module(i, f"module{i}", "forearm_link", rows=1, cols=per, board=i) for i in range(n_boards)],
         [Board(i, f"board{i}", uid_base + i, per) for i in range(n_boards)],
-        Taxels(ids=np.arange(n_taxels, dtype=np.int64), body=np.zeros(n_taxels, np.int32),
+        Taxels(ids=stable_ids(board), body=np.zeros(n_taxels, np.int32),
                positions=rng.normal(size=(n_taxels, 3)) * 0.05,
                frames=frames_from_normals(np.tile([0.0, 0.0, 1.0], (n_taxels, 1)), np.array([1.0, 0, 0])),
                module=board.copy(), board=board, channel=channel, area=np.full(n_taxels, 3e-5),

@@ -61,7 +61,7 @@ def test_emulate_deploy_stream_cli(emulated, capsys):
     out = capsys.readouterr().out
     ids = [i for line in out.splitlines() if "DANGER" in line
            for i in json.loads(line[line.index("["):line.index("]") + 1])]
-    assert sorted(ids) == [7, 55] and "(max 9.0 N)" in out  # taxel 7 (board 0) and 48 + 7 (board 1), once each
+    assert sorted(ids) == [7, (1 << 16) + 7] and "(max 9.0 N)" in out  # channel 7 of board (module) 0 and 1, once each
     done = out.strip().splitlines()[-1]
     assert done.startswith("done: ") and done.endswith(" 0 lost, 0 corrupt, 0 resynced, 2 danger events")
     per_board = [line for line in out.splitlines() if "stopped; received" in line]

@@ -70,7 +70,7 @@ def test_stream_maps_readings_to_taxels_and_flags_danger(tmp_path):
                     assert np.array_equal(u.force[s.rows], want)
             assert seen >= 30 and u.lost == 0 and u.corrupt == 0
         # every pressed channel on both boards crossed the threshold, and nothing else did
-        assert dangers == {b * 32 + c for b in range(2) for c in range(21)}
+        assert dangers == {(b << 16) + c for b in range(2) for c in range(21)}  # module b (one per board), index c
 
 
 def test_stream_counts_corrupt_and_lost_frames(tmp_path):

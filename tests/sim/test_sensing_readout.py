@@ -78,6 +78,8 @@ def test_off_centre_poke_is_shared_by_neighbours_and_nearest_matches_touch(scene
         TouchReadout(model, design)
     i = _pokeable(design, model, robot, pos, frames, count=1)[0]
     x = frames[i][:, 0]
+    if np.linalg.norm(pos - (pos[i] + 0.01 * x), axis=1).min() > 1e-3:  # the last column before the seam's gap
+        x = -x
     data, _, total = _poke(model, robot, pos[i] + 0.3 * 0.01 * x, frames[i][:, 2])
     f = lin.read(data)
     assert f.sum() == pytest.approx(total, rel=0.05)
