@@ -110,7 +110,8 @@ def settings_module(settings, module_id: int, name: str, body: str) -> Module:
     """The core Module described by template settings (a module object's or the scene's)."""
     s = settings
     return Module(id=int(module_id), name=name, body=body, template=s.template, rows=s.rows, cols=s.cols,
-                  pitch=s.pitch, taxel_diameter=s.taxel_diameter, margin=s.margin, min_bend_radius=s.min_bend_radius)
+                  pitch=s.pitch, taxel_diameter=s.taxel_diameter, margin=s.margin, min_bend_radius=s.min_bend_radius,
+                  max_strain=s.max_strain)
 
 
 def outline_of(settings) -> np.ndarray | None:

@@ -220,8 +220,8 @@ def new_module_object(scene, body_obj, module, placed, settings) -> bpy.types.Ob
     obj.matrix_parent_inverse.identity()
     mm = obj.skinsafe_module
     mm.is_module, mm.module_id, mm.body, mm.owner = True, module.id, module.body, obj.session_uid
-    for k in ("template", "method", "rows", "cols", "pitch", "taxel_diameter", "margin", "min_bend_radius", "outline",
-              "mirrored"):
+    for k in ("template", "method", "rows", "cols", "pitch", "taxel_diameter", "margin", "min_bend_radius", "max_strain",
+              "outline", "mirrored"):
         setattr(mm.settings, k, getattr(settings, k))
     set_module_transform(obj, placed)
     return obj

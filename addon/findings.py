@@ -1,7 +1,9 @@
 """The Check panel (View3D > N > Skin > Check): a coverage bar per skinned link, and every finding of the
 last `skinsafe.check` in a list; Select makes the module it names the active object, Frame also puts the 3D
-cursor on the taxel it names and frames it in the viewport. A finding names its taxel ("taxel ID") or module
-("module ID") in its text (core/design/audit.py): the taxel's module and place come from the design.
+cursor on the taxel it names and frames it in the viewport. A finding names its taxel ("taxel ID", or the
+first of "taxels ID and ID": a stretched module's worst pad) or module ("module ID") in its text
+(core/design/audit.py): the taxel's module and place come from the design. Stretched modules come worst
+first (`audit.strain_problems`); the coverage bars are the cells' union on each link (`coverage.covered_area`).
 *Show uncovered area* draws, over the viewport, the surface points of each skinned link of the last coverage
 report that no module covers (core/design/coverage.py `uncovered_points`), in orange."""
 import re
@@ -13,7 +15,7 @@ from bpy.props import BoolProperty, CollectionProperty, FloatVectorProperty, Int
 from skinsafe.addon import blender_to_core as b2c
 from skinsafe.core.design.coverage import uncovered_points
 
-_TAXEL, _MODULE = re.compile(r"taxel (\d+)"), re.compile(r"module (\d+)")
+_TAXEL, _MODULE = re.compile(r"taxels? (\d+)"), re.compile(r"module (\d+)")
 WARN = (1.0, 0.55, 0.0, 1.0)  # the uncovered area's colour
 _overlay = None  # the uncovered area's draw handler
 _uncovered: dict = {}  # scene name -> (design revision, {link: body-frame points})
@@ -107,6 +109,12 @@ def _redraw(self, context) -> None:
             area.tag_redraw()
 
 
+def bar_text(body: str, r: dict) -> str:
+    """A link's coverage bar: the area its cells cover (overlaps once) of the link's."""
+    return (f"{body}: {r['fraction']:.0%} covered ({r['skinned_area_m2'] * 1e4:.0f} of {r['link_area_m2'] * 1e4:.0f} "
+            f"cm2), {r['taxels']} taxels")
+
+
 class SKINSAFE_UL_findings(bpy.types.UIList):
     def draw_item(self, context, layout, data, item, icon, active_data, active_property, index=0, flt_flag=0):
         layout.label(text=item.text, icon="ERROR")
@@ -163,8 +171,7 @@ class SKINSAFE_PT_findings(bpy.types.Panel):
         design = b2c.design_of(scene) if scene.skinsafe.robot_kind else None
         for body, r in sorted((design.coverage if design is not None else {}).items()):
             if body != "total":  # per-link coverage of the last check or coverage report
-                col.progress(factor=min(r["fraction"], 1.0), type="BAR",
-                             text=f"{body}: {r['fraction']:.0%} covered, {r['taxels']} taxels")
+                col.progress(factor=min(r["fraction"], 1.0), type="BAR", text=bar_text(body, r))
         if design is not None and design.coverage:
             col.prop(scene, "skinsafe_show_uncovered")
         if not len(scene.skinsafe_findings):

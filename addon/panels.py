@@ -34,7 +34,8 @@ class SKINSAFE_PT_modules(_Panel, bpy.types.Panel):
     def draw(self, context):
         s, col = context.scene.skinsafe, self.layout.column()
         t = s.new_module
-        for k in ("template", "method", "rows", "cols", "pitch", "taxel_diameter", "margin", "min_bend_radius"):
+        for k in ("template", "method", "rows", "cols", "pitch", "taxel_diameter", "margin", "min_bend_radius",
+                  "max_strain"):
             col.prop(t, k)
         if t.template == "curve":
             col.prop(t, "outline")
@@ -47,7 +48,7 @@ class SKINSAFE_PT_modules(_Panel, bpy.types.Panel):
         if act is not None and act.skinsafe_module.is_module:
             box = col.box()
             box.label(text=f"{act.name} on {act.skinsafe_module.body}")
-            for k in ("rows", "cols", "pitch", "min_bend_radius"):
+            for k in ("rows", "cols", "pitch", "min_bend_radius", "max_strain"):
                 box.prop(act.skinsafe_module.settings, k)
             if act.skinsafe_module.error:
                 box.label(text=act.skinsafe_module.error, icon="ERROR")

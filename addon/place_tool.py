@@ -1,7 +1,7 @@
 """Place Skin: a modal tool that places the scene's new-module settings where the mouse points. Each mouse
 move casts a ray from the view: the link it meets (a module counts for its link) and the point there are
 the anchor, a preview draws the module's taxels green where it fits or the failing taxel red with the
-reason in the header; the wheel turns the rows by 15 degrees, X toggles the X-mirror (the mirrored module
+reason in the header (a stretched FPC: its worst pad, the strain and the cut that fits); the wheel turns the rows by 15 degrees, X toggles the X-mirror (the mirrored module
 also goes to the symmetric place on the robot's other side), a click places it and makes it active, Esc or
 right-click leaves. `preview` and the operator's `execute` take a given ray, so scripts and tests drive
 the same work without a mouse. Its benchmark: addon/bench_tool.py."""
@@ -27,7 +27,8 @@ GREEN, RED = (0.2, 0.85, 0.3, 1.0), (0.95, 0.15, 0.1, 1.0)
 @dataclass
 class Preview:
     """Where a module would go: body and body-frame anchor and row direction; the taxels' world positions
-    when it fits; else the reason and the failing taxel's world position (None: none to show)."""
+    when it fits; else the reason, its kind (`PlacementError.kind`: "strain", "off_surface", ...) and the
+    failing taxel's world position (None: none to show)."""
 
     body: str | None = None
     anchor: np.ndarray | None = None
@@ -35,6 +36,7 @@ class Preview:
     world: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     bad: np.ndarray | None = None
     reason: str = ""
+    kind: str = ""
 
 
 def hit(scene, origin, direction):
@@ -82,10 +84,20 @@ def preview(scene, origin, direction, angle: float = 0.0, rows=None) -> Preview:
                               designer.others_on(design, body))
     except PlacementError as e:
         bad = None if e.where is None else W[:3, :3] @ np.asarray(e.where[2]) + W[:3, 3]
-        return Preview(body, p, x, bad=bad, reason=str(e))
+        return Preview(body, p, x, bad=bad, reason=str(e), kind=e.kind)
     except DesignError as e:
         return Preview(body, p, x, reason=str(e))
     return Preview(body, p, x, world=placed.positions @ W[:3, :3].T + W[:3, 3])
+
+
+def header(pv: Preview, mirror_x: bool) -> str:
+    """The viewport header's line for a preview: what fits, or why not (a stretched FPC: the strain and the pads
+    where, with the cut that fits)."""
+    red = " (red: the worst pad)" if pv.kind == "strain" else " (red: the failing taxel)" if pv.bad is not None else ""
+    what = ("stretched" if pv.kind == "strain" else "refused") + red + ": "
+    line = (what + pv.reason) if pv.reason else (f"fits: {len(pv.world)} taxels on {pv.body}; click places, wheel "
+                                                 "turns the rows")
+    return line + f"; X-mirror {'on' if mirror_x else 'off'} (X)"
 
 
 def x_mirror(scene) -> np.ndarray:
@@ -228,13 +240,14 @@ class SKINSAFE_OT_place_skin(bpy.types.Operator):
         self.ray_origin = region_2d_to_origin_3d(region, view, xy)
         self.ray_direction = region_2d_to_vector_3d(region, view, xy)
         self.pv = preview(context.scene, self.ray_origin, self.ray_direction, self.angle)
-        context.area.header_text_set((self.pv.reason or f"fits: {len(self.pv.world)} taxels on {self.pv.body}; "
-                                      "click places, wheel turns the rows") + f"; X-mirror {'on' if self.mirror_x else 'off'} (X)")
+        context.area.header_text_set(header(self.pv, self.mirror_x))
+        context.workspace.status_text_set(self.pv.reason or None)  # the whole reason, where the header cuts it
         context.area.tag_redraw()
 
     def _end(self, context) -> None:
         bpy.types.SpaceView3D.draw_handler_remove(self._handle, "WINDOW")
         context.area.header_text_set(None)
+        context.workspace.status_text_set(None)
         context.area.tag_redraw()
 
 

@@ -46,6 +46,9 @@ class SkinsafeTemplate(bpy.types.PropertyGroup):
     taxel_diameter: FloatProperty(name="Taxel diameter", default=0.006, min=1e-4, max=0.2, unit="LENGTH", precision=4, update=_settings_changed)
     margin: FloatProperty(name="Margin", default=0.002, min=0.0, max=0.1, unit="LENGTH", precision=4, update=_settings_changed)
     min_bend_radius: FloatProperty(name="Min bend radius", default=0.01, min=0.0, max=10.0, unit="LENGTH", precision=4, update=_settings_changed)
+    max_strain: FloatProperty(name="Max strain", default=0.01, min=1e-4, max=0.2, precision=4, update=_settings_changed,
+                              description="the in-plane strain the wrapped FPC tolerates (fraction: 0.01 = 1%; "
+                                          "polyimide yields near 3%, copper traces earlier)")
     outline: PointerProperty(name="Outline", type=bpy.types.Object, description="closed curve for the 'curve' template")
     mirrored: BoolProperty(name="Mirrored", default=False,
                            description="the mirror image of the template (taxel k at the mirror of its place)")

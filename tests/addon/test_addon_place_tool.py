@@ -3,25 +3,34 @@ does per mouse move: the preview on the link the ray meets is the module the cli
 made active), the wheel's angle turns its rows, a spot where it cannot go gives the failing taxel on that
 link and the reason, a ray past the robot says so and places nothing."""
 import math
+import re
 
 import bpy
 import numpy as np
 import pytest
 
 from skinsafe.addon import blender_to_core as b2c
+from skinsafe.addon import core_to_blender as c2b
 from skinsafe.addon import place_tool
 
 E = 0.13585 - 0.1197  # UR5 forearm capsule axis height (body frame), radius 0.04
 
 
-@pytest.fixture
-def scene():
+@pytest.fixture(scope="module")
+def robot():
     bpy.ops.wm.read_homefile(use_empty=True)
     b2c.clear_caches()
     bpy.ops.skinsafe.import_robot(source="ur5")
-    s = bpy.context.scene.skinsafe.new_module
-    s.rows, s.cols, s.pitch, s.taxel_diameter, s.margin = 8, 8, 0.01, 0.006, 0.002
-    return bpy.context.scene
+
+
+@pytest.fixture
+def scene(robot):
+    """The UR5 (imported once for the module) without a skin, the new-module settings 8x8 at 10 mm."""
+    scene = bpy.context.scene
+    c2b.clear_design(scene)
+    s = scene.skinsafe.new_module
+    s.rows, s.cols, s.pitch, s.taxel_diameter, s.margin, s.max_strain, s.mirrored = 8, 8, 0.01, 0.006, 0.002, 0.01, False
+    return scene
 
 
 def _ray(body: str, point, normal, dist: float = 0.02):
@@ -88,3 +97,36 @@ def test_x_mirror_places_the_mirror_image_on_the_other_side(scene):
     a, b = world[t.module == 0], world[t.module == 1]
     assert len(a) == len(b) == 12 and a[:, 0].min() > 0.05 and b[:, 0].max() < -0.05  # on either side
     np.testing.assert_allclose(b, a * [-1, 1, 1], atol=1e-3)  # taxel k of the copy: the mirror of taxel k
+
+
+def test_a_stretched_grid_is_refused_at_its_worst_pad_and_the_cut_that_fits_places(scene):
+    """The forearm capsule's end is a sphere of radius 40 mm: an 8x8 FPC at 10 mm cannot wrap it."""
+    from skinsafe.core.design.audit import module_strains
+
+    origin, direction = _ray("forearm_link", (-0.40, 0.0, E), (-1, 0, 0))  # the cap's tip
+    pv = place_tool.preview(scene, origin, direction)
+    assert pv.kind == "strain" and "in-plane strain" in pv.reason and "over the FPC's 1.0%" in pv.reason
+    assert len(pv.world) == 0 and pv.bad is not None
+    W = np.array(b2c.body_objects(scene)["forearm_link"].matrix_world)
+    body_bad = np.linalg.solve(W, np.r_[pv.bad, 1.0])[:3]
+    assert abs(np.linalg.norm(body_bad - (-0.36, 0.0, E)) - 0.04) < 2e-3  # the red pad lies on the sphere
+    head = place_tool.header(pv, False)
+    assert head.startswith("stretched (red: the worst pad): ") and re.search(r"strain -?\d+\.\d% between taxels row", head)
+    with pytest.raises(RuntimeError, match="in-plane strain"):
+        bpy.ops.skinsafe.place_skin(ray_origin=origin, ray_direction=direction)
+    assert not b2c.module_objects(scene)
+    s = scene.skinsafe.new_module
+    s.rows = s.cols = 4  # still stretched (2.4%): the message offers the cut that fits
+    pv = place_tool.preview(scene, origin, direction)
+    assert pv.kind == "strain" and "a 2x2 module fits here" in pv.reason
+    s.max_strain = 0.03  # an FPC that tolerates 3% takes the 4x4 there
+    assert place_tool.preview(scene, origin, direction).reason == ""
+    s.max_strain, s.rows, s.cols = 0.01, 2, 2  # the offered cut places
+    assert bpy.ops.skinsafe.place_skin(ray_origin=origin, ray_direction=direction) == {"FINISHED"}
+    (obj,) = b2c.module_objects(scene)
+    design = b2c.design_of(scene)
+    assert design.n_taxels == 4 and design.modules[0].max_strain == pytest.approx(0.01)  # the object's setting
+    assert 0 < module_strains(design)[0][0] <= design.modules[0].max_strain
+    obj.skinsafe_module.settings.max_strain = 0.001  # the module's own tolerance below its strain: named on it
+    bpy.context.view_layer.update()
+    assert "in-plane strain" in obj.skinsafe_module.error and b2c.design_of(scene).n_taxels == 4
