@@ -46,6 +46,7 @@ QDD_MAX = np.full(7, 10.0)
 QDDD_MAX = np.full(7, 5000.0)
 SWITCH_S = 1e-4  # Python's thread switch interval while run() runs (see FrankaDriver.run)
 RAMP_MAX_S = 2.0  # a stop's ramp to zero never takes longer (2.62 rad/s at 10 rad/s^2 takes 0.27 s)
+REST_QD = 0.02  # rad/s: after its ramp the stop holds zero until every joint's measured speed is below this
 
 
 class FrankaError(Exception):
@@ -94,14 +95,16 @@ class FrankaDriver:
     joint_names = JOINT_NAMES
     period_s = PERIOD_S
 
-    def __init__(self, host: str, realtime: bool | None = None, rate_limited: bool = True):
+    def __init__(self, host: str, realtime: bool | None = None, rate_limited: bool = True, robot=None):
+        """`robot`: an already connected robot with pylibfranka's `Robot` interface (tests: a scripted one) instead of
+        connecting to `host`."""
         import pylibfranka as pf
 
         self._pf = pf
         rt = realtime_kernel() if realtime is None else realtime
         try:
             with _own_scheduling():
-                self._robot = pf.Robot(host, pf.RealtimeConfig.kEnforce if rt else pf.RealtimeConfig.kIgnore)
+                self._robot = robot or pf.Robot(host, pf.RealtimeConfig.kEnforce if rt else pf.RealtimeConfig.kIgnore)
         except (pf.NetworkException, pf.RealtimeException, pf.InvalidOperationException,
                 pf.FrankaException, RuntimeError) as e:
             raise FrankaError(f"fr3: cannot connect to {host}: {' '.join(str(e).split())}; check the robot's "
@@ -123,8 +126,11 @@ class FrankaDriver:
         if self._reason is None:
             self._reason = reason
 
-    def run(self, control) -> str:
-        """Joint-velocity control at the robot's clock until a stop; returns its reason (one line).
+    def run(self, control, report=None, sent=None) -> str:
+        """Joint-velocity control at the robot's clock until a stop; returns its reason (one line). `report(kind,
+        message, onset, during_stop)`: a fault this driver met itself (libfranka's exceptions, a bad command, a
+        failure of `control`; during the stop: the ramp, the robot's stop), before it stops; `sent(state, command)`:
+        each command of the stop (its ramp, then zero until the arm rests) with the state it was sent on.
 
         pylibfranka 0.21.3's `readOnce` keeps the interpreter lock while it waits for the robot's state
         (measured: a thread sleeping 0.5 ms at a time woke 122 times a second beside this loop, 1,857
@@ -135,22 +141,23 @@ class FrankaDriver:
         sys.setswitchinterval(SWITCH_S)
         try:
             with _own_scheduling():
-                return self._run(control)
+                return self._run(control, report or _ignore, sent or _ignore)
         finally:
             sys.setswitchinterval(previous)
             self._reason = None  # honoured: the next run starts afresh
 
-    def _run(self, control) -> str:
+    def _run(self, control, report, on_sent) -> str:
         pf = self._pf
         errors = (pf.NetworkException, pf.ControlException, pf.CommandException, pf.RealtimeException,
                   pf.InvalidOperationException, pf.FrankaException)
         self.stats = st = {"ticks": 0, "states_skipped": 0, "longest_gap_ms": 0.0, "success_rate_min": 1.0,
                            "ramp_ticks": 0, "rate_limited_ticks": 0}
         if self._reason is not None:  # asked before the motion started: it never starts
-            return self._end(self._reason, motion_open=False)
+            return self._end(self._reason, False, report)
         try:
             active = self._robot.start_joint_velocity_control(pf.ControllerMode.JointImpedance)
         except errors as e:
+            report("driver", _fault(e), time.monotonic(), False)
             return _fault(e)
         sent, acc = np.zeros(7), np.zeros(7)
         seq = 0
@@ -159,7 +166,8 @@ class FrankaDriver:
             try:
                 rs, gap = active.readOnce()
             except errors as e:
-                return self._end(_fault(e), motion_open=False)
+                report("driver", _fault(e), time.monotonic(), False)
+                return self._end(_fault(e), False, report)
             seq += 1
             gap_ms = gap.to_sec() * 1e3
             st["ticks"] = seq
@@ -172,6 +180,8 @@ class FrankaDriver:
             reason = self._reason
             if reason is None:
                 reason, cmd = _command(control, state)
+                if reason is not None:  # the monitor's own stop (it ignores this report) or a failure of control
+                    report("driver", reason, time.monotonic(), False)
             if reason is None:
                 want = cmd
             else:  # this cycle already starts the ramp down
@@ -181,41 +191,57 @@ class FrankaDriver:
             else:  # a stop's first command is always limited: its ramp starts here
                 nxt, acc = rate_limit(want, sent, acc)
             st["rate_limited_ticks"] += bool(reason is None and not np.array_equal(nxt, want))
-            sent = nxt
             try:
-                active.writeOnce(pf.JointVelocities(sent.tolist()))
+                active.writeOnce(pf.JointVelocities(nxt.tolist()))
             except errors as e:
-                return self._end(_fault(e), motion_open=False)
+                report("driver", _fault(e), time.monotonic(), reason is not None)
+                return self._end(_fault(e) if reason is None else f"{reason}; then {_fault(e)}", False, report)
+            sent = nxt
         st["zero_mono"] = time.monotonic()  # the stop's first command went out: the ramp to zero has begun
-        return self._ramp_down(active, sent, acc, reason, errors)
+        on_sent(state, sent)
+        return self._ramp_down(active, sent, acc, reason, errors, report, on_sent)
 
-    def _ramp_down(self, active, sent, acc, reason: str, errors) -> str:
-        """Zero velocity at the robot's acceleration and jerk limits, one command per cycle, then finish."""
+    def _ramp_down(self, active, sent, acc, reason: str, errors, report, on_sent) -> str:
+        """Zero velocity at the robot's acceleration and jerk limits, one command per cycle, then zero until every
+        joint's measured speed is below REST_QD, then finish; within RAMP_MAX_S, or a fault during the stop."""
         pf = self._pf
+        seq = self.stats["ticks"]
         for _ in range(int(RAMP_MAX_S / PERIOD_S)):
-            done = np.abs(sent).max() <= QDD_MAX.min() * PERIOD_S and np.abs(acc).max() <= QDDD_MAX.min() * PERIOD_S
+            ramped = np.abs(sent).max() <= QDD_MAX.min() * PERIOD_S and np.abs(acc).max() <= QDDD_MAX.min() * PERIOD_S
             try:
                 rs, _ = active.readOnce()
-                self.stats["rest_qd"] = float(np.abs(rs.dq).max())  # the arm's speed as the ramp ends
-                if done:
+                seq += 1
+                state = FrankaState(rs.time.to_sec(), np.array(rs.q), np.array(rs.dq), seq, sent.copy(),
+                                    rs.control_command_success_rate)
+                self.stats["rest_qd"] = float(np.abs(state.qd).max())  # the arm's speed as the ramp ends
+                if ramped and self.stats["rest_qd"] < REST_QD:
                     cmd = pf.JointVelocities([0.0] * 7)
                     cmd.motion_finished = True
                     active.writeOnce(cmd)
-                    return self._end(reason, motion_open=False)
+                    on_sent(state, np.zeros(7))
+                    return self._end(reason, False, report)
                 sent, acc = rate_limit(np.zeros(7), sent, acc)
                 active.writeOnce(pf.JointVelocities(sent.tolist()))
+                on_sent(state, sent)
                 self.stats["ramp_ticks"] += 1
             except errors as e:
-                return self._end(f"{reason}; then {_fault(e)}", motion_open=False)
-        return self._end(f"{reason}; the ramp to zero did not finish in {RAMP_MAX_S} s", motion_open=True)
+                report("driver", f"fr3: during the stop: {_fault(e)[5:]}", time.monotonic(), True)
+                return self._end(f"{reason}; then {_fault(e)}", False, report)
+        report("driver", f"fr3: the stop's ramp did not bring the arm to rest in {RAMP_MAX_S:g} s (fastest joint "
+               f"{self.stats.get('rest_qd', float('nan')):.3f} rad/s)", time.monotonic(), True)
+        return self._end(f"{reason}; the ramp to zero did not finish in {RAMP_MAX_S} s", True, report)
 
-    def _end(self, reason: str, motion_open: bool) -> str:
-        """The robot's own stop after every motion (it ends one still open); its failure is named too."""
+    def _end(self, reason: str, motion_open: bool, report=None) -> str:
+        """The robot's own stop after every motion (it ends one still open); its failure is named, and reported as a
+        fault during the stop."""
         try:
             self._robot.stop()
         except Exception as e:  # noqa: BLE001 - a robot in reflex may refuse; the reason says so
             if motion_open:
-                reason = f"{reason}; robot stop failed: {' '.join(str(e).split())}"
+                text = f"robot stop failed: {' '.join(str(e).split())}"
+                reason = f"{reason}; {text}"
+                if report is not None:
+                    report("driver", f"fr3: {text}", time.monotonic(), True)
         return reason
 
     def close(self) -> None:
@@ -249,3 +275,7 @@ def _command(control, state: FrankaState) -> tuple[str | None, np.ndarray | None
         return f"fr3: control returned {cmd.shape} joint velocities {np.round(cmd, 3).tolist()}; 7 finite values " \
                "expected", None
     return None, cmd
+
+
+def _ignore(*_) -> None:
+    pass

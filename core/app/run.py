@@ -11,7 +11,11 @@ Ctrl-C (or SIGTERM) stops the robot first, then reports; every further signal on
 
 Exit codes: 0 the run ended as planned (--seconds, the trajectory's end) and the robot stopped;
 1 a watchdog or the driver stopped the robot (the reason is named); 2 bad input; 3 the pre-flight
-refused (the robot never moved); 130 Ctrl-C; 143 SIGTERM.
+refused (the robot never moved); 4 the stop itself failed (its ramp did not bring the arm to rest, the
+robot's stop failed, the link was lost while stopping: named, whatever ended the run); 130 Ctrl-C; 143 SIGTERM.
+At the start it prints each fault's detection bound and the worst stopping time and distance of any taxel
+(the arm at its velocity limits, braking at its acceleration and jerk limits: `monitor.stopping`); at the
+end the stop as measured (onset -> every joint at rest, the furthest any taxel travelled meanwhile).
 """
 from __future__ import annotations
 
@@ -41,9 +45,12 @@ from skinsafe.core.runtime.monitor import (
     AFTER_CONTACT,
     OVERRUN_PERIODS,
     OVERRUNS,
+    STOP_CATEGORY,
+    Kind,
     Monitor,
     Timing,
     fastest_taxel_speed,
+    stopping,
     table,
 )
 from skinsafe.core.runtime.tap import Tap
@@ -59,7 +66,9 @@ LINK_LATENCY_MAX = 10.0
 MAX_TARE_FRAMES = 10_000
 SWITCH_S = 0.0005  # the interpreter's thread switch interval while the robot moves (default 5 ms)
 EXIT_CODES = {0: "ran as planned, robot stopped", 1: "a watchdog or the driver stopped the robot (named)",
-              2: "bad input", 3: "pre-flight refused (the robot never moved)", 130: "Ctrl-C", 143: "SIGTERM"}
+              2: "bad input", 3: "pre-flight refused (the robot never moved)",
+              4: "the stop itself failed (named: its ramp, the robot's stop, the link lost while stopping)",
+              130: "Ctrl-C", 143: "SIGTERM"}
 SIM_FAULTS = {"sim-freeze": "freeze_at", "sim-die": "die_at", "sim-clock-freeze": "clock_freeze_at",
               "sim-clock-back": "clock_back_at", "sim-overrun": "overrun_at"}
 SOURCE_FAULTS = ("stack-nan", "stack-qp-fail", "reading-nan")  # at their source, from S s after the hand-over on
@@ -486,7 +495,7 @@ def _wire(args, stack, feed, ports, inject, map_path, map_hash, robot, design) -
         except (OSError, ValueError) as e:
             raise _Refused(2, f"--view: {e}") from None
     runtime = Runtime(driver, source, layers, command, source.excluded, design.taxels.thresholds["force"],
-                      recorder, tap, seconds=seconds, monitor=Monitor(args.after_contact), limiter=Limiter(limits),
+                      recorder, tap, seconds=seconds, monitor=Monitor(args.after_contact), limiter=Limiter(limits, driver.period_s),
                       overruns=args.overruns)
     return _Parts(driver, arm, limits, source, report, runtime, recorder, links, link_faults)
 
@@ -496,7 +505,7 @@ def _move(args, stack, p: _Parts, design, inject, rt: str, signals: contextlib.E
     collector pause until the robot stops: (outcome, injected faults' onsets)."""
     runtime, driver, source = p.runtime, p.driver, p.source
     _print_bounds(Timing(driver.period_s, 1.0 / args.rate, source.silence_s, runtime.command.stale_s,
-                         overruns=args.overruns), p.arm, design, p.limits["qd_max"])
+                         overruns=args.overruns), p.arm, design, p.limits)
     if p.links is not None:
         p.links.arm(source.silence_s)
 
@@ -536,7 +545,15 @@ def _report(args, p: _Parts, design, outcome, injected: dict, lost: int, skin: d
     t = outcome.stats
     head = {"end": "stopped as planned", "operator": "STOPPED by the operator", "fault": "STOPPED by a watchdog",
             "driver": "STOPPED by the robot"}[outcome.kind]
-    print(f"skinsafe run: {head}: {outcome.reason}", file=sys.stderr if outcome.kind != "end" else sys.stdout)
+    head = f"{head}, and THE STOP FAILED" if outcome.during_stop else head
+    print(f"skinsafe run: {head}: {outcome.reason}", file=sys.stderr if outcome.exit_code else sys.stdout)
+    stop = _stop_figures(outcome, p.arm, design) if t else {}
+    if stop.get("stop_time_ms") is not None:
+        print(f"skinsafe run: the stop: {'onset' if outcome.onset_mono else 'decision'} -> every joint below "
+              f"{stop['rest_qd']:g} rad/s in {stop['stop_time_ms']:.1f} ms; the furthest taxel ({stop['stop_distance_taxel']}) "
+              f"travelled {stop['stop_distance_mm']:.1f} mm meanwhile", file=sys.stderr)
+    elif stop:
+        print(f"skinsafe run: the stop: {stop.get('why', 'not measured')}", file=sys.stderr)
     for silence in skin.get("silences", []):
         print(f"skinsafe run: board '{silence['board']}' silent for {silence['silent_ms']} ms: {silence['cause']}",
               file=sys.stderr)
@@ -548,7 +565,8 @@ def _report(args, p: _Parts, design, outcome, injected: dict, lost: int, skin: d
         print(f"ticks {t['ticks']}, loop {t['loop_hz_p50']:.0f} Hz (period p99 {t['period_ms_p99']:.2f} ms), contact latency "
               f"p50 {t['latency_ms_p50']:.2f} / p99 {t['latency_ms_p99']:.2f} / max {t['latency_ms_max']:.2f} ms over "
               f"{t['latency_samples']} frames, frames lost {lost}"
-              + (f"; record {rec.get('path', rec.get('error'))}: {rec['written']} messages, {rec['dropped']} ticks dropped"
+              + (f"; record {rec.get('path', rec.get('error'))}: {rec['written']} messages, the telemetry of "
+                 f"{rec['dropped']} ticks dropped (every tick's joint state and command kept)"
                  if rec else ""))
     if args.stats:
         driver = p.driver
@@ -558,21 +576,49 @@ def _report(args, p: _Parts, design, outcome, injected: dict, lost: int, skin: d
                "detected_mono": outcome.detected_mono, "onset_mono": outcome.onset_mono, "state": outcome.state,
                "exit": outcome.exit_code, "injected": injected, "frames_lost": lost, "preflight": p.report,
                "record": rec, "period_s": driver.period_s, "robot": driver.name, "taxels": design.n_taxels,
-               "boards": len(design.boards), **t, "skin": skin, "teleop": teleop,
+               "boards": len(design.boards), **t, "skin": skin, "teleop": teleop, "stopping": stop,
+               "during_stop": list(outcome.during_stop),
                "world": {k: v for k, v in world.items() if k != "extra"} if world is not None else {}}
         atomic_write(Path(args.stats), json.dumps(out, default=_plain))
 
 
-def _print_bounds(tm: Timing, arm, design, qd_max) -> None:
-    """The monitor's detection bound of each fault kind, and how far the fastest taxel (at home, every joint at its
-    limit) travels blind within it."""
+def _print_bounds(tm: Timing, arm, design, limits: dict) -> None:
+    """The monitor's detection bound of each fault kind, how far the fastest taxel (at home, every joint at its
+    limit) travels blind within it, and the worst stopping time and distance of any taxel (`monitor.stopping`)."""
     from skinsafe.core.robot.kinematics import TaxelKinematics
 
     J = TaxelKinematics(arm.model, design).jacobians_of(np.arange(design.n_taxels), arm.home)[0]
-    speed = fastest_taxel_speed(J, qd_max)
+    speed = fastest_taxel_speed(J, limits["qd_max"])
     rows = "; ".join(f"{k} {ms:.0f} ms / {mm:.0f} mm" for k, ms, mm, _ in table(tm, speed))
     print(f"skinsafe run: detection bounds / blind distance at the fastest taxel's {speed:.2f} m/s: {rows}",
           file=sys.stderr)
+    kinds = {k for k, *_ in table(tm)}
+    stop = {k: v for k, v in stopping(tm, J, limits["qd_max"], limits["qdd_max"], limits.get("qddd_max")).items()
+            if k.value in kinds}
+    worst = max(stop, key=lambda k: stop[k][1])
+    print(f"skinsafe run: worst stopping distance {stop[worst][1] * 1e3:.0f} mm in {stop[worst][0] * 1e3:.0f} ms "
+          f"(`{worst.value}`: its detection bound, then every joint braking from its velocity limit at its "
+          f"acceleration limit; any taxel, at home)", file=sys.stderr)
+
+
+def _stop_figures(outcome, arm, design) -> dict:
+    """The stop as measured (`Runtime.stopping`): onset -> rest (ms), and the furthest any taxel travelled from where
+    it was at the onset, up to the rest (mm; the arm's measured path, at most 200 of its states)."""
+    from skinsafe.core.robot.kinematics import TaxelKinematics
+
+    s = dict(outcome.stopping)
+    path = np.asarray(s.pop("q_path", []), float)
+    if not len(path):
+        return s
+    kin = TaxelKinematics(arm.model, design)
+    path = path[np.unique(np.linspace(0, len(path) - 1, min(len(path), 200)).round().astype(int))]
+    p0 = kin.poses(path[0])[0].copy()
+    far = np.zeros(design.n_taxels)
+    for q in path[1:]:
+        np.maximum(far, np.linalg.norm(kin.poses(q)[0] - p0, axis=1), out=far)
+    k = int(np.argmax(far)) if len(far) else 0
+    return s | {"stop_distance_mm": float(far[k] * 1e3) if len(far) else 0.0, "stop_distance_taxel": k,
+                "stop_category": STOP_CATEGORY[Kind(outcome.watchdog)] if outcome.watchdog else 2}
 
 
 def _reader_faults(stack: contextlib.ExitStack, inject, source, stall_s: float) -> dict:

@@ -56,7 +56,7 @@ def run_config(map_path: str | Path, driver, limits: dict, params: RetractionPar
             "qd_max": [float(x) for x in limits["qd_max"]], "qdd_max": [float(x) for x in limits["qdd_max"]],
             "retraction": {f.name: _plain(getattr(params, f.name)) for f in fields(params)}, "excluded": [int(i) for i in np.flatnonzero(excluded)],
             "command": command, "tdm": str(Path(tdm_path).resolve()) if tdm_path else None,
-            "limits": limits_config(limits)}
+            "limits": limits_config(limits), "limiter_period_s": driver.period_s}
 
 
 def _plain(x):

@@ -8,6 +8,11 @@ same limiter from the record's configuration. Both drivers get its output: the F
 it unchanged and rate-limits only its own ramp to zero. A driver whose `limits()` names position-dependent
 velocity bounds (`qd_bounds`: "fr3", libfranka's, see `fr3_velocity_bounds`) has every joint kept inside them
 too, and the name goes into the record so a replay uses the same bounds. numpy only (hardware/ imports it).
+
+It cannot emit a non-finite command: the rate limits run at the driver's command period (`period_s`: one command
+goes out per period whatever the robot's clock says, libfranka's kDeltaT) or, without one, at the measured dt kept
+within [DT_MIN, DT_MAX] (0, negative or non-finite: DT_MIN, the last command held); a non-finite layers' velocity
+asks that joint for 0, and a joint whose measured position is not finite is brought to 0 (its bound is unknown).
 """
 from __future__ import annotations
 
@@ -15,6 +20,8 @@ import numpy as np
 
 MARGIN = 1e-3  # libfranka's kLimitEps: stay this fraction inside each limit (with a jerk limit)
 KEYS = ("q_min", "q_max", "qd_max", "qdd_max", "qddd_max")
+DT_MIN, DT_MAX = 1e-5, 0.05  # s: the rate limits' step without a command period (the sim's shortest period / 20 and
+# its longest)
 
 # libfranka 0.21.3, include/franka/rate_limiting.h (Apache-2.0, Copyright (c) 2023 Franka Robotics GmbH),
 # computeUpperLimitsJointVelocity / computeLowerLimitsJointVelocity (the FR3's, after
@@ -31,6 +38,11 @@ _FR3_Q_LOWER = np.array([-2.750100, -1.791800, -2.906500, -3.048100, -2.810100, 
 
 def fr3_velocity_bounds(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """libfranka's position-dependent FR3 joint velocity limits at q (7,): (lower, upper), rad/s."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return _fr3_bounds(q)
+
+
+def _fr3_bounds(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     up = np.minimum(_FR3_V_MAX, np.maximum(0.0, -_FR3_OFFSET + np.sqrt(np.maximum(0.0, _FR3_K * (_FR3_Q_UPPER - q)))))
     lo = np.maximum(-_FR3_V_MAX, np.minimum(0.0, _FR3_OFFSET - np.sqrt(np.maximum(0.0, _FR3_K * (q - _FR3_Q_LOWER)))))
     return lo + MARGIN, up - MARGIN
@@ -67,7 +79,10 @@ class Limiter:
     """The limiter for a driver's `limits()` (q_min, q_max, qd_max, qdd_max and optionally qddd_max, (n,) each; and
     optionally qd_bounds, a name in BOUNDS)."""
 
-    def __init__(self, limits: dict):
+    def __init__(self, limits: dict, period_s: float | None = None):
+        if period_s is not None and not (np.isfinite(period_s) and DT_MIN <= period_s <= DT_MAX):
+            raise ValueError(f"limiter: command period {period_s} s; give {DT_MIN:g}..{DT_MAX:g} s")
+        self.period_s = period_s
         get = {k: None if limits.get(k) is None else np.array([np.inf if x is None else x for x in limits[k]], float)
                for k in KEYS}
         self.q_min, self.q_max, self.qd_max, self.qdd_max, self.qddd_max = (get[k] for k in KEYS)
@@ -80,12 +95,19 @@ class Limiter:
         self.changed = 0  # ticks whose command it changed
 
     def __call__(self, v: np.ndarray, q: np.ndarray, dt: float) -> np.ndarray:
-        """The command to send for the layers' `v` at measured q, dt s after the last one."""
-        room = np.sqrt(2 * self.qdd_max * np.maximum(self.q_max - q, 0.0))
-        back = np.sqrt(2 * self.qdd_max * np.maximum(q - self.q_min, 0.0))
+        """The command to send for the layers' `v` at measured q, dt s after the last one (always finite: module
+        docstring)."""
+        dt = self.step(dt)
+        q = np.asarray(q, float)
+        v = np.where(np.isfinite(v), v, 0.0)
+        with np.errstate(invalid="ignore", over="ignore"):
+            up, down = self.q_max - q, q - self.q_min  # NaN where q is not finite
+            room = np.where(up > 0, np.sqrt(2 * self.qdd_max * np.where(up > 0, up, 0.0)), 0.0)
+            back = np.where(down > 0, np.sqrt(2 * self.qdd_max * np.where(down > 0, down, 0.0)), 0.0)
         lo, hi = np.maximum(-self.qd_max, -back), np.minimum(self.qd_max, room)
         if self.bounds is not None:
             b_lo, b_hi = self.bounds(q)
+            b_lo, b_hi = np.where(np.isfinite(b_lo), b_lo, 0.0), np.where(np.isfinite(b_hi), b_hi, 0.0)
             lo, hi = np.maximum(lo, b_lo), np.minimum(hi, b_hi)
         out = np.clip(v, lo, hi)
         if self.qddd_max is not None and self.bounds is None:
@@ -97,6 +119,14 @@ class Limiter:
         else:
             out = np.clip(out, self.last - self.qdd_max * dt, self.last + self.qdd_max * dt)
             self.acc = (out - self.last) / dt
+        if not np.isfinite(out).all() or not np.isfinite(self.acc).all():  # unreachable with finite limits: fail safe
+            out, self.acc = np.where(np.isfinite(out), out, self.last), np.where(np.isfinite(self.acc), self.acc, 0.0)
         self.changed += bool(np.any(out != v))
         self.last = out
         return out.copy()
+
+    def step(self, dt: float) -> float:
+        """The rate limits' step: the command period, or the measured dt within [DT_MIN, DT_MAX] (module docstring)."""
+        if self.period_s is not None:
+            return self.period_s
+        return min(max(dt, DT_MIN), DT_MAX) if np.isfinite(dt) and dt > 0 else DT_MIN

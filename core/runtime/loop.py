@@ -15,9 +15,13 @@
    at speed flags its first ticks by physics: the retraction is let finish, the plan never resumes),
    as does any retraction's end under `--after-contact hold`;
 3. the one command limiter (core/runtime/limiter.py: position, velocity, acceleration, jerk) makes the
-   command the driver sends, the stack is told it, and that is what the recorder and the tap get
-   (never waited on).
-A stop raises `StopRobot(reason)`: the driver sends zero velocity, then the robot's own stop.
+   command the driver sends (never non-finite), which is checked as sent, the stack is told it, and that
+   is what the recorder and the tap get (never waited on).
+A stop raises `StopRobot(reason)`: the driver sends zero velocity (the FR3: a ramp), then the robot's own
+stop; every command it sends meanwhile comes back through `sent` with the measured state, until the arm
+rests, so the record holds what was sent and the stop's end (`Outcome.stopping`: onset -> every joint
+below REST_QD on the robot's clock, and the arm's path since the onset). The driver reports the faults it
+meets itself through `report` (with their onset), those while stopping too: the monitor decides and names.
 Nothing resumes: the operator starts a new run. `stop_by_operator` (a signal) asks the driver to stop
 from any thread; every further signal only sets the same flag.
 """
@@ -41,6 +45,9 @@ from skinsafe.core.safety.limits import finite
 # under a hand's touch flags it in a clean retraction)
 UNCLEAN = ("infeasible",)
 SETTLING = (Kind.BOARD_SILENT, Kind.BOARD_LATE, Kind.READER_STALLED)  # may pass before the robot moves (a stall)
+BRAKES = ("nonfinite:tdm", "nonfinite:potential")  # the layers' own brakes on a non-finite model output: latched
+REST_QD = 0.02  # rad/s: the arm is at rest when every joint's measured speed is below this
+HISTORY = 4096  # ticks of the arm's state kept for the stop's figures (4 s at 1 kHz)
 
 
 @dataclass
@@ -55,6 +62,8 @@ class Outcome:
     onset_mono: float | None = None  # host time the fault began, where its source knows it
     exit_code: int = 0
     state: str = ""  # the monitor's state when the run ended (protective_stop: latched)
+    stopping: dict = field(default_factory=dict)  # `Runtime.stopping()`: onset -> rest, the arm's path meanwhile
+    during_stop: tuple = ()  # the faults met while stopping
 
 
 def _skin_faults(r) -> list[Fault]:
@@ -84,7 +93,7 @@ class Runtime:
         self.waited = Figure()  # s of each such latency before the tick that used the frame began
         self.latency_at = Figure()  # the index of each such latency's tick
         self._t0 = self._prev_t = self._start = self._last_t = self._first_start = None
-        self._repeats = 0
+        self._repeats, self._repeat_onset = 0, 0.0
         self.overruns = int(overruns)  # consecutive overruns that stop (0: off)
         self._overran, self._overrun_onset = 0, 0.0  # the current run of overruns, its first tick's start
         self.overrun_ticks = self.overrun_run_max = 0
@@ -92,6 +101,10 @@ class Runtime:
         self._force = None
         self._stopped = False
         self._state = None  # (state, readings) of the last tick
+        self._sent = None  # the last command the driver sent
+        self._after = 0  # ticks after the stop (the driver's ramp or hold)
+        self._hist = None  # (mono, t, max |qd|, q) of the last HISTORY ticks, before and after the stop
+        self._n = 0
 
     # -- the callback ----------------------------------------------------------------------------
     def control(self, state) -> np.ndarray:
@@ -106,6 +119,7 @@ class Runtime:
             self.period.add(start - self._start)
             self.robot_period.add(t - self._last_t)
             self._overrun(t - self._last_t, start)
+        self._keep(start, state)
         planned = self._plan(t, q)
         r = self.source.newest()  # after the plan: a frame that arrived meanwhile is this tick's
         self._state = (state, r)
@@ -125,10 +139,12 @@ class Runtime:
             self._stop(state, r)
         dt = t - self._prev_t if self.ticks else self.driver.period_s  # measured on the robot's clock
         self._prev_t = t
-        v = self.stack.tick(t, q, {"force": self._force}, planned, dt, qdot=qd)
+        # a repeated robot clock (dt 0) is the robot watchdog's to name: the layers tick on the period meanwhile
+        v = self.stack.tick(t, q, {"force": self._force}, planned, dt if dt > 0 else self.driver.period_s, qdot=qd)
         self._judge(v, start)
         if self.limiter is not None and not m.stopped:
             v = self.stack.last = self.limiter(v, q, dt)  # what is sent: the stack's next tick starts from it
+        self._check_sent(v, len(q), start)
         info = self.stack.info
         d = self.stack.defensiveness
         retracting, pool = bool(d is not None and d.active), int(len(d.pool)) if d is not None else 0
@@ -178,9 +194,11 @@ class Runtime:
                            f"{state.t:.4f} s", time.monotonic()))
         elif self._last_t is not None and state.t == self._last_t:
             self._repeats += 1
+            self._repeat_onset = self._start if self._repeats == 1 else self._repeat_onset  # the state that repeats
             if self._repeats >= self.state_periods:
                 m.report(Fault(Kind.ROBOT_FROZEN, "robot", f"robot: state not updating (its clock at {state.t:.4f} s "
-                               f"for {self._repeats + 1} periods of {self.driver.period_s * 1e3:g} ms)", time.monotonic()))
+                               f"for {self._repeats + 1} periods of {self.driver.period_s * 1e3:g} ms)",
+                               self._repeat_onset))
         else:
             self._repeats = 0
         intrusion = self.command.intrusion
@@ -207,30 +225,96 @@ class Runtime:
                                       f"periods of {self.driver.period_s * 1e3:g} ms: its states were missed)",
                                       self._overrun_onset))
 
+    def _check_sent(self, v: np.ndarray, n: int, now: float) -> None:
+        """What goes to the driver, checked as sent: n finite joint velocities (else the stop, named)."""
+        if v.shape != (n,) or not finite(v):
+            self.monitor.report(Fault(Kind.STACK_NONFINITE, "layers", f"the command to send is not {n} finite joint "
+                                      "velocities", now))
+        else:
+            self._sent = v
+
     def _judge(self, v: np.ndarray, now: float) -> None:
-        """The layers' command: non-finite, or the retraction's QP solve failed, latches a stop."""
+        """The layers' command: non-finite, a brake of their own on a non-finite model output, or the retraction's QP
+        solve failed, latches a stop."""
+        braked = [f for f in self.stack.info.flags if f in BRAKES]
         if not finite(v):
             self.monitor.report(Fault(Kind.STACK_NONFINITE, "layers", "the layers' command is not finite", now))
+        elif braked:
+            self.monitor.report(Fault(Kind.STACK_NONFINITE, "layers", f"layers: braked on a non-finite output "
+                                      f"({', '.join(f.split(':')[1] for f in braked)}): protective stop", now))
         elif self.stack.defensiveness is not None and self.stack.defensiveness.info.solver_failed:
             self.monitor.report(Fault(Kind.STACK_LATCH, "layers", "layers: the retraction's QP solve failed: protective "
                                       "stop (latched until a new run)", now))
 
     def _stop(self, state, r) -> None:
-        reason = self.monitor.reason
-        self._zero(state, r, reason)
-        raise StopRobot(reason)
+        raise StopRobot(self.monitor.reason)
 
-    def _zero(self, state, r, reason: str) -> None:
-        """The stop's tick for the tap and the record: zero velocity, the stack not ticked."""
+    def _driver_fault(self, kind: str, message: str, onset: float | None, during_stop: bool = False) -> None:
+        """The driver's `report`: a fault it met itself, typed, to the monitor (while stopping: the stop failed)."""
+        k = Kind(kind) if kind in Kind._value2member_map_ else Kind.DRIVER
+        f = Fault(k, self.driver.name, message, onset)
+        self.monitor.stop_failed(f) if during_stop else self.monitor.report(f)
+
+    def _on_sent(self, state, command) -> None:
+        """The driver's `sent`: a command of the stop (the zero, the ramp, the hold) with the state it went out on,
+        for the tap and the record (the stack not ticked), and the arm's state kept until it rests."""
+        self._keep(time.monotonic(), state)
+        self._sent = np.array(command, float)
+        r = self._state[1] if self._state is not None else None
+        self._publish_stop(state, r, self._sent, ("stop",))
+
+    def _publish_stop(self, state, r, command: np.ndarray, flags: tuple) -> None:
         self._stopped = True
+        self._after += 1
         zero = np.zeros(len(state.q))
-        tick = Tick(t=state.t, q=state.q, qd=state.qd, command=zero, force=self._force, reading_seq=float(r.seq),
-                    planned=zero, flags=("stop",), speed_factor=0.0, stop=reason, ticked=False,
-                    board_age_s=r.board_age_s, frames_lost=r.frames_lost, command_age=self.command.age(),
-                    command_refused=self.command.refused, index=self.ticks + 1, ns=time.time_ns())
+        tick = Tick(t=state.t, q=state.q, qd=state.qd, command=command, force=self._force,
+                    reading_seq=float(r.seq) if r is not None else 0.0, planned=zero, flags=flags,
+                    speed_factor=0.0, stop=self.monitor.reason, ticked=False,
+                    board_age_s=r.board_age_s if r is not None else None, frames_lost=r.frames_lost if r is not None
+                    else 0, command_age=self.command.age(), command_refused=self.command.refused,
+                    index=self.ticks + self._after, ns=time.time_ns())
         self.tap.publish(tick)
         if self.recorder is not None:
             self.recorder.put(tick)
+
+    def _keep(self, mono: float, state) -> None:
+        """The arm's state for the stop's figures (a ring of HISTORY ticks)."""
+        if self._hist is None:
+            n = len(state.q)
+            self._hist = (np.zeros(HISTORY), np.zeros(HISTORY), np.zeros(HISTORY), np.zeros((HISTORY, n)))
+        mono_, t_, speed_, q_ = self._hist
+        i = self._n % HISTORY
+        mono_[i], t_[i] = mono, state.t
+        speed_[i] = np.abs(state.qd).max() if len(state.qd) else 0.0
+        q_[i] = state.q
+        self._n += 1
+
+    def stopping(self, onset: float | None) -> dict:
+        """The stop measured as a safety engineer does, from the arm's measured state: `onset` (host time) -> every
+        joint below REST_QD for good, on the robot's clock (`stop_time_ms`; None: not at rest by the end of the
+        record, or the onset older than the history), and `q_path`, the measured joint positions from the onset to
+        the rest (the caller turns it into each taxel's travel)."""
+        if self._hist is None or onset is None:
+            return {}
+        k = min(self._n, HISTORY)
+        order = (np.arange(self._n - k, self._n)) % HISTORY
+        mono, t, speed, q = (a[order] for a in self._hist)
+        before = np.flatnonzero(mono <= onset)
+        out = {"rest_qd": REST_QD, "onset_mono": onset, "stop_time_ms": None, "q_path": []}
+        if not len(before):
+            if self._n > HISTORY or onset < mono[0] - 2 * self.driver.period_s:
+                return out | {"why": "the onset is older than the arm's kept history"}
+            before = np.array([0])
+        i0 = int(before[-1])
+        t_onset = t[i0] + (onset - mono[i0] if mono[i0] <= onset else 0.0)
+        moving = np.flatnonzero(speed[i0:] >= REST_QD)
+        rest = max(i0 + (int(moving[-1]) + 1 if len(moving) else 0), min(i0 + 1, len(t) - 1))
+        out["speed_at_onset"] = float(speed[i0])
+        if rest >= len(t):
+            return out | {"why": f"not at rest when the record ends (fastest joint {speed[-1]:.3f} rad/s)",
+                          "q_path": q[i0:].tolist()}
+        at_rest = not len(moving)  # at rest from the onset on: nothing to stop
+        return out | {"stop_time_ms": 0.0 if at_rest else (t[rest] - t_onset) * 1e3, "q_path": q[i0:rest + 1].tolist()}
 
     # -- the run ---------------------------------------------------------------------------------
     def stop_by_operator(self, signum: int, name: str) -> None:
@@ -261,15 +345,20 @@ class Runtime:
                 time.sleep(self.source.frame_period_s / 4)
         if not m.stopped:
             m.arm()
-            reason = self.driver.run(self.control)
-            if not m.stopped:  # the driver stopped on its own (a communication fault, its own limits)
+            reason = self.driver.run(self.control, report=self._driver_fault, sent=self._on_sent)
+            if not m.stopped:  # a driver that stopped without reporting why
                 m.report(Fault(Kind.DRIVER, "robot", reason, time.monotonic()))
-        if not self._stopped and self._state is not None:  # the operator's or the driver's stop: zero went out too
-            self._zero(*self._state, m.reason)
+        if not self._stopped and self._state is not None:  # nothing went out after the stop (the driver died)
+            state, r = self._state
+            self._publish_stop(state, r, self._sent if self._sent is not None else np.zeros(len(state.q)),
+                               ("stop", "nothing-sent"))
         d = m.decide()
+        onset = (d.fault.onset or d.detected) if d.fault else d.detected
         self.outcome = Outcome(d.reason, d.kind, d.fault.kind.value if d.fault else "", float(self._prev_t or 0.0),
                                d.detected, self.ticks, self.timing() if self._t0 is not None else {},
-                               d.fault.onset if d.fault else None, d.exit_code, d.state.value)
+                               d.fault.onset if d.fault else None, d.exit_code, d.state.value,
+                               self.stopping(onset) if self._t0 is not None else {},
+                               tuple(f"{f.kind.value}: {f.message}" for f in d.during_stop))
         return self.outcome
 
     def timing(self) -> dict:

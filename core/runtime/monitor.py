@@ -9,7 +9,9 @@ Every fault source (the boards' reader, the readings source, the robot's state, 
 source, the layers, the operator's signal) reports a typed `Fault` (its `Kind`, the source, a one-line
 message and, where known, its onset on the host's `time.monotonic()`); the first one latches the
 protective stop: zero velocity, then the robot's own stop, and nothing resumes (a new run is the
-acknowledgement). No text is matched: the kind decides. `report` takes no lock (a signal handler
+acknowledgement). No text is matched: the kind decides. A fault met while stopping (the driver's ramp,
+the robot's stop, the link lost mid-stop) is kept too (`stop_failed`): the run's reason names it and
+its exit code is 4, whatever stopped it. `report` takes no lock (a signal handler
 calls it). Each kind has a stated detection bound (`bounds`); `skinsafe run` prints them with the
 distance a taxel can travel blind within each (`table`); docs/run/safety.md's fault table is
 `python -m skinsafe.core.runtime.monitor`'s output.
@@ -109,7 +111,8 @@ SPECS = {
     Kind.ROBOT_NONFINITE: Spec("a non-finite robot clock, q or qd", STOP,
                                "tests/runtime/test_runtime_safety.py::test_a_non_finite_robot_state_or_teleop_target_is_"
                                "typed"),
-    Kind.DRIVER: Spec("the driver's own stop (communication lost, the simulation failed, the robot's reflex)",
+    Kind.DRIVER: Spec("the driver's own fault, reported with its onset (communication lost, the simulation failed, "
+                      "the robot's reflex, the control callback failed)",
                       "the robot's own stop (the robot or its driver stopped it)",
                       "tests/runtime/test_fr3_driver.py::test_fr3_robot_gone_is_named"),
     Kind.COMMAND_STALE: Spec("no teleop datagram for --command-timeout", STOP,
@@ -172,6 +175,33 @@ def fastest_taxel_speed(J: np.ndarray, qd_max: np.ndarray) -> float:
     return float((np.linalg.norm(J[:, :3], axis=1) @ np.asarray(qd_max, float)).max()) if len(J) else 0.0
 
 
+STOP_CATEGORY = {k: 2 for k in Kind} | {Kind.DRIVER: None}
+# IEC 60204-1's stop category each kind gets: 2, a controlled stop with power kept (the runtime's zero velocity, the
+# FR3 driver's ramp at its limits, then the arm held: the sim's servos at the measured pose, the FR3's controller);
+# None for `driver`: the robot's (or its driver's) own stop, not this runtime's to state
+
+
+def braking(qd, qdd, qddd=None) -> tuple[np.ndarray, np.ndarray]:
+    """The braking model of the printed stopping bounds, per joint from speed `qd` after the zero command: at the
+    acceleration limit `qdd`, and with a jerk limit `qddd` the acceleration first reversed and then ramped (2 qdd /
+    qddd more, counted at full speed): (time to rest s, angle rad) = (qd/qdd + 2 qdd/qddd, qd^2/(2 qdd) + 2 qd
+    qdd/qddd)."""
+    qd, qdd = np.abs(np.asarray(qd, float)), np.asarray(qdd, float)
+    ramp = 0.0 if qddd is None else 2 * qdd / np.asarray(qddd, float)
+    return qd / qdd + ramp, qd ** 2 / (2 * qdd) + qd * ramp
+
+
+def stopping(tm: Timing, J: np.ndarray, qd, qdd, qddd=None) -> dict[Kind, tuple[float, float]]:
+    """Each kind's stopping bound with every joint at `qd` when the fault begins: (time s: its detection bound + the
+    slowest joint's braking; distance m: the furthest taxel's, sum_j |J_lin[:, j]| (qd_j x detection + its braking
+    angle_j), J (N, 6, n) at the pose)."""
+    t_b, angle = braking(qd, qdd, qddd)
+    arm = np.linalg.norm(J[:, :3], axis=1) if len(J) else np.zeros((0, len(t_b)))
+    qd = np.abs(np.asarray(qd, float))
+    return {k: (b + float(t_b.max()), float((arm @ (qd * b + angle)).max()) if len(arm) else 0.0)
+            for k, b in bounds(tm).items()}
+
+
 def table(tm: Timing, speed: float = 0.0) -> list[tuple[str, float, float, str]]:
     """[(kind, bound ms, blind distance mm = speed x bound, detection)] for the kinds that apply."""
     b = bounds(tm)
@@ -188,6 +218,7 @@ class Decision:
     reason: str
     exit_code: int
     detected: float  # host time.monotonic() the stop was decided
+    during_stop: tuple = ()  # the faults met while stopping (the stop itself failed)
 
     @property
     def kind(self) -> str:
@@ -216,6 +247,7 @@ class Monitor:
         self.detected = 0.0
         self.signum = 0
         self._end = ""
+        self.during_stop: list[Fault] = []  # faults met while stopping (`stop_failed`)
         self._unclean: set[str] = set()  # the flags of concern seen during the current retraction
 
     @property
@@ -231,6 +263,14 @@ class Monitor:
         if self.fault is None and not self._end:
             self.fault, self.detected = fault, time.monotonic()
             self.state = State.PROTECTIVE_STOP
+
+    def stop_failed(self, fault: Fault) -> None:
+        """A fault met while stopping (the ramp, the robot's stop, the link lost mid-stop): kept, named in the reason,
+        and the run's exit code is 4. Before any stop it is the stop's own fault."""
+        if not self.stopped:
+            self.report(fault)
+        else:
+            self.during_stop.append(fault)
 
     def signal(self, signum: int, name: str) -> None:
         """The operator's SIGINT / SIGTERM: the first one is the stop; every further one only sets the same flag."""
@@ -268,10 +308,12 @@ class Monitor:
         """After the driver returned: the run is over; its reason and exit code."""
         stop = self.state
         self.state = State.ENDED
+        during = tuple(self.during_stop)
+        then = "".join(f"; then, while stopping: {f.message}" for f in during)
         if self.fault is None:
-            return Decision(stop, None, self._end or "the run ended", 0, self.detected)
-        code = 128 + self.signum if self.fault.kind is Kind.OPERATOR else 1
-        return Decision(stop, self.fault, self.fault.message, code, self.detected)
+            return Decision(stop, None, (self._end or "the run ended") + then, 4 if during else 0, self.detected, during)
+        code = 4 if during else 128 + self.signum if self.fault.kind is Kind.OPERATOR else 1
+        return Decision(stop, self.fault, self.fault.message + then, code, self.detected, during)
 
 
 def markdown(tm: Timing, speed: float) -> str:

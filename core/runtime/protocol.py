@@ -5,6 +5,12 @@ The driver owns the clock: every period it calls `control(state)` with the newes
 and sends the joint velocities returned. `control` returning None, raising `StopRobot(reason)` (or
 any exception: its text is the reason), `stop(reason)` from any thread, or a communication fault
 (named) ends the motion: zero velocity, then the robot's own stop; `run` returns the reason.
+Every fault the driver meets itself goes to `report(kind, message, onset, during_stop)` (kind a
+monitor Kind value, onset host time.monotonic()) before it stops, so the runtime's monitor decides
+and names the stop (core/runtime/monitor.py); a failure of the stop itself (its ramp, the robot's
+stop, the link lost meanwhile) is reported with `during_stop` True. Every command the stop sends (the
+zero, a ramp, the hold until the arm rests) goes to `sent(state, command)` with the state it was sent
+on: the record holds what was sent, and the arm's state until it rests.
 
 `ReadingsSource`: `hardware/skin_source.py` (boards over serial). `newest()` never waits on I/O.
 """
@@ -34,8 +40,9 @@ class RobotDriver(Protocol):
     def limits(self) -> dict[str, np.ndarray]:
         """The robot's own q_min, q_max, qd_max, qdd_max, (n,) each."""
 
-    def run(self, control: Callable[[RobotState], np.ndarray | None]) -> str:
-        """Blocks until the motion ends; returns the stop reason."""
+    def run(self, control: Callable[[RobotState], np.ndarray | None], report: Callable | None = None,
+            sent: Callable | None = None) -> str:
+        """Blocks until the motion ends; returns the stop reason (module docstring: `report`, `sent`)."""
 
     def stop(self, reason: str) -> None:
         """Thread-safe: end the motion (zero velocity, then the robot's stop)."""

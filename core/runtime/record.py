@@ -20,8 +20,11 @@ Topics (log time: host wall clock; header stamps: the robot's clock):
   watchdog's stop (level ERROR, its reason) once at the end.
 Metadata `skinsafe` holds the configuration a replay needs (map, limits, period, excluded taxels, ...).
 
-The loop only enqueues (`put`, never blocks): a writer thread encodes and writes. When the queue is
-full the tick is dropped and counted (`dropped`; the replay then says the record is incomplete).
+The loop only enqueues (`put`, never blocks): a writer thread encodes and writes. When the writer is
+behind (`queue_size` ticks waiting) a tick's telemetry (its taxel forces, layers, diagnostics) is dropped
+and counted (`dropped`, in the record's last diagnostics; the replay then says the record is incomplete);
+its safety topics (`/joint_states`, `/skinsafe/command`, `/skinsafe/planned`, `/skinsafe/tick`) never are:
+every tick, the stop's and the ramp's after it included, is in the record.
 Messages are CDR-encoded here (`JointStateEncoder`, `encode_float64_array`, `encode_diagnostics`:
 byte-equal to mcap-ros2-support's encoder, tested; that one writes arrays one element at a time,
 milliseconds for 4,096 floats where numpy takes microseconds) and written with `mcap`'s writer
@@ -34,6 +37,7 @@ import os
 import queue
 import struct
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -157,7 +161,8 @@ class Recorder:
         self.writer.add_metadata("skinsafe", {"config": json.dumps(config)})
         self.joints = JointStateEncoder(joint_names)
         self.names = list(joint_names)
-        self.q: queue.Queue = queue.Queue(queue_size)
+        self.q: queue.Queue = queue.Queue()  # unbounded: only telemetry is dropped (`put`)
+        self.queue_size = queue_size
         self.dropped = self.written = 0
         self.error = ""
         self._diag_t = -np.inf
@@ -166,12 +171,18 @@ class Recorder:
         self.thread.start()
 
     def put(self, tick: Tick, wait: bool = False) -> None:
-        """Enqueue one tick; dropped and counted when the writer is behind, unless `wait` (a
-        writer with no loop to keep: core/runtime/sim_record.py)."""
-        try:
-            self.q.put(tick, block=wait)
-        except queue.Full:
+        """Enqueue one tick, never blocking; when the writer is behind, only its safety topics (module docstring), its
+        telemetry dropped and counted. `wait`: a writer with no loop to keep (core/runtime/sim_record.py) waits for
+        room and keeps everything."""
+        if wait:
+            while self.q.qsize() >= self.queue_size and self.thread.is_alive():
+                time.sleep(0.001)
+            self.q.put(tick)
+        elif self.q.qsize() >= self.queue_size:
             self.dropped += 1
+            self.q.put(("safety", tick))
+        else:
+            self.q.put(tick)
 
     def close(self, stop: dict | None = None) -> dict:
         """Write the final diagnostics (`stop`: reason, kind, stats), finish the file, rename it into place."""
@@ -196,6 +207,8 @@ class Recorder:
             try:
                 if isinstance(item, Tick):
                     self._tick(item)
+                elif item[0] == "safety":
+                    self._safety(item[1])
                 else:
                     self._stop(item[1])
             except Exception as e:  # a disk that fills up must not take the loop down: named at the end
@@ -204,6 +217,15 @@ class Recorder:
     def _raw(self, topic: str, data: bytes, ns: int) -> None:
         self.writer.add_message(self.channels[topic], log_time=ns, data=data, publish_time=ns, sequence=self.written)
         self.written += 1
+
+    def _safety(self, k: Tick) -> None:
+        """A tick's safety topics (module docstring)."""
+        ns, t = k.ns, k.t
+        self._raw("/joint_states", self.joints(t, k.q, np.zeros_like(k.q) if k.qd is None else k.qd), ns)
+        self._raw("/skinsafe/planned", self.joints(t, (), k.command if k.planned is None else k.planned), ns)
+        self._raw("/skinsafe/command", self.joints(t, (), k.command), ns)
+        self._raw("/skinsafe/tick", encode_float64_array(
+            np.array([t, k.dt, k.reading_seq, k.index, float(k.ticked)], float)), ns)
 
     def _tick(self, k: Tick) -> None:
         """One tick: its forces only when new, its obstacles' poses when they move."""

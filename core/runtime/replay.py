@@ -86,10 +86,12 @@ def replay(path: str | Path, stack_from_config, map_path: str | Path | None = No
         raise ReplayError(f"{path}: the map {mp} changed since the run (SHA-256 {digest[:8]}, recorded "
                           f"{config['map_sha256'][:8]}); give the map the run used with --map")
     stack = stack_from_config(config, load(mp))
-    limiter = Limiter(config["limits"]) if config.get("limits") else None  # records before it: the stack's output
+    # records before the limiter: the stack's output; before its command period: the measured dt
+    limiter = Limiter(config["limits"], config.get("limiter_period_s")) if config.get("limits") else None
     n = len(config["joint_names"])
     worst, compared, stops, gaps, last_tick = 0.0, 0, 0, 0, 0
     q = qd = planned = command = force = None
+    seq, fresh, stale = None, False, 0  # a reading's sequence advanced without its forces: telemetry dropped
     for topic, msg in messages:
         if topic == "/joint_states":
             q, qd = np.asarray(msg.position, float), np.asarray(msg.velocity, float)
@@ -98,12 +100,14 @@ def replay(path: str | Path, stack_from_config, map_path: str | Path | None = No
         elif topic == "/skinsafe/command":
             command = np.asarray(msg.velocity, float)
         elif topic == "/skinsafe/taxels":
-            force = msg
+            force, fresh = msg, True
         elif topic == "/skinsafe/tick":
-            t, dt, _, tick, ticked = msg[:5]
+            t, dt, reading, tick, ticked = msg[:5]
             gaps += int(tick) != last_tick + 1
             last_tick = int(tick)
-            if not ticked:
+            stale += seq is not None and reading != seq and not fresh and bool(ticked)
+            seq, fresh = reading, False
+            if not ticked:  # the stop and the commands after it (the ramp, the hold): the stack did not tick
                 stops += 1
                 continue
             if force is None or q is None or len(q) != n:
@@ -115,5 +119,5 @@ def replay(path: str | Path, stack_from_config, map_path: str | Path | None = No
             compared += 1
     if not compared:
         raise ReplayError(f"{path}: no tick to replay (the robot never moved)")
-    return {"ticks": compared, "stops": stops, "max_abs_diff": worst, "complete": gaps == 0,
-            "gaps": gaps, "map": str(mp)}
+    return {"ticks": compared, "stops": stops, "max_abs_diff": worst, "complete": gaps == 0 and not stale,
+            "gaps": gaps, "readings_missing": stale, "map": str(mp)}

@@ -184,6 +184,7 @@ class SimDriver:
         self._rng = np.random.default_rng(0)
         self._publish()
         self._stop: str | None = None
+        self._dead = False  # the simulation failed: no arm to hold
         self._seq = 0
         self._skew = 0.0  # s the state's clock runs ahead of the sim's (an injected overrun)
         self._contact_p0 = None
@@ -220,8 +221,12 @@ class SimDriver:
             self._publish()
             time.sleep(self.period_s)
 
-    def run(self, control) -> str:
-        """Blocks: control every period until a stop; returns the reason (module docstring)."""
+    def run(self, control, report=None, sent=None) -> str:
+        """Blocks: control every period until a stop; returns the reason (module docstring). `report(kind, message,
+        onset, during_stop)`: a fault this driver met itself (kind a monitor Kind value; onset host
+        time.monotonic()), before it stops; `sent(state, command)`: every command sent after the stop (the hold) with
+        the state it was sent on, until the arm rests (core/runtime/protocol.py)."""
+        report = report or _ignore
         self._moving = True
         if self._idle is not None:
             self._idle.join()
@@ -238,23 +243,28 @@ class SimDriver:
                 self.stats.fault_mono = time.monotonic()
             try:
                 v = control(frozen or self._faulty(self.state()))
-            except Exception as e:  # StopRobot or any failure of the control: a named stop
+            except Exception as e:  # StopRobot (the monitor's: it ignores this report) or a failure of the control
                 reason = str(e) or type(e).__name__
+                report("driver", f"sim: the control failed: {reason}", time.monotonic(), False)
                 break
             if v is None:
                 reason = "the control ended the motion"
+                report("driver", f"sim: {reason}", time.monotonic(), False)
                 break
             v = np.asarray(v, dtype=float)
             if v.shape != (self.nq,) or not np.isfinite(v).all():
                 reason = f"the control sent {v.shape} non-finite or misshapen joint velocities (expected {self.nq})"
+                report("driver", f"sim: {reason}", time.monotonic(), False)
                 break
             try:
                 self._step(v)
             except Exception as e:
                 reason = f"sim: the simulation failed ({e}); robot state lost"
+                report("driver", reason, self.stats.fault_mono or time.monotonic(), False)
+                self._dead = True
                 break
             next_t = self._pace(next_t)
-        self._halt()
+        self._halt(report, sent or _ignore)
         return reason
 
     def _faulty(self, s: SimState) -> SimState:
@@ -353,15 +363,30 @@ class SimDriver:
             time.sleep(next_t - now)
         return next_t
 
-    def _halt(self) -> None:
-        """Zero velocity, then the robot's own stop: hold the measured pose until the arm rests."""
+    def _halt(self, report, sent) -> None:
+        """Zero velocity, then the robot's own stop: hold the measured pose until the arm rests (every step's
+        command and state to `sent`); a simulation that fails meanwhile, or an arm not at rest after REST_TIMEOUT_S,
+        is reported as a fault during the stop."""
         self.stats.stop_t, self.stats.zero_mono = float(self.data.time), time.monotonic()
         d, nq = self.data, self.nq
         self.target = d.qpos[:nq].copy()
         end = d.time + REST_TIMEOUT_S
+        zero = np.zeros(nq)
+        if self._dead:  # a dead simulation has no arm to hold, and nothing was sent
+            self.stats.rest_qd = float("nan")
+            return
         try:
+            sent(self.state(), zero)
             while d.time < end and np.abs(d.qvel[:nq]).max() > REST_SPEED:
-                self._step(np.zeros(nq))
-        except Exception:
-            pass  # a dead simulation has no arm to hold
+                self._step(zero)
+                sent(self.state(), zero)
+        except Exception as e:  # noqa: BLE001 - the stop itself failed: named, never silent
+            report("driver", f"sim: the simulation failed while holding the arm ({e})", time.monotonic(), True)
         self.stats.rest_qd = float(np.abs(d.qvel[:nq]).max())
+        if not self.stats.rest_qd <= REST_SPEED:
+            report("driver", f"sim: the arm not at rest {REST_TIMEOUT_S:g} s after the stop (fastest joint "
+                   f"{self.stats.rest_qd:.4f} rad/s)", time.monotonic(), True)
+
+
+def _ignore(*_) -> None:
+    pass

@@ -1,0 +1,242 @@
+"""Every stop through the monitor, and what was sent in the record until the arm rests (issue 50): the limiter never
+makes a non-finite command (any dt, q, v); a repeated FR3 timestamp sends no NaN and the stop is named by its cause;
+a driver's own fault goes to the monitor with its onset; a stop that fails (the FR3's ramp never brings the arm to
+rest) changes the exit code; the record's last command is the driver's last one sent (the ramp recorded); a slow
+writer drops telemetry, never a tick's safety topics (the stop's included). The FR3 here is pylibfranka's interface
+as a script (`Scripted`: its clock as given, the arm following each command exactly), handed to the driver."""
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import test_runtime_loop as loop
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from mcap.reader import make_reader
+
+from skinsafe.core.runtime.limiter import Limiter, limits_config
+from skinsafe.core.runtime.loop import Runtime
+from skinsafe.core.runtime.record import Recorder
+from skinsafe.core.runtime.replay import decode_float64_array
+from skinsafe.core.runtime.tick import Tick
+from skinsafe.core.safety.defensiveness import TickInfo
+from skinsafe.core.sim.robot_driver import SimFaults
+from skinsafe.hardware import franka
+from skinsafe.hardware.franka import FrankaDriver
+
+ur5 = loop.ur5  # its fixture
+FR3 = {"q_min": franka.Q_MIN, "q_max": franka.Q_MAX, "qd_max": franka.QD_MAX, "qdd_max": franka.QDD_MAX,
+       "qddd_max": franka.QDDD_MAX, "qd_bounds": "fr3"}
+SIM = {"q_min": np.array([-1.0, -np.inf]), "q_max": np.array([1.0, np.inf]), "qd_max": np.array([2.0, 1.0]),
+       "qdd_max": np.array([4.0, 100.0])}
+SWING = np.array([0.3, 0, 0, 0, 0, 0, 0])
+
+odd = st.sampled_from([0.0, -0.001, 1e-300, 5e-324, 1e-9, 1e300, np.inf, -np.inf, np.nan])
+dts = st.one_of(odd, st.floats(-1.0, 10.0))
+value = st.one_of(st.floats(-1e6, 1e6), st.sampled_from([np.nan, np.inf, -np.inf, 1e308, -1e308]))
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.sampled_from(["fr3", "fr3-period", "sim"]), st.lists(st.tuples(dts, st.lists(value, min_size=7, max_size=7),
+       st.lists(value, min_size=7, max_size=7), st.lists(st.floats(-1.2, 1.2), min_size=7, max_size=7)),
+       min_size=1, max_size=6))
+def test_the_limiter_never_makes_a_non_finite_command(which, ticks):
+    """Any dt (0, negative, tiny, huge, non-finite), any layers' velocity and measured q (at, past and far past the
+    limits, non-finite), in any order: every command finite, inside the velocity limits."""
+    limits = SIM if which == "sim" else FR3
+    lim = Limiter(json.loads(json.dumps(limits_config(limits))), franka.PERIOD_S if which == "fr3-period" else None)
+    n = len(limits["qd_max"])
+    for dt, v, q, frac in ticks:
+        q = np.where(np.abs(frac[:n]) <= 1.1, limits["q_min"] + (np.array(frac[:n]) + 1) / 2 *
+                     (np.where(np.isfinite(limits["q_max"]), limits["q_max"], 1) -
+                      np.where(np.isfinite(limits["q_min"]), limits["q_min"], -1)), np.array(q[:n]))
+        out = lim(np.array(v[:n]), q, dt)
+        assert np.isfinite(out).all() and np.isfinite(lim.acc).all(), (dt, v, q, out)
+        assert (np.abs(out) <= limits["qd_max"] + 1e-9).all()
+
+
+class Scripted:
+    """pylibfranka's `Robot` and its active control as a script: the robot's clock from `times` (s; then on at 1 ms a
+    state), the arm following each command exactly (dq = the last command), or stuck moving at `stuck` rad/s once
+    the ramp begins; `written`: every command sent."""
+
+    def __init__(self, times=(), stuck=None):
+        self.times, self.stuck, self.written, self.k = list(times), stuck, [], 0
+        self.q, self.dq, self.stopped = np.array(franka.Q_MIN + franka.Q_MAX) / 2, np.zeros(7), 0
+
+    def start_joint_velocity_control(self, mode):
+        return self
+
+    def readOnce(self):
+        t = self.times[self.k] if self.k < len(self.times) else (self.times[-1] if self.times else 0.0) + \
+            (self.k - len(self.times) + 1) * 1e-3
+        self.k += 1
+        self.q = self.q + self.dq * 1e-3
+        rs = SimpleNamespace(time=SimpleNamespace(to_sec=lambda: t), q=self.q.tolist(), dq=self.dq.tolist(),
+                             control_command_success_rate=1.0)
+        return rs, SimpleNamespace(to_sec=lambda: 1e-3)
+
+    def writeOnce(self, cmd):
+        self.written.append((np.array(cmd.dq), cmd.motion_finished))
+        ramping = self.stuck is not None and len(self.written) > 1 and not np.array(cmd.dq).any()
+        self.dq = np.full(7, self.stuck) if ramping or (self.stuck is not None and self.dq.any() and
+                                                       np.abs(self.dq).max() == self.stuck) else np.array(cmd.dq)
+
+    def stop(self):
+        self.stopped += 1
+
+
+class Swing:
+    """The command source: the base joint at 0.3 rad/s."""
+
+    spec, stale_s, refused, intrusion = "swing", None, 0, None
+
+    def start(self, q0):
+        pass
+
+    def __call__(self, t, q):
+        return SWING
+
+    def age(self):
+        return 0.0
+
+
+class Layers:
+    """The layers doing nothing (the plan goes to the limiter as it is)."""
+
+    defensiveness, last_f = None, 0.0
+
+    def __init__(self):
+        self.last, self.info = np.zeros(7), TickInfo()
+
+    def tick(self, t, q, readings, planned, dt, qdot=None):
+        return np.array(planned, float)
+
+
+class Source:
+    frame_period_s = 0.01
+
+    def __init__(self):
+        self.seq = 0
+
+    def newest(self):
+        self.seq += 1
+        return loop.Readings(0.0, np.zeros(1), self.seq, {0: 0.0})
+
+
+class Kept:
+    """A recorder that keeps every tick."""
+
+    def __init__(self):
+        self.ticks = []
+
+    def put(self, tick):
+        self.ticks.append(tick)
+
+
+def fr3_runtime(robot, seconds=None):
+    drv = FrankaDriver("scripted", realtime=False, rate_limited=False, robot=robot)
+    rec = Kept()
+    rt = Runtime(drv, Source(), Layers(), Swing(), np.zeros(1, bool), np.ones(1), rec, seconds=seconds,
+                 limiter=Limiter(limits_config(drv.limits()), drv.period_s))
+    return rt, rec
+
+
+def test_a_repeated_fr3_timestamp_sends_no_nan_and_the_robot_clock_names_the_stop():
+    """The robot's clock repeats once at 30 ms (the watchdog lets one through: no NaN, the arm goes on), then stays at
+    60 ms: robot-frozen names it, and the ramp after it goes out and is recorded until the arm rests."""
+    times = [k * 1e-3 for k in range(1, 31)] + [0.030] + [k * 1e-3 for k in range(31, 61)] + [0.060] * 3
+    robot = Scripted(times)
+    rt, rec = fr3_runtime(robot)
+    out = rt.run(settle_s=0.0)
+    sent = np.array([w for w, _ in robot.written])
+    assert np.isfinite(sent).all() and sent[:, 0].max() > 0.2  # it moved, never a NaN
+    assert out.watchdog == "robot-frozen" and out.exit_code == 1 and out.state == "protective_stop", out.reason
+    assert robot.written[-1][1] and not robot.written[-1][0].any() and robot.stopped == 1  # ramped, then finished
+    assert len(rec.ticks) == len(robot.written)  # every command sent is a tick of the record, the ramp's too
+    np.testing.assert_array_equal(np.array([k.command for k in rec.ticks]), sent)
+    after = [k for k in rec.ticks if not k.ticked]
+    assert len(after) > 20 and all(k.stop == out.reason for k in after) and rt.ticks + len(after) == len(sent)
+    s = out.stopping
+    assert s["stop_time_ms"] > 20 and s["speed_at_onset"] > 0.2 and len(s["q_path"]) > 30  # onset -> rest
+
+
+def test_a_ramp_that_never_brings_the_arm_to_rest_changes_the_exit_code():
+    """The run ends as planned (--seconds) but the arm keeps moving after its ramp: the ramp's failure is a fault
+    during the stop, named, exit 4, not 0."""
+    robot = Scripted(stuck=0.3)
+    rt, _ = fr3_runtime(robot, seconds=0.05)
+    out = rt.run(settle_s=0.0)
+    assert out.kind == "end" and out.exit_code == 4, out
+    assert "while stopping: fr3: the stop's ramp did not bring the arm to rest" in out.reason
+    assert out.during_stop and out.stopping["stop_time_ms"] is None and "not at rest" in out.stopping["why"]
+
+
+def test_a_driver_fault_reaches_the_monitor_with_its_onset(ur5):
+    """The simulation dies at 0.2 s: the driver reports it (kind driver, its onset the failure's instant) before it
+    stops; the monitor decided it then, the driver's return came after."""
+    drv, rt = loop._runtime(ur5, faults=SimFaults(die_at=0.2))
+    out = rt.run(settle_s=0.0)
+    assert out.watchdog == "driver" and out.exit_code == 1 and out.state == "protective_stop", out.reason
+    assert out.onset_mono == drv.stats.fault_mono and out.detected_mono <= drv.stats.zero_mono
+    assert "physics stopped at t = 0.200 s (injected)" in out.reason
+
+
+def test_the_sim_stop_is_recorded_until_the_arm_rests(ur5):
+    """--seconds ends a run mid-retraction: the hold after it goes to the record, tick by tick, until the arm rests."""
+    drv, rt = loop._runtime(ur5, seconds=0.16)
+    rt.recorder = rec = Kept()
+    out = rt.run(settle_s=0.0)
+    after = [k for k in rec.ticks if not k.ticked]
+    assert out.exit_code == 0 and after and all(not k.command.any() for k in after), out.reason
+    assert np.abs(after[-1].qd).max() <= 1e-3 and [k.index for k in rec.ticks] == list(range(1, len(rec.ticks) + 1))
+    assert out.stopping["stop_time_ms"] is not None and out.stopping["stop_time_ms"] >= 0
+
+
+def test_a_slow_writer_drops_telemetry_never_a_tick(tmp_path):
+    """300 ticks of 16k taxels each, put as fast as the loop can, behind a queue of 2: the forces of most are dropped
+    and counted; every tick's joint state, command and tick message is in the record, the stop's last."""
+    n, k = 16384, 300
+    rec = Recorder(tmp_path / "r.mcap", [f"j{i}" for i in range(7)], {}, queue_size=2)
+    for i in range(k):
+        last = i == k - 1
+        rec.put(Tick(t=i * 1e-3, q=np.zeros(7), qd=np.zeros(7), command=np.zeros(7) if last else np.full(7, i * 1e-3),
+                     force=np.full(n, float(i)), force_new=True, reading_seq=float(i), ticked=not last,
+                     stop="stopped" if last else "", flags=("stop",) if last else (), index=i + 1, ns=10**6 * (i + 1)))
+    out = rec.close({"reason": "stopped", "kind": "fault", "dropped": rec.dropped})
+    assert out["dropped"] > 0 and "path" in out
+    with open(out["path"], "rb") as f:
+        msgs = [(c.topic, m.data) for _, c, m in make_reader(f).iter_messages(log_time_order=False)]
+    ticks = [decode_float64_array(d) for t, d in msgs if t == "/skinsafe/tick"]
+    assert [int(x[3]) for x in ticks] == list(range(1, k + 1)) and ticks[-1][4] == 0
+    assert sum(t == "/skinsafe/command" for t, _ in msgs) == k
+    assert sum(t == "/skinsafe/taxels" for t, _ in msgs) == k - out["dropped"]
+    assert msgs[-1][0] == "/diagnostics"
+
+
+class BrakingLayers:
+    """The layers as built; from 0.1 s their info says they braked on the TDM's output (as SafetyStack does on a
+    non-finite strategy output)."""
+
+    def __init__(self, inner):
+        object.__setattr__(self, "inner", inner)
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def __setattr__(self, name, value):
+        setattr(self.inner, name, value)
+
+    def tick(self, t, *args, **kw):
+        v = self.inner.tick(t, *args, **kw)
+        if t >= 0.1:
+            self.inner.info.flags = ("nonfinite:tdm", "nonfinite")
+        return v
+
+
+def test_a_layers_brake_on_a_non_finite_model_output_latches(ur5):
+    """The layers' own brake (nonfinite:tdm / nonfinite:potential) is a stop the monitor names, not a silent tick."""
+    drv, rt = loop._runtime(ur5)
+    rt.stack = BrakingLayers(rt.stack)
+    out = rt.run(settle_s=0.0)
+    assert out.watchdog == "stack-nonfinite" and "braked on a non-finite output (tdm)" in out.reason, out.reason
+    assert 0.1 <= drv.stats.stop_t <= 0.1 + 2 * drv.period_s + 1e-9
