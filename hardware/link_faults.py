@@ -10,7 +10,9 @@ a fault lands between frames. Faults, `at` seconds after `arm()` on one board (d
   a link slower than the board), steadily, never a gap of more than 1.5 frame periods;
 - frame-replay: a frame is sent again 20 ms after it first went through (its counter is older);
 - foreign-uid: a copy of a frame with another board's uid;
-- crc-storm: the next 10 frames arrive with one byte of their payload flipped.
+- crc-storm: the next 10 frames arrive with one byte of their payload flipped (the board silent with corrupt frames);
+- crc-burst: every other frame, 5 of them, corrupt so (good frames between: the 5-corrupt-frames-within-1-s path);
+  `spans[board]`: host time from its first corrupt frame to its 5th.
 `onsets`: board id -> host time.monotonic() its fault took effect (the first bad, held or lost byte; a frame-lag, a
 ramp, once the newest frame passed to the host is older than the run's silence since the board sent it,
 measured on the frames the proxy passed: `arm(silence_s)`).
@@ -25,7 +27,8 @@ import tty
 
 from skinsafe.hardware import protocol as P
 
-LINK_FAULTS = ("board-unplug", "frame-delay", "frame-lag", "frame-replay", "foreign-uid", "crc-storm")
+LINK_FAULTS = ("board-unplug", "frame-delay", "frame-lag", "frame-replay", "foreign-uid", "crc-storm", "crc-burst")
+BURST_FRAMES = 5  # crc-burst: corrupt frames, every other one (the boards' reader names 5 within 1 s a storm)
 LAG_RATE = 0.5  # frame-lag: s of extra delay per s since the fault
 DELAY_S = 0.05
 REPLAY_AFTER_S = 0.02
@@ -47,6 +50,7 @@ class _Link:
         self.silence_s: float | None = None
         self.fault = None  # (kind, start time)
         self.storm = 0
+        self.span: float | None = None  # crc-burst: its first corrupt frame -> its last
         self.replay = None  # bytes of a frame to send again
         self.unplugged = False
         self.onset: float | None = None  # host time the fault took effect
@@ -79,9 +83,13 @@ class _Link:
         elif kind == "foreign-uid" and self.replay is None:
             self.replay, self.onset = raw, now
             return raw + P.encode_frame(f.type, f.seq, f.uid ^ 0x1000, f.payload, f.version)
-        elif kind == "crc-storm" and self.storm < STORM_FRAMES:
+        elif kind == "crc-storm" and self.storm < STORM_FRAMES or kind == "crc-burst" and self.storm < 2 * BURST_FRAMES:
             self.onset = self.onset or now
             self.storm += 1
+            if kind == "crc-burst" and self.storm % 2 == 0:
+                return raw
+            if kind == "crc-burst" and self.storm == 2 * BURST_FRAMES - 1:
+                self.span = now - self.onset
             b = bytearray(raw)
             b[P.HEADER_SIZE + 4] ^= 0xFF
             return bytes(b)
@@ -143,6 +151,10 @@ class LinkFaults:
     @property
     def onsets(self) -> dict[int, float]:
         return {b: x.onset for b, x in self.links.items() if x.onset is not None}
+
+    @property
+    def spans(self) -> dict[int, float]:
+        return {b: x.span for b, x in self.links.items() if x.span is not None}
 
     def arm(self, silence_s: float) -> None:
         """Start the fault clock (the robot starts moving); `silence_s`: the run's, for a frame-lag's onset."""

@@ -95,12 +95,14 @@ class SkinSource:
 
     def __init__(self, design: SkinDesign, ports: dict[int, str], rate_hz: int = 100, noise_fraction: float = 0.25,
                  max_excluded: float = 0.02, silent_periods: float = 2.0, crc_storm: int = 5,
-                 link_latency: float = 0.0, **client_kw):
+                 link_latency: float = 0.0, faults=None, **client_kw):
+        """`faults`: a run's fault plan (core/runtime/fault_plan.py): from its `reading-nan` on, every frame read
+        carries a NaN on the first taxel not excluded (its onset: the first such frame's read time)."""
         missing = [b.name for b in design.boards if b.id not in ports]
         if missing:
             raise PreflightRefused(f"no port for board(s) {', '.join(missing)} of the map; give every board's port "
                                    "(or --boards emulate)")
-        self.design, self.ports = design, ports
+        self.design, self.ports, self.faults = design, ports, faults
         self.n_taxels = design.n_taxels
         self.frame_period_s = 1.0 / int(rate_hz)
         self.silence_s = silent_periods * self.frame_period_s + link_latency  # a board is silent after this long
@@ -199,7 +201,11 @@ class SkinSource:
                            f"more than a board may be ({self.silence_s * 1e3:.1f} ms): the host is overloaded",
                            beat + self.silence_s))
         ages = {uid: now - a for uid, a in zip(self._uids, v[1:1 + nb])}
-        return Readings(t, v[1 + nb:], seq, ages, faults, int(v[0]))
+        force = v[1 + nb:]
+        if self.faults is not None and self.faults.due("reading-nan", t):
+            force = force.copy()
+            force[np.flatnonzero(~self.excluded)[0]] = np.nan
+        return Readings(t, force, seq, ages, faults, int(v[0]))
 
     def _take_faults(self) -> list[str]:
         try:

@@ -38,6 +38,7 @@ import numpy as np
 
 from skinsafe.core.realtime import background, below_host, is_realtime, loop_priority, one_thread, realtime
 from skinsafe.core.runtime.commands import CommandError, Trajectory, command_source
+from skinsafe.core.runtime.fault_plan import IN_PARTS, FaultPlan, Injection
 from skinsafe.core.runtime.layers import build_stack, run_config
 from skinsafe.core.runtime.limiter import Limiter
 from skinsafe.core.runtime.loop import Runtime, warm_up
@@ -71,7 +72,8 @@ EXIT_CODES = {0: "ran as planned, robot stopped", 1: "a watchdog or the driver s
               130: "Ctrl-C", 143: "SIGTERM"}
 SIM_FAULTS = {"sim-freeze": "freeze_at", "sim-die": "die_at", "sim-clock-freeze": "clock_freeze_at",
               "sim-clock-back": "clock_back_at", "sim-overrun": "overrun_at"}
-SOURCE_FAULTS = ("stack-nan", "stack-qp-fail", "reading-nan")  # at their source, from S s after the hand-over on
+SIM_FAULTS["sim-nan"] = "nan_at"
+SOURCE_FAULTS = IN_PARTS  # at their source (the FaultPlan handed to it), from S s after the hand-over on
 READER_FAULTS = ("reader-kill", "reader-stall")  # at S s after the robot is handed over (before the boards settle)
 
 
@@ -131,13 +133,15 @@ def add_arguments(p) -> None:
     sim.add_argument("--inject", action="append", default=[], metavar="FAULT@SECONDS[:BOARD]",
                      help="fault injection for tests and `bench runtime --faults`: board-unplug, frame-delay (50 ms, or 3 "
                           "frame periods + --link-latency, the longer), frame-lag, "
-                          "frame-replay, foreign-uid, crc-storm (on the emulated boards' links), sim-freeze, sim-die, "
-                          "sim-clock-freeze, sim-clock-back, sim-overrun (the state's clock 3 periods a tick); "
+                          "frame-replay, foreign-uid, crc-storm, crc-burst (on the emulated boards' links), sim-freeze, sim-die, "
+                          "sim-clock-freeze, sim-clock-back, sim-overrun (the state's clock 3 periods a tick), sim-nan "
+                          "(the state's first joint position NaN); "
                           "reader-kill (SIGKILL), reader-stall (SIGSTOP for a silence + 0.1 s) on the boards' reader, "
                           "S s after the robot is handed over (0: before the boards settle); from S s after the "
                           "hand-over: stack-nan (the layers' command non-finite), stack-qp-fail (the retraction's QP "
                           "solve fails at the next retraction tick), reading-nan (a NaN reading on the first taxel not "
-                          "excluded)")
+                          "excluded), command-nan (the command source's plan non-finite); each handed to the part "
+                          "that fails as the run's FaultPlan (core/runtime/fault_plan.py)")
     p.add_argument("--overruns", type=int, default=OVERRUNS, metavar="K",
                    help=f"stop after K consecutive overruns: ticks more than {OVERRUN_PERIODS:g} control periods apart "
                         f"on the robot's own clock, its states missed (default {OVERRUNS}; 0: off)")
@@ -221,10 +225,12 @@ def _taxel_faults(items: list[str]) -> dict[int, str]:
     return out
 
 
-def _injections(items: list[str]) -> list[tuple[str, float, int | None]]:
+def _injections(items: list[str]) -> FaultPlan:
+    """--inject FAULT@SECONDS[:BOARD] as the run's FaultPlan (core/runtime/fault_plan.py)."""
     from skinsafe.hardware.link_faults import LINK_FAULTS
 
     out = []
+    kinds = LINK_FAULTS + tuple(SIM_FAULTS) + READER_FAULTS + SOURCE_FAULTS
     for item in items:
         kind, _, rest = item.partition("@")
         at, _, board = rest.partition(":")
@@ -233,11 +239,10 @@ def _injections(items: list[str]) -> list[tuple[str, float, int | None]]:
             b = int(board) if board else None
         except ValueError:
             raise DesignError(f"--inject {item!r}: give FAULT@SECONDS[:BOARD], e.g. board-unplug@0.5:1") from None
-        kinds = LINK_FAULTS + tuple(SIM_FAULTS) + READER_FAULTS + SOURCE_FAULTS
         if kind not in kinds or not (math.isfinite(t) and t >= 0):
             raise DesignError(f"--inject {item!r}: faults are {', '.join(kinds)}, at a time >= 0 s")
-        out.append((kind, t, b))
-    return out
+        out.append(Injection(kind, t, b))
+    return FaultPlan(tuple(out))
 
 
 def _driver(args, design, robot, feed, inject):
@@ -257,7 +262,7 @@ def _driver(args, design, robot, feed, inject):
             raise DesignError(str(e)) from None
     from skinsafe.core.sim.robot_driver import SimDriver, SimFaults
 
-    faults = SimFaults(**{SIM_FAULTS[k]: t for k, t, _ in inject if k in SIM_FAULTS})
+    faults = SimFaults(**{SIM_FAULTS[i.kind]: i.at for i in inject.injections if i.kind in SIM_FAULTS})
     try:
         return SimDriver(design, robot, feed, args.period, _contact(args.contact), faults=faults,
                          taxel_faults=_taxel_faults(args.taxel_fault))
@@ -374,6 +379,8 @@ def _run(args, feed, ports, on_moving, signals: contextlib.ExitStack) -> int:
             if p.links is not None:
                 injected.update({k: p.links.onsets.get(b if b is not None else min(p.links.ports))
                                  for k, _, b in p.link_faults})
+                injected.update({f"{k}-span": p.links.spans.get(b if b is not None else min(p.links.ports))
+                                 for k, _, b in p.link_faults if k == "crc-burst"})
             teleop = _teleop(p.runtime.command)
             rec = p.recorder.close({"reason": outcome.reason, "kind": outcome.kind, "watchdog": outcome.watchdog,
                                     "t": outcome.t, "ns": time.time_ns(), "ticks": outcome.ticks,
@@ -382,6 +389,9 @@ def _run(args, feed, ports, on_moving, signals: contextlib.ExitStack) -> int:
     except _Refused as e:
         print(f"skinsafe run: {e}", file=sys.stderr)
         return e.code
+    onsets = [v for k, v in injected.items() if not k.endswith("-span") and isinstance(v, float)]
+    if onsets and outcome.stats:  # an injected fault: the stop is measured from its onset (what the bench times)
+        outcome.stopping = p.runtime.stopping(min(onsets)) | {"onset": "injected"}
     _report(args, p, design, outcome, injected, lost, skin, rec, teleop)
     return outcome.exit_code
 
@@ -453,14 +463,15 @@ def _wire(args, stack, feed, ports, inject, map_path, map_hash, robot, design) -
         stack.callback(command.close)
         ports = ports or _ports(args, design, stack, feed)
         links = None
-        link_faults = [f for f in inject if f[0] not in (*SIM_FAULTS, *READER_FAULTS, *SOURCE_FAULTS)]
+        link_faults = [(i.kind, i.at, i.board) for i in inject.injections
+                       if i.kind not in (*SIM_FAULTS, *READER_FAULTS, *SOURCE_FAULTS)]
         if link_faults:
             from skinsafe.hardware.link_faults import DELAY_S, LinkFaults
 
             links = stack.enter_context(LinkFaults(ports, link_faults, max(DELAY_S, 3.0 / args.rate + args.link_latency)))
             ports = links.ports
         source = SkinSource(design, ports, args.rate, args.noise_fraction, args.max_excluded,
-                            link_latency=args.link_latency, baud=args.baud)
+                            link_latency=args.link_latency, baud=args.baud, faults=inject)
         stack.callback(source.close)
         report = source.preflight(map_hash, args.tare_frames)
     except (DesignError, CommandError, FeedError) as e:
@@ -473,7 +484,8 @@ def _wire(args, stack, feed, ports, inject, map_path, map_hash, robot, design) -
           file=sys.stderr)
     params = RetractionParams(alpha=args.alpha)
     try:
-        layers = build_stack(design, arm.model, limits["qd_max"], limits["qdd_max"], driver.period_s, params, args.tdm)
+        layers = build_stack(design, arm.model, limits["qd_max"], limits["qdd_max"], driver.period_s, params, args.tdm,
+                             faults=inject)
     except (ValueError, OSError) as e:
         raise _Refused(2, f"--tdm: {e}") from None
     warm_up(layers, arm.home, design.taxels.thresholds["force"], driver.period_s)
@@ -496,7 +508,7 @@ def _wire(args, stack, feed, ports, inject, map_path, map_hash, robot, design) -
             raise _Refused(2, f"--view: {e}") from None
     runtime = Runtime(driver, source, layers, command, source.excluded, design.taxels.thresholds["force"],
                       recorder, tap, seconds=seconds, monitor=Monitor(args.after_contact), limiter=Limiter(limits, driver.period_s),
-                      overruns=args.overruns)
+                      overruns=args.overruns, faults=inject)
     return _Parts(driver, arm, limits, source, report, runtime, recorder, links, link_faults)
 
 
@@ -522,8 +534,8 @@ def _move(args, stack, p: _Parts, design, inject, rt: str, signals: contextlib.E
               f"; {INTRUDER_DATAGRAMS} datagrams refused within {INTRUDER_WINDOW_S:g} s stop the robot", file=sys.stderr)
     print(f"skinsafe run: {driver.name} robot moving under '{runtime.command.spec}' ({driver.period_s * 1e3:g} ms "
           f"period, boards at {args.rate} Hz, {rt}); Ctrl-C stops it", file=sys.stderr, flush=True)
+    inject.start()  # the hand-over: the plan's times count from now (the parts ask it)
     injected = _reader_faults(stack, inject, source, source.silence_s + 0.1)
-    _source_faults(stack, inject, runtime.stack, source, injected)
     if on_moving is not None:
         on_moving(runtime)
     switch = sys.getswitchinterval()
@@ -533,7 +545,7 @@ def _move(args, stack, p: _Parts, design, inject, rt: str, signals: contextlib.E
     gc.disable()
     try:
         with loop_priority(rt):
-            return runtime.run(), injected
+            return runtime.run(), injected | inject.onsets
     finally:
         gc.enable()
         sys.setswitchinterval(switch)
@@ -548,10 +560,10 @@ def _report(args, p: _Parts, design, outcome, injected: dict, lost: int, skin: d
     head = f"{head}, and THE STOP FAILED" if outcome.during_stop else head
     print(f"skinsafe run: {head}: {outcome.reason}", file=sys.stderr if outcome.exit_code else sys.stdout)
     stop = _stop_figures(outcome, p.arm, design) if t else {}
-    if stop.get("stop_time_ms") is not None:
-        print(f"skinsafe run: the stop: {'onset' if outcome.onset_mono else 'decision'} -> every joint below "
-              f"{stop['rest_qd']:g} rad/s in {stop['stop_time_ms']:.1f} ms; the furthest taxel ({stop['stop_distance_taxel']}) "
-              f"travelled {stop['stop_distance_mm']:.1f} mm meanwhile", file=sys.stderr)
+    if stop.get("stop_time_ms") is not None and stop.get("stop_distance_mm") is not None:
+        print(f"skinsafe run: the stop: {stop.get('onset', 'onset' if outcome.onset_mono else 'decision')} -> every "
+              f"joint below {stop['rest_qd']:g} rad/s in {stop['stop_time_ms']:.1f} ms; the furthest taxel "
+              f"({stop['stop_distance_taxel']}) travelled {stop['stop_distance_mm']:.1f} mm meanwhile", file=sys.stderr)
     elif stop:
         print(f"skinsafe run: the stop: {stop.get('why', 'not measured')}", file=sys.stderr)
     for silence in skin.get("silences", []):
@@ -611,6 +623,11 @@ def _stop_figures(outcome, arm, design) -> dict:
     if not len(path):
         return s
     kin = TaxelKinematics(arm.model, design)
+    known = np.isfinite(path).all(axis=1)  # a state with a non-finite q (a broken encoder) places no taxel
+    s["states_unknown"] = int((~known).sum())
+    path = path[known]
+    if not len(path):
+        return s | {"stop_distance_mm": None, "why": "no finite joint state after the onset"}
     path = path[np.unique(np.linspace(0, len(path) - 1, min(len(path), 200)).round().astype(int))]
     p0 = kin.poses(path[0])[0].copy()
     far = np.zeros(design.n_taxels)
@@ -642,63 +659,13 @@ def _reader_faults(stack: contextlib.ExitStack, inject, source, stall_s: float) 
         if kind == "reader-stall":
             later(stall_s, _signal, pid, signal.SIGCONT)
 
-    for kind, at, _ in (f for f in inject if f[0] in READER_FAULTS):
+    for kind, at in ((i.kind, i.at) for i in inject.injections if i.kind in READER_FAULTS):
         if at == 0:  # now, and the boards' readings already stale when the loop looks: the boards settle after it
             hit(kind)
             time.sleep(2 * source.frame_period_s)
         else:
             later(at, hit, kind)
     return done
-
-
-def _source_faults(stack: contextlib.ExitStack, inject, layers, source, done: dict) -> None:
-    """--inject stack-nan / stack-qp-fail / reading-nan at their source, from S s after the hand-over (host clock): the
-    layers' tick returns a non-finite command; the defensiveness layer's QP solver (wrapped for the run) reports its
-    solve failed, at the next retraction tick; the readings source's frames read from then on carry NaN on the first
-    taxel not excluded. `done[kind]`: when it first took effect (reading-nan: that frame's read time)."""
-    from skinsafe.core.safety import defensiveness
-
-    for kind, at, _ in (f for f in inject if f[0] in SOURCE_FAULTS):
-        begin = time.monotonic() + at
-        if kind == "stack-nan":
-            layers.tick = _nan_command(layers.tick, begin, done)
-        elif kind == "reading-nan":
-            source.newest = _nan_reading(source.newest, begin, int(np.flatnonzero(~source.excluded)[0]), done)
-        else:
-            solver = defensiveness.prioritised
-            defensiveness.prioritised = _failed_solve(solver, begin, done)
-            stack.callback(setattr, defensiveness, "prioritised", solver)
-
-
-def _nan_command(tick, begin: float, done: dict):
-    def nan_tick(*args, **kw):
-        v = tick(*args, **kw)
-        if time.monotonic() < begin:
-            return v
-        done.setdefault("stack-nan", time.monotonic())
-        return np.full_like(v, np.nan)
-    return nan_tick
-
-
-def _failed_solve(solver, begin: float, done: dict):
-    def failed(*args, **kw):
-        out = solver(*args, **kw)
-        if time.monotonic() >= begin:
-            out.solver_failed = True
-            done.setdefault("stack-qp-fail", time.monotonic())
-        return out
-    return failed
-
-
-def _nan_reading(newest, begin: float, taxel: int, done: dict):
-    def nan_newest():
-        r = newest()
-        if r.t >= begin:  # a frame read from S on
-            r.force = r.force.copy()
-            r.force[taxel] = np.nan
-            done.setdefault("reading-nan", r.t)
-        return r
-    return nan_newest
 
 
 def _signal(pid: int, signum: int) -> None:

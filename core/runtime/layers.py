@@ -27,9 +27,11 @@ CONFIG_VERSION = 1
 
 
 def build_stack(design: SkinDesign, robot_model, qd_max, qdd_max, period_s: float,
-                params: RetractionParams | None = None, tdm_path: str | None = None) -> SafetyStack:
+                params: RetractionParams | None = None, tdm_path: str | None = None, faults=None) -> SafetyStack:
+    """`faults`: a run's FaultPlan (core/runtime/fault_plan.py), handed to the layers that can fail."""
     kin = TaxelKinematics(robot_model, design)
-    d = DefensivenessLayer(kin, design.taxels.thresholds, qd_max, qdd_max, params or RetractionParams(), dt=period_s)
+    d = DefensivenessLayer(kin, design.taxels.thresholds, qd_max, qdd_max, params or RetractionParams(), dt=period_s,
+                           faults=faults)
     modulation = strategy = joints = None
     if tdm_path:
         from skinsafe.core.safety.modulation import ModulationLayer
@@ -44,7 +46,7 @@ def build_stack(design: SkinDesign, robot_model, qd_max, qdd_max, period_s: floa
         joints = np.arange(tdm.config()["state_dim"])
         modulation = ModulationLayer(DangerPotential(tdm))  # it evaluates the potential through FastPotential
         strategy = StrategyFilter(tdm)
-    return SafetyStack(qd_max, d, modulation, strategy, joints=joints, acc_limits=qdd_max, dt=period_s)
+    return SafetyStack(qd_max, d, modulation, strategy, joints=joints, acc_limits=qdd_max, dt=period_s, faults=faults)
 
 
 def run_config(map_path: str | Path, driver, limits: dict, params: RetractionParams, excluded: np.ndarray,

@@ -76,7 +76,10 @@ class Runtime:
     def __init__(self, driver, source, stack, command, excluded: np.ndarray, thresholds: np.ndarray,
                  recorder=None, tap: Tap | None = None, seconds: float | None = None, state_periods: int = 2,
                  stale_s: float | None = None, monitor: Monitor | None = None, limiter: Limiter | None = None,
-                 overruns: int = OVERRUNS):
+                 overruns: int = OVERRUNS, faults=None):
+        """`faults`: a run's FaultPlan (core/runtime/fault_plan.py): from its `command-nan` on, the command source's
+        plan is non-finite."""
+        self.faults = faults
         self.driver, self.source, self.stack, self.command = driver, source, stack, command
         self.excluded = np.asarray(excluded, bool)
         self.thresholds = np.asarray(thresholds, float)
@@ -120,10 +123,11 @@ class Runtime:
             self.robot_period.add(t - self._last_t)
             self._overrun(t - self._last_t, start)
         self._keep(start, state)
+        self._watch_robot(state)  # first: a broken robot state is named as such, not by what it breaks downstream
         planned = self._plan(t, q)
         r = self.source.newest()  # after the plan: a frame that arrived meanwhile is this tick's
         self._state = (state, r)
-        self._watch(state, r)
+        self._watch(r)
         new = r.seq != self._reading_seq
         if new and not m.stopped:
             self._force = np.where(self.excluded, 0.0, r.force)
@@ -172,6 +176,8 @@ class Runtime:
         """The command source's planned velocity (None, reported, when it has none)."""
         try:
             planned = np.asarray(self.command(t - self._t0, q), float)
+            if self.faults is not None and self.faults.due("command-nan"):
+                planned = np.full_like(planned, np.nan)
         except StopRobot as e:
             self.monitor.report(Fault(Kind.COMMAND_BAD, "command", str(e), time.monotonic()))
             return None
@@ -181,11 +187,22 @@ class Runtime:
             return None
         return planned
 
-    def _watch(self, state, r) -> None:
-        """The skin's faults, the robot's own clock, the command source's age, non-finite robot state."""
+    def _watch(self, r) -> None:
+        """The skin's faults, the command source's age and its intruders."""
         m = self.monitor
         for f in _skin_faults(r):
             m.report(f)
+        intrusion = self.command.intrusion
+        if intrusion is not None:
+            m.report(Fault(Kind.COMMAND_INTRUDER, "command", intrusion.message, intrusion.onset))
+        age = self.command.age()
+        if self.stale_s is not None and age > self.stale_s:
+            m.report(Fault(Kind.COMMAND_STALE, "command", f"command: {self.command.spec} silent for {age:.3f} s "
+                           f"(> {self.stale_s:g} s)", time.monotonic() - (age - self.stale_s)))
+
+    def _watch_robot(self, state) -> None:
+        """The robot's own clock (frozen, going back) and a non-finite robot state."""
+        m = self.monitor
         for name, x in (("robot clock", state.t), ("q", state.q), ("qd", state.qd)):
             if not finite(x):
                 m.report(Fault(Kind.ROBOT_NONFINITE, "robot", f"robot: non-finite {name}", time.monotonic()))
@@ -201,13 +218,6 @@ class Runtime:
                                self._repeat_onset))
         else:
             self._repeats = 0
-        intrusion = self.command.intrusion
-        if intrusion is not None:
-            m.report(Fault(Kind.COMMAND_INTRUDER, "command", intrusion.message, intrusion.onset))
-        age = self.command.age()
-        if self.stale_s is not None and age > self.stale_s:
-            m.report(Fault(Kind.COMMAND_STALE, "command", f"command: {self.command.spec} silent for {age:.3f} s "
-                           f"(> {self.stale_s:g} s)", time.monotonic() - (age - self.stale_s)))
 
     def _overrun(self, gap: float, start: float) -> None:
         """A tick more than OVERRUN_PERIODS after the last on the robot's clock: its states were missed; `overruns`

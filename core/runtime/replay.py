@@ -119,5 +119,5 @@ def replay(path: str | Path, stack_from_config, map_path: str | Path | None = No
             compared += 1
     if not compared:
         raise ReplayError(f"{path}: no tick to replay (the robot never moved)")
-    return {"ticks": compared, "stops": stops, "max_abs_diff": worst, "complete": gaps == 0 and not stale,
-            "gaps": gaps, "readings_missing": stale, "map": str(mp)}
+    return {"ticks": compared, "stops": stops, "max_abs_diff": worst, "complete": bool(gaps == 0 and not stale),
+            "gaps": gaps, "readings_missing": int(stale), "map": str(mp)}

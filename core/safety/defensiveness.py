@@ -83,10 +83,12 @@ class DefensivenessLayer:
     """Reflexive retraction from tactile danger events, for one robot and its skin."""
 
     def __init__(self, kin: TaxelKinematics, thresholds: dict[str, np.ndarray], vel_limits, acc_limits,
-                 params: RetractionParams | None = None, dt: float | None = None):
+                 params: RetractionParams | None = None, dt: float | None = None, faults=None):
         """`dt`: the control period (s) the layer ticks at; required (the acceleration limits and
-        the braking horizon scale with it; a tick may pass its own measured dt)."""
+        the braking horizon scale with it; a tick may pass its own measured dt). `faults`: a run's fault plan
+        (core/runtime/fault_plan.py): from its `stack-qp-fail` on, a retraction tick's solve reports failure."""
         self.kin = kin
+        self.faults = faults
         self.params = params or RetractionParams()
         nv = kin.model.nv
         if dt is None:
@@ -238,6 +240,8 @@ class DefensivenessLayer:
         self.rows, self.V, self.c = (A, b), A[n_push:], b[n_push:]
         A, b = _distinct_rows(A, b) if len(A) > MAX_TASKS else (A, b)
         sol = prioritised(Jt, rt, A, b, lo, hi, self.limits.vel, p.damping, p.sv_threshold, p.rank_tol)
+        if self.faults is not None and self.faults.due("stack-qp-fail"):
+            sol.solver_failed = True
         for name in ("limited", "blocked", "infeasible", "recovery_dropped", "damped", "dominant_residual",
                      "solver_failed"):
             setattr(info, name, getattr(sol, name))

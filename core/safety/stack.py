@@ -159,8 +159,11 @@ class SafetyStack:
 
     def __init__(self, vel_limits, defensiveness=None, modulation: ModulationLayer | None = None,
                  strategy: StrategyFilter | None = None, joints=None, acc_limits=None, dt: float | None = None,
-                 pfl=None):
+                 pfl=None, faults=None):
+        """`faults`: a run's fault plan (core/runtime/fault_plan.py), for tests and the fault bench: from its
+        `stack-nan` on, the command returned is non-finite (what the stack keeps as sent is not)."""
         vel = np.asarray(vel_limits, dtype=float)
+        self.faults = faults
         d = defensiveness
         if dt is None:
             raise ValueError("SafetyStack: give dt, the control period (s) the stack ticks at (the scene's or the "
@@ -282,6 +285,8 @@ class SafetyStack:
             self.flags.update(flags)
         info.flags = tuple(flags)
         self.info, self.last = info, v
+        if self.faults is not None and self.faults.due("stack-nan"):
+            return np.full_like(v, np.nan)
         return v.copy()
 
     def run(self, source: CommandSource, t: float, q: np.ndarray, readings, dt: float,

@@ -92,6 +92,7 @@ class SimFaults:
     clock_freeze_at: float | None = None  # s: the state's clock stays (q, qd and seq go on)
     clock_back_at: float | None = None  # s: the state's clock jumps CLOCK_BACK_S back, once
     overrun_at: float | None = None  # s: from here the state's clock advances OVERRUN_STEP periods per tick
+    nan_at: float | None = None  # s: from here the state's first joint position reads NaN (a broken encoder)
 
 
 @dataclass
@@ -270,6 +271,9 @@ class SimDriver:
     def _faulty(self, s: SimState) -> SimState:
         """The state through the clock's injected faults (SimFaults)."""
         f = self.faults
+        if f.nan_at is not None and s.t >= f.nan_at:
+            self.stats.fault_mono = self.stats.fault_mono or time.monotonic()
+            s.q[0] = np.nan
         if f.clock_freeze_at is not None and s.t >= f.clock_freeze_at:
             self.stats.fault_mono = self.stats.fault_mono or time.monotonic()
             s.t = f.clock_freeze_at
