@@ -49,8 +49,10 @@ def robot_for(scene):
 
 
 def body_objects(scene) -> dict:
-    """Body name -> Blender object of the scene's imported robot: the objects of its collection (link
-    copies that came with a pasted or appended module are not), the one named as the body first."""
+    """Body name -> Blender object of the scene's imported robot (`scene.skinsafe.links`; a file saved before
+    the links were kept: the objects of the robot's collection, the one named as the body first)."""
+    if len(scene.skinsafe.links):
+        return {it.body: it.object for it in scene.skinsafe.links if it.object is not None}
     coll = bpy.data.collections.get(COLLECTION)
     out = {}
     for o in coll.objects if coll is not None else scene.objects:
@@ -135,6 +137,15 @@ def placement_of(obj) -> tuple[np.ndarray, np.ndarray]:
 
 def matrix_key(obj) -> list[float]:
     return [c for row in obj.matrix_basis for c in row]
+
+
+def mesh_key(me) -> tuple[float, ...]:
+    """A mesh's vertex count, first vertex and a weighted sum of its coordinates: any transform, origin or
+    modifier applied to it, or an edit of its vertices, changes it."""
+    co = np.empty(len(me.vertices) * 3)
+    me.vertices.foreach_get("co", co)
+    first = co[:3] if len(co) else np.zeros(3)
+    return (float(len(me.vertices)), *map(float, first), float(co @ (1.0 + np.arange(len(co)) % 7)))
 
 
 def moved(obj) -> bool:

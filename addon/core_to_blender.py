@@ -17,6 +17,7 @@ from skinsafe.addon.blender_to_core import (
     robot_for,
     to_matrix,
 )
+from skinsafe.addon.blender_to_core import mesh_key as b2c_mesh_key
 from skinsafe.core.design.surface import body_surface
 from skinsafe.core.skin import taxel_map
 from skinsafe.core.skin.ids import with_stable_ids
@@ -66,6 +67,9 @@ def build_robot(scene, ref) -> bpy.types.Object:
     """Replace the scene's robot with `ref`: one mesh object per body (its geoms' surface in the
     body frame), parented as the kinematic tree, joint data as custom properties."""
     s = scene.skinsafe
+    for it in s.links:  # a link deleted from the scene is still held here: it goes too
+        if it.object is not None and it.object.name not in scene.objects:
+            bpy.data.objects.remove(it.object, do_unlink=True)
     old = bpy.data.collections.get(COLLECTION)
     if old is not None:
         for o in list(old.objects):
@@ -78,29 +82,17 @@ def build_robot(scene, ref) -> bpy.types.Object:
     m = robot.model
     coll = bpy.data.collections.new(COLLECTION)
     scene.collection.children.link(coll)
-    root = bpy.data.objects.new(f"robot {robot.name}", None)
-    root["skinsafe_body"] = m.body(0).name
-    root["skinsafe_robot"] = robot.name
-    coll.objects.link(root)
-    objs = {0: root}
-    for b in range(1, m.nbody):
-        name = m.body(b).name
-        try:
-            surf = body_surface(m, name)
-            me = _mesh_from_arrays(name, surf.vertices, tris=surf.triangles, corner_normals=surf.corner_normals)
-        except Exception:  # a body without geometry (DesignError) stays an empty mesh
-            me = bpy.data.meshes.new(name)
-        obj = bpy.data.objects.new(name, me)
-        obj["skinsafe_body"] = name
-        for j in range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]) if m.body_jntnum[b] else ():
-            jt = int(m.jnt_type[j])
-            obj["joint_name"] = m.joint(j).name
-            obj["joint_type"] = mujoco.mjtJoint(jt).name.removeprefix("mjJNT_").lower()
-            obj["joint_axis"] = [float(a) for a in m.jnt_axis[j]]
-            obj["joint_range"] = [float(a) for a in m.jnt_range[j]] if m.jnt_limited[j] else [-np.inf, np.inf]
+    s.links.clear()
+    objs = {}
+    for b in range(m.nbody):
+        obj = link_object(m, b, robot.name)
         coll.objects.link(obj)
-        obj.parent = objs[int(m.body_parentid[b])]
+        obj.parent = objs.get(int(m.body_parentid[b])) if b else None
         objs[b] = obj
+        it = s.links.add()
+        it.body, it.object = obj["skinsafe_body"], obj
+        it.mesh_key = b2c_mesh_key(obj.data) if obj.data is not None else (0.0,) * 5
+    root = objs[0]
     s.joints.clear()
     for j in range(m.njnt):
         if int(m.jnt_type[j]) in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
@@ -112,6 +104,34 @@ def build_robot(scene, ref) -> bpy.types.Object:
     clear_design(scene)
     apply_pose(scene)
     return root
+
+
+def link_object(m, b: int, robot_name: str) -> bpy.types.Object:
+    """Body `b` of model `m` as an object from the robot description: its geoms' surface in the body frame (an
+    empty for the root), the joint's data as custom properties; not linked to a collection nor parented."""
+    name = m.body(b).name
+    if b == 0:
+        obj = bpy.data.objects.new(f"robot {robot_name}", None)
+        obj["skinsafe_robot"] = robot_name
+    else:
+        obj = bpy.data.objects.new(name, link_mesh(m, name))
+    obj["skinsafe_body"] = name
+    for j in range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]) if m.body_jntnum[b] else ():
+        jt = int(m.jnt_type[j])
+        obj["joint_name"] = m.joint(j).name
+        obj["joint_type"] = mujoco.mjtJoint(jt).name.removeprefix("mjJNT_").lower()
+        obj["joint_axis"] = [float(a) for a in m.jnt_axis[j]]
+        obj["joint_range"] = [float(a) for a in m.jnt_range[j]] if m.jnt_limited[j] else [-np.inf, np.inf]
+    return obj
+
+
+def link_mesh(m, name: str) -> bpy.types.Mesh:
+    """A body's design surface as a mesh (empty for a body without geometry)."""
+    try:
+        surf = body_surface(m, name)
+        return _mesh_from_arrays(name, surf.vertices, tris=surf.triangles, corner_normals=surf.corner_normals)
+    except Exception:  # a body without geometry (DesignError) stays an empty mesh
+        return bpy.data.meshes.new(name)
 
 
 def apply_pose(scene) -> None:
@@ -149,6 +169,7 @@ def module_mesh(obj, positions, frames, diameter: float) -> None:
     obj.data = me
     if old.users == 0:
         bpy.data.meshes.remove(old)
+    module_mesh_key(obj)
 
 
 def module_taxel_centres(obj) -> np.ndarray:
@@ -188,6 +209,8 @@ def store_design(scene, design):
     text.from_string(json.dumps(taxel_map.to_dict(design), indent=0, separators=(",", ":"), allow_nan=False))
     _new_rev(scene)
     _designs[scene.name] = (scene.skinsafe.design_rev, design)
+    s = scene.skinsafe
+    s.next_module_id = max(s.next_module_id, 1 + max((m.id for m in design.modules), default=-1))  # retired below
     return design
 
 
@@ -233,3 +256,8 @@ def set_module_transform(obj, placed) -> None:
     obj.matrix_basis = to_matrix(M)
     obj.skinsafe_module.placed_matrix = matrix_key(obj)
     module_mesh(obj, placed.positions, placed.frames, placed.module.taxel_diameter)
+
+
+def module_mesh_key(obj) -> None:
+    """Keep the key of the module mesh just made (a later edit of the data changes it)."""
+    obj.skinsafe_module.mesh_key = b2c_mesh_key(obj.data)

@@ -29,11 +29,12 @@ def others_on(design, body: str, skip: int | None = None):
 
 
 def fresh_module_id(scene, design=None) -> int:
-    """A module id no object of the scene and no module of its design uses."""
+    """A module id never used: by no object of the scene, no module of its design, and none retired from its
+    history (below `next_module_id`: boards and records keep ids, which must never mean another module)."""
     design = design if design is not None else b2c.design_of(scene)
     used = {o.skinsafe_module.module_id for o in b2c.module_objects(scene)}
     used |= {m.id for m in design.modules} if design is not None else set()
-    return 1 + max(used, default=-1)
+    return max(1 + max(used, default=-1), scene.skinsafe.next_module_id)
 
 
 def place(scene, body: str, anchor, direction):
@@ -86,7 +87,7 @@ def _scaled(obj) -> bool:
     return any(abs(s - 1) > 1e-6 for s in obj.scale)
 
 
-def _attach(obj, body_obj) -> None:
+def attach(obj, body_obj) -> None:
     """Parent a module object to its body object with an identity parent inverse, keeping where it is
     (a pasted or appended module arrives without its parent, a re-parented one with an inverse)."""
     if obj.parent is body_obj and obj.matrix_parent_inverse == obj.matrix_parent_inverse.Identity(4):
@@ -109,7 +110,7 @@ def regenerate(scene, obj):
         mm.error = (f"module '{obj.name}': its body '{mm.body}' is not a link of this scene's robot; delete the module "
                     "or import the robot it was designed for")
         raise DesignError(mm.error)
-    _attach(obj, bodies[mm.body])
+    attach(obj, bodies[mm.body])
     anchor, direction = b2c.placement_of(obj)
     old = (st.cols, st.rows, st.mirrored)
     if _scaled(obj):
@@ -127,7 +128,7 @@ def regenerate(scene, obj):
                                       others_on(design, mm.body, skip=mm.module_id)), st.mirrored)
     except DesignError as e:
         st.cols, st.rows, st.mirrored = old
-        mm.error = str(e)
+        mm.error, mm.error_rev = str(e), scene.skinsafe.design_rev
         mm.placed_matrix = b2c.matrix_key(obj)  # do not retry the same refused pose on every update
         raise
     mm.error = ""
@@ -193,7 +194,9 @@ def sync(scene) -> list[str]:
         o.skinsafe_module.module_id = fresh_module_id(scene)
         o.skinsafe_module.owner = o.session_uid
         o.skinsafe_module.error = ""
-    for o in copies + [o for mid, o in owners.items() if mid not in known and not o.skinsafe_module.error]:
+    rev = scene.skinsafe.design_rev  # one refused before the design last changed is tried again
+    for o in copies + [o for mid, o in owners.items() if mid not in known and
+                       (not o.skinsafe_module.error or o.skinsafe_module.error_rev != rev)]:
         try:
             regenerate(scene, o)
         except DesignError as e:

@@ -7,7 +7,7 @@ import bpy
 from bpy.app.handlers import persistent
 
 from skinsafe.addon import blender_to_core as b2c
-from skinsafe.addon import designer
+from skinsafe.addon import designer, integrity
 
 _busy = False
 
@@ -20,13 +20,18 @@ def transforming() -> bool:
 
 
 def step(scene, apply_scale: bool = True) -> list[str]:
-    """One round: sync the design with the objects, then re-generate moved modules (scaled ones only with
-    `apply_scale`). Returns the problems; the last is shown in the panel."""
+    """One round: put the robot's links and the module objects back true (`integrity`: what an Object-menu edit
+    changed, said in the panel's message), sync the design with the objects, then re-generate moved modules
+    (scaled ones only with `apply_scale`). Returns the problems; the last is shown in the panel."""
     global _busy
     if _busy or not scene.skinsafe.robot_kind:
         return []
     _busy = True
     try:
+        said, kept = integrity.links(scene)
+        said += integrity.modules(scene, kept)
+        if said:
+            scene.skinsafe.message = "; ".join(said)
         errors = designer.sync(scene)
         if scene.skinsafe.auto_regenerate:
             errors += designer.regenerate_moved(scene, apply_scale)

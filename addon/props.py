@@ -54,6 +54,15 @@ class SkinsafeTemplate(bpy.types.PropertyGroup):
                            description="the mirror image of the template (taxel k at the mirror of its place)")
 
 
+class SkinsafeLink(bpy.types.PropertyGroup):
+    """One body of the imported robot and its object: a pointer, so a deleted link object survives (unlinked,
+    its children still parented to it) to be put back, and a copy claiming the body is told apart."""
+
+    body: StringProperty()
+    object: PointerProperty(type=bpy.types.Object)
+    mesh_key: FloatVectorProperty(size=5)  # its mesh as built (blender_to_core.mesh_key)
+
+
 class SkinsafeModule(bpy.types.PropertyGroup):
     is_module: BoolProperty(default=False)
     module_id: IntProperty(default=-1)  # the module's uid in the design (its taxels' ids: designer.stable_ids)
@@ -61,7 +70,9 @@ class SkinsafeModule(bpy.types.PropertyGroup):
     body: StringProperty()
     settings: PointerProperty(type=SkinsafeTemplate)
     placed_matrix: FloatVectorProperty(size=16)  # matrix_local at the last placement (to detect moves)
+    mesh_key: FloatVectorProperty(size=5)  # its mesh at the last placement (blender_to_core.mesh_key)
     error: StringProperty()
+    error_rev: IntProperty(default=0)  # the design revision its error was found at (a changed design retries it)
 
 
 class SkinsafeScene(bpy.types.PropertyGroup):
@@ -71,6 +82,8 @@ class SkinsafeScene(bpy.types.PropertyGroup):
     robot_package_dirs: StringProperty(default="", description="ROS package folders for package:// and $(find), ';'-separated")
     robot_xacro_args: StringProperty(default="", description="the robot file's xacro arguments, NAME:=VALUE ';'-separated")
     joints: CollectionProperty(type=SkinsafeJoint)
+    links: CollectionProperty(type=SkinsafeLink)
+    next_module_id: IntProperty(default=0)  # ids below it were used in this design's history: never given again
     new_module: PointerProperty(type=SkinsafeTemplate)
     board_capacity: IntProperty(name="Board channels", default=256, min=1, max=65536)
     force_threshold: FloatProperty(name="Force threshold (N)", default=2.0, min=0.0)
@@ -85,7 +98,7 @@ class SkinsafeScene(bpy.types.PropertyGroup):
     design_rev: IntProperty(default=0)  # a fresh random value with every stored design (undo-safe cache key)
 
 
-CLASSES = (SkinsafeJoint, SkinsafeTemplate, SkinsafeModule, SkinsafeScene)
+CLASSES = (SkinsafeJoint, SkinsafeTemplate, SkinsafeLink, SkinsafeModule, SkinsafeScene)
 
 
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(CLASSES)

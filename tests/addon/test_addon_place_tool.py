@@ -28,6 +28,7 @@ def scene(robot):
     """The UR5 (imported once for the module) without a skin, the new-module settings 8x8 at 10 mm."""
     scene = bpy.context.scene
     c2b.clear_design(scene)
+    scene.skinsafe.next_module_id = 0  # as in a new scene: no id retired yet
     s = scene.skinsafe.new_module
     s.rows, s.cols, s.pitch, s.taxel_diameter, s.margin, s.max_strain, s.mirrored = 8, 8, 0.01, 0.006, 0.002, 0.01, False
     return scene

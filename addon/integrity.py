@@ -1,0 +1,230 @@
+"""Every edit of Blender's Object menu and outliner keeps the skin true, not only the listed ones.
+
+The robot's links are the robot's (`links`): a link deleted is put back (its object survives, held by
+`scene.skinsafe.links`, its children still on it), re-parented or moved is put back on its parent at the
+pose, one whose mesh changed (transforms or modifiers applied, origin set) or that was converted gets its mesh
+or object again from the robot description.
+
+Each module object is one whole FPC of the design (`modules`): its parent and transform are normalised keeping
+where it is (parented to another link, it moves onto that link); a mesh whose data changed while its pads stay
+where the design has them (transforms applied, origin set, modifiers applied) is rebuilt from the design at its
+placement; a join is split back into its modules; a separated piece is put back; a converted object is made a
+module again. Both return what they did, a line each, for the panel."""
+import bpy
+import mujoco
+import numpy as np
+
+from skinsafe.addon import blender_to_core as b2c
+from skinsafe.addon import core_to_blender as c2b
+from skinsafe.core.design.placement import placed_from_design
+
+PAD_TOL = 5e-4  # m: a pad within this of its design place has not moved
+
+
+def _same_key(a, b) -> bool:
+    return np.allclose(tuple(a), tuple(b), rtol=1e-5, atol=1e-6)
+
+
+def adopt_links(scene) -> None:
+    """A file saved before the links were kept: keep the robot's collection's objects as its links."""
+    for body, obj in b2c.body_objects(scene).items():
+        it = scene.skinsafe.links.add()
+        it.body, it.object = body, obj
+        it.mesh_key = b2c.mesh_key(obj.data) if obj.type == "MESH" else (0.0,) * 5
+
+
+def links(scene) -> tuple[list[str], set[str]]:
+    """Put every robot link back as the robot description and the pose have it: what was put back, in words,
+    and the bodies whose objects were (an edit of a link, e.g. transforms applied, also moves its children)."""
+    s = scene.skinsafe
+    if not len(s.links):
+        adopt_links(scene)
+    robot = b2c.robot_for(scene)
+    m = robot.model
+    coll = bpy.data.collections.get(b2c.COLLECTION)
+    if coll is None:
+        coll = bpy.data.collections.new(b2c.COLLECTION)
+        scene.collection.children.link(coll)
+    said, objs, touched = [], {}, set()
+    for it in s.links:
+        n = len(said)
+        b, o = m.body(it.body).id, it.object
+        if o is None or (o.type != "MESH") != (b == 0):  # purged, or converted to another type: made again
+            new = c2b.link_object(m, b, robot.name)
+            coll.objects.link(new)
+            if o is not None:
+                for child in o.children:
+                    child.parent = new
+                bpy.data.objects.remove(o, do_unlink=True)
+            it.object, o = new, new
+            it.mesh_key = b2c.mesh_key(o.data) if b else (0.0,) * 5
+            said.append(f"robot link '{it.body}' was converted or removed: made again from the robot description")
+        elif o.name not in scene.objects:
+            coll.objects.link(o)
+            said.append(f"robot link '{it.body}' cannot be deleted (the robot's links are the robot's): put back")
+        if b and not _same_key(b2c.mesh_key(o.data), it.mesh_key):
+            old, o.data = o.data, c2b.link_mesh(m, it.body)
+            if old.users == 0:
+                bpy.data.meshes.remove(old)
+            it.mesh_key = b2c.mesh_key(o.data)
+            said.append(f"robot link '{it.body}': its mesh is the robot description's (transforms, origin or modifiers "
+                        "applied to it are undone)")
+        objs[b] = o
+        if len(said) > n:
+            touched.add(it.body)
+    d = mujoco.MjData(m)
+    d.qpos[:] = b2c.pose(scene)
+    mujoco.mj_kinematics(m, d)
+    moved = []
+    for b, o in objs.items():
+        parent = objs.get(int(m.body_parentid[b])) if b else None
+        W = np.eye(4)
+        W[:3, :3], W[:3, 3] = d.xmat[b].reshape(3, 3), d.xpos[b]
+        if b:
+            P = np.eye(4)
+            P[:3, :3], P[:3, 3] = d.xmat[m.body_parentid[b]].reshape(3, 3), d.xpos[m.body_parentid[b]]
+            W = np.linalg.solve(P, W)
+        ident = np.allclose(np.array(o.matrix_parent_inverse), np.eye(4), atol=1e-6)
+        if o.parent is not parent or not ident or not np.allclose(np.array(o.matrix_basis), W, atol=1e-5):
+            o.parent = parent
+            o.matrix_parent_inverse.identity()
+            o.matrix_basis = b2c.to_matrix(W)
+            moved.append(m.body(b).name)
+    if moved:
+        said.append(f"robot links {', '.join(moved)} are posed by the robot's joints (Skin > Robot): put back")
+    return said, touched | set(moved)
+
+
+def _centres(obj) -> np.ndarray | None:
+    """World hexagon centres of a module object's mesh (None: not a mesh of hexagons)."""
+    me = obj.data
+    if len(me.vertices) % 6 or len(me.polygons) * 6 != len(me.vertices):
+        return None
+    return c2b.module_taxel_centres(obj)
+
+
+def _design_world(scene, design, mid: int) -> np.ndarray:
+    t = design.taxels
+    m = next(m for m in design.modules if m.id == mid)
+    W = np.array(b2c.body_objects(scene)[m.body].matrix_world)
+    return t.positions[t.module == mid] @ W[:3, :3].T + W[:3, 3]
+
+
+def _within(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether every point of `a` is one of `b`'s (within PAD_TOL)."""
+    from scipy.spatial import cKDTree
+
+    return bool(len(a)) and len(b) and float(cKDTree(b).query(a)[0].max()) < PAD_TOL
+
+
+def rebuild(obj, design, mid: int) -> None:
+    """Make a module object's mesh from its design taxels again, at its last placement."""
+    obj.matrix_basis = b2c.to_matrix(np.array(obj.skinsafe_module.placed_matrix).reshape(4, 4))
+    p = placed_from_design(design, mid)
+    c2b.module_mesh(obj, p.positions, p.frames, p.module.taxel_diameter)
+
+
+def remake(scene, design, mid: int) -> bpy.types.Object:
+    """A module object for design module `mid` (its object joined into another or converted): its settings from
+    the module, its frame from the placement record (anchor, rows, the nearest taxel's normal)."""
+    m = next(m for m in design.modules if m.id == mid)
+    p = placed_from_design(design, mid)
+    rec = m.placement if isinstance(m.placement, dict) else {}
+    t = design.taxels
+    on = np.flatnonzero(t.module == mid)
+    origin = np.asarray(rec.get("anchor", t.positions[on].mean(axis=0)), float)
+    z = t.frames[on[np.argmin(np.linalg.norm(t.positions[on] - origin, axis=1))], :, 2]
+    x = np.asarray(rec.get("direction", t.frames[on[0], :, 0]), float)
+    x = x - (x @ z) * z
+    x /= np.linalg.norm(x)
+    p.origin, p.origin_frame = origin, np.stack([x, np.cross(z, x), z], axis=1)
+    settings = type("Settings", (), {k: getattr(m, k) for k in (
+        "template", "rows", "cols", "pitch", "taxel_diameter", "margin", "min_bend_radius", "max_strain")})
+    settings.method, settings.mirrored, settings.outline = rec.get("method", "geodesic"), bool(rec.get("mirrored")), None
+    return c2b.new_module_object(scene, b2c.body_objects(scene)[m.body], m, p, settings)
+
+
+def modules(scene, kept: set[str] = frozenset()) -> list[str]:
+    """Make every module object one whole FPC of the design again after an edit of its object or data; what
+    was done. The modules on the links in `kept` (just put back by `links`) go back to their placements: an edit of
+    their link moved them with it. Objects in Edit Mode wait for its end."""
+    from skinsafe.addon import designer
+
+    design = b2c.design_of(scene)
+    if design is None:
+        return []
+    bodies = b2c.body_objects(scene)
+    body_of = {o.as_pointer(): b for b, o in bodies.items()}
+    known = {m.id for m in design.modules}
+    said = []
+    for o in [o for o in b2c.module_objects(scene) if o.type != "MESH" and o.mode != "EDIT"]:
+        mid, name = o.skinsafe_module.module_id, o.name
+        bpy.data.objects.remove(o, do_unlink=True)
+        if mid in known and not any(x.skinsafe_module.module_id == mid for x in b2c.module_objects(scene)):
+            remake(scene, design, mid).name = name
+            said.append(f"module '{name}' was converted: a module is its FPC's pads, made again from the design")
+    for o in [o for o in b2c.module_objects(scene) if o.mode != "EDIT"]:
+        mm = o.skinsafe_module
+        pb = body_of.get(o.parent.as_pointer()) if o.parent is not None else None
+        if pb is not None and pb != mm.body and mm.body in bodies:
+            said.append(_move_to(scene, o, pb, bodies))
+        if mm.body in kept and mm.body in bodies:
+            o.parent = bodies[mm.body]
+            o.matrix_parent_inverse.identity()
+            o.matrix_basis = b2c.to_matrix(np.array(mm.placed_matrix).reshape(4, 4))
+        elif mm.body in bodies and o.parent is not bodies[mm.body]:
+            _reattach(o, bodies[mm.body])
+        elif mm.body in bodies:
+            designer.attach(o, bodies[mm.body])
+        if mm.module_id not in known or _same_key(b2c.mesh_key(o.data), mm.mesh_key):
+            continue
+        centres, own = _centres(o), _design_world(scene, design, mm.module_id)
+        if mm.owner != o.session_uid and centres is not None and len(centres) < len(own) and _within(centres, own):
+            said.append(f"'{o.name}' was separated from module '{o.name.rsplit('.', 1)[0]}': a module is one FPC, its "
+                        "pads were put back")
+            bpy.data.objects.remove(o, do_unlink=True)
+            continue
+        if centres is not None and len(centres) > len(own):
+            present = {x.skinsafe_module.module_id for x in b2c.module_objects(scene)}
+            for m in design.modules:
+                if m.id not in present and _within(_design_world(scene, design, m.id), centres):
+                    remake(scene, design, m.id)
+                    said.append(f"module '{m.name}' was joined into '{o.name}': a module is one FPC, split back")
+        if centres is None or len(centres) != len(own) or not _within(centres, own):
+            said.append(f"module '{o.name}': its mesh is made from the design (its data was edited): made again")
+        rebuild(o, design, mm.module_id)
+    return said
+
+
+def _reattach(obj, body_obj) -> None:
+    """A module object whose parent was cleared or set to another object (not a link) goes back on its link: where
+    its local transform still is its placement (a parent cleared without keeping the transform), there; else
+    where it now is in the world."""
+    if b2c.moved(obj):
+        from skinsafe.addon import designer
+
+        designer.attach(obj, body_obj)
+        return
+    obj.parent = body_obj
+    obj.matrix_parent_inverse.identity()
+
+
+def _move_to(scene, obj, body: str, bodies) -> str:
+    """A module object parented to another link: re-placed on that link where it is, or put back on its own."""
+    from skinsafe.addon import designer
+    from skinsafe.core.skin.model import DesignError
+
+    mm = obj.skinsafe_module
+    old, placed = mm.body, list(mm.placed_matrix)
+    mm.body = body
+    try:
+        designer.regenerate(scene, obj)
+        return f"module '{obj.name}' moved from '{old}' to '{body}' (its new parent): re-placed there"
+    except DesignError as e:
+        mm.body, mm.error = old, ""
+        obj.parent = bodies[old]
+        obj.matrix_parent_inverse.identity()
+        obj.matrix_basis = b2c.to_matrix(np.array(placed).reshape(4, 4))
+        mm.placed_matrix = placed
+        return (f"module '{obj.name}' parented to '{body}' does not lie on it ({e}); put back on '{old}': move it "
+                f"onto '{body}' first")

@@ -1,0 +1,219 @@
+"""Every edit of Blender's Object menu and outliner that can change a module or a robot link keeps the skin
+true (addon/integrity.py): a table of Blender's own operators, walked on one scene with modules on two links.
+After each edit (then its undo, its redo, and its undo again, back to the scene for the next row): one module per
+module object, taxel ids unique and stable (module id x 65,536 + index), every mesh's pads at its design taxels,
+every pad on its link within 1 mm, every link at the robot's pose, and the modules the row does not edit unchanged
+to 1e-6 m. Add an operator to OPS and it is tested. Headless Blender pushes an undo step only when asked
+(`ed.undo_push`, what the window manager does after each operator)."""
+import bpy
+import mujoco
+import numpy as np
+import pytest
+
+from skinsafe.addon import blender_to_core as b2c
+from skinsafe.core.design.surface import cached_surfaces
+from skinsafe.core.skin.ids import SHIFT
+
+E = 0.13585 - 0.1197  # UR5 forearm capsule axis height (body frame), radius 0.04
+UP = 0.13585 + 0.06  # a point above the upper arm's axis
+MODULES = {0: ("forearm_link", (-0.3, 0, E + 0.05)), 1: ("forearm_link", (-0.06, 0, E + 0.05)),
+           2: ("upper_arm_link", (-0.2, 0, UP))}
+
+
+@pytest.fixture(scope="module")
+def scene():
+    bpy.ops.wm.read_homefile(use_empty=True)
+    b2c.clear_caches()
+    bpy.ops.skinsafe.import_robot(source="ur5")
+    s = bpy.context.scene.skinsafe.new_module
+    s.rows, s.cols, s.pitch, s.taxel_diameter, s.margin = 8, 8, 0.01, 0.006, 0.002
+    for body, anchor in MODULES.values():
+        assert bpy.ops.skinsafe.place_module(body=body, anchor=anchor, direction=(-1, 0, 0), use_cursor=False) \
+            == {"FINISHED"}
+    bpy.ops.ed.undo_push(message="Place Module")
+    return bpy.context.scene
+
+
+def obj(name: str):
+    return bpy.data.objects[name]
+
+
+def module(mid: int):
+    return next(o for o in b2c.module_objects(bpy.context.scene) if o.skinsafe_module.module_id == mid)
+
+
+def select(*objs, mode="OBJECT"):
+    for o in bpy.context.scene.objects:
+        o.select_set(False)
+    for o in objs:
+        o.select_set(True)
+    bpy.context.view_layer.objects.active = objs[0]
+
+
+def state() -> dict:
+    """module id -> (object name, taxel ids, world positions), after checking the objects against the design."""
+    scene = bpy.context.scene
+    bpy.context.view_layer.update()
+    design = b2c.design_of(scene)
+    objs = b2c.module_objects(scene)
+    assert sorted(m.id for m in design.modules) == sorted(o.skinsafe_module.module_id for o in objs)  # one each
+    t = design.taxels
+    assert len(np.unique(t.ids)) == len(t.ids)
+    robot = b2c.robot_for(scene)
+    d = mujoco.MjData(robot.model)
+    d.qpos[:] = b2c.pose(scene)
+    mujoco.mj_kinematics(robot.model, d)
+    bodies = b2c.body_objects(scene)
+    for body, o in bodies.items():  # every link in the scene, at the pose
+        assert o.name in scene.objects
+        np.testing.assert_allclose(np.array(o.matrix_world)[:3, 3], d.xpos[robot.model.body(body).id], atol=1e-5)
+    out = {}
+    for o in objs:
+        mid = o.skinsafe_module.module_id
+        (m,) = [m for m in design.modules if m.id == mid]
+        on = np.flatnonzero(t.module == mid)
+        assert m.name == o.name and o.type == "MESH" and len(on) == len(o.data.polygons) == m.rows * m.cols
+        assert np.array_equal(t.ids[on], (mid << SHIFT) + np.arange(len(on)))
+        surf = cached_surfaces(robot.model, [m.body])[m.body]
+        assert surf.closest(t.positions[on])[3].max() < 1e-3  # pads on their link
+        W = np.array(bodies[m.body].matrix_world)
+        world = t.positions[on] @ W[:3, :3].T + W[:3, 3]
+        assert o.parent is bodies[m.body]
+        M = W @ np.array(o.matrix_parent_inverse) @ np.array(o.matrix_basis)  # matrix_world, also where not evaluated
+        co = np.empty(len(o.data.vertices) * 3)
+        o.data.vertices.foreach_get("co", co)
+        np.testing.assert_allclose(co.reshape(-1, 6, 3).mean(axis=1) @ M[:3, :3].T + M[:3, 3], world, atol=2e-4)
+        out[mid] = (o.name, t.ids[on].copy(), world)
+    return out
+
+
+def same(a: dict, b: dict, ids=None):
+    assert set(ids if ids is not None else a) <= set(b)
+    for mid in ids if ids is not None else a:
+        assert a[mid][0] == b[mid][0] and np.array_equal(a[mid][1], b[mid][1])
+        np.testing.assert_allclose(a[mid][2], b[mid][2], atol=1e-6)
+
+
+def _apply(**kw):
+    select(module(0))
+    return bpy.ops.object.transform_apply(**kw)
+
+
+def _join():
+    select(module(1), module(0))
+    return bpy.ops.object.join()
+
+
+def _separate():
+    select(module(0))
+    bpy.ops.object.mode_set(mode="EDIT")
+    bpy.ops.mesh.select_all(action="SELECT")
+    r = bpy.ops.mesh.separate(type="LOOSE")
+    bpy.ops.object.mode_set(mode="OBJECT")
+    return r
+
+
+def _parent_to(link: str, keep: bool):
+    select(module(0), obj(link))
+    bpy.context.view_layer.objects.active = obj(link)
+    return bpy.ops.object.parent_set(type="OBJECT", keep_transform=keep)
+
+
+def _on_link(name: str, op, **kw):
+    select(obj(name))
+    return op(**kw)
+
+
+def _modifier_applied():
+    select(module(0))
+    bpy.ops.object.modifier_add(type="SUBSURF")
+    return bpy.ops.object.modifier_apply(modifier=module(0).modifiers[0].name)
+
+
+def _dup_in_place_then_delete_original():
+    select(module(1))
+    bpy.ops.object.duplicate()  # Shift+D, cancelled where it stands
+    bpy.context.view_layer.update()
+    select(module(1))
+    return bpy.ops.object.delete()
+
+
+def _ids_retired(before, after):
+    """The module deleted leaves for good: the next module placed takes a new id, never its."""
+    assert sorted(after) == [0, 2]
+    assert bpy.ops.skinsafe.place_module(body="forearm_link", anchor=MODULES[1][1], direction=(-1, 0, 0),
+                                         use_cursor=False) == {"FINISHED"}
+    assert sorted(state()) == [0, 2, 3]
+
+
+def _dup_entered(before, after):
+    (new,) = set(after) - set(before)
+    assert sorted(after) == [0, 2, new] and new == 3
+    np.testing.assert_allclose(after[new][2], before[1][2], atol=1e-6)  # the copy, where the original was
+
+
+def _move_joint_then(before, after):
+    bpy.context.scene.skinsafe.joints["elbow_joint"].value += 0.3  # the link moved into a collection still poses
+    state()
+    bpy.context.scene.skinsafe.joints["elbow_joint"].value -= 0.3
+
+
+def _joined(before, after):
+    same(before, after)
+    assert "split back" in bpy.context.scene.skinsafe.message
+
+
+# (the edit, what it does; check(before, after), None: every module as before)
+OPS = [
+    ("Apply > All Transforms on a module", lambda: _apply(location=True, rotation=True, scale=True), None),
+    ("Apply > Location on a module", lambda: _apply(location=True, rotation=False, scale=False), None),
+    ("Apply > Rotation on a module", lambda: _apply(location=False, rotation=True, scale=False), None),
+    ("Set Origin on a module", lambda: (select(module(0)), bpy.ops.object.origin_set(type="ORIGIN_GEOMETRY"))[1], None),
+    ("Apply a modifier on a module", _modifier_applied, None),
+    ("Shade Smooth on a module", lambda: (select(module(0)), bpy.ops.object.shade_smooth())[1], None),
+    ("Convert to Curve a module", lambda: (select(module(0)), bpy.ops.object.convert(target="CURVE"))[1], None),
+    ("Ctrl+P to another link", lambda: _parent_to("upper_arm_link", False), None),
+    ("Ctrl+P to another link, Keep Transform", lambda: _parent_to("upper_arm_link", True), None),
+    ("Alt+P Clear Parent on a module", lambda: (select(module(0)), bpy.ops.object.parent_clear(type="CLEAR"))[1], None),
+    ("Alt+P Clear and Keep Transformation on a module",
+     lambda: (select(module(0)), bpy.ops.object.parent_clear(type="CLEAR_KEEP_TRANSFORM"))[1], None),
+    ("Ctrl+J two modules", _join, _joined),
+    ("P Separate a module by loose parts", _separate, None),
+    ("Shift+D in place, then the original deleted", _dup_in_place_then_delete_original, _dup_entered),
+    ("X on a module; the next module placed", lambda: (select(module(1)), bpy.ops.object.delete())[1], _ids_retired),
+    # H and the outliner's eye and screen: what object.hide_view_set does (its poll needs a viewport)
+    ("Hide a module", lambda: module(0).hide_set(True) or {"FINISHED"}, None),
+    ("Disable a module in viewports", lambda: setattr(module(0), "hide_viewport", True) or {"FINISHED"}, None),
+    ("Move a module to a new collection",
+     lambda: (select(module(0)), bpy.ops.object.move_to_collection(collection_uid=bpy.context.scene.collection.session_uid, is_new=True,
+                                                                 new_collection_name="pads"))[1], None),
+    ("Link a module to a new collection",
+     lambda: (select(module(0)), bpy.ops.object.link_to_collection(collection_uid=bpy.context.scene.collection.session_uid, is_new=True,
+                                                                 new_collection_name="pads"))[1], None),
+    ("X on a robot link", lambda: _on_link("forearm_link", bpy.ops.object.delete), None),
+    ("Apply > All Transforms on a robot link",
+     lambda: _on_link("forearm_link", bpy.ops.object.transform_apply, location=True, rotation=True, scale=True), None),
+    ("G on a robot link", lambda: _on_link("forearm_link", bpy.ops.transform.translate, value=(0.05, 0, 0)), None),
+    ("Alt+P Clear Parent on a robot link", lambda: _on_link("forearm_link", bpy.ops.object.parent_clear,
+                                                            type="CLEAR"), None),
+    ("Convert a robot link to a curve", lambda: _on_link("forearm_link", bpy.ops.object.convert, target="CURVE"), None),
+    ("Move a robot link to a new collection",
+     lambda: _on_link("forearm_link", bpy.ops.object.move_to_collection, collection_uid=bpy.context.scene.collection.session_uid, is_new=True,
+                      new_collection_name="links"), _move_joint_then),
+]
+
+
+@pytest.mark.parametrize("name,edit,check", OPS, ids=[o[0] for o in OPS])
+def test_an_object_menu_edit_keeps_the_skin_true_through_undo_and_redo(scene, name, edit, check):
+    before = state()
+    assert edit() in ({"FINISHED"}, {"CANCELLED"})
+    bpy.context.view_layer.update()
+    bpy.ops.ed.undo_push(message=name)
+    after = state()
+    (check or same)(before, after)
+    assert bpy.ops.ed.undo() == {"FINISHED"}
+    same(before, state())
+    assert bpy.ops.ed.redo() == {"FINISHED"}
+    same(after, state(), ids=[m for m in after if m in state()])
+    assert bpy.ops.ed.undo() == {"FINISHED"}
+    same(before, state())
