@@ -204,6 +204,17 @@ def sync(scene) -> list[str]:
     return problems
 
 
+def mismatches(scene) -> list[str]:
+    """Where the module objects and the design disagree, each with what to do (Check lists them first): a module
+    object whose last edit was refused (it shows where the design does not have it), copies of robot links."""
+    out = [f"module object '{o.name}' is not where the design has it: {o.skinsafe_module.error}"
+           for o in b2c.module_objects(scene) if o.skinsafe_module.error]
+    stray = b2c.stray_bodies(scene)
+    if stray:
+        out.append(f"objects {', '.join(stray)} are copies of robot links, not part of the robot; delete them")
+    return out
+
+
 def _owner(group: list, module):
     """Which of the objects claiming one module id keeps it: the one that owned it (its session uid), else
     the one named as the design's module, else the first by name (after a file reload uids are new)."""
@@ -262,14 +273,14 @@ def check_work(design, robot, poses: int = 16, tol: float = SURFACE_TOL) -> tupl
 
 def keep_check(scene, rev: int, result: tuple[list[str], dict]) -> list[str]:
     """Keep a finished `check_work`'s coverage report with the scene's design, which must be the one it checked
-    (`rev`: the scene's design revision when the check started); its problems."""
+    (`rev`: the scene's design revision when the check started); its problems, the objects' `mismatches` first."""
     if scene.skinsafe.design_rev != rev:
         raise DesignError("check: the skin changed while it was being checked; run Check again")
     problems, report = result
     design = need_design(scene)
     design.coverage = report
     c2b.store_design(scene, design)
-    return problems
+    return mismatches(scene) + problems
 
 
 def need_design(scene):

@@ -61,7 +61,11 @@ def _after_transform():
 def on_load(*_):
     b2c.clear_caches()
     for scene in bpy.data.scenes:
+        said = integrity.converted_ids(scene) if scene.skinsafe.robot_kind else ""
         step(scene)
+        if said:  # said last: the panel's message and the file's first report
+            scene.skinsafe.message = said
+            print(f"skinsafe: {said}")
 
 
 HANDLERS = ((bpy.app.handlers.depsgraph_update_post, on_depsgraph_update), (bpy.app.handlers.load_post, on_load))

@@ -10,6 +10,8 @@ where it is (parented to another link, it moves onto that link); a mesh whose da
 where the design has them (transforms applied, origin set, modifiers applied) is rebuilt from the design at its
 placement; a join is split back into its modules; a separated piece is put back; a converted object is made a
 module again. Both return what they did, a line each, for the panel."""
+import warnings
+
 import bpy
 import mujoco
 import numpy as np
@@ -17,6 +19,7 @@ import numpy as np
 from skinsafe.addon import blender_to_core as b2c
 from skinsafe.addon import core_to_blender as c2b
 from skinsafe.core.design.placement import placed_from_design
+from skinsafe.core.skin.ids import IdRuleWarning
 
 PAD_TOL = 5e-4  # m: a pad within this of its design place has not moved
 
@@ -93,6 +96,20 @@ def links(scene) -> tuple[list[str], set[str]]:
     if moved:
         said.append(f"robot links {', '.join(moved)} are posed by the robot's joints (Skin > Robot): put back")
     return said, touched | set(moved)
+
+
+def converted_ids(scene) -> str:
+    """A file saved under an older taxel-id rule: its design stored with the stable ids (`ids.converted`, through
+    the taxel map's reader), and what changed, in words ("" where nothing did)."""
+    b2c.clear_caches()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", IdRuleWarning)
+        design = b2c.design_of(scene)
+    said = [str(w.message) for w in caught if issubclass(w.category, IdRuleWarning)]
+    if design is None or not said:
+        return ""
+    c2b.store_design(scene, design)
+    return f"this file was saved under an older taxel-id rule, converted on load: {said[0]}"
 
 
 def _centres(obj) -> np.ndarray | None:

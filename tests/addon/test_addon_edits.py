@@ -5,6 +5,7 @@ module ids, each module's taxel count, ids and positions agree with the objects 
 each module's mesh are its design taxels), and taxels of the modules not edited keep their ids and
 places. Undo needs `ed.undo_push`: Blender pushes a step after each operator only with a window, so
 each edit here is followed by the push the window manager would do."""
+import json
 from pathlib import Path
 
 import bpy
@@ -266,13 +267,20 @@ def test_file_reload_keeps_the_design_and_repairs_a_file_saved_out_of_step(scene
         copy.data = copy.data.copy()
         objs["upper_arm_link_module2"].users_collection[0].objects.link(copy)
         copy.location.x -= 0.1
+        text = bpy.data.texts[b2c.TEXT_NAME]  # and its design's taxel ids under the old rule (0..N-1)
+        raw = json.loads(text.as_string())
+        raw["taxels"]["ids"] = list(range(len(raw["taxels"]["ids"])))
+        text.from_string(json.dumps(raw))
         bpy.ops.wm.save_as_mainfile(filepath=str(path))
     finally:
         handlers.register()
-    bpy.ops.wm.open_mainfile(filepath=str(path))  # load_post repairs it
-    after = _state()
+    bpy.ops.wm.open_mainfile(filepath=str(path))  # load_post converts and repairs it
+    message = bpy.context.scene.skinsafe.message
+    assert "older taxel-id rule" in message and "need a new `skinsafe deploy`" in message
+    after = _state()  # the stable ids
     assert sorted(after) == [0, 2, 3]
     _same(before, after, ids=[0, 2])
+    assert json.loads(bpy.data.texts[b2c.TEXT_NAME].as_string())["taxels"]["ids"][64] == 2 << SHIFT  # stored so
     assert Path(path).exists()
 
 

@@ -1,5 +1,6 @@
 """The add-on with robot files written here (URDF with primitives and an OBJ mesh) and the bundled
 ROS description (the built extension zip in a clean Blender: test_clean_install.py)."""
+import json
 import textwrap
 from pathlib import Path
 
@@ -8,6 +9,7 @@ import numpy as np
 import pytest
 
 from skinsafe.addon import blender_to_core as b2c
+from skinsafe.core.skin.ids import stable_ids
 
 ROOT = Path(__file__).resolve().parents[2]
 INERTIA = '<inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial>'
@@ -140,5 +142,9 @@ def test_sample_blend_asset_holds_a_full_skin():
     assert d.n_taxels >= 1500 and len(d.boards) >= 2
     assert {"upper_arm_link", "forearm_link", "wrist_1_link"} <= {m.body for m in d.modules}
     assert sum(len(o.data.polygons) for o in b2c.module_objects(scene)) == d.n_taxels
+    # saved under the current rules: stable taxel ids as stored (nothing converted on load), the robot's links kept
+    assert "older taxel-id rule" not in scene.skinsafe.message
+    assert json.loads(bpy.data.texts[b2c.TEXT_NAME].as_string())["taxels"]["ids"] == stable_ids(d.taxels.module).tolist()
+    assert {it.body for it in scene.skinsafe.links} == set(b2c.robot_for(scene).body_names)
     for m in d.modules:  # each module on one board, within capacity
         assert set(d.taxels.board[d.taxels.module == m.id].tolist()) == {m.board}

@@ -217,3 +217,18 @@ def test_an_object_menu_edit_keeps_the_skin_true_through_undo_and_redo(scene, na
     same(after, state(), ids=[m for m in after if m in state()])
     assert bpy.ops.ed.undo() == {"FINISHED"}
     same(before, state())
+
+
+def test_a_copy_left_on_its_original_is_named_on_the_object_and_in_check(scene):
+    select(module(1))
+    bpy.ops.object.duplicate()  # Shift+D, cancelled where it stands: on top of module 1
+    bpy.context.view_layer.update()
+    bpy.ops.ed.undo_push(message="Duplicate")
+    (copy,) = [o for o in b2c.module_objects(scene) if o.skinsafe_module.module_id == 3]
+    assert "overlaps module 1" in copy.skinsafe_module.error
+    with pytest.raises(RuntimeError, match="problems, listed in Skin > Check"):
+        bpy.ops.skinsafe.check(poses=1)
+    first = scene.skinsafe_findings[0]
+    assert f"'{copy.name}' is not where the design has it" in first.text and first.module_id == 3
+    assert bpy.ops.ed.undo() == {"FINISHED"}
+    assert sorted(state()) == [0, 1, 2]
