@@ -152,10 +152,32 @@ def _dup_entered(before, after):
     np.testing.assert_allclose(after[new][2], before[1][2], atol=1e-6)  # the copy, where the original was
 
 
+def _put_back(before, after):
+    """Parented to a link it does not lie on: put back on its own, and said."""
+    same(before, after)
+    assert "put back on 'forearm_link'" in bpy.context.scene.skinsafe.message
+
+
 def _move_joint_then(before, after):
+    same(before, after)
+    assert not b2c.stray_bodies(bpy.context.scene)  # the robot's own link, not a copy
     bpy.context.scene.skinsafe.joints["elbow_joint"].value += 0.3  # the link moved into a collection still poses
     state()
     bpy.context.scene.skinsafe.joints["elbow_joint"].value -= 0.3
+
+
+def _snap_to_cursor():
+    """Shift+S Selection to Cursor: the cursor on the forearm's top between modules 0 and 1."""
+    W = np.array(obj("forearm_link").matrix_world)
+    bpy.context.scene.cursor.location = W[:3, :3] @ (-0.18, 0, E + 0.04) + W[:3, 3]
+    module(0).matrix_world.translation = bpy.context.scene.cursor.location  # what the operator sets
+    return {"FINISHED"}
+
+
+def _snapped(before, after):
+    same(before, after, ids=[1, 2])
+    W = np.array(obj("forearm_link").matrix_world)
+    np.testing.assert_allclose(after[0][2], before[0][2] + W[:3, 0] * 0.12, atol=1e-3)  # 12 cm along, re-placed
 
 
 def _joined(before, after):
@@ -170,10 +192,11 @@ OPS = [
     ("Apply > Rotation on a module", lambda: _apply(location=False, rotation=True, scale=False), None),
     ("Set Origin on a module", lambda: (select(module(0)), bpy.ops.object.origin_set(type="ORIGIN_GEOMETRY"))[1], None),
     ("Apply a modifier on a module", _modifier_applied, None),
+    ("Snap a module to the cursor", _snap_to_cursor, _snapped),
     ("Shade Smooth on a module", lambda: (select(module(0)), bpy.ops.object.shade_smooth())[1], None),
     ("Convert to Curve a module", lambda: (select(module(0)), bpy.ops.object.convert(target="CURVE"))[1], None),
-    ("Ctrl+P to another link", lambda: _parent_to("upper_arm_link", False), None),
-    ("Ctrl+P to another link, Keep Transform", lambda: _parent_to("upper_arm_link", True), None),
+    ("Ctrl+P to another link", lambda: _parent_to("upper_arm_link", False), _put_back),
+    ("Ctrl+P to another link, Keep Transform", lambda: _parent_to("upper_arm_link", True), _put_back),
     ("Alt+P Clear Parent on a module", lambda: (select(module(0)), bpy.ops.object.parent_clear(type="CLEAR"))[1], None),
     ("Alt+P Clear and Keep Transformation on a module",
      lambda: (select(module(0)), bpy.ops.object.parent_clear(type="CLEAR_KEEP_TRANSFORM"))[1], None),
@@ -220,10 +243,12 @@ def test_an_object_menu_edit_keeps_the_skin_true_through_undo_and_redo(scene, na
 
 
 def test_a_copy_left_on_its_original_is_named_on_the_object_and_in_check(scene):
+    scene = bpy.context.scene  # the fixture's struct is gone after the undo steps above
     select(module(1))
     bpy.ops.object.duplicate()  # Shift+D, cancelled where it stands: on top of module 1
     bpy.context.view_layer.update()
     bpy.ops.ed.undo_push(message="Duplicate")
+    scene = bpy.context.scene
     (copy,) = [o for o in b2c.module_objects(scene) if o.skinsafe_module.module_id == 3]
     assert "overlaps module 1" in copy.skinsafe_module.error
     with pytest.raises(RuntimeError, match="problems, listed in Skin > Check"):
