@@ -25,7 +25,7 @@ PAD_TOL = 5e-4  # m: a pad within this of its design place has not moved
 
 
 def _same_key(a, b) -> bool:
-    return np.allclose(tuple(a), tuple(b), rtol=1e-5, atol=1e-6)
+    return b2c.close(a, b, 1e-6 + 1e-5 * max(map(abs, b)))
 
 
 def adopt_links(scene) -> None:
@@ -87,8 +87,8 @@ def links(scene) -> tuple[list[str], set[str]]:
             P = np.eye(4)
             P[:3, :3], P[:3, 3] = d.xmat[m.body_parentid[b]].reshape(3, 3), d.xpos[m.body_parentid[b]]
             W = np.linalg.solve(P, W)
-        ident = np.allclose(np.array(o.matrix_parent_inverse), np.eye(4), atol=1e-6)
-        if o.parent is not parent or not ident or not np.allclose(np.array(o.matrix_basis), W, atol=1e-5):
+        ident = b2c.close(np.array(o.matrix_parent_inverse), np.eye(4), 1e-6)
+        if o.parent is not parent or not ident or not b2c.close(np.array(o.matrix_basis), W, 1e-5):
             o.parent = parent
             o.matrix_parent_inverse.identity()
             o.matrix_basis = b2c.to_matrix(W)
