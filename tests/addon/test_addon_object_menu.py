@@ -14,6 +14,7 @@ from skinsafe.addon import blender_to_core as b2c
 from skinsafe.core.design.surface import cached_surfaces
 from skinsafe.core.skin.ids import SHIFT
 
+pytestmark = pytest.mark.xdist_group("object-menu")  # one worker walks the table on one scene, built once
 E = 0.13585 - 0.1197  # UR5 forearm capsule axis height (body frame), radius 0.04
 UP = 0.13585 + 0.06  # a point above the upper arm's axis
 MODULES = {0: ("forearm_link", (-0.3, 0, E + 0.05)), 1: ("forearm_link", (-0.06, 0, E + 0.05)),
