@@ -53,6 +53,7 @@ from skinsafe.core.runtime.monitor import (
     fastest_taxel_speed,
     stopping,
     table,
+    travel,
 )
 from skinsafe.core.runtime.tap import Tap
 from skinsafe.core.runtime.teleop import INTRUDER_DATAGRAMS, INTRUDER_WINDOW_S, Teleop, load_key
@@ -615,26 +616,19 @@ def _print_bounds(tm: Timing, arm, design, limits: dict) -> None:
 
 def _stop_figures(outcome, arm, design) -> dict:
     """The stop as measured (`Runtime.stopping`): onset -> rest (ms), and the furthest any taxel travelled from where
-    it was at the onset, up to the rest (mm; the arm's measured path, at most 200 of its states)."""
+    it was at the onset, up to the rest (mm, `monitor.travel`)."""
     from skinsafe.core.robot.kinematics import TaxelKinematics
 
     s = dict(outcome.stopping)
     path = np.asarray(s.pop("q_path", []), float)
     if not len(path):
         return s
-    kin = TaxelKinematics(arm.model, design)
-    known = np.isfinite(path).all(axis=1)  # a state with a non-finite q (a broken encoder) places no taxel
-    s["states_unknown"] = int((~known).sum())
-    path = path[known]
-    if not len(path):
+    s["states_unknown"] = int((~np.isfinite(path).all(axis=1)).sum())  # a broken encoder's states place no taxel
+    far = travel(TaxelKinematics(arm.model, design), path)
+    if not np.isfinite(far).any():
         return s | {"stop_distance_mm": None, "why": "no finite joint state after the onset"}
-    path = path[np.unique(np.linspace(0, len(path) - 1, min(len(path), 200)).round().astype(int))]
-    p0 = kin.poses(path[0])[0].copy()
-    far = np.zeros(design.n_taxels)
-    for q in path[1:]:
-        np.maximum(far, np.linalg.norm(kin.poses(q)[0] - p0, axis=1), out=far)
-    k = int(np.argmax(far)) if len(far) else 0
-    return s | {"stop_distance_mm": float(far[k] * 1e3) if len(far) else 0.0, "stop_distance_taxel": k,
+    k = int(np.nanargmax(far))
+    return s | {"stop_distance_mm": float(far[k] * 1e3), "stop_distance_taxel": k,
                 "stop_category": STOP_CATEGORY[Kind(outcome.watchdog)] if outcome.watchdog else 2}
 
 

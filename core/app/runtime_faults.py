@@ -5,7 +5,7 @@ Its own command (`skinsafe faults --runs N --json`; the bench starts it as a use
 imports the application): one emulator process (boards fed by the run's simulation through one shared-memory feed, the
 map deployed once) serves every run; each run is the real command (`core.app.run.run`: pre-flight,
 sim driver, readings source, stack, recorder, signal handling) with one fault, at a random time
-0.1-0.8 s after the robot starts moving, each of `KINDS` in turn, injected at its source at a known
+0.3-0.9 s after the robot starts moving, each of `KINDS` in turn, injected at its source at a known
 time.monotonic() (the onset): a board's link closed (the host's side of its pseudo-terminal), its
 frames held 50 ms, ever later (frame-lag), replayed, foreign or corrupt (on the link proxy), the
 simulation failed, its state frozen, its clock gone back or missing states (overruns), the boards' reader killed
@@ -17,6 +17,11 @@ one stop). Per run: the fault kind the monitor named (is it the
 one injected: `EXPECT`, no text matched), onset -> the time the driver sent zero velocity (not the
 detection), any traceback, is the record readable (every message decodes with mcap-ros2-support and
 the last one is the stop's diagnostics), was the stop latched (the monitor's protective stop)?
+Every run but the contact kinds' (a poke on an arm at rest: stack-qp-fail, after-contact under
+--after-contact hold) sweeps the first joint at a speed (`--speeds`, fractions of its velocity limit; franky-sim's arm
+from where the last run left it, toward the further end of its range), so the stop is measured as a safety engineer
+states it: from the onset to every joint at rest (`Runtime.stopping`, on the arm's measured state), and the furthest
+any taxel travelled meanwhile (`monitor.travel`), beside the printed bounds' model at the top speed measured.
 A frame-lag is a ramp: its onset is when the newest frame the link proxy had passed to the host became older
 than the run's silence since the board sent it (hardware/link_faults.py, measured on the frames), not its
 first late byte.
@@ -39,18 +44,25 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from skinsafe.core.runtime.limiter import MARGIN
+from skinsafe.core.runtime.monitor import STOP_CATEGORY, Kind
 from skinsafe.core.runtime.teleop import INTRUDER_DATAGRAMS, NO_KEY, datagram, make_key, now_us
 
 EXPECT = {"board-unplug": "link-lost", "frame-delay": "board-silent", "frame-lag": "board-late",
-          "frame-replay": "counter-back", "foreign-uid": "foreign-uid", "crc-storm": "crc-storm", "sim-die": "driver",
-          "sim-freeze": "robot-frozen", "sim-clock-back": "robot-clock-back", "sim-overrun": "overrun",
-          "reader-kill": "reader-died", "command-silent": "command-stale", "ctrl-c": "operator",
-          "ctrl-c-twice": "operator", "reading-nan": "reading-nonfinite", "stack-nan": "stack-nonfinite",
-          "stack-qp-fail": "stack-latch", "teleop-intruder": "command-intruder"}  # injected -> the monitor's kind
+          "frame-replay": "counter-back", "foreign-uid": "foreign-uid", "crc-storm": "crc-storm",
+          "crc-burst": "crc-storm", "sim-die": "driver", "sim-freeze": "robot-frozen",
+          "sim-clock-back": "robot-clock-back", "sim-nan": "robot-nonfinite", "sim-overrun": "overrun",
+          "reader-kill": "reader-died", "reader-stall": "reader-stalled", "command-silent": "command-stale",
+          "command-nan": "command-bad", "ctrl-c": "operator", "ctrl-c-twice": "operator",
+          "reading-nan": "reading-nonfinite", "stack-nan": "stack-nonfinite", "stack-qp-fail": "stack-latch",
+          "after-contact": "after-contact", "teleop-intruder": "command-intruder"}  # injected -> the monitor's kind
 INTRUDER_HZ = 100.0  # the intruder's datagrams per second (the issue's hijack)
-# per driver. fr3 has no sim-* faults (the robot's side is franky-sim's own process), nor stack-qp-fail: its world
-# has no hand or obstacle in the storm, so no retraction happens and the retraction's QP is never solved
-KINDS = {"sim": tuple(EXPECT), "fr3": tuple(k for k in EXPECT if not k.startswith("sim-") and k != "stack-qp-fail")}
+CONTACT = ("stack-qp-fail", "after-contact")  # a poke on the arm at rest (a retraction): speed 0 only
+SPEEDS = (0.25, 0.5, 1.0)  # the swept joint's speed, a fraction of its velocity limit, for every other kind
+SWEEP_S = 1.2  # s the swept joint moves at its speed from the start (then the arm holds)
+# per driver. fr3 has no sim-* faults (the robot's side is franky-sim's own process), nor the contact kinds: its world
+# has no hand or obstacle in the storm, so no retraction happens
+KINDS = {"sim": tuple(EXPECT), "fr3": tuple(k for k in EXPECT if not k.startswith("sim-") and k not in CONTACT)}
 SIGNALS = {"ctrl-c": (0.0,), "ctrl-c-twice": (0.0, 0.01)}  # SIGINTs to this process, s after the fault's time
 
 
@@ -129,17 +141,62 @@ def _stop_boards(ports: dict[int, str]) -> None:
             pass
 
 
+class _Stopping:
+    """The arm of a storm's world (its joints, limits and taxels' Jacobians at home) and the printed bounds' model
+    (core/runtime/monitor.py `stopping`) for the swept joint at a measured speed."""
+
+    def __init__(self, joints, limits: dict, J: np.ndarray, timing):
+        self.joints, self.J, self.timing = list(joints), J, timing
+        self.qd_max, self.qdd_max, self.qddd_max = limits["qd_max"], limits["qdd_max"], limits.get("qddd_max")
+        self.q_min, self.q_max = limits["q_min"], limits["q_max"]
+        self.kin = None
+
+    def travel(self, q_path) -> np.ndarray:
+        """Each taxel's stopping distance along the measured path (m; `monitor.travel`)."""
+        from skinsafe.core.runtime.monitor import travel
+
+        return travel(self.kin, q_path)
+
+    def model(self, kind: str, qd, extra_s: float = 0.0, q=None) -> tuple[float, float]:
+        """(stop time ms, distance mm): the kind's detection bound (+ `extra_s`, the time the fault takes to become
+        the kind: a CRC burst's 5 frames, an intruder's 3 datagrams), then braking from the joints' speeds `qd` (each
+        joint's top speed measured from the onset to the rest), the taxels' Jacobians at the arm's pose `q` (default
+        home)."""
+        from skinsafe.core.runtime.monitor import Kind, fastest_taxel_speed, stopping
+
+        J = self.J if q is None or not np.isfinite(q).all() else self.kin.jacobians_of(np.arange(self.kin.n), q)[0]
+        qd = np.nan_to_num(np.asarray(qd, float))
+        t, d = stopping(self.timing, J, qd, self.qdd_max, self.qddd_max)[Kind(kind)]
+        d += fastest_taxel_speed(J, qd) * extra_s
+        return round((t + extra_s) * 1e3, 2), round(d * 1e3, 2)
+
+
 def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out: Path, rate: int,
-            link_latency: float = 0.0, robot: tuple = ("--robot", "sim")) -> dict:
+            link_latency: float = 0.0, robot: tuple = ("--robot", "sim"), speed: float = 0.0,
+            the: _Stopping | None = None) -> dict:
     """One `skinsafe run` (`robot`: its --robot and the driver's options) with the fault `kind` at `at` s after the
-    robot starts moving."""
+    robot starts moving, the first joint swept at `speed` x its velocity limit for SWEEP_S s from the start (0: the
+    arm holds); `the`: the arm's joints, limits and the model of the printed stopping bounds."""
     from skinsafe.core.app import run as run_cmd
     from skinsafe.core.app.cli import module_args
+    from skinsafe.core.bench.runtime import write_waypoints
     from skinsafe.core.runtime.leader import stream
 
     record, stats = out / f"run{k}.mcap", out / f"run{k}.json"
-    command, extra, stop = "hold", [], threading.Event()
+    extra, stop = [], threading.Event()
     timers, done, intruder = [], {}, None
+    # the fastest the limiter allows at speed 1 (its margin inside the limit); from the arm's pose (`home`: where the
+    # last run left franky-sim's arm), toward the further end of the joint's range, within it
+    v = speed * the.qd_max[0] * (1 - MARGIN) if the is not None else 0.0
+    if v:
+        up, down = the.q_max[0] - home[0], home[0] - the.q_min[0]
+        v = v if up >= down else -v
+        sweep = min(SWEEP_S, 0.8 * max(up, down) / abs(v))
+    else:
+        sweep = SWEEP_S
+    end = home + np.eye(len(home))[0] * v * sweep
+    times, targets = np.array([0.0, sweep, sweep + 1.0]), np.stack([home, end, end])
+    command = f"trajectory:{write_waypoints(out / 'sweep.csv', the.joints, times, targets)}" if v else "hold"
 
     def at_once(call, *args):  # the harness's own injections: the onset is when it first acts
         done.setdefault("onset", time.monotonic())
@@ -147,19 +204,22 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
     if kind == "command-silent":
         port = _free_port()
         command = f"teleop:{port}"
-        threading.Thread(target=stream, args=(("127.0.0.1", port), np.array([0.0, 1.0]), np.stack([home, home]), stop),
-                         daemon=True).start()
+        threading.Thread(target=stream, args=(("127.0.0.1", port), times, targets, stop), daemon=True).start()
     elif kind == "teleop-intruder":
         port = _free_port()
         key = make_key(out / "leader.key", force=True)
         command, extra = f"teleop:{port}", ["--teleop-key", key.path]
         intruder = _Intruder(("127.0.0.1", port), home, key, out / "other.key", stop, done)
-        threading.Thread(target=stream, args=(("127.0.0.1", port), np.array([0.0, 1.0]), np.stack([home, home]), stop,
-                                              100.0, key), daemon=True).start()
+        threading.Thread(target=stream, args=(("127.0.0.1", port), times, targets, stop, 100.0, key),
+                         daemon=True).start()
+    elif kind == "after-contact":  # a poke at `at`: its retraction's end latches under --after-contact hold
+        command, extra = "hold", ["--after-contact", "hold", "--contact", f"poke:at={at:.3f}"]
     elif kind not in SIGNALS:
         extra = ["--inject", f"{kind}@{at:.3f}"] + (["--contact", "poke"] if kind == "stack-qp-fail" else [])
+        command = "hold" if kind == "stack-qp-fail" else command
 
     def moving(runtime):
+        done["runtime"] = runtime
         if kind == "command-silent":
             timers.append(threading.Timer(at, at_once, (stop.set,)))
         if intruder is not None:
@@ -190,8 +250,32 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
     reason = s.get("reason", "")
     world = s.get("world", {})
     onset = done.get("onset") or s.get("injected", {}).get(kind) or world.get("fault_mono")
+    if kind == "after-contact":  # the fault is the retraction's end: the monitor's own decision
+        onset = s.get("detected_mono")
     zero = world.get("zero_mono")
+    runtime = done.get("runtime")
+    st = runtime.stopping(onset) if onset and runtime is not None and runtime.ticks else {}
+    if the is not None and st.get("q_path"):
+        far = the.travel(st["q_path"])
+        st["stop_distance_mm"] = float(np.nanmax(far) * 1e3) if np.isfinite(far).any() else None
+    st["stop_category"] = STOP_CATEGORY[Kind(EXPECT[kind])]
+    span = s.get("injected", {}).get(f"{kind}-span")  # crc-burst: its first corrupt frame -> its 5th (the storm)
+    bound_extra = {"bound_extra_ms": span * 1e3} if span is not None else {}
+    if intruder is not None:
+        bound_extra = {"bound_extra_ms": intruder.row(s.get("teleop") or {})["bound_extra_ms"]}
+    # the printed bounds' model at each joint's top speed measured from the onset to the rest (the arm may still
+    # speed up while the fault is being detected)
+    model = (the.model(EXPECT[kind], st.get("qd_peak") or np.zeros(len(home)), bound_extra.get("bound_extra_ms", 0.0) / 1e3,
+                       np.asarray(st["q_path"][0], float) if st.get("q_path") else None)
+             if the is not None else (None, None))
+    if runtime is not None and runtime._state is not None:
+        done["pose"] = runtime._state[0].q.tolist()  # where the arm was left (franky-sim's persists)
     return {"run": k, "fault": kind, "driver": robot[1], "period_s": s.get("period_s"), "at_s": round(at, 3),
+            "speed": speed, "speed_rad_s": round(abs(v), 3), "speed_at_onset": st.get("speed_at_onset"),
+            "speed_max": st.get("speed_max"),
+            "stop_time_ms": st.get("stop_time_ms"), "stop_distance_mm": st.get("stop_distance_mm"),
+            "stop_category": st.get("stop_category"), "stop_why": st.get("why", ""),
+            "model_stop_ms": model[0], "model_distance_mm": model[1], **bound_extra, "pose": done.get("pose"),
             "exit": code, "reason": reason,
             "named_kind": s.get("watchdog", ""), "expected_kind": EXPECT[kind], "stopped": bool(s) and s.get("kind") != "end",
             "named": bool(reason) and s.get("kind") != "end", "named_as_injected": s.get("watchdog") == EXPECT[kind],
@@ -245,6 +329,31 @@ def _setup(driver: str, tmp: Path):
         yield tmp / "skin.json", feed, ports, home, options
 
 
+def _arm(driver: str, map_path: Path, timing) -> _Stopping:
+    """The storm's arm: its joints (the driver's), limits and its taxels' Jacobians at home."""
+    from skinsafe.core.robot.kinematics import TaxelKinematics
+    from skinsafe.core.robot.models import load_robot, only_joints
+    from skinsafe.core.skin.taxel_map import load
+
+    robot = load_robot(load(map_path).robot, base_dir=map_path.parent)
+    if driver == "fr3":
+        from skinsafe.hardware import franka
+
+        robot = only_joints(robot, franka.JOINT_NAMES)
+        joints = franka.JOINT_NAMES
+        limits = {"qd_max": franka.QD_MAX, "qdd_max": franka.QDD_MAX, "qddd_max": franka.QDDD_MAX,
+                  "q_min": franka.Q_MIN, "q_max": franka.Q_MAX}
+    else:
+        joints = [robot.model.joint(j).name for j in range(robot.model.njnt)][:robot.model.nv]
+        limits = {"qd_max": np.asarray(robot.vel_limits, float), "qdd_max": np.asarray(robot.acc_limits, float),
+                  "q_min": robot.model.jnt_range[:robot.model.nv, 0], "q_max": robot.model.jnt_range[:robot.model.nv, 1]}
+    design = load(map_path, robot.body_names)
+    kin = TaxelKinematics(robot.model, design)
+    the = _Stopping(joints, limits, kin.jacobians_of(np.arange(design.n_taxels), robot.home)[0].copy(), timing)
+    the.kin = kin
+    return the
+
+
 def add_arguments(p) -> None:
     p.add_argument("--runs", type=int, default=204)
     p.add_argument("--seed", type=int, default=0)
@@ -256,6 +365,9 @@ def add_arguments(p) -> None:
                    "its own process: `make franky-sim`); fr3 has no sim-* faults")
     p.add_argument("--kinds", nargs="+", metavar="FAULT", help="only these fault kinds, in turn (default: every kind "
                    "of the driver)")
+    p.add_argument("--speeds", type=float, nargs="+", default=list(SPEEDS), metavar="FRACTION",
+                   help="the swept joint's speeds, fractions of its velocity limit; every kind runs at each in turn "
+                        f"(the contact kinds {', '.join(CONTACT)} on an arm at rest; default {' '.join(map(str, SPEEDS))})")
     p.add_argument("--json", action="store_true", help="print the per-run rows as one JSON list")
 
 
@@ -276,9 +388,21 @@ def run(args) -> int:
         kinds = tuple(args.kinds)
     with tempfile.TemporaryDirectory(prefix="skinsafe-faults-") as tmp, _setup(args.driver, Path(tmp)) as world:
         map_path, feed, ports, home, options = world
+        from skinsafe.core.runtime.monitor import Timing
+
+        period = 0.001 if args.driver == "fr3" else 0.002  # the drivers' periods (skinsafe run's sim default)
+        frame = 1.0 / args.rate
+        the = _arm(args.driver, map_path, Timing(period, frame, 2 * frame + args.link_latency, 0.1))
+        plan = [(kind, 0.0) if kind in CONTACT else (kind, v) for v in args.speeds for kind in kinds]
+        plan = list(dict.fromkeys(plan))  # the contact kinds once per round of speeds
+        pose = home
         for k in tqdm(range(args.runs), desc=f"fault runs ({args.driver})", file=sys.stderr):
-            rows.append(one_run(k, kinds[k % len(kinds)], float(rng.uniform(0.1, 0.8)), map_path, feed, ports, home,
-                                Path(tmp), args.rate, args.link_latency, options))
+            kind, speed = plan[k % len(plan)]
+            rows.append(one_run(k, kind, float(rng.uniform(0.3, 0.9)), map_path, feed, ports, pose,
+                                Path(tmp), args.rate, args.link_latency, options, speed, the))
+            # franky-sim's arm stays where a run left it: the next run sweeps from there (the sim starts at home)
+            left = rows[-1].pop("pose")
+            pose = np.asarray(left, float) if args.driver == "fr3" and left is not None else home
             for f in Path(tmp).glob(f"run{k}.*"):
                 f.unlink()
     print(json.dumps(rows) if args.json else "\n".join(map(str, rows)))

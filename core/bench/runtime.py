@@ -44,7 +44,15 @@ each block holds one whole sweep: the same contacts.
 driver (`--robot`: sim, or fr3 against franky-sim): runs, detect_bound_ms (the monitor's bound for the kind that names it), onset_to_zero_ms_p50 /
 _max (the injection's time -> the zero command the driver sent), over_bound (runs over the bound),
 named_as_injected (fraction named by that kind), unnamed, tracebacks, records_readable (fraction),
-latched (fraction left in the monitor's protective stop); `--fault-kinds` picks kinds. The `teleop-intruder` row's
+latched (fraction left in the monitor's protective stop); `--fault-kinds` picks kinds. One row per fault kind, driver and
+speed (`--fault-speeds`: the swept joint's speed, a fraction of its velocity limit; the contact kinds at rest): the
+stop as a safety engineer states it, from the arm's measured state (core/runtime/loop.py `Runtime.stopping`):
+stop_time_ms_p50 / _max (the onset -> every joint below 0.02 rad/s, on the robot's clock), stop_distance_mm_max (the
+furthest any taxel travelled from where it was at the onset, up to the rest), stop_missing (runs whose arm was not at
+rest by the end of the record: a dead simulation has none), stop_category (IEC 60204-1; None: the robot's own stop),
+speed_at_onset_max and speed_max (the fastest joint's speed at the onset, and its top until the rest), and the printed
+bounds' braking model at that top speed and the arm's pose (model_stop_ms_max, model_distance_mm_max, monitor.stopping)
+with over_model (runs over it); over_bound counts a missing or negative onset -> zero time as a failed run. The `teleop-intruder` row's
 onset is the intruder's first datagram and each run's bound adds the time the intruder took to send the 3 that
 stop (about 20 ms at its 100 Hz; detect_bound_ms: the longest); followed_intruder (runs whose leader became the intruder), intruder_named (fraction of runs whose tally
 names it), intruder_refused_min, leader_accepted_min.
@@ -108,6 +116,8 @@ def add_arguments(p) -> None:
     p.add_argument("--runs", type=int, default=204, help="--faults: runs (one fault each)")
     p.add_argument("--fault-kinds", nargs="+", metavar="FAULT", help="--faults: only these kinds (`skinsafe faults "
                    "--kinds`), e.g. teleop-intruder")
+    p.add_argument("--fault-speeds", type=float, nargs="+", metavar="FRACTION", help="--faults: the swept joint's "
+                   "speeds, fractions of its velocity limit (`skinsafe faults --speeds`; default 0.25 0.5 1)")
     p.add_argument("--fault-rate", type=int, default=50, help="--faults: board frames per second (a board is silent "
                    "after 2 frame periods: 40 ms, so a 50 ms delay trips it and the machine's stalls mostly do not)")
     p.add_argument("--seed", type=int, default=0)
@@ -513,7 +523,8 @@ def fault_rows(args) -> list[dict]:
 
     cmd = [SKINSAFE, "faults", "--runs", str(args.runs), "--seed", str(args.seed),
            "--rate", str(args.fault_rate), "--link-latency", str(args.link_latency), "--driver", args.robot, "--json",
-           *(["--kinds", *args.fault_kinds] if args.fault_kinds else [])]
+           *(["--kinds", *args.fault_kinds] if args.fault_kinds else []),
+           *(["--speeds", *map(str, args.fault_speeds)] if args.fault_speeds else [])]
     p = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, timeout=7200)
     if p.returncode:
         raise RuntimeError(f"bench runtime --faults: the fault storm exited {p.returncode}")
@@ -522,17 +533,35 @@ def fault_rows(args) -> list[dict]:
     period = next(r["period_s"] for r in runs if r["period_s"])  # the driver's (sim 2 ms, fr3 1 ms)
     bound = bounds(Timing(period, frame, 2 * frame + args.link_latency, 0.1))
     rows = []
-    for (fault, driver) in sorted({(r["fault"], r["driver"]) for r in runs}):
-        these = [r for r in runs if r["fault"] == fault and r["driver"] == driver]
+    for (fault, driver, speed) in sorted({(r["fault"], r["driver"], r.get("speed", 0.0)) for r in runs}):
+        these = [r for r in runs if r["fault"] == fault and r["driver"] == driver and r.get("speed", 0.0) == speed]
         b = bound[Kind(these[0]["expected_kind"])] * 1e3
         timed = [r for r in these if r["onset_to_zero_ms"] is not None]
         z = np.array([r["onset_to_zero_ms"] for r in timed])
         each = np.array([b + r.get("bound_extra_ms", 0.0) for r in timed])  # a run's own bound
         b += max((r.get("bound_extra_ms", 0.0) for r in these), default=0.0)
-        rows.append({"fault": fault, "driver": driver, "runs": len(these), "detect_bound_ms": round(b, 2),
+        stopped = [r for r in these if r.get("stop_time_ms") is not None]
+        st = np.array([r["stop_time_ms"] for r in stopped])
+        dist = np.array([r["stop_distance_mm"] for r in stopped if r.get("stop_distance_mm") is not None])
+        over_model = sum(r["stop_time_ms"] > r["model_stop_ms"] or (r.get("stop_distance_mm") or 0.0) >
+                         r["model_distance_mm"] for r in stopped if r.get("model_stop_ms") is not None)
+        rows.append({"fault": fault, "driver": driver, "speed": speed, "runs": len(these), "detect_bound_ms": round(b, 2),
                      "onset_to_zero_ms_p50": round(float(np.median(z)), 2) if len(z) else None,
                      "onset_to_zero_ms_max": round(float(z.max()), 2) if len(z) else None,
-                     "over_bound": int((z > each).sum()) + len(these) - len(z),
+                     # a missing or negative onset -> zero time is a failed run, as one over its bound
+                     "over_bound": int((z > each).sum() + (z < 0).sum()) + len(these) - len(z),
+                     "speed_rad_s": these[0].get("speed_rad_s", 0.0),
+                     "speed_at_onset_max": round(max((r.get("speed_at_onset") or 0.0) for r in these), 3),
+                     "speed_max": round(max((r.get("speed_max") or 0.0) for r in these), 3),
+                     "stop_time_ms_p50": round(float(np.median(st)), 2) if len(st) else None,
+                     "stop_time_ms_max": round(float(st.max()), 2) if len(st) else None,
+                     "stop_distance_mm_max": round(float(dist.max()), 2) if len(dist) else None,
+                     "stop_missing": len(these) - len(stopped) + int((st < 0).sum()),
+                     "stop_category": next((r["stop_category"] for r in these if r.get("stop_category") is not None),
+                                           None) if fault != "sim-die" else None,
+                     "model_stop_ms_max": max((r.get("model_stop_ms") or 0.0 for r in these), default=None),
+                     "model_distance_mm_max": max((r.get("model_distance_mm") or 0.0 for r in these), default=None),
+                     "over_model": over_model,
                      "named_as_injected": float(np.mean([r["named_as_injected"] for r in these])),
                      "unnamed": sum(not r["named"] for r in these), "tracebacks": sum(r["traceback"] for r in these),
                      "records_readable": float(np.mean([r["record_readable"] for r in these])),

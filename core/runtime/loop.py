@@ -291,24 +291,27 @@ class Runtime:
         """The arm's state for the stop's figures (a ring of HISTORY ticks)."""
         if self._hist is None:
             n = len(state.q)
-            self._hist = (np.zeros(HISTORY), np.zeros(HISTORY), np.zeros(HISTORY), np.zeros((HISTORY, n)))
-        mono_, t_, speed_, q_ = self._hist
+            self._hist = (np.zeros(HISTORY), np.zeros(HISTORY), np.zeros((HISTORY, n)), np.zeros((HISTORY, n)))
+        mono_, t_, qd_, q_ = self._hist
         i = self._n % HISTORY
         mono_[i], t_[i] = mono, state.t
-        speed_[i] = np.abs(state.qd).max() if len(state.qd) else 0.0
+        qd_[i] = state.qd
         q_[i] = state.q
         self._n += 1
 
     def stopping(self, onset: float | None) -> dict:
         """The stop measured as a safety engineer does, from the arm's measured state: `onset` (host time) -> every
         joint below REST_QD for good, on the robot's clock (`stop_time_ms`; None: not at rest by the end of the
-        record, or the onset older than the history), and `q_path`, the measured joint positions from the onset to
-        the rest (the caller turns it into each taxel's travel)."""
+        record, or the onset older than the history), `speed_at_onset` and `speed_max` (the fastest joint's speed
+        then, and its top speed until the rest), `qd_peak` (each joint's top speed until the rest), and `q_path`, the measured joint positions from the onset to the
+        rest (the caller turns it into each taxel's travel: monitor.travel)."""
         if self._hist is None or onset is None:
             return {}
         k = min(self._n, HISTORY)
         order = (np.arange(self._n - k, self._n)) % HISTORY
-        mono, t, speed, q = (a[order] for a in self._hist)
+        mono, t, qd, q = (a[order] for a in self._hist)
+        qd = np.abs(qd)
+        speed = qd.max(axis=1) if qd.shape[1] else np.zeros(len(t))
         before = np.flatnonzero(mono <= onset)
         out = {"rest_qd": REST_QD, "onset_mono": onset, "stop_time_ms": None, "q_path": []}
         if not len(before):
@@ -320,11 +323,15 @@ class Runtime:
         moving = np.flatnonzero(speed[i0:] >= REST_QD)
         rest = max(i0 + (int(moving[-1]) + 1 if len(moving) else 0), min(i0 + 1, len(t) - 1))
         out["speed_at_onset"] = float(speed[i0])
+        out["speed_max"] = float(np.nanmax(speed[i0:]))  # the fastest joint's top speed from the onset on
+        out["qd_peak"] = np.nanmax(qd[i0:], axis=0).tolist()  # each joint's top speed from the onset on
         if rest >= len(t):
             return out | {"why": f"not at rest when the record ends (fastest joint {speed[-1]:.3f} rad/s)",
                           "q_path": q[i0:].tolist()}
         at_rest = not len(moving)  # at rest from the onset on: nothing to stop
-        return out | {"stop_time_ms": 0.0 if at_rest else (t[rest] - t_onset) * 1e3, "q_path": q[i0:rest + 1].tolist()}
+        return out | {"stop_time_ms": 0.0 if at_rest else (t[rest] - t_onset) * 1e3, "q_path": q[i0:rest + 1].tolist(),
+                      "speed_max": float(np.nanmax(speed[i0:rest + 1])),
+                      "qd_peak": np.nanmax(qd[i0:rest + 1], axis=0).tolist()}
 
     # -- the run ---------------------------------------------------------------------------------
     def stop_by_operator(self, signum: int, name: str) -> None:

@@ -94,9 +94,11 @@ SPECS = {
                           "between arrivals its newest frame older than that + half a frame period; taxels NaN", STOP, "tests/runtime/test_runtime_safety.py::test_late_but_steady_frames_stop_the_robot"),
     Kind.COUNTER_BACK: Spec("a frame counter not ahead of the last (replayed or stale frame, board reset); every "
                             "frame of a burst", STOP,
-                            "tests/runtime/test_runtime_closed_loop.py::test_every_watchdog_stops_the_robot_naming_why"),
+                            "tests/runtime/test_fault_bench.py::test_every_sim_fault_kind_is_one_row_stopped_within_its_"
+                            "bound"),
     Kind.FOREIGN_UID: Spec("a frame with another board's uid on a board's port", STOP,
-                           "tests/runtime/test_runtime_closed_loop.py::test_every_watchdog_stops_the_robot_naming_why"),
+                           "tests/runtime/test_fault_bench.py::test_every_sim_fault_kind_is_one_row_stopped_within_its_"
+                           "bound"),
     Kind.CRC_STORM: Spec("a board silent with corrupt frames since its last good one, or 5 corrupt frames within 1 s",
                          STOP,
                          "tests/runtime/test_runtime_closed_loop.py::test_every_watchdog_stops_the_robot_naming_why"),
@@ -114,7 +116,8 @@ SPECS = {
     Kind.DRIVER: Spec("the driver's own fault, reported with its onset (communication lost, the simulation failed, "
                       "the robot's reflex, the control callback failed)",
                       "the robot's own stop (the robot or its driver stopped it)",
-                      "tests/runtime/test_fr3_driver.py::test_fr3_robot_gone_is_named"),
+                      "tests/runtime/test_fr3_driver.py::test_fr3_robot_gone_is_named; tests/runtime/test_stopping.py::"
+                      "test_a_driver_fault_reaches_the_monitor_with_its_onset"),
     Kind.COMMAND_STALE: Spec("no teleop datagram for --command-timeout", STOP,
                              "tests/runtime/test_runtime_closed_loop.py::test_every_watchdog_stops_the_robot_naming_why"),
     Kind.COMMAND_BAD: Spec("a non-finite plan or teleop target", STOP,
@@ -191,15 +194,35 @@ def braking(qd, qdd, qddd=None) -> tuple[np.ndarray, np.ndarray]:
     return qd / qdd + ramp, qd ** 2 / (2 * qdd) + qd * ramp
 
 
+RESPONSE_PERIODS = 2  # the zero reaches the robot in its next period, its measured state shows it one period later
+
+
 def stopping(tm: Timing, J: np.ndarray, qd, qdd, qddd=None) -> dict[Kind, tuple[float, float]]:
-    """Each kind's stopping bound with every joint at `qd` when the fault begins: (time s: its detection bound + the
-    slowest joint's braking; distance m: the furthest taxel's, sum_j |J_lin[:, j]| (qd_j x detection + its braking
-    angle_j), J (N, 6, n) at the pose)."""
+    """Each kind's stopping bound with every joint at `qd` when the fault begins: (time s: its detection bound, the
+    robot's response (RESPONSE_PERIODS periods at speed), then the slowest joint's braking; distance m: the furthest
+    taxel's, sum_j |J_lin[:, j]| (qd_j x (detection + response) + its braking angle_j), J (N, 6, n) at the pose)."""
     t_b, angle = braking(qd, qdd, qddd)
     arm = np.linalg.norm(J[:, :3], axis=1) if len(J) else np.zeros((0, len(t_b)))
     qd = np.abs(np.asarray(qd, float))
-    return {k: (b + float(t_b.max()), float((arm @ (qd * b + angle)).max()) if len(arm) else 0.0)
+    lag = RESPONSE_PERIODS * tm.period_s
+    return {k: (b + lag + float(t_b.max()), float((arm @ (qd * (b + lag) + angle)).max()) if len(arm) else 0.0)
             for k, b in bounds(tm).items()}
+
+
+def travel(kin, q_path, most: int = 50) -> np.ndarray:
+    """Each taxel's stopping distance (N,), m: the furthest it got from where it was at the first of the measured
+    joint states `q_path` (the onset), over them (at most `most`, evenly chosen; a state with a non-finite q places no
+    taxel and is skipped). `kin`: the arm's TaxelKinematics."""
+    path = np.asarray(q_path, float)
+    path = path[np.isfinite(path).all(axis=1)] if path.ndim == 2 else np.zeros((0, 0))
+    if not len(path):
+        return np.full(kin.n, np.nan)
+    path = path[np.unique(np.linspace(0, len(path) - 1, min(len(path), most)).round().astype(int))]
+    p0 = kin.poses(path[0])[0].copy()
+    far = np.zeros(kin.n)
+    for q in path[1:]:
+        np.maximum(far, np.linalg.norm(kin.poses(q)[0] - p0, axis=1), out=far)
+    return far
 
 
 def table(tm: Timing, speed: float = 0.0) -> list[tuple[str, float, float, str]]:

@@ -119,11 +119,10 @@ def _teleop(port: int, stop: threading.Event):
 @pytest.mark.parametrize("inject, reason, kind, named", [
     ("board-unplug@0.3:1", "board 'board1' (uid 0x5c1a0001): link lost", "fault", "link-lost"),
     ("frame-delay@0.3", "silent for", "fault", "board-silent"),
-    ("frame-replay@0.3", "frame counter went back", "fault", "counter-back"),
-    ("foreign-uid@0.3", "frames from another uid", "fault", "foreign-uid"),
     ("crc-storm@0.3", "CRC storm", "fault", "crc-storm"),
-    ("sim-freeze@0.3", "robot: state not updating", "fault", "robot-frozen"),
     ("sim-die@0.3", "sim: the simulation failed", "driver", "driver"),
+    # frame-replay, foreign-uid and sim-freeze: tests/runtime/test_fault_bench.py (named as injected, latched, within
+    # their bounds, the record readable)
     ("teleop-silent@0.3", "command: teleop:127.0.0.1:", "fault", "command-stale"),
 ])
 def test_every_watchdog_stops_the_robot_naming_why(skin, tmp_path, inject, reason, kind, named):
