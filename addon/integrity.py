@@ -11,15 +11,19 @@ where the design has them (transforms applied, origin set, modifiers applied) is
 placement; a join is split back into its modules; a separated piece is put back; a converted object is made a
 module again. Both return what they did, a line each, for the panel."""
 import warnings
+from types import SimpleNamespace
 
 import bpy
 import mujoco
 import numpy as np
+from scipy.spatial import cKDTree
 
 from skinsafe.addon import blender_to_core as b2c
 from skinsafe.addon import core_to_blender as c2b
+from skinsafe.addon import designer
 from skinsafe.core.design.placement import placed_from_design
 from skinsafe.core.skin.ids import IdRuleWarning
+from skinsafe.core.skin.model import DesignError
 
 PAD_TOL = 5e-4  # m: a pad within this of its design place has not moved
 
@@ -129,8 +133,6 @@ def _design_world(scene, design, mid: int) -> np.ndarray:
 
 def _within(a: np.ndarray, b: np.ndarray) -> bool:
     """Whether every point of `a` is one of `b`'s (within PAD_TOL)."""
-    from scipy.spatial import cKDTree
-
     return bool(len(a)) and len(b) and float(cKDTree(b).query(a)[0].max()) < PAD_TOL
 
 
@@ -155,9 +157,9 @@ def remake(scene, design, mid: int) -> bpy.types.Object:
     x = x - (x @ z) * z
     x /= np.linalg.norm(x)
     p.origin, p.origin_frame = origin, np.stack([x, np.cross(z, x), z], axis=1)
-    settings = type("Settings", (), {k: getattr(m, k) for k in (
-        "template", "rows", "cols", "pitch", "taxel_diameter", "margin", "min_bend_radius", "max_strain")})
-    settings.method, settings.mirrored, settings.outline = rec.get("method", "geodesic"), bool(rec.get("mirrored")), None
+    settings = SimpleNamespace(**{k: getattr(m, k) for k in (
+        "template", "rows", "cols", "pitch", "taxel_diameter", "margin", "min_bend_radius", "max_strain")},
+        method=rec.get("method", "geodesic"), mirrored=bool(rec.get("mirrored")), outline=None)  # the template's fields
     return c2b.new_module_object(scene, b2c.body_objects(scene)[m.body], m, p, settings)
 
 
@@ -165,8 +167,6 @@ def modules(scene, kept: set[str] = frozenset()) -> list[str]:
     """Make every module object one whole FPC of the design again after an edit of its object or data; what
     was done. The modules on the links in `kept` (just put back by `links`) go back to their placements: an edit of
     their link moved them with it. Objects in Edit Mode wait for its end."""
-    from skinsafe.addon import designer
-
     design = b2c.design_of(scene)
     if design is None:
         return []
@@ -218,8 +218,6 @@ def _reattach(obj, body_obj) -> None:
     its local transform still is its placement (a parent cleared without keeping the transform), there; else
     where it now is in the world."""
     if b2c.moved(obj):
-        from skinsafe.addon import designer
-
         designer.attach(obj, body_obj)
         return
     obj.parent = body_obj
@@ -228,9 +226,6 @@ def _reattach(obj, body_obj) -> None:
 
 def _move_to(scene, obj, body: str, bodies) -> str:
     """A module object parented to another link: re-placed on that link where it is, or put back on its own."""
-    from skinsafe.addon import designer
-    from skinsafe.core.skin.model import DesignError
-
     mm = obj.skinsafe_module
     old, placed = mm.body, list(mm.placed_matrix)
     mm.body = body
