@@ -60,6 +60,7 @@ EXPERIMENTS = {
 BENCHES = {
     "jacobians": ("skinsafe.core.bench.jacobians", "batched taxel Jacobians vs a per-taxel loop"),
     "design": ("skinsafe.core.bench.design", "placing modules and re-generating one after a move"),
+    "fab": ("skinsafe.core.app.bench_fab", "a buildable skin on robots' own descriptions: strain, round trip, coverage, fab files"),
     "sensing": ("skinsafe.core.bench.sensing", "vectorised skin readout vs per-taxel touch sensors"),
     "retraction": ("skinsafe.core.bench.retraction", "one defensiveness tick vs a loop"),
     "modulation": ("skinsafe.core.bench.modulation", "modulation tick and full three-layer tick"),

@@ -5,7 +5,9 @@ one per pitch), in raster order along the link's principal axis (band by band, a
 within a band), rows first along that axis, then across it; from each module it places, the
 neighbours that continue its taxel grid are tried next (a quilt), and then copies trimmed to fewer
 rows/columns fill what is left (`trimmed`). A module is kept where `place_module` accepts it (on
-the surface, within the FPC's bend radius), its outline does not overhang the link, none of its
+the surface, within the FPC's bend radius and in-plane strain), the independent wrap of its flat
+pattern (`roundtrip.Wrapper`) puts every pad within 1 mm of the placement's, its outline does not
+overhang the link, none of its
 taxels is hidden (more than `audit.BURIED_TOL` inside another link at the home pose, or
 `audit.enclosed` by its own link's mesh), and none of its cells meets a same-facing module already
 placed on this link or on any other link at home (links that coincide share one skin, never two
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import replace
+from functools import cache
 
 import mujoco
 import numpy as np
@@ -38,6 +41,8 @@ from skinsafe.core.design.placement import (
     placement_record,
     template_grid,
 )
+from skinsafe.core.design.roundtrip import TOL as ROUNDTRIP_TOL
+from skinsafe.core.design.roundtrip import Wrapper
 from skinsafe.core.design.surface import Surface, cached_surfaces, surface_bodies
 from skinsafe.core.skin.model import DesignError, Module, RobotRef, SkinDesign, frames_from_normals
 
@@ -161,7 +166,8 @@ def cover_link(surface: Surface, home: _Home, template: Module, body: str, first
     order = raster_order(pts, axis, template.pitch)
     R = home.data.xmat[home.model.body(body).id].reshape(3, 3)  # body to world at home
     placed: list[PlacedModule] = []
-    refused = {"placement": 0, "strain": 0, "overhang": 0, "buried": 0, "overlap": 0}
+    refused = {"placement": 0, "strain": 0, "overhang": 0, "buried": 0, "overlap": 0, "roundtrip": 0}
+    wrapper = cache(lambda: Wrapper(surface))  # the independent wrap, built at the first module that needs it
 
     def flat(uv, anchor, frames):
         """A module's taxels laid flat in the tangent plane (k anchors, k frames) -> (k, n, 3) world."""
@@ -179,7 +185,9 @@ def cover_link(surface: Surface, home: _Home, template: Module, body: str, first
         reason = ("overlap" if home.meets(w, wn, gap) else
                   "overhang" if outline_overhang(surface, p.positions, p.frames, m.pitch / 2,
                                                  m.min_bend_radius).max() > SURFACE_TOL else
-                  "buried" if home.hidden(body, p.positions, p.frames[:, :, 2]).any() else None)
+                  "buried" if home.hidden(body, p.positions, p.frames[:, :, 2]).any() else
+                  "roundtrip" if np.linalg.norm(wrapper().wrap(template_grid(m)[0], p.origin, p.origin_frame[:, 0])
+                                                - p.positions, axis=1).max() > ROUNDTRIP_TOL else None)
         if reason:
             refused[reason] += 1
             return None

@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from skinsafe.core.design.strain import Strain, module_strain
+from skinsafe.core.design.strain import Strain, module_strain, surface_length
 from skinsafe.core.design.surface import Surface
 from skinsafe.core.skin.boards import assign_boards, number_channels
 from skinsafe.core.skin.ids import stable_ids
@@ -157,7 +157,7 @@ def place_module(surface: Surface, module: Module, anchor, direction, method: st
     return placed
 
 
-RELAX_SWEEPS = 60
+RELAX_SWEEPS, RELAX_FROM = 60, 5.0  # sweeps at most; only a walk stretched under 5x the tolerance is relaxed
 
 
 def relax(surface: Surface, uv, row, col, pos, nrm, strain: Strain, tol: float):
@@ -165,20 +165,24 @@ def relax(surface: Surface, uv, row, col, pos, nrm, strain: Strain, tol: float):
     settles where its stretched and crowded pad pairs balance. Jacobi sweeps of distance
     constraints (position-based dynamics: each pair moves its two pads half its length error along
     its chord), each sweep projected back onto the surface, until the strain is under half the
-    tolerance or stops improving. Returns (positions, normals, Strain)."""
+    tolerance or stops improving. A walk stretched more than `RELAX_FROM` times the tolerance is
+    left as it is (no relaxation brings it within). Returns (positions, normals, Strain)."""
+    if strain.max > RELAX_FROM * tol:
+        return pos, nrm, strain
     a, b = strain.a, strain.b
     flat = np.linalg.norm(uv[a] - uv[b], axis=1)
     count = np.maximum(np.bincount(np.r_[a, b], minlength=len(pos)), 1)[:, None]
-    best, checked = (pos, nrm, strain), strain.max
+    best, checked, s = (pos, nrm, strain), strain.max, strain.strain
     for sweep in range(1, RELAX_SWEEPS + 1):
         d = pos[b] - pos[a]
-        move = (0.5 * strain.strain * flat / np.maximum(np.linalg.norm(d, axis=1), 1e-12))[:, None] * d
+        move = (0.5 * s * flat / np.maximum(np.linalg.norm(d, axis=1), 1e-12))[:, None] * d
         delta = np.stack([np.bincount(a, move[:, k], len(pos)) - np.bincount(b, move[:, k], len(pos))
                           for k in range(3)], axis=1)
         pos, nrm = surface.closest(pos + 0.5 * delta / count)[:2]
-        strain = module_strain(uv, row, col, pos, nrm)
-        if strain.max < best[2].max:
-            best = (pos, nrm, strain)
+        s = surface_length(pos[a], pos[b], nrm[a], nrm[b]) / flat - 1.0
+        worst = float(np.abs(s).max())
+        if worst < best[2].max:
+            best = (pos, nrm, Strain(a, b, s))
         if best[2].max < tol / 2 or sweep % 10 == 0 and best[2].max > 0.95 * checked:
             break
         checked = best[2].max if sweep % 10 == 0 else checked

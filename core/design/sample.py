@@ -148,7 +148,8 @@ def wrap_cylinder(model: mujoco.MjModel, geom: int, pitch: float, rows: int, col
             modules.append(Module(
                 id=mid, name=f"{body_name}_m{mid - first_module}", body=body_name, template="rect",
                 rows=int(ii.max() - r0 + 1), cols=int(jj.max() - c0 + 1), pitch=pitch,
-                taxel_diameter=taxel_diameter, margin=margin, min_bend_radius=min(0.01, r),
+                taxel_diameter=taxel_diameter, margin=min(margin, (pitch - taxel_diameter) / 2),  # FPCs abut
+                min_bend_radius=min(0.01, r),
                 placement={"method": "cylinder_wrap", "geom": model.geom(geom).name,
                            "row0": int(r0), "col0": int(c0), "n_around": n_around},
             ))

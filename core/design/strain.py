@@ -12,13 +12,19 @@ where the circuit would have to stretch, negative where it would have to crowd.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
 
 def grid_pairs(row: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs (a, b) of grid neighbours: along rows, columns and both diagonals (template order)."""
-    row, col = np.asarray(row, np.intp), np.asarray(col, np.intp)
+    return _pairs(np.asarray(row, np.intp).tobytes(), np.asarray(col, np.intp).tobytes())
+
+
+@lru_cache(maxsize=256)
+def _pairs(row_bytes: bytes, col_bytes: bytes) -> tuple[np.ndarray, np.ndarray]:
+    row, col = np.frombuffer(row_bytes, np.intp), np.frombuffer(col_bytes, np.intp)
     if not len(row):
         return np.zeros(0, np.intp), np.zeros(0, np.intp)
     grid = np.full((row.max() + 3, col.max() + 3), -1, np.intp)  # a border of -1 around the cells

@@ -3,9 +3,8 @@ one module never renumbers another's taxels. The taxel map, the boards' configs 
 the live view match taxels by these ids."""
 from __future__ import annotations
 
-from dataclasses import replace
-
 import warnings
+from dataclasses import replace
 
 import numpy as np
 
