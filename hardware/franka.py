@@ -47,6 +47,9 @@ QDDD_MAX = np.full(7, 5000.0)
 SWITCH_S = 1e-4  # Python's thread switch interval while run() runs (see FrankaDriver.run)
 RAMP_MAX_S = 2.0  # a stop's ramp to zero never takes longer (2.62 rad/s at 10 rad/s^2 takes 0.27 s)
 REST_QD = 0.02  # rad/s: after its ramp the stop holds zero until every joint's measured speed is below this
+ROBOT_FAULTS = ("robot-freeze", "robot-clock-back", "robot-nan", "robot-overrun", "robot-die")  # `faults` kinds here
+CLOCK_BACK_S = 0.01
+OVERRUN_STEP = 3
 
 
 class FrankaError(Exception):
@@ -95,9 +98,13 @@ class FrankaDriver:
     joint_names = JOINT_NAMES
     period_s = PERIOD_S
 
-    def __init__(self, host: str, realtime: bool | None = None, rate_limited: bool = True, robot=None):
+    def __init__(self, host: str, realtime: bool | None = None, rate_limited: bool = True, robot=None, faults=None):
         """`robot`: an already connected robot with pylibfranka's `Robot` interface (tests: a scripted one) instead of
-        connecting to `host`."""
+        connecting to `host`. `faults`: a run's fault plan (core/runtime/fault_plan.py) for the robot's side, as the
+        loop would see a faulty robot's states (ROBOT_FAULTS): from `robot-freeze` on the state stops updating (the
+        read count still counts), `robot-clock-back` its clock goes back CLOCK_BACK_S once, `robot-nan` its first
+        joint position reads NaN, `robot-overrun` its clock advances OVERRUN_STEP periods a state (states missed),
+        `robot-die` the driver stops talking to the robot (no ramp: the robot's own stop ends the motion)."""
         import pylibfranka as pf
 
         self._pf = pf
@@ -111,6 +118,9 @@ class FrankaDriver:
                               "address, that FCI is activated in Desk and the brakes are open") from None
         self.host = host
         self.rate_limited = rate_limited
+        self.faults = faults
+        self._frozen: FrankaState | None = None
+        self._skew, self._back = 0.0, False
         self._reason: str | None = None
         self.stats: dict = {}
 
@@ -177,6 +187,12 @@ class FrankaDriver:
             st["success_rate_min"] = min(st["success_rate_min"], rs.control_command_success_rate)
             state = FrankaState(rs.time.to_sec(), np.array(rs.q), np.array(rs.dq), seq, sent.copy(),
                                 rs.control_command_success_rate)
+            if self.faults is not None:
+                if self.faults.due("robot-die"):
+                    report("driver", "fr3: the driver stopped talking to the robot (injected)",
+                           self.faults.onsets["robot-die"], False)
+                    return self._end("fr3: the driver stopped talking to the robot (injected)", True, report)
+                state = self._faulty(state)
             reason = self._reason
             if reason is None:
                 reason, cmd = _command(control, state)
@@ -200,6 +216,22 @@ class FrankaDriver:
         st["zero_mono"] = time.monotonic()  # the stop's first command went out: the ramp to zero has begun
         on_sent(state, sent)
         return self._ramp_down(active, sent, acc, reason, errors, report, on_sent)
+
+    def _faulty(self, s: FrankaState) -> FrankaState:
+        """The state through the plan's robot faults (`__init__`)."""
+        f = self.faults
+        if f.due("robot-freeze"):
+            self._frozen = self._frozen or s
+            return FrankaState(self._frozen.t, self._frozen.q, self._frozen.qd, s.seq, s.qd_sent, s.success_rate)
+        if f.due("robot-nan"):
+            s.q[0] = np.nan
+        if f.due("robot-clock-back") and not self._back:
+            self._back = True
+            s.t -= CLOCK_BACK_S
+        if f.due("robot-overrun"):
+            self._skew += (OVERRUN_STEP - 1) * PERIOD_S
+            s.t += self._skew
+        return s
 
     def _ramp_down(self, active, sent, acc, reason: str, errors, report, on_sent) -> str:
         """Zero velocity at the robot's acceleration and jerk limits, one command per cycle, then zero until every

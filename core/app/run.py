@@ -62,6 +62,7 @@ from skinsafe.core.safety.retraction import RetractionParams
 from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.model import DesignError
 from skinsafe.hardware.client import baud_problem
+from skinsafe.hardware.franka import ROBOT_FAULTS  # the FR3 driver's plan (its robot's states)
 
 LINK_LATENCY_FREE = 0.05  # s of --link-latency accepted without --allow-link-latency
 LINK_LATENCY_MAX = 10.0
@@ -72,8 +73,7 @@ EXIT_CODES = {0: "ran as planned, robot stopped", 1: "a watchdog or the driver s
               4: "the stop itself failed (named: its ramp, the robot's stop, the link lost while stopping)",
               130: "Ctrl-C", 143: "SIGTERM"}
 SIM_FAULTS = {"sim-freeze": "freeze_at", "sim-die": "die_at", "sim-clock-freeze": "clock_freeze_at",
-              "sim-clock-back": "clock_back_at", "sim-overrun": "overrun_at"}
-SIM_FAULTS["sim-nan"] = "nan_at"
+              "sim-clock-back": "clock_back_at", "sim-overrun": "overrun_at", "sim-nan": "nan_at"}
 SOURCE_FAULTS = IN_PARTS  # at their source (the FaultPlan handed to it), from S s after the hand-over on
 READER_FAULTS = ("reader-kill", "reader-stall")  # at S s after the robot is handed over (before the boards settle)
 
@@ -136,7 +136,8 @@ def add_arguments(p) -> None:
                           "frame periods + --link-latency, the longer), frame-lag, "
                           "frame-replay, foreign-uid, crc-storm, crc-burst (on the emulated boards' links), sim-freeze, sim-die, "
                           "sim-clock-freeze, sim-clock-back, sim-overrun (the state's clock 3 periods a tick), sim-nan "
-                          "(the state's first joint position NaN); "
+                          "(the state's first joint position NaN); robot-freeze, robot-clock-back, robot-nan, robot-overrun, "
+                          "robot-die (the FR3 driver's view of its robot's states: --robot fr3); "
                           "reader-kill (SIGKILL), reader-stall (SIGSTOP for a silence + 0.1 s) on the boards' reader, "
                           "S s after the robot is handed over (0: before the boards settle); from S s after the "
                           "hand-over: stack-nan (the layers' command non-finite), stack-qp-fail (the retraction's QP "
@@ -204,6 +205,10 @@ def _check(args) -> None:
         raise DesignError("--max-excluded must be in [0, 1) and --noise-fraction positive")
     if args.boards != ["emulate"] and "emulate" in args.boards:
         raise DesignError("--boards: give 'emulate' alone or serial ports")
+    if args.robot == "fr3" and args.after_contact == "always-resume" and not args.allow_non_realtime:
+        raise DesignError("--after-contact always-resume resumes the plan after every retraction, flagged or not: "
+                          "refused on a hardware robot; use resume or hold (with --allow-non-realtime, a simulated "
+                          "robot such as franky-sim, it is accepted for benches)")
     if args.robot == "sim" and args.host:
         raise DesignError("--host is for --robot fr3")
     if args.robot == "fr3" and args.boards == ["emulate"] and not args.feed:
@@ -213,6 +218,8 @@ def _check(args) -> None:
                                ("--inject sim-*", any(i.startswith("sim-") for i in args.inject))) if v]
     if args.robot != "sim" and sim_only:
         raise DesignError(f"{', '.join(sim_only)}: for --robot sim only")
+    if args.robot != "fr3" and any(i.startswith("robot-") for i in args.inject):
+        raise DesignError("--inject robot-*: for --robot fr3 only (the sim's are sim-*)")
 
 
 def _taxel_faults(items: list[str]) -> dict[int, str]:
@@ -231,7 +238,7 @@ def _injections(items: list[str]) -> FaultPlan:
     from skinsafe.hardware.link_faults import LINK_FAULTS
 
     out = []
-    kinds = LINK_FAULTS + tuple(SIM_FAULTS) + READER_FAULTS + SOURCE_FAULTS
+    kinds = LINK_FAULTS + tuple(SIM_FAULTS) + READER_FAULTS + SOURCE_FAULTS + ROBOT_FAULTS
     for item in items:
         kind, _, rest = item.partition("@")
         at, _, board = rest.partition(":")
@@ -258,7 +265,7 @@ def _driver(args, design, robot, feed, inject):
         if not args.host:
             raise DesignError("--robot fr3 needs --host IP: the robot's (or franky-sim's) address")
         try:
-            return franka.FrankaDriver(args.host, rate_limited=False)  # the runtime's limiter does it
+            return franka.FrankaDriver(args.host, rate_limited=False, faults=inject)  # the runtime's limiter does it
         except franka.FrankaError as e:
             raise DesignError(str(e)) from None
     from skinsafe.core.sim.robot_driver import SimDriver, SimFaults
@@ -465,7 +472,7 @@ def _wire(args, stack, feed, ports, inject, map_path, map_hash, robot, design) -
         ports = ports or _ports(args, design, stack, feed)
         links = None
         link_faults = [(i.kind, i.at, i.board) for i in inject.injections
-                       if i.kind not in (*SIM_FAULTS, *READER_FAULTS, *SOURCE_FAULTS)]
+                       if i.kind not in (*SIM_FAULTS, *READER_FAULTS, *SOURCE_FAULTS, *ROBOT_FAULTS)]
         if link_faults:
             from skinsafe.hardware.link_faults import DELAY_S, LinkFaults
 

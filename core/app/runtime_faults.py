@@ -55,14 +55,17 @@ EXPECT = {"board-unplug": "link-lost", "frame-delay": "board-silent", "frame-lag
           "reader-kill": "reader-died", "reader-stall": "reader-stalled", "command-silent": "command-stale",
           "command-nan": "command-bad", "ctrl-c": "operator", "ctrl-c-twice": "operator",
           "reading-nan": "reading-nonfinite", "stack-nan": "stack-nonfinite", "stack-qp-fail": "stack-latch",
-          "after-contact": "after-contact", "teleop-intruder": "command-intruder"}  # injected -> the monitor's kind
+          "after-contact": "after-contact", "teleop-intruder": "command-intruder", "robot-freeze": "robot-frozen",
+          "robot-clock-back": "robot-clock-back", "robot-nan": "robot-nonfinite", "robot-overrun": "overrun",
+          "robot-die": "driver"}  # injected -> the monitor's kind
 INTRUDER_HZ = 100.0  # the intruder's datagrams per second (the issue's hijack)
 CONTACT = ("stack-qp-fail", "after-contact")  # a poke on the arm at rest (a retraction): speed 0 only
 SPEEDS = (0.25, 0.5, 1.0)  # the swept joint's speed, a fraction of its velocity limit, for every other kind
 SWEEP_S = 1.2  # s the swept joint moves at its speed from the start (then the arm holds)
-# per driver. fr3 has no sim-* faults (the robot's side is franky-sim's own process), nor the contact kinds: its world
-# has no hand or obstacle in the storm, so no retraction happens
-KINDS = {"sim": tuple(EXPECT), "fr3": tuple(k for k in EXPECT if not k.startswith("sim-") and k not in CONTACT)}
+# per driver: the robot's own faults as sim-* (the sim's SimFaults) or robot-* (the FR3 driver's view of franky-sim's
+# states, its FaultPlan); fr3 has no contact kinds: its storm's world has no hand or obstacle, so nothing is retracted
+KINDS = {"sim": tuple(k for k in EXPECT if not k.startswith("robot-")),
+         "fr3": tuple(k for k in EXPECT if not k.startswith("sim-") and k not in CONTACT)}
 SIGNALS = {"ctrl-c": (0.0,), "ctrl-c-twice": (0.0, 0.01)}  # SIGINTs to this process, s after the fault's time
 
 
@@ -257,7 +260,9 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
     st = runtime.stopping(onset) if onset and runtime is not None and runtime.ticks else {}
     if the is not None and st.get("q_path"):
         far = the.travel(st["q_path"])
-        st["stop_distance_mm"] = float(np.nanmax(far) * 1e3) if np.isfinite(far).any() else None
+        st["stop_distance_mm"] = float(np.nanmax(far) * 1e3) if np.isfinite(far).any() and \
+            st.get("stop_time_ms") is not None else None  # not at rest by the record's end: unknown
+        done["travel"] = (far, np.asarray(st["q_path"][0], float))  # for the picture (`--picture`)
     st["stop_category"] = STOP_CATEGORY[Kind(EXPECT[kind])]
     span = s.get("injected", {}).get(f"{kind}-span")  # crc-burst: its first corrupt frame -> its 5th (the storm)
     bound_extra = {"bound_extra_ms": span * 1e3} if span is not None else {}
@@ -268,14 +273,15 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
     model = (the.model(EXPECT[kind], st.get("qd_peak") or np.zeros(len(home)), bound_extra.get("bound_extra_ms", 0.0) / 1e3,
                        np.asarray(st["q_path"][0], float) if st.get("q_path") else None)
              if the is not None else (None, None))
-    if runtime is not None and runtime._state is not None:
-        done["pose"] = runtime._state[0].q.tolist()  # where the arm was left (franky-sim's persists)
+    if runtime is not None and runtime.last_q is not None and np.isfinite(runtime.last_q).all():
+        done["pose"] = runtime.last_q.tolist()  # where the arm was left (franky-sim's persists)
     return {"run": k, "fault": kind, "driver": robot[1], "period_s": s.get("period_s"), "at_s": round(at, 3),
             "speed": speed, "speed_rad_s": round(abs(v), 3), "speed_at_onset": st.get("speed_at_onset"),
             "speed_max": st.get("speed_max"),
             "stop_time_ms": st.get("stop_time_ms"), "stop_distance_mm": st.get("stop_distance_mm"),
             "stop_category": st.get("stop_category"), "stop_why": st.get("why", ""),
             "model_stop_ms": model[0], "model_distance_mm": model[1], **bound_extra, "pose": done.get("pose"),
+            "travel": done.get("travel"),
             "exit": code, "reason": reason,
             "named_kind": s.get("watchdog", ""), "expected_kind": EXPECT[kind], "stopped": bool(s) and s.get("kind") != "end",
             "named": bool(reason) and s.get("kind") != "end", "named_as_injected": s.get("watchdog") == EXPECT[kind],
@@ -329,6 +335,31 @@ def _setup(driver: str, tmp: Path):
         yield tmp / "skin.json", feed, ports, home, options
 
 
+def picture(path: Path, the: _Stopping, row: dict, far: np.ndarray, q0: np.ndarray) -> Path:
+    """Each taxel's stopping distance (mm, colour) at its place on the arm when the fault began (3 views)."""
+    from skinsafe.core.app.report_figures import _plt, save
+
+    plt = _plt()
+    pos = the.kin.poses(q0)[0].copy()
+    mm = far * 1e3
+    fig = plt.figure(figsize=(12, 4.4))
+    views = ((20, -60), (20, 30), (80, -90))
+    for i, (elev, azim) in enumerate(views):
+        ax = fig.add_subplot(1, 3, i + 1, projection="3d")
+        sc = ax.scatter(*pos.T, c=mm, cmap="viridis", s=6, vmin=0, vmax=float(np.nanmax(mm)))
+        ax.view_init(elev, azim)
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+        ax.set_zlabel("z (m)")
+        ax.set_box_aspect(np.ptp(pos, axis=0) + 1e-3)
+        ax.set_title(f"elevation {elev}°, azimuth {azim}°", fontsize=9)
+    fig.colorbar(sc, ax=fig.axes, shrink=0.7, label="stopping distance (mm): onset -> the arm at rest")
+    fig.suptitle(f"{row['driver']}: {row['fault']} (named {row['named_kind']}) at {row['speed']:g} x the swept "
+                 f"joint's limit; stop {row['stop_time_ms']:.0f} ms, furthest taxel {row['stop_distance_mm']:.1f} mm "
+                 f"({len(mm)} taxels)", fontsize=10)
+    return save(fig, path)
+
+
 def _arm(driver: str, map_path: Path, timing) -> _Stopping:
     """The storm's arm: its joints (the driver's), limits and its taxels' Jacobians at home."""
     from skinsafe.core.robot.kinematics import TaxelKinematics
@@ -368,6 +399,8 @@ def add_arguments(p) -> None:
     p.add_argument("--speeds", type=float, nargs="+", default=list(SPEEDS), metavar="FRACTION",
                    help="the swept joint's speeds, fractions of its velocity limit; every kind runs at each in turn "
                         f"(the contact kinds {', '.join(CONTACT)} on an arm at rest; default {' '.join(map(str, SPEEDS))})")
+    p.add_argument("--picture", metavar="FILE.png", help="draw each taxel's stopping distance of the run whose furthest "
+                   "taxel travelled furthest, on the arm's pose at its onset")
     p.add_argument("--json", action="store_true", help="print the per-run rows as one JSON list")
 
 
@@ -395,7 +428,7 @@ def run(args) -> int:
         the = _arm(args.driver, map_path, Timing(period, frame, 2 * frame + args.link_latency, 0.1))
         plan = [(kind, 0.0) if kind in CONTACT else (kind, v) for v in args.speeds for kind in kinds]
         plan = list(dict.fromkeys(plan))  # the contact kinds once per round of speeds
-        pose = home
+        pose, worst = home, None
         for k in tqdm(range(args.runs), desc=f"fault runs ({args.driver})", file=sys.stderr):
             kind, speed = plan[k % len(plan)]
             rows.append(one_run(k, kind, float(rng.uniform(0.3, 0.9)), map_path, feed, ports, pose,
@@ -403,6 +436,12 @@ def run(args) -> int:
             # franky-sim's arm stays where a run left it: the next run sweeps from there (the sim starts at home)
             left = rows[-1].pop("pose")
             pose = np.asarray(left, float) if args.driver == "fr3" and left is not None else home
+            travel = rows[-1].pop("travel")
+            if travel is not None and (worst is None or (rows[-1]["stop_distance_mm"] or 0.0) >
+                                       (worst[0]["stop_distance_mm"] or 0.0)):
+                worst = (rows[-1], travel)
+        if args.picture and worst is not None:
+            picture(Path(args.picture), the, worst[0], *worst[1])
             for f in Path(tmp).glob(f"run{k}.*"):
                 f.unlink()
     print(json.dumps(rows) if args.json else "\n".join(map(str, rows)))

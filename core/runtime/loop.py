@@ -299,6 +299,11 @@ class Runtime:
         q_[i] = state.q
         self._n += 1
 
+    @property
+    def last_q(self) -> np.ndarray | None:
+        """The arm's last measured joint positions kept (after a stop: where the driver's stop left it)."""
+        return None if self._hist is None else self._hist[3][(self._n - 1) % HISTORY].copy()
+
     def stopping(self, onset: float | None) -> dict:
         """The stop measured as a safety engineer does, from the arm's measured state: `onset` (host time) -> every
         joint below REST_QD for good, on the robot's clock (`stop_time_ms`; None: not at rest by the end of the

@@ -255,7 +255,7 @@ AFTER_CONTACT = {"resume": "the plan goes on after a clean retraction, as in the
                             "flagged infeasible latches a protective stop when it ends",
                  "hold": "a protective stop once any retraction ends",
                  "always-resume": "the plan goes on after every retraction, flagged or not: for benches that measure "
-                                  "repeated contacts, never near people"}
+                                  "repeated contacts, never near people (refused on a hardware robot)"}
 
 
 class Monitor:
@@ -339,15 +339,17 @@ class Monitor:
         return Decision(stop, self.fault, self.fault.message + then, code, self.detected, during)
 
 
-def markdown(tm: Timing, speed: float) -> str:
-    """The fault table of docs/run/safety.md."""
+def markdown(tm: Timing, speed: float, stops: dict[Kind, tuple[float, float]] | None = None) -> str:
+    """The fault table of docs/run/safety.md (`stops`: `stopping`'s bounds, for the stop columns)."""
     b = bounds(tm)
-    rows = ["| fault | detection | bound (ms) | blind distance (mm) | leaves the robot | test |",
-            "|---|---|---:|---:|---|---|"]
+    rows = ["| fault | detection | bound (ms) | blind distance (mm) | stop within (ms) | stopping distance (mm) | "
+            "stop category | leaves the robot | test |", "|---|---|---:|---:|---:|---:|---|---|---|"]
     for k in Kind:
         s = SPECS[k]
-        rows.append(f"| `{k.value}` | {s.detection} | {b[k] * 1e3:.1f} | {speed * b[k] * 1e3:.1f} | {s.leaves} | "
-                    f"`{s.test}` |")
+        t, d = (stops or {}).get(k, (float("nan"), float("nan")))
+        cat = "robot's own" if STOP_CATEGORY[k] is None else str(STOP_CATEGORY[k])
+        rows.append(f"| `{k.value}` | {s.detection} | {b[k] * 1e3:.1f} | {speed * b[k] * 1e3:.1f} | {t * 1e3:.0f} | "
+                    f"{d * 1e3:.0f} | {cat} | {s.leaves} | `{s.test}` |")
     return "\n".join(rows)
 
 
@@ -362,8 +364,9 @@ def main() -> None:
     design = make_sample_design("ur5", robot=robot)
     J = TaxelKinematics(robot.model, design).jacobians_of(np.arange(design.n_taxels), robot.home)[0]
     speed = fastest_taxel_speed(J, robot.vel_limits)
+    tm = Timing(0.002, 0.01, 0.02, 0.1)
     print(f"UR5 sample skin, fastest taxel {speed:.2f} m/s; `skinsafe run --robot sim` defaults\n")
-    print(markdown(Timing(0.002, 0.01, 0.02, 0.1), speed))
+    print(markdown(tm, speed, stopping(tm, J, robot.vel_limits, robot.acc_limits)))
 
 
 if __name__ == "__main__":

@@ -199,6 +199,8 @@ def test_while_the_robot_moves_idle_cores_are_kept_awake_then_released():
     (["--tare-frames", "1"], "--tare-frames 1: give 2..10000"),
     (["--tare-frames", "99999999999"], "--tare-frames 99999999999: give 2..10000"),  # the reader ran out of memory
     (["--baud", "99999999999"], "--baud 99999999999: give 1..12000000 bit/s"),  # pyserial's OverflowError
+    (["--robot", "fr3", "--host", "127.0.0.1", "--feed", "f", "--after-contact", "always-resume"],
+     "--after-contact always-resume resumes the plan after every retraction, flagged or not: refused on a hardware"),
 ])
 def test_run_refuses_bad_numbers_in_one_line_before_anything_starts(tmp_path, capsys, argv, message):
     from skinsafe.core.app.cli import main
