@@ -336,26 +336,31 @@ def _setup(driver: str, tmp: Path):
 
 
 def picture(path: Path, the: _Stopping, row: dict, far: np.ndarray, q0: np.ndarray) -> Path:
-    """Each taxel's stopping distance (mm, colour) at its place on the arm when the fault began (3 views)."""
+    """Each taxel's stopping distance (mm, colour) at its place on the arm when the fault began, the arm's links as
+    lines between its bodies (two views)."""
     from skinsafe.core.app.report_figures import _plt, save
 
     plt = _plt()
     pos = the.kin.poses(q0)[0].copy()
+    m, d = the.kin.model, the.kin.data
+    bones = [(d.xpos[b].copy(), d.xpos[m.body_parentid[b]].copy()) for b in range(1, m.nbody)]
     mm = far * 1e3
-    fig = plt.figure(figsize=(12, 4.4))
-    views = ((20, -60), (20, 30), (80, -90))
-    for i, (elev, azim) in enumerate(views):
-        ax = fig.add_subplot(1, 3, i + 1, projection="3d")
-        sc = ax.scatter(*pos.T, c=mm, cmap="viridis", s=6, vmin=0, vmax=float(np.nanmax(mm)))
+    fig = plt.figure(figsize=(11, 5))
+    top = float(np.nanmax(mm))
+    for i, (elev, azim) in enumerate(((25, -50), (25, 40))):
+        ax = fig.add_subplot(1, 2, i + 1, projection="3d")
+        for a, b in bones:
+            ax.plot(*np.stack([a, b]).T, color="0.55", lw=2)
+        sc = ax.scatter(*pos.T, c=mm, cmap="viridis", s=4, vmin=0, vmax=top)
         ax.view_init(elev, azim)
-        ax.set_xlabel("x (m)")
-        ax.set_ylabel("y (m)")
-        ax.set_zlabel("z (m)")
-        ax.set_box_aspect(np.ptp(pos, axis=0) + 1e-3)
-        ax.set_title(f"elevation {elev}°, azimuth {azim}°", fontsize=9)
-    fig.colorbar(sc, ax=fig.axes, shrink=0.7, label="stopping distance (mm): onset -> the arm at rest")
-    fig.suptitle(f"{row['driver']}: {row['fault']} (named {row['named_kind']}) at {row['speed']:g} x the swept "
-                 f"joint's limit; stop {row['stop_time_ms']:.0f} ms, furthest taxel {row['stop_distance_mm']:.1f} mm "
+        lo, hi = np.minimum(pos.min(0), np.min([x for bone in bones for x in bone], 0)), \
+            np.maximum(pos.max(0), np.max([x for bone in bones for x in bone], 0))
+        ax.set_box_aspect(hi - lo + 1e-3)
+        for axis, name in zip((ax.set_xlabel, ax.set_ylabel, ax.set_zlabel), "xyz"):
+            axis(f"{name} (m)")
+    fig.colorbar(sc, ax=fig.axes, shrink=0.7, label="stopping distance (mm): the onset -> the arm at rest")
+    fig.suptitle(f"{row['driver']}, {row['fault']} (named {row['named_kind']}), swept at {row['speed']:g} x its "
+                 f"limit: stop {row['stop_time_ms']:.0f} ms, the furthest taxel {row['stop_distance_mm']:.1f} mm "
                  f"({len(mm)} taxels)", fontsize=10)
     return save(fig, path)
 
