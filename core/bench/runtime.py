@@ -361,6 +361,7 @@ def _row(design, runs: list[dict], stale: int, ref: dict, args) -> dict:
         float("nan"),
         "peak_N_run": float(max(x["peak_N"] for x in w)), "peak_N_run_in_process": float(ref["peak_N"]),
         "work_ms_p99": worst("work_ms_p99"), "work_ms_max": worst("work_ms_max"),
+        "off_cpu_ms_max": worst("off_cpu_ms_max"), "slowest_tick_off_cpu_ms": worst("slowest_tick_off_cpu_ms"),
         "latency_wait_ms_p50": _pooled(runs, "latency_wait", 50), "latency_wait_ms_p99": _pooled(runs, "latency_wait"),
         "latency_tick_ms_p50": _pooled(runs, "latency_tick", 50), "latency_tick_ms_p99": _pooled(runs, "latency_tick"),
         "publish_ms_p99": float(max(r["skin"].get("publish_ms_p99") or 0.0 for r in runs)),

@@ -92,6 +92,8 @@ class Runtime:
         self.period = Figure()  # s between the starts of consecutive ticks (host clock)
         self.robot_period = Figure()  # the same on the robot's clock
         self.work = Figure()  # s each tick took
+        self.off_cpu = Figure()  # s of each tick's work its thread was not on a CPU (wall - the thread's CPU time)
+        self._slowest = (0.0, 0.0)  # the slowest tick's work and its off-CPU part, s
         self.latency = Figure()  # s from a frame holding a contact to its command leaving
         self.waited = Figure()  # s of each such latency before the tick that used the frame began
         self.latency_at = Figure()  # the index of each such latency's tick
@@ -111,7 +113,7 @@ class Runtime:
 
     # -- the callback ----------------------------------------------------------------------------
     def control(self, state) -> np.ndarray:
-        start = time.monotonic()
+        start, cpu = time.monotonic(), time.thread_time()
         m = self.monitor
         q, qd, t = state.q, state.qd, state.t
         if self._t0 is None:
@@ -162,6 +164,10 @@ class Runtime:
             self.latency_at.add(self.ticks)
         self.ticks += 1
         self.work.add(now - start)
+        off = max(0.0, (now - start) - (time.thread_time() - cpu))
+        self.off_cpu.add(off)
+        if now - start > self._slowest[0]:
+            self._slowest = (now - start, off)
         tick = Tick(t=t, q=q, qd=qd, dt=dt, command=v, force=self._force, force_new=new, reading_seq=float(r.seq),
                     planned=planned, retracting=retracting, pool=pool, pool_taxels=d.pool if retracting else None,
                     flags=info.flags, potential=self.stack.last_f, speed_factor=speed_factor(v, planned),
@@ -385,7 +391,9 @@ class Runtime:
 
     def timing(self) -> dict:
         """Loop rate, period jitter (host clock; `_robot`: the robot's clock), work per tick and contact latency
-        (ms) over the run; `latency_ms_all`, `latency_wait_ms_all` (its part before the tick began), `period_ms_all`
+        (ms) over the run; `off_cpu_ms_*`: the part of a tick's work its thread was not on a CPU (wall - the thread's
+        CPU time: preempted, the hypervisor's steal, interrupts on its core); `latency_ms_all`, `latency_wait_ms_all`
+        (its part before the tick began), `period_ms_all`
         (while a run has at most `tick_figures.KEEP` of them): every sample (a bench pools several runs'), with
         `latency_tick_all` (each latency's tick) and `start_mono` (the first tick's start, time.monotonic): tick k
         began at start_mono + the sum of the first k periods."""
@@ -405,6 +413,8 @@ class Runtime:
                 "robot_s": float(self._last_t - self._t0) if self._t0 is not None else 0.0,
                 "work_ms_p50": ms(work, 50), "work_ms_p99": ms(work, 99),
                 "work_ms_max": work.max * 1e3 if work.n else 0.0,
+                "off_cpu_ms_max": self.off_cpu.max * 1e3 if self.off_cpu.n else 0.0,
+                "off_cpu_ms_p99": ms(self.off_cpu, 99), "slowest_tick_off_cpu_ms": self._slowest[1] * 1e3,
                 "latency_samples": lat.n, "latency_ms_p50": ms(lat, 50, np.nan),
                 "latency_ms_p99": ms(lat, 99, np.nan), "latency_ms_max": lat.max * 1e3 if lat.n else np.nan,
                 "latency_ms_all": every(lat), "latency_wait_ms_all": every(self.waited), "period_ms_all": every(period),
