@@ -26,10 +26,11 @@ ROOT = HERE.parent
 # llvmlite for the body surfaces' closest-point kernels (core/design/surface_kernels.py, loaded by the
 # first surface, never at enable) and the PFL heat map; mcap, mcap-ros2-support and lz4 read a run's
 # record for the live link (addon/live.py, on attach); pyserial talks to the boards (addon/deploy.py, on Deploy);
-# kiutils and ezdxf (with pyparsing, fonttools, typing_extensions) write the FPC fabrication files (File > Export).
+# kiutils and ezdxf (with pyparsing, fonttools, typing_extensions) write the FPC fabrication files (File > Export);
+# potpourri3d traces the independent round trip of each module a cover places (core/design/roundtrip.py).
 DEPS = ["mujoco", "mujoco-core", "scipy", "trimesh", "pycollada", "python-dateutil", "six", "xacro", "PyYAML",
         "pymeshlab", "numba", "llvmlite", "mcap", "mcap-ros2-support", "lz4", "pyserial", "kiutils", "ezdxf",
-        "pyparsing", "fonttools", "typing_extensions"]
+        "pyparsing", "fonttools", "typing_extensions", "potpourri3d"]
 # The platform the manifest names (`platforms = ["linux-x64"]`: glibc 2.35+, pymeshlab's floor; pip
 # does not widen a --platform to older manylinux tags itself) and Blender 4.2-5.0's Python (3.11).
 PLATFORM = [a for glibc in range(35, 16, -1) for a in ("--platform", f"manylinux_2_{glibc}_x86_64")] + [

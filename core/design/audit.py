@@ -1,7 +1,8 @@
 """Geometric audit of a skin design on its robot (what `skinsafe check` refuses), on the surfaces
 the design was built on (`cached_surfaces`): taxels off their link's surface, module outlines
-overhanging it, placement anchors far from it, and taxels buried inside another link at every
-sampled pose (they can never be touched). `enclosed` finds points on internal faces of a link's
+overhanging it, placement anchors far from it, modules that cannot be built (in-plane strain over
+their FPC's tolerance, or pads the independent round trip does not confirm), and taxels buried
+inside another link at every sampled pose (they can never be touched). `enclosed` finds points on internal faces of a link's
 own mesh; the designers never place skin there."""
 from __future__ import annotations
 
@@ -61,7 +62,7 @@ def audit(design: SkinDesign, model: mujoco.MjModel, home: np.ndarray, poses: in
             if gap > FAR_ANCHOR:
                 problems.append(f"module {m.id} on '{m.body}': placement anchor is {gap * 1e3:.0f} mm from the link's "
                                 f"surface (more than {FAR_ANCHOR * 1e3:.0f} mm); re-place the module on the link")
-    problems += strain_problems(design)
+    problems += strain_problems(design) + roundtrip_problems(design, model)
     buried = buried_taxels(design, model, home, poses)
     if buried.any():
         i = int(np.argmax(buried))
@@ -107,6 +108,22 @@ def strain_problems(design: SkinDesign, show: int = 10) -> list[str]:
     lines += [f"module {i} '{mods[i].name}': its {int((design.taxels.module == i).sum())} taxels are not the pads of its "
               f"{mods[i].template} {mods[i].rows}x{mods[i].cols} template, so its flat pattern is unknown; re-place it"
               for i in odd[:show]]
+    return lines
+
+
+def roundtrip_problems(design: SkinDesign, model: mujoco.MjModel, show: int = 10) -> list[str]:
+    """A line per module whose pads are farther than `roundtrip.TOL` from where an independent wrap of
+    its flat pattern puts them (worst first; `show` of them, then a count)."""
+    from skinsafe.core.design.roundtrip import TOL, roundtrip
+
+    mods = {m.id: m for m in design.modules}
+    off = sorted(((float(r.error.max()), r.module) for r in roundtrip(design, model) if r.error.max() > TOL),
+                 reverse=True)
+    lines = [f"module {i} '{mods[i].name}' on '{mods[i].body}': an independent wrap of its flat pattern puts a pad "
+             f"{e * 1e3:.1f} mm from the map's (over {TOL * 1e3:.0f} mm: the built circuit's pads would not be where "
+             "the map says); re-place it off the crease or crack it lies over" for e, i in off[:show]]
+    if len(off) > show:
+        lines.append(f"... and {len(off) - show} more modules whose pads the independent wrap does not confirm")
     return lines
 
 

@@ -6,7 +6,7 @@ within a band), rows first along that axis, then across it; from each module it 
 neighbours that continue its taxel grid are tried next (a quilt), and then copies trimmed to fewer
 rows/columns fill what is left (`trimmed`). A module is kept where `place_module` accepts it (on
 the surface, within the FPC's bend radius and in-plane strain), the independent wrap of its flat
-pattern (`roundtrip.Wrapper`) puts every pad within 1 mm of the placement's, its outline does not
+pattern (`roundtrip.disagreement`) puts every pad within 1 mm of the placement's, its outline does not
 overhang the link, none of its
 taxels is hidden (more than `audit.BURIED_TOL` inside another link at the home pose, or
 `audit.enclosed` by its own link's mesh), and none of its cells meets a same-facing module already
@@ -22,7 +22,6 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import replace
-from functools import cache
 
 import mujoco
 import numpy as np
@@ -42,7 +41,7 @@ from skinsafe.core.design.placement import (
     template_grid,
 )
 from skinsafe.core.design.roundtrip import TOL as ROUNDTRIP_TOL
-from skinsafe.core.design.roundtrip import Wrapper
+from skinsafe.core.design.roundtrip import disagreement
 from skinsafe.core.design.surface import Surface, cached_surfaces, surface_bodies
 from skinsafe.core.skin.model import DesignError, Module, RobotRef, SkinDesign, frames_from_normals
 
@@ -167,7 +166,6 @@ def cover_link(surface: Surface, home: _Home, template: Module, body: str, first
     R = home.data.xmat[home.model.body(body).id].reshape(3, 3)  # body to world at home
     placed: list[PlacedModule] = []
     refused = {"placement": 0, "strain": 0, "overhang": 0, "buried": 0, "overlap": 0, "roundtrip": 0}
-    wrapper = cache(lambda: Wrapper(surface))  # the independent wrap, built at the first module that needs it
 
     def flat(uv, anchor, frames):
         """A module's taxels laid flat in the tangent plane (k anchors, k frames) -> (k, n, 3) world."""
@@ -186,8 +184,7 @@ def cover_link(surface: Surface, home: _Home, template: Module, body: str, first
                   "overhang" if outline_overhang(surface, p.positions, p.frames, m.pitch / 2,
                                                  m.min_bend_radius).max() > SURFACE_TOL else
                   "buried" if home.hidden(body, p.positions, p.frames[:, :, 2]).any() else
-                  "roundtrip" if np.linalg.norm(wrapper().wrap(template_grid(m)[0], p.origin, p.origin_frame[:, 0])
-                                                - p.positions, axis=1).max() > ROUNDTRIP_TOL else None)
+                  "roundtrip" if disagreement(surface, p) > ROUNDTRIP_TOL else None)
         if reason:
             refused[reason] += 1
             return None

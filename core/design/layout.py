@@ -4,7 +4,8 @@ Capsule and cylinder links are tiled in rings (`placement.ring_layout`); every o
 mesh from a robot's own description) by surface tiling: anchors spread over the surface by
 farthest-point sampling at the module's span, rows along the link's principal axis, each
 placed geodesically and kept only where `place_module` accepts it (on the surface, within the
-FPC's bend radius, no overlap).
+FPC's bend radius and in-plane strain, no overlap) and the independent wrap of its flat pattern
+agrees (`roundtrip.disagreement`).
 """
 from __future__ import annotations
 
@@ -23,6 +24,8 @@ from skinsafe.core.design.placement import (
     placement_record,
     ring_layout,
 )
+from skinsafe.core.design.roundtrip import TOL as ROUNDTRIP_TOL
+from skinsafe.core.design.roundtrip import disagreement
 from skinsafe.core.design.surface import Surface
 from skinsafe.core.skin.model import Module
 
@@ -71,6 +74,12 @@ def tile_body(surface: Surface, model, template: Module, body: str, first_id: in
         over = outline_overhang(surface, p.positions, p.frames, m.pitch / 2, m.min_bend_radius)
         if over.max() > OVERHANG_TOL:
             refused.append(f"module {m.id} '{m.name}': its outline overhangs '{body}' by {over.max() * 1e3:.1f} mm")
+            continue
+        off = disagreement(surface, p)
+        if off > ROUNDTRIP_TOL:
+            refused.append(f"module {m.id} '{m.name}': an independent wrap of its flat pattern puts a pad "
+                           f"{off * 1e3:.1f} mm from the placement's (over {ROUNDTRIP_TOL * 1e3:.0f} mm: where it lands "
+                           "is unsure)")
             continue
         p.module = replace(m, placement=placement_record(p.origin, p.origin_frame[:, 0], "geodesic"))
         mine.append(p)

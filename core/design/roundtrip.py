@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from skinsafe.core.design.placement import module_grid
+from skinsafe.core.design.placement import PlacedModule, module_grid, template_grid
 from skinsafe.core.design.surface import Surface, cached_surfaces
 from skinsafe.core.skin.model import Module, SkinDesign
 
@@ -132,6 +132,26 @@ class Wrapper:
         return np.array([self._trace(p0, u * x + v * y) if u or v else p0 for u, v in uv])
 
 
+def wrapper_of(surface: Surface) -> Wrapper:
+    """The surface's `Wrapper`, built at its first use and kept with it."""
+    if getattr(surface, "_wrapper", None) is None:
+        surface._wrapper = Wrapper(surface)
+    return surface._wrapper
+
+
+def disagreement(surface: Surface, placed: PlacedModule) -> float:
+    """m: the farthest a pad of a just-placed module is from where the independent wrap of its flat
+    pattern about the same anchor and direction puts it (over `TOL`: the module is not built)."""
+    uv = template_grid(placed.module)[0] if placed.module.template != "curve" else None
+    if uv is None or len(uv) != len(placed):
+        grid = module_grid(placed.module, len(placed))
+        if grid is None:
+            return float("inf")
+        uv = grid[0]
+    at = wrapper_of(surface).wrap(uv, placed.origin, placed.origin_frame[:, 0])
+    return float(np.linalg.norm(at - placed.positions, axis=1).max())
+
+
 def module_roundtrip(design: SkinDesign, module: Module, wrapper: Wrapper) -> RoundTrip | None:
     """The round trip of one module (None where its taxels are not its template's pads)."""
     t = design.taxels
@@ -154,12 +174,9 @@ def module_roundtrip(design: SkinDesign, module: Module, wrapper: Wrapper) -> Ro
 def roundtrip(design: SkinDesign, model, progress=None) -> list[RoundTrip]:
     """Every module's round trip on its link's design surface (`cached_surfaces`)."""
     surfaces = cached_surfaces(model, list(design.bodies))
-    wrappers: dict[str, Wrapper] = {}
     out = []
     for m in design.modules:
-        if m.body not in wrappers:
-            wrappers[m.body] = Wrapper(surfaces[m.body])
-        r = module_roundtrip(design, m, wrappers[m.body])
+        r = module_roundtrip(design, m, wrapper_of(surfaces[m.body]))
         if r is not None:
             out.append(r)
         if progress is not None:
