@@ -124,11 +124,10 @@ class FrankaDriver:
         self._reason: str | None = None
         self.stats: dict = {}
 
-    def limits(self) -> dict:
+    def limits(self) -> limiter.JointLimits:
         """The FR3's published limits: q_min, q_max (rad), qd_max (rad/s), qdd_max (rad/s^2), qddd_max (rad/s^3), and
         qd_bounds "fr3": libfranka's position-dependent velocity limits (core/runtime/limiter.py) hold too."""
-        return {"q_min": Q_MIN.copy(), "q_max": Q_MAX.copy(), "qd_max": QD_MAX.copy(), "qdd_max": QDD_MAX.copy(),
-                "qddd_max": QDDD_MAX.copy(), "qd_bounds": "fr3"}
+        return limiter.JointLimits(Q_MIN, Q_MAX, QD_MAX, QDD_MAX, QDDD_MAX, "fr3")
 
     def stop(self, reason: str) -> None:
         """End the motion at the next cycle (any thread, a signal handler too: no lock, which the interrupted

@@ -40,7 +40,7 @@ from skinsafe.core.realtime import background, below_host, is_realtime, loop_pri
 from skinsafe.core.runtime.commands import CommandError, Trajectory, command_source
 from skinsafe.core.runtime.fault_plan import IN_PARTS, FaultPlan, Injection
 from skinsafe.core.runtime.layers import build_stack, run_config
-from skinsafe.core.runtime.limiter import Limiter
+from skinsafe.core.runtime.limiter import JointLimits, Limiter
 from skinsafe.core.runtime.loop import Runtime, warm_up
 from skinsafe.core.runtime.monitor import (
     AFTER_CONTACT,
@@ -365,7 +365,7 @@ class _Parts:
 
     driver: object
     arm: object
-    limits: dict
+    limits: JointLimits
     source: object
     report: dict
     runtime: Runtime
@@ -464,7 +464,10 @@ def _wire(args, stack, feed, ports, inject, map_path, map_hash, robot, design) -
         driver = _driver(args, design, robot, feed, inject)
         stack.callback(driver.close)
         arm = only_joints(robot, driver.joint_names)  # the joints the driver moves (the FR3: not its fingers)
-        limits = driver.limits()
+        try:
+            limits = JointLimits.of(driver.limits())  # validated once, here
+        except ValueError as e:
+            raise DesignError(f"--robot {args.robot}: {e}") from None
         key = load_key(args.teleop_key) if args.teleop_key else None
         command = command_source(args.command, driver.joint_names, limits, args.command_timeout, key,
                                  args.teleop_leader)
@@ -602,7 +605,7 @@ def _report(args, p: _Parts, design, outcome, injected: dict, lost: int, skin: d
         atomic_write(Path(args.stats), json.dumps(out, default=_plain))
 
 
-def _print_bounds(tm: Timing, arm, design, limits: dict) -> None:
+def _print_bounds(tm: Timing, arm, design, limits: JointLimits) -> None:
     """The monitor's detection bound of each fault kind, how far the fastest taxel (at home, every joint at its
     limit) travels blind within it, and the worst stopping time and distance of any taxel (`monitor.stopping`)."""
     from skinsafe.core.robot.kinematics import TaxelKinematics

@@ -49,7 +49,7 @@ def build_stack(design: SkinDesign, robot_model, qd_max, qdd_max, period_s: floa
     return SafetyStack(qd_max, d, modulation, strategy, joints=joints, acc_limits=qdd_max, dt=period_s, faults=faults)
 
 
-def run_config(map_path: str | Path, driver, limits: dict, params: RetractionParams, excluded: np.ndarray,
+def run_config(map_path: str | Path, driver, limits: Mapping, params: RetractionParams, excluded: np.ndarray,
                command: str, tdm_path: str | None) -> dict:
     """What a replay needs to rebuild the stack exactly (recorded as metadata)."""
     mp = Path(map_path).resolve()

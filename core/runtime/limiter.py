@@ -16,6 +16,9 @@ asks that joint for 0, and a joint whose measured position is not finite is brou
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass
+
 import numpy as np
 
 MARGIN = 1e-3  # libfranka's kLimitEps: stay this fraction inside each limit (with a jerk limit)
@@ -67,6 +70,71 @@ def rate_limit(qd_cmd: np.ndarray, qd_last: np.ndarray, qdd_last: np.ndarray, dt
     lo = np.maximum(qddd_max / qdd_max * (qd_min - qd_last), -qdd_max)
     acc = np.clip(acc, lo, hi)
     return qd_last + acc * dt, acc
+
+
+@dataclass(frozen=True, eq=False)
+class JointLimits(Mapping):
+    """A driver's joint limits, validated once where the runtime takes them (as ros2_control's joint_limits): q_min,
+    q_max (rad; +-inf where a joint has none), qd_max, qdd_max (> 0, finite) and, where the robot states one,
+    qddd_max; qd_bounds names position-dependent velocity bounds (BOUNDS). It reads like the driver's dict too
+    (limits["qd_max"]), which the command sources and a record's configuration use."""
+
+    q_min: np.ndarray
+    q_max: np.ndarray
+    qd_max: np.ndarray
+    qdd_max: np.ndarray
+    qddd_max: np.ndarray | None = None
+    qd_bounds: str | None = None
+
+    def __post_init__(self):
+        n = None
+        for k in KEYS:
+            x = getattr(self, k)
+            if x is None and k == "qddd_max":
+                continue
+            a = np.array(x, dtype=float).reshape(-1) if np.ndim(x) else np.array([x], float)
+            n = len(a) if n is None else n
+            if not len(a) or len(a) != n:
+                raise ValueError(f"joint limits: {k} has {len(a)} values, q_min {n}; give one per joint")
+            bad = np.flatnonzero(np.isnan(a) if k in ("q_min", "q_max") else ~(np.isfinite(a) & (a > 0)))
+            if len(bad):
+                raise ValueError(f"joint limits: {k}[{bad[0]}] is {a[bad[0]]}; give each joint's "
+                                 + ("position limit (inf where it has none)" if k in ("q_min", "q_max") else
+                                    "positive finite limit (the robot's data sheet)"))
+            a.setflags(write=False)
+            object.__setattr__(self, k, a)
+        low = np.flatnonzero(~(self.q_min < self.q_max))
+        if len(low):
+            raise ValueError(f"joint limits: joint {low[0]}'s q_min {self.q_min[low[0]]} is not below its q_max "
+                             f"{self.q_max[low[0]]}")
+        if self.qd_bounds is not None and self.qd_bounds not in BOUNDS:
+            raise ValueError(f"joint limits: qd_bounds {self.qd_bounds!r} is not one of {sorted(BOUNDS)}")
+
+    @classmethod
+    def of(cls, limits) -> JointLimits:
+        """A driver's `limits()` (this record, or a dict with these keys), validated."""
+        if isinstance(limits, JointLimits):
+            return limits
+        missing = [k for k in KEYS[:4] if limits.get(k) is None]
+        if missing:
+            raise ValueError(f"joint limits: {', '.join(missing)} missing; a driver's limits() gives "
+                             f"{', '.join(KEYS[:4])} (and qddd_max, qd_bounds where it has them)")
+        return cls(**{k: limits.get(k) for k in (*KEYS, "qd_bounds")})
+
+    def __getitem__(self, key: str):
+        if key not in (*KEYS, "qd_bounds") or getattr(self, key) is None:
+            raise KeyError(key)
+        return getattr(self, key)
+
+    def __iter__(self):
+        return iter(k for k in (*KEYS, "qd_bounds") if getattr(self, k) is not None)
+
+    def __len__(self) -> int:
+        return sum(1 for _ in self)
+
+    @property
+    def n(self) -> int:
+        return len(self.qd_max)
 
 
 def limits_config(limits: dict) -> dict:

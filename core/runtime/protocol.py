@@ -37,8 +37,9 @@ class RobotDriver(Protocol):
     joint_names: list[str]
     period_s: float
 
-    def limits(self) -> dict[str, np.ndarray]:
-        """The robot's own q_min, q_max, qd_max, qdd_max, (n,) each."""
+    def limits(self):
+        """The robot's own q_min, q_max, qd_max, qdd_max (and qddd_max, qd_bounds where it has them), (n,) each: a
+        `limiter.JointLimits` or a dict with those keys; the runtime validates it once (`JointLimits.of`)."""
 
     def run(self, control: Callable[[RobotState], np.ndarray | None], report: Callable | None = None,
             sent: Callable | None = None) -> str:

@@ -8,12 +8,13 @@ import json
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 import test_runtime_loop as loop
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader
 
-from skinsafe.core.runtime.limiter import Limiter, limits_config
+from skinsafe.core.runtime.limiter import JointLimits, Limiter, limits_config
 from skinsafe.core.runtime.loop import Runtime
 from skinsafe.core.runtime.record import Recorder
 from skinsafe.core.runtime.replay import decode_float64_array
@@ -240,3 +241,19 @@ def test_a_layers_brake_on_a_non_finite_model_output_latches(ur5):
     out = rt.run(settle_s=0.0)
     assert out.watchdog == "stack-nonfinite" and "braked on a non-finite output (tdm)" in out.reason, out.reason
     assert 0.1 <= drv.stats.stop_t <= 0.1 + 2 * drv.period_s + 1e-9
+
+
+@pytest.mark.parametrize("bad, message", [
+    ({"qdd_max": np.array([10.0, 10, -1, 10, 10, 10, 10])}, "qdd_max[2] is -1.0; give each joint's positive finite"),
+    ({"qd_max": np.full(7, np.inf)}, "qd_max[0] is inf"), ({"q_min": franka.Q_MAX}, "joint 0's q_min 2.7437 is not below"),
+    ({"qd_max": np.ones(6)}, "qd_max has 6 values, q_min 7"), ({"qd_bounds": "ur5"}, "qd_bounds 'ur5' is not one of"),
+    ({"qdd_max": None}, "qdd_max missing")])
+def test_a_drivers_limits_are_validated_once_naming_the_fix(bad, message):
+    """JointLimits: the FR3 driver's own record; a dict (the sim's) validated at the runtime's boundary; bad limits
+    refused in one line naming the joint."""
+    good = FrankaDriver("scripted", realtime=False, robot=Scripted()).limits()
+    assert isinstance(good, JointLimits) and good.n == 7 and not good.qd_max.flags.writeable
+    assert JointLimits.of(dict(good)).qd_bounds == "fr3" and limits_config(good)["qd_bounds"] == "fr3"
+    with pytest.raises(ValueError, match=r"^joint limits: .*") as e:
+        JointLimits.of({**dict(good), **bad})
+    assert message in str(e.value) and "\n" not in str(e.value)
