@@ -85,7 +85,8 @@ SPECS = {
     Kind.READER_DIED: Spec("the reader process's pidfd and pipe polled every tick (not its silence); + 5 ms for its exit", STOP,
                            "tests/runtime/test_runtime_safety.py::test_reader_death_after_a_settle_stall_is_named"),
     Kind.READER_STALLED: Spec("the reader's heartbeat older than a board may be silent (host overloaded)", STOP,
-                              "tests/runtime/test_runtime_safety.py::test_a_reader_stalled_while_the_robot_moves_stops_it"),
+                              "tests/runtime/test_fault_bench.py::test_every_sim_fault_kind_is_one_row_stopped_within_"
+                              "its_bound"),
     Kind.LINK_LOST: Spec("the port's hang-up (EPOLLHUP) or a failed read; that board's taxels read NaN", STOP,
                          "tests/runtime/test_runtime_closed_loop.py::test_every_watchdog_stops_the_robot_naming_why"),
     Kind.BOARD_SILENT: Spec("no frame for 2 frame periods + --link-latency; that board's taxels read NaN", STOP,

@@ -43,10 +43,8 @@ def test_reader_death_after_a_settle_stall_is_named(skin, tmp_path):
     assert s["injected"]["reader-kill"] < s["world"]["zero_mono"]
 
 
-def test_a_reader_stalled_while_the_robot_moves_stops_it(skin, tmp_path):
-    """SIGSTOP on the reader while the arm moves: its heartbeat ages past a board's silence: the host is overloaded."""
-    p, s, record = run(skin, tmp_path, "--inject", "reader-stall@0.3", seconds=3.0)
-    _stopped_by(p, s, record, "reader-stalled")
+# a reader stalled while the robot moves (SIGSTOP): tests/runtime/test_fault_bench.py (reader-stall, named
+# reader-stalled within its bound, latched, the record readable)
 
 
 def test_late_but_steady_frames_stop_the_robot(skin, tmp_path):
