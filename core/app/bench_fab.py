@@ -32,7 +32,8 @@ def add_arguments(p) -> None:
 
 
 def pad_overlaps(design) -> int:
-    """Pairs of pads (any two taxels on one link) closer than a pad's diameter: discs that overlap."""
+    """Pairs of pads (any two taxels on one link, facing the same way within 60 degrees: not the two
+    faces of a thin flange) closer than a pad's diameter: discs that overlap."""
     t = design.taxels
     diameter = {m.id: m.taxel_diameter for m in design.modules}
     d = np.array([diameter[int(m)] for m in t.module])
@@ -42,8 +43,10 @@ def pad_overlaps(design) -> int:
         if len(on) < 2:
             continue
         pairs = cKDTree(t.positions[on]).query_pairs(float(d[on].max()), output_type="ndarray")
-        gap = np.linalg.norm(t.positions[on][pairs[:, 0]] - t.positions[on][pairs[:, 1]], axis=1)
-        count += int((gap < np.minimum(d[on][pairs[:, 0]], d[on][pairs[:, 1]]) - 1e-9).sum())
+        a, b = on[pairs[:, 0]], on[pairs[:, 1]]
+        gap = np.linalg.norm(t.positions[a] - t.positions[b], axis=1)
+        facing = np.sum(t.frames[a, :, 2] * t.frames[b, :, 2], axis=1) > 0.5
+        count += int((facing & (gap < np.minimum(d[a], d[b]) - 1e-9)).sum())
     return count
 
 
@@ -67,7 +70,7 @@ def robot_row(name: str, rows: int, cols: int, pitch: float) -> dict:
     from skinsafe.core.design.coverage import body_area
 
     area = {b: body_area(robot.model, b) for b in report}
-    covered = sum(r["covered_of_link"] * area[b] for b, r in report.items())
+    covered = sum(r["covered"] * r["exposed"] * area[b] for b, r in report.items())
     exposed = sum(r["exposed"] * area[b] for b, r in report.items())
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()

@@ -117,11 +117,11 @@ class _Home:
         same = np.sum(self.normals[j[near]] * normals.reshape(-1, 3)[rows], axis=1) > 0.5
         return np.bincount(rows[same] // n, minlength=k) > 0
 
-    def exposed(self, body: str, surface: Surface, n: int = 4000) -> float:
-        """The share of the link's surface area where skin can go (not `hidden`; Monte Carlo over
-        `n` area-uniform points: +-0.8% at 4,000)."""
+    def exposed(self, body: str, surface: Surface, n: int = 4000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`n` area-uniform points of the link's surface (seed fixed), their normals and whether skin can
+        go there (not `hidden`): their mean is the exposed share, +-0.8% at 4,000."""
         q, nrm = surface.closest(surface.random_points(n, seed=1))[:2]
-        return float(1.0 - self.hidden(body, q, nrm).mean())
+        return q, nrm, ~self.hidden(body, q, nrm)
 
     def add(self, world: np.ndarray, normals: np.ndarray) -> None:
         self.points, self.normals = np.concatenate([self.points, world]), np.concatenate([self.normals, normals])
@@ -267,13 +267,13 @@ def cover_design(robot, ref: RobotRef, bodies: list[str] | None = None, template
 
 
 def cover_report(design: SkinDesign, model: mujoco.MjModel, home: np.ndarray) -> dict:
-    """Per skinned link: `covered` (cells' area over the link's exposed area: its surface less what
-    lies inside another link at home, where no skin can go), `covered_of_link` (over its whole
-    surface), `exposed` (the exposed share of the surface), `bare_fraction` and
+    """Per skinned link: `covered` (the share of the link's exposed surface, what does not lie inside
+    another link at home or its own housing, that the cells cover: `coverage.covered_points`, each
+    point once), `covered_of_link` (the cells' area over its whole surface), `exposed` (the exposed share of the surface), `bare_fraction` and
     `largest_gap_mm` (`coverage.gaps`), `overlaps` (taxels whose cell meets another module's facing
     the same way, on this link or another at home) and `buried` (taxels more than `BURIED_TOL` inside another link
     at home, or enclosed by their own: `audit.enclosed`)."""
-    from skinsafe.core.design.coverage import coverage_report
+    from skinsafe.core.design.coverage import coverage_report, covered_points
 
     t = design.taxels
     cov = coverage_report(design, model)
@@ -300,8 +300,10 @@ def cover_report(design: SkinDesign, model: mujoco.MjModel, home: np.ndarray) ->
     for i, name in enumerate(design.bodies):
         on = t.body == i
         c = cov[name]
-        exposed = at_home.exposed(name, cached_surfaces(model, [name])[name])
-        out[name] = {"covered": c["fraction"] / max(exposed, 1e-9), "covered_of_link": c["fraction"],
+        q, nrm, open_ = at_home.exposed(name, cached_surfaces(model, [name])[name])
+        covered = covered_points(design, i, q, nrm)
+        exposed = float(open_.mean())
+        out[name] = {"covered": float((covered & open_).sum() / max(open_.sum(), 1)), "covered_of_link": c["fraction"],
                      "exposed": exposed, "bare_fraction": c["bare_fraction"], "largest_gap_mm": c["largest_gap_mm"],
                      "taxels": c["taxels"], "modules": c["modules"], "overlaps": int(overlapping[on].sum()),
                      "buried": int(buried[on].sum())}

@@ -85,29 +85,35 @@ def gaps(design: SkinDesign, model: mujoco.MjModel, body_index: int, pitch: floa
 SAMPLES = 20_000  # area-uniform points per link for the covered area: +-0.7% of the link at 20,000
 
 
-def covered_area(design: SkinDesign, model: mujoco.MjModel, body_index: int, n: int = SAMPLES) -> float:
-    """The link's surface area (m^2) that the taxels' cells actually cover, counted once: a cell is
-    the pitch x pitch square around a pad in its own frame (within half a pitch of its surface),
-    so overlapping or crowded cells add nothing and stretched ones cover what they reach
-    (Monte Carlo over `n` area-uniform points of the link's surface, seed fixed)."""
-    from skinsafe.core.design.surface import cached_surfaces
-
+def covered_points(design: SkinDesign, body_index: int, q: np.ndarray, qn: np.ndarray) -> np.ndarray:
+    """(m,) which surface points q (body frame) with normals qn the taxels' cells cover: a cell is the
+    pitch x pitch square around a pad in its own frame, within half a pitch of its surface, on surface
+    facing the pad's way (the inside of a thin housing is not covered by the skin outside it)."""
     t = design.taxels
     on = np.flatnonzero(t.body == body_index)
-    name = design.bodies[body_index]
-    surf = cached_surfaces(model, [name])[name]
     if not len(on):
-        return 0.0
+        return np.zeros(len(q), bool)
     half = np.array([{m.id: m.pitch for m in design.modules}.get(int(k), 0.0) / 2 for k in t.module[on]])
-    q = surf.random_points(n, seed=2)
     d, j = cKDTree(t.positions[on]).query(q, k=min(4, len(on)), distance_upper_bound=float(half.max()) * 1.5)
-    d, j = d.reshape(n, -1), j.reshape(n, -1)
+    d, j = d.reshape(len(q), -1), j.reshape(len(q), -1)
     ok = np.isfinite(d)
     jj = np.where(ok, j, 0)
-    rel = q[:, None, :] - t.positions[on][jj]  # (n, k, 3) in the body frame
+    rel = q[:, None, :] - t.positions[on][jj]  # (m, k, 3) in the body frame
     local = np.abs(np.einsum("nkj,nkji->nki", rel, t.frames[on][jj]))  # components along x, y, z
-    inside = ok & (local <= half[jj][..., None]).all(axis=-1)
-    return float(inside.any(axis=1).mean() * surf.area)
+    facing = np.einsum("nj,nkj->nk", qn, t.frames[on][jj][..., 2]) > 0.5
+    return (ok & facing & (local <= half[jj][..., None]).all(axis=-1)).any(axis=1)
+
+
+def covered_area(design: SkinDesign, model: mujoco.MjModel, body_index: int, n: int = SAMPLES) -> float:
+    """The link's surface area (m^2) the taxels' cells actually cover (`covered_points`), counted once:
+    overlapping or crowded cells add nothing and stretched ones cover what they reach (Monte Carlo over
+    `n` area-uniform points of the link's surface, seed fixed)."""
+    from skinsafe.core.design.surface import cached_surfaces
+
+    name = design.bodies[body_index]
+    surf = cached_surfaces(model, [name])[name]
+    q, qn = surf.closest(surf.random_points(n, seed=2))[:2]
+    return float(covered_points(design, body_index, q, qn).mean() * surf.area)
 
 
 def coverage_report(design: SkinDesign, model: mujoco.MjModel) -> dict:
