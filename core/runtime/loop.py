@@ -47,6 +47,10 @@ UNCLEAN = ("infeasible",)
 SETTLING = (Kind.BOARD_SILENT, Kind.BOARD_LATE, Kind.READER_STALLED)  # may pass before the robot moves (a stall)
 BRAKES = ("nonfinite:tdm", "nonfinite:potential")  # the layers' own brakes on a non-finite model output: latched
 REST_QD = 0.02  # rad/s: the arm is at rest when every joint's measured speed is below this
+# m a retraction may push a contacted taxel into its contact beyond braking from its speed into it: 100x what
+# franky-sim's joint-velocity jitter integrates to under a hand's touch (0.007-0.017 mm in 6 s runs, clean
+# retractions), and above the sim's servo lag through a contact at 0.2 rad/s (1.2 mm in all, braking included)
+PUSH_MARGIN_M = 0.002
 HISTORY = 4096  # ticks of the arm's state kept for the stop's figures (4 s at 1 kHz)
 
 
@@ -99,6 +103,8 @@ class Runtime:
         self.latency_at = Figure()  # the index of each such latency's tick
         self._t0 = self._prev_t = self._start = self._last_t = self._first_start = None
         self._repeats, self._repeat_onset = 0, 0.0
+        self._pushed = self.push_mm_max = 0.0  # m into a contact during the current retraction; its largest, mm
+        self._push_bound: float | None = None  # m: the current retraction's (`_push`)
         self.overruns = int(overruns)  # consecutive overruns that stop (0: off)
         self._overran, self._overrun_onset = 0, 0.0  # the current run of overruns, its first tick's start
         self.overrun_ticks = self.overrun_run_max = 0
@@ -154,6 +160,7 @@ class Runtime:
         info = self.stack.info
         d = self.stack.defensiveness
         retracting, pool = bool(d is not None and d.active), int(len(d.pool)) if d is not None else 0
+        self._push(retracting, info.push_speed, dt, d, start)
         m.tick(retracting, tuple(f for f in info.flags if f in UNCLEAN))
         if m.stopped:
             self._stop(state, r)
@@ -240,6 +247,27 @@ class Runtime:
                                       f"advanced {gap * 1e3:.1f} ms in the last tick, more than {OVERRUN_PERIODS:g} "
                                       f"periods of {self.driver.period_s * 1e3:g} ms: its states were missed)",
                                       self._overrun_onset))
+
+    def _push(self, retracting: bool, speed: float, dt: float, d, now: float) -> None:
+        """How far the arm has moved a contacted taxel into its contact during this retraction (the measured joint
+        velocity along the no-push rows, integrated; `push_mm_max` over the run). More than braking from the speed
+        it had into the contact when the retraction began allows (v0^2 / (2 a), a the slowest deceleration any
+        contacted taxel's row allows at the acceleration limits) + PUSH_MARGIN_M latches the stop (not under
+        --after-contact always-resume, for benches): the arm is pushing into what it touched."""
+        if not retracting:
+            self._pushed, self._push_bound = 0.0, None
+            return
+        if self._push_bound is None and d is not None and len(d.A):
+            a = float((np.abs(d.A) @ d.limits.acc).min())
+            self._push_bound = (speed ** 2 / (2 * a) if a > 0 else np.inf) + PUSH_MARGIN_M
+        self._pushed += speed * max(dt, 0.0)
+        self.push_mm_max = max(self.push_mm_max, self._pushed * 1e3)
+        if self._push_bound is not None and self._pushed > self._push_bound and \
+                self.monitor.after_contact != "always-resume":
+            self.monitor.report(Fault(Kind.STACK_LATCH, "layers", f"layers: the arm pushed a contacted taxel "
+                                      f"{self._pushed * 1e3:.1f} mm into its contact during the retraction, more "
+                                      f"than braking allows ({self._push_bound * 1e3:.1f} mm): protective stop "
+                                      "(latched until a new run)", now))
 
     def _check_sent(self, v: np.ndarray, n: int, now: float) -> None:
         """What goes to the driver, checked as sent: n finite joint velocities (else the stop, named)."""
@@ -415,6 +443,7 @@ class Runtime:
                 "work_ms_max": work.max * 1e3 if work.n else 0.0,
                 "off_cpu_ms_max": self.off_cpu.max * 1e3 if self.off_cpu.n else 0.0,
                 "off_cpu_ms_p99": ms(self.off_cpu, 99), "slowest_tick_off_cpu_ms": self._slowest[1] * 1e3,
+                "push_mm_max": self.push_mm_max,
                 "latency_samples": lat.n, "latency_ms_p50": ms(lat, 50, np.nan),
                 "latency_ms_p99": ms(lat, 99, np.nan), "latency_ms_max": lat.max * 1e3 if lat.n else np.nan,
                 "latency_ms_all": every(lat), "latency_wait_ms_all": every(self.waited), "period_ms_all": every(period),

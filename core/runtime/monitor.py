@@ -131,11 +131,13 @@ SPECS = {
     Kind.STACK_NONFINITE: Spec("a non-finite command from the layers, in the tick that made it", STOP,
                                "tests/runtime/test_runtime_safety.py::test_stack_and_reading_faults_are_named_from_"
                                "their_source"),
-    Kind.STACK_LATCH: Spec("the retraction's QP solve failed (in that tick), or a retraction with ticks flagged "
-                           "infeasible ended (it never resumes the plan)", STOP,
+    Kind.STACK_LATCH: Spec("the retraction's QP solve failed (in that tick), a retraction pushed a contacted taxel 2 "
+                           "mm further into its contact than braking allows (in that tick), or a retraction with "
+                           "ticks flagged infeasible ended (it never resumes the plan)", STOP,
                            "tests/runtime/test_runtime_safety.py::test_stack_and_reading_faults_are_named_from_their_"
                            "source; tests/runtime/test_runtime_closed_loop.py::test_a_trajectory_into_the_post_is_"
-                           "turned_back"),
+                           "turned_back; tests/runtime/test_stopping.py::test_pushing_into_a_contact_beyond_braking_"
+                           "latches"),
     Kind.OVERRUN: Spec("--overruns K (default 3) consecutive ticks, each more than 1.5 control periods after the last "
                        "on the robot's own clock (its states missed, as libfranka counts them); onset: the first's "
                        "start", STOP,

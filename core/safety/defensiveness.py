@@ -60,8 +60,8 @@ class TickInfo:
     least-violating one was sent); `recovery_dropped`: a drifted
     taxel could not be pushed back this tick; `damped`: the dominant task is near a singularity;
     `pushing`: the measured joint velocity (`SafetyStack.tick(qdot=...)`) moved a contacted taxel
-    into its contact; `solver_failed`: the retraction QP's solver gave up on the dominant level (the
-    smallest command meeting every constraint was sent)."""
+    into its contact (`push_speed`: the fastest, m/s along its normal); `solver_failed`: the retraction QP's
+    solver gave up on the dominant level (the smallest command meeting every constraint was sent)."""
 
     nonfinite: tuple = ()
     missing: tuple = ()
@@ -74,6 +74,7 @@ class TickInfo:
     recovery_dropped: bool = False
     damped: bool = False
     pushing: bool = False
+    push_speed: float = 0.0
     solver_failed: bool = False
     dominant_residual: float = 0.0
     flags: tuple = field(default=())

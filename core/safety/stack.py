@@ -266,7 +266,9 @@ class SafetyStack:
         proj = final_command(v, prev, self.limits, A, b, dt=dt)
         info.infeasible = info.infeasible or proj.infeasible
         if qdot is not None and retracting:  # the robot is moving a contacted taxel into its contact now
-            info.pushing = bool(np.any(d.A @ qdot < -1e-9))
+            into = -(d.A @ qdot)
+            info.push_speed = float(into.max()) if len(into) and into.max() > 0 else 0.0
+            info.pushing = info.push_speed > 1e-9
         return self._send(proj.v, info)
 
     def _stop_short(self, v: np.ndarray, prev: np.ndarray, f: float, dt: float) -> np.ndarray:

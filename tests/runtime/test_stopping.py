@@ -5,6 +5,7 @@ rest) changes the exit code; the record's last command is the driver's last one 
 writer drops telemetry, never a tick's safety topics (the stop's included). The FR3 here is pylibfranka's interface
 as a script (`Scripted`: its clock as given, the arm following each command exactly), handed to the driver."""
 import json
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -257,3 +258,34 @@ def test_a_drivers_limits_are_validated_once_naming_the_fix(bad, message):
     with pytest.raises(ValueError, match=r"^joint limits: .*") as e:
         JointLimits.of({**dict(good), **bad})
     assert message in str(e.value) and "\n" not in str(e.value)
+
+
+class PushingLayers(BrakingLayers):
+    """The layers as built (their pool, flags and no-push rows), the plan sent instead of their retraction: the arm
+    drives on into what it touched."""
+
+    def tick(self, t, q, readings, planned, dt, qdot=None):
+        self.inner.tick(t, q, readings, planned, dt, qdot=qdot)
+        return np.array(planned, float)
+
+
+def test_pushing_into_a_contact_beyond_braking_latches(ur5, tmp_path):
+    """The shoulder pan drives the forearm into a sprung post and the retraction is not obeyed: once the taxel is
+    pushed 2 mm past what braking from its speed into the post allows, the monitor latches the stop (a clean
+    retraction of the same contact pushes it 1.2 mm in all, franky-sim's jitter under a hand 0.02 mm)."""
+    from skinsafe.core.runtime.commands import Trajectory
+    from skinsafe.core.runtime.layers import build_stack
+    from skinsafe.core.runtime.loop import warm_up
+    from skinsafe.core.sim.robot_driver import Contact, SimDriver
+
+    robot, design = ur5
+    drv = SimDriver(design, robot, None, 0.002, Contact("post", joint=0, gap=0.01), realtime=False)
+    lim = drv.limits()
+    stack = build_stack(design, robot.model, lim["qd_max"], lim["qdd_max"], drv.period_s)
+    warm_up(stack, robot.home, design.taxels.thresholds["force"], drv.period_s)
+    traj = Trajectory(Path(__file__).resolve().parents[2] / "examples" / "ur5_pan.csv", drv.joint_names, lim)
+    rt = Runtime(drv, loop.SimReadings(drv), PushingLayers(stack), traj, np.zeros(design.n_taxels, bool),
+                 design.taxels.thresholds["force"], seconds=2.0)
+    out = rt.run(settle_s=0.0)
+    assert out.watchdog == "stack-latch" and "pushed a contacted taxel" in out.reason, out.reason
+    assert 2.0 < rt.push_mm_max < 4.0 and out.exit_code == 1
