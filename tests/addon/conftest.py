@@ -3,7 +3,7 @@ import bpy
 import pytest
 
 import skinsafe.addon as addon
-from skinsafe.addon import handlers
+from skinsafe.addon import edits
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -12,4 +12,4 @@ def registered():
     yield
     addon.unregister()
     assert not any(getattr(f, "__module__", "").startswith("skinsafe") for f in bpy.app.handlers.depsgraph_update_post)
-    assert not bpy.app.timers.is_registered(handlers._after_transform)  # a timer left would hang the process at exit
+    assert not bpy.app.timers.is_registered(edits._after_transform)  # a timer left would hang the process at exit

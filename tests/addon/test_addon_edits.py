@@ -15,7 +15,7 @@ from mathutils import Matrix, Vector
 
 from skinsafe.addon import blender_to_core as b2c
 from skinsafe.addon import core_to_blender as c2b
-from skinsafe.addon import handlers
+from skinsafe.addon import edits
 from skinsafe.core.skin.ids import SHIFT
 from skinsafe.hardware.board_config import board_configs
 
@@ -155,7 +155,7 @@ def test_append_from_another_file_takes_the_robots_link_and_a_fresh_id(scene, tm
     assert new.skinsafe_module.module_id == 3
     assert new.parent is b2c.body_objects(bpy.context.scene)["forearm_link"]  # not the appended link copy
     assert "overlaps module 0" in new.skinsafe_module.error  # it came to module 0's place: named
-    assert any("copies of robot links" in e for e in handlers.step(bpy.context.scene))
+    assert any("copies of robot links" in e for e in edits.step(bpy.context.scene))
     new.matrix_world = Matrix.Translation(Vector(_axis("forearm_link") * 0.12)) @ new.matrix_world
     after = _state()
     _same(before, after)
@@ -190,14 +190,14 @@ def test_scale_applies_once_at_the_end_of_the_drag_and_a_misfit_is_refused(scene
     # which headless has no window for: the handler's step for it is run by hand
     for s in (1.2, 1.25, 1.3, 1.25):
         a.scale = (s, 1.0, 1.0)
-        handlers.step(bpy.context.scene, apply_scale=False)
+        edits.step(bpy.context.scene, apply_scale=False)
         assert a.skinsafe_module.settings.cols == 8 and tuple(a.scale)[0] == pytest.approx(s)
     _same(before, {k: v for k, v in _state_no_update().items()})
-    handlers.step(bpy.context.scene)  # the drag ended
+    edits.step(bpy.context.scene)  # the drag ended
     assert a.skinsafe_module.settings.cols == 10 and tuple(a.scale) == (1.0, 1.0, 1.0)
     assert len(_state()[0][1]) == 80
     a.scale = (1.3, 1.0, 1.0)  # a cancelled drag: back at 1 when it ends, nothing applied
-    handlers.step(bpy.context.scene, apply_scale=False)
+    edits.step(bpy.context.scene, apply_scale=False)
     a.scale = (1.0, 1.0, 1.0)
     assert len(_state()[0][1]) == 80
     c = _objects()["upper_arm_link_module2"]
@@ -259,7 +259,7 @@ def test_file_reload_keeps_the_design_and_repairs_a_file_saved_out_of_step(scene
     bpy.ops.wm.open_mainfile(filepath=str(path))
     _same(before, _state())
     # a file edited without the add-on: a module deleted, another duplicated (same id), then saved
-    handlers.unregister()
+    edits.unregister()
     try:
         objs = _objects()
         bpy.data.objects.remove(objs["forearm_link_module1"])
@@ -273,7 +273,7 @@ def test_file_reload_keeps_the_design_and_repairs_a_file_saved_out_of_step(scene
         text.from_string(json.dumps(raw))
         bpy.ops.wm.save_as_mainfile(filepath=str(path))
     finally:
-        handlers.register()
+        edits.register()
     bpy.ops.wm.open_mainfile(filepath=str(path))  # load_post converts and repairs it
     message = bpy.context.scene.skinsafe.message
     assert "older taxel-id rule" in message and "need a new `skinsafe deploy`" in message

@@ -7,13 +7,13 @@ import bpy
 import pytest
 
 from skinsafe.addon import blender_to_core as b2c
-from skinsafe.addon import operators
+from skinsafe.addon import export
 
 E = 0.13585 - 0.1197  # UR5 forearm capsule axis height (body frame)
 
 
 def test_fab_export_writes_the_scene_design(tmp_path):
-    assert (operators.SKINSAFE_OT_export_fab, "skinsafe FPC fabrication (folder)") in operators.EXPORTS
+    assert (export.SKINSAFE_OT_export_fab, "skinsafe FPC fabrication (folder)") in export.EXPORTS
     bpy.ops.wm.read_homefile(use_empty=True)
     b2c.clear_caches()
     assert not bpy.ops.skinsafe.export_fab.poll()  # no skin

@@ -13,8 +13,21 @@ import numpy as np
 import pytest
 
 import skinsafe.addon as addon_pkg
+from skinsafe.addon import (
+    analysis,
+    check,
+    cover,
+    deploy,
+    export,
+    findings,
+    fpc_modules,
+    frames,
+    live,
+    pfl,
+    place_tool,
+    robot,
+)
 from skinsafe.addon import blender_to_core as b2c
-from skinsafe.addon import cover, deploy, findings, live, operators, pfl, place_tool
 
 E = 0.13585 - 0.1197  # UR5 forearm capsule axis height (body frame)
 WRITERS = ("import_robot", "set_pose", "place_module", "regenerate", "remove_module", "assign_boards",
@@ -22,7 +35,8 @@ WRITERS = ("import_robot", "set_pose", "place_module", "regenerate", "remove_mod
 
 
 def _classes():
-    every = (*operators.CLASSES, cover.SKINSAFE_OT_cover_link, pfl.SKINSAFE_OT_map_pfl, place_tool.SKINSAFE_OT_place_skin,
+    every = (*robot.OPERATORS, *fpc_modules.OPERATORS, *analysis.OPERATORS, *check.OPERATORS, *export.OPERATORS,
+             *frames.OPERATORS, cover.SKINSAFE_OT_cover_link, pfl.SKINSAFE_OT_map_pfl, place_tool.SKINSAFE_OT_place_skin,
              *findings.CLASSES, *deploy.CLASSES, *live.CLASSES)
     return {c.bl_idname.split(".")[1]: c for c in every if issubclass(c, bpy.types.Operator)}
 
@@ -43,9 +57,9 @@ def test_design_writers_have_undo_and_every_operator_a_poll_that_refuses_an_empt
 
 
 def test_file_export_menu_and_the_urdf_entry(tmp_path):
-    drawn = [f for f in bpy.types.TOPBAR_MT_file_export.draw._draw_funcs if f is operators.export_menu]
+    drawn = [f for f in bpy.types.TOPBAR_MT_file_export.draw._draw_funcs if f is export.export_menu]
     assert len(drawn) == 1
-    assert [op.bl_idname for op, _ in operators.EXPORTS] == ["skinsafe.export_taxel_map", "skinsafe.export_mjcf",
+    assert [op.bl_idname for op, _ in export.EXPORTS] == ["skinsafe.export_taxel_map", "skinsafe.export_mjcf",
                                                              "skinsafe.export_urdf", "skinsafe.export_taxel_csv",
                                                              "skinsafe.export_fab"]
     bpy.ops.wm.read_homefile(use_empty=True)

@@ -1,6 +1,6 @@
-"""App handlers: the design follows the module objects after every edit (`designer.sync`: delete,
-duplicate, paste, append, rename, undo/redo), moved modules re-generate live, a scale is applied once
-when its transform ends (a timer waits for it: Blender gives no transform-end event), and a loaded file
+"""Edits, through Blender's app handlers: the design follows the module objects after every edit
+(`designer.sync`: delete, duplicate, paste, append, rename, undo/redo), moved modules re-generate live, a scale
+is applied once when its transform ends (a timer waits for it: Blender gives no transform-end event), and a loaded file
 is checked the same way. All are removed on unregister (a bpy process hangs at exit otherwise); `step`
 does one round without the event loop."""
 import bpy

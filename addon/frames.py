@@ -1,10 +1,11 @@
-"""Viewport overlay: taxel frames (x red, y green, z blue) or normals, drawn with `gpu`.
-
-Only registered with a screen (never in background mode, where no viewport draws)."""
+"""Taxel frames: Toggle Taxel Frames, and the viewport overlay that draws them (x red, y green, z blue) or the
+normals, with `gpu`. Its operator registers with the others' (addon/__init__.py); `register` adds the overlay,
+only with a screen (never in background mode, where no viewport draws)."""
 import bpy
 import numpy as np
 
 from skinsafe.addon import blender_to_core as b2c
+from skinsafe.addon.shared import has_skin
 from skinsafe.core.robot.kinematics import TaxelKinematics
 
 _handle = None
@@ -41,6 +42,25 @@ def _draw():
     batch = batch_for_shader(shader, "LINES", {"pos": pts.astype(np.float32), "color": col.astype(np.float32)})
     shader.bind()
     batch.draw(shader)
+
+
+class SKINSAFE_OT_toggle_frames(bpy.types.Operator):
+    """Draw the taxel frames (axes or normals) in the viewport"""
+
+    bl_idname = "skinsafe.toggle_frames"
+    bl_label = "Toggle Taxel Frames"
+
+    poll = classmethod(lambda cls, context: has_skin(context))
+
+    def execute(self, context):
+        s = context.scene.skinsafe
+        s.show_frames = not s.show_frames
+        for area in context.screen.areas if context.screen else ():
+            area.tag_redraw()
+        return {"FINISHED"}
+
+
+OPERATORS = (SKINSAFE_OT_toggle_frames,)
 
 
 def register():
