@@ -40,6 +40,7 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
+from scipy.spatial import cKDTree
 
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.sim.readout import SkinReadout
@@ -240,8 +241,10 @@ def hand_in_reach(map_path: str, q0, radius: float = 0.04, gap: float = 0.03, de
                   candidates: int = 512) -> Hand:
     """A `Hand` reaching into the arm at rest at `q0` whose first contact is on skin, from `gap` outside the skin
     to `depth` inside. Candidates: the taxels facing out from the base's axis (a hand comes from the room) that
-    the arm's joints move best along their normal (it can get out of the hand's way), each checked by sweeping
-    the hand along its normal; a ValueError when none is clear."""
+    the arm's joints move best along their normal (it can get out of the hand's way), in the middle of the most
+    skin (taxels within half the hand's radius: a hand lands on skin, not on the bare link beside a small
+    module), the first `candidates` whose start is clear of the arm each checked by sweeping the hand along its
+    normal; a ValueError when none is clear."""
     design = taxel_map.load(map_path)
     model, data, kin, readout = _scene(map_path, design, radius)
     q = np.zeros(model.nq)
@@ -251,9 +254,17 @@ def hand_in_reach(map_path: str, q0, radius: float = 0.04, gap: float = 0.03, de
     reach = np.linalg.norm(pos[:, :2], axis=1)
     out = np.einsum("ni,ni->n", normal[:, :2], pos[:, :2] / np.maximum(reach, 1e-9)[:, None])
     lever = np.linalg.norm(np.einsum("nij,ni->nj", J[:, :3, :7], normal), axis=1)  # m/s along n per rad/s
+    skin = np.array([len(n) for n in cKDTree(pos).query_ball_point(pos, 0.5 * radius)], float)
     geom = model.geom(OBSTACLE).id
-    for i in np.argsort(-np.maximum(out, 0) * lever)[:candidates]:
+    swept = 0
+    for i in np.argsort(-np.maximum(out, 0) * lever * skin / skin.max()):
         touch = pos[i] + radius * normal[i]
+        data.qpos[:] = q
+        data.mocap_pos[0] = touch + gap * normal[i]
+        mujoco.mj_forward(model, data)
+        if (data.contact.geom[: data.ncon] == geom).any():
+            continue  # the hand's start already meets the arm (a neighbouring link): no room to come in
+        swept += 1
         for k, s in enumerate(np.linspace(gap, -depth, 51)):
             data.qpos[:] = q
             data.mocap_pos[0] = touch + s * normal[i]
@@ -262,6 +273,8 @@ def hand_in_reach(map_path: str, q0, radius: float = 0.04, gap: float = 0.03, de
                 if k and readout.read(data).max() > 0 and readout.last_missed == 0:
                     return Hand(tuple(map(float, touch)), tuple(map(float, normal[i])), radius, gap=gap, depth=depth)
                 break
+        if swept == candidates:
+            break
     raise ValueError(f"no hand of radius {radius} m reaches skin first at this pose (tried {candidates} outward-facing "
                      "taxels); give another pose or radius")
 
