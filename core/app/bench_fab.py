@@ -149,7 +149,8 @@ def pictures(out: str, robot_name: str = "ur5e", body: str = "wrist_1_link", see
             continue
         uv, row, col = template_grid(asked)
         strain = module_strain(uv, row, col, wide.positions, wide.frames[:, :, 2])
-        fit = largest_fit(replace(asked, max_strain=0.01), uv, row, col, strain)
+        fit = largest_fit(surface, replace(asked, max_strain=0.01), anchor, direction, strain, row, col) \
+            if 0.03 < strain.max < 0.3 else (0, 0)
         if 0.03 < strain.max < 0.3 and fit[0] * fit[1] >= 9:
             break
     cut = place_module(surface, replace(asked, rows=fit[0], cols=fit[1], max_strain=0.01), anchor, direction)

@@ -151,7 +151,7 @@ def place_module(surface: Surface, module: Module, anchor, direction, method: st
     frames = frames_from_normals(nrm, x)
     radius = _check_bend(module, surface.name, uv, row, col, pos, frames)
     if strain.max > module.max_strain:
-        raise _stretched(module, surface.name, uv, row, col, pos, strain)
+        raise _stretched(module, surface, uv, row, col, pos, strain, anchor[0], direction, method, max_step)
     placed = PlacedModule(module, pos, frames, row, col, radius, p0[0], frames_from_normals(n0, x0)[0], strain.max)
     check_overlap(placed, others)
     return placed
@@ -189,33 +189,61 @@ def relax(surface: Surface, uv, row, col, pos, nrm, strain: Strain, tol: float):
     return best
 
 
-def largest_fit(module: Module, uv: np.ndarray, row: np.ndarray, col: np.ndarray, strain: Strain) -> tuple[int, int]:
-    """The largest centred cut (rows, cols) of a placed grid whose pads' pairs all stay within the
-    module's tolerance ((0, 0) for none): same parity as the grid, so its pads are the grid's own."""
-    bad = np.abs(strain.strain) > module.max_strain
-    best = (0, 0)
-    for r in range(module.rows, 0, -2):
-        for c in range(module.cols, 0, -2):
-            if r * c <= best[0] * best[1] or r * c < 2:
+def largest_fit(surface: Surface, module: Module, anchor, direction, strain: Strain, row: np.ndarray,
+                col: np.ndarray, method: str = "geodesic", max_step: float = 0.005, tries: int = 8) -> tuple[int, int]:
+    """The largest cut (rows, cols) of `module` that places at the same anchor and direction within its
+    strain tolerance ((0, 0) for none): what a refusal for strain offers. Cuts are tried largest first
+    among those whose centred part of the refused grid (`strain`, its pad pairs) is stretched little
+    enough to be placed (within the tolerance, or within relaxation's reach for the geodesic walk)."""
+    reach = module.max_strain * (RELAX_FROM if method == "geodesic" else 1.0)
+    worst = np.abs(strain.strain)
+    sizes = []
+    for r in range(1, module.rows + 1):
+        for c in range(1, module.cols + 1):
+            if r * c < 2 or (r, c) == (module.rows, module.cols):
                 continue
             r0, c0 = (module.rows - r) // 2, (module.cols - c) // 2
             inside = (row >= r0) & (row < r0 + r) & (col >= c0) & (col < c0 + c)
-            if not (bad & inside[strain.a] & inside[strain.b]).any():
-                best = (r, c)
-    return best
+            pairs = inside[strain.a] & inside[strain.b]
+            if not pairs.any() or worst[pairs].max() <= reach:
+                sizes.append((r, c))
+    for r, c in sorted(sizes, key=lambda rc: (-rc[0] * rc[1], -rc[1]))[:tries]:
+        try:
+            place_module(surface, replace(module, rows=r, cols=c), anchor, direction, method, max_step=max_step)
+            return r, c
+        except PlacementError:
+            continue
+    return 0, 0
 
 
-def _stretched(module, body, uv, row, col, pos, strain: Strain) -> PlacementError:
+class StretchedError(PlacementError):
+    """A refusal for in-plane strain; the cut that fits is worked out when the message is read (a cover
+    counts thousands of refusals and reads none)."""
+
+    def __init__(self, head: str, where: tuple, offer):
+        super().__init__(head, "strain", where)
+        self._offer, self._text = offer, None
+
+    def __str__(self) -> str:
+        if self._text is None:
+            fit = self._offer()
+            self._text = (f"{self.args[0]}: " + (f"a {fit[0]}x{fit[1]} module fits here" if fit[0] else
+                                                  "no smaller cut of this grid fits here") +
+                          ", or cut the outline to the patch (the 'curve' template), or run strips along the link")
+        return self._text
+
+
+def _stretched(module, surface, uv, row, col, pos, strain: Strain, anchor, direction, method, max_step) -> PlacementError:
     k = strain.worst
     i, j = int(strain.a[k]), int(strain.b[k])
-    fit = largest_fit(module, uv, row, col, strain) if module.template == "rect" else (0, 0)
-    offer = (f"a {fit[0]}x{fit[1]} module fits here" if fit[0] else "no cut of this grid fits here") + \
-        ", or cut the outline to the patch (the 'curve' template), or run strips along the link"
-    return PlacementError(
+    offer = (lambda: largest_fit(surface, module, anchor, direction, strain, row, col, method, max_step)) \
+        if module.template == "rect" else \
+        (lambda: (0, 0))
+    return StretchedError(
         f"module {module.id} '{module.name}': in-plane strain {strain.strain[k] * 100:+.1f}% between taxels row "
-        f"{row[i]} col {col[i]} and row {row[j]} col {col[j]} on '{body}' at {_fmt(pos[i])} is over the FPC's "
-        f"{module.max_strain * 100:.1f}% (a flat circuit cannot wrap this doubly curved patch): {offer}", "strain",
-        (int(row[i]), int(col[i]), tuple(map(float, pos[i]))))
+        f"{row[i]} col {col[i]} and row {row[j]} col {col[j]} on '{surface.name}' at {_fmt(pos[i])} is over the FPC's "
+        f"{module.max_strain * 100:.1f}% (a flat circuit cannot wrap this doubly curved patch)",
+        (int(row[i]), int(col[i]), tuple(map(float, pos[i]))), offer)
 
 
 def _off_surface(module, body, row, col, pos):

@@ -35,9 +35,11 @@ def test_findings_list_select_and_frame(scene):
     i = 64 + 10  # a taxel of the second module
     lifted.taxels.positions[i] += 0.005 * lifted.taxels.normals[i]  # 5 mm off the link: and its pads stretched
     c2b.store_design(scene, lifted)
-    with pytest.raises(RuntimeError, match=r"2 problems, listed in Skin > Check"):
+    with pytest.raises(RuntimeError, match=r"3 problems, listed in Skin > Check"):
         bpy.ops.skinsafe.check(poses=2)
-    f, stretched = scene.skinsafe_findings
+    f, stretched, unconfirmed = scene.skinsafe_findings
+    # and the independent wrap of its flat pattern puts that pad 5 mm from where the map says
+    assert "module 1 " in unconfirmed.text and re.search(r"independent wrap .* puts a pad [45]\.\d mm", unconfirmed.text)
     tid = int(b2c.design_of(scene).taxels.ids[i])
     assert f"taxel {tid} " in f.text and f.module_id == 1 and f.has_location
     # the stretched module (worst first), located at its worst pad: the lifted taxel's pair
