@@ -69,7 +69,7 @@ def tile_body(surface: Surface, model, template: Module, body: str, first_id: in
         try:
             p = place_module(surface, m, anchor, direction, others=mine)
         except PlacementError as e:
-            refused.append(str(e))
+            refused.append(e.args[0])  # a strain refusal without its offer (worked out only when read)
             continue
         over = outline_overhang(surface, p.positions, p.frames, m.pitch / 2, m.min_bend_radius)
         if over.max() > OVERHANG_TOL:

@@ -491,7 +491,7 @@ def tile_bodies(surfaces: dict[str, Surface], model, template: Module, bodies: l
             try:
                 p = place_module(surfaces[body], m, anchor, direction, others=mine)
             except PlacementError as e:
-                refused.append(str(e))
+                refused.append(e.args[0])  # a strain refusal without its offer (worked out only when read)
                 continue
             p.module = replace(m, placement=placement_record(p.origin, p.origin_frame[:, 0], "geodesic"))
             placed.append(p), mine.append(p)
