@@ -32,16 +32,13 @@ written atomically with mode 0600 and refused when others may read it. A record 
 from __future__ import annotations
 
 import collections
-import contextlib
 import hashlib
 import hmac
 import ipaddress
 import json
-import os
 import secrets
 import socket
 import struct
-import tempfile
 import time
 from dataclasses import dataclass, field
 from enum import Enum
@@ -52,6 +49,7 @@ import numpy as np
 from skinsafe.core.runtime.commands import CommandError, Hold
 from skinsafe.core.runtime.protocol import StopRobot
 from skinsafe.core.safety.stack import TrajectorySource
+from skinsafe.core.skin.files import atomic_write
 
 MAGIC = b"SKT2"
 HEAD = struct.Struct("<4sQH")
@@ -102,19 +100,7 @@ def make_key(path: str | Path, force: bool = False) -> TeleopKey:
                            "replace it, or give another path")
     secret = secrets.token_bytes(KEY_BYTES)
     text = json.dumps({"schema_version": KEY_SCHEMA, "kind": KEY_KIND, "key": secret.hex()}) + "\n"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)  # mode 0600
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o600)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+    atomic_write(path, text, permissions=0o600)  # mkstemp makes it 0600 before a byte of the key is in it
     return TeleopKey(str(path), secret)
 
 
