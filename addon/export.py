@@ -14,6 +14,18 @@ from skinsafe.core.skin import taxel_map
 from skinsafe.core.skin.model import DesignError
 
 
+class _ExportToFolder:
+    """An export of the design into a folder the file browser picks."""
+
+    directory: StringProperty(name="Folder", subtype="DIR_PATH")
+
+    poll = classmethod(lambda cls, context: has_skin(context))
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+
 class SKINSAFE_OT_export_taxel_map(bpy.types.Operator, ExportHelper):
     """Save the skin design as a taxel map (JSON)"""
 
@@ -32,19 +44,11 @@ class SKINSAFE_OT_export_taxel_map(bpy.types.Operator, ExportHelper):
         return ok(self, scene, f"wrote {path}")
 
 
-class SKINSAFE_OT_export_mjcf(bpy.types.Operator):
+class SKINSAFE_OT_export_mjcf(_ExportToFolder, bpy.types.Operator):
     """Export the robot with its skin as a MuJoCo scene (scene.xml, meshes/, taxel_map.json)"""
 
     bl_idname = "skinsafe.export_mjcf"
     bl_label = "Export MuJoCo Scene"
-
-    directory: StringProperty(name="Folder", subtype="DIR_PATH")
-
-    poll = classmethod(lambda cls, context: has_skin(context))
-
-    def invoke(self, context, event):
-        context.window_manager.fileselect_add(self)
-        return {"RUNNING_MODAL"}
 
     def execute(self, context):
         from skinsafe.exporters.mjcf import export_scene
@@ -106,20 +110,12 @@ class SKINSAFE_OT_export_taxel_csv(_ExportSkinFile, bpy.types.Operator):
         return export_csv
 
 
-class SKINSAFE_OT_export_fab(bpy.types.Operator):
+class SKINSAFE_OT_export_fab(_ExportToFolder, bpy.types.Operator):
     """Export every FPC module's flat pattern for fabrication into FOLDER/fab: a KiCad board, DXF and SVG per
     module, one PDF page each, bom.csv and fab.json (an older fab folder is replaced whole)"""
 
     bl_idname = "skinsafe.export_fab"
     bl_label = "Export FPC Fabrication Files"
-
-    directory: StringProperty(name="Folder", subtype="DIR_PATH")
-
-    poll = classmethod(lambda cls, context: has_skin(context))
-
-    def invoke(self, context, event):
-        context.window_manager.fileselect_add(self)
-        return {"RUNNING_MODAL"}
 
     def execute(self, context):
         from skinsafe.exporters.fab import count_files, write_fab
