@@ -3,6 +3,8 @@
 is applied once when its transform ends (a timer waits for it: Blender gives no transform-end event), and a loaded file
 is checked the same way. All are removed on unregister (a bpy process hangs at exit otherwise); `step`
 does one round without the event loop."""
+import contextlib
+
 import bpy
 from bpy.app.handlers import persistent
 
@@ -40,6 +42,18 @@ def step(scene, apply_scale: bool = True) -> list[str]:
         return errors
     finally:
         _busy = False
+
+
+@contextlib.contextmanager
+def paused():
+    """The add-on's own passing edits (a picture's cell tiles): no step runs while they stand, so they are
+    neither synced into the design nor undone as a user's edit."""
+    global _busy
+    was, _busy = _busy, True
+    try:
+        yield
+    finally:
+        _busy = was
 
 
 @persistent

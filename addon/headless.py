@@ -14,7 +14,7 @@ import bpy  # first: before anything that could import pymeshlab
 import numpy as np
 
 from skinsafe.addon import blender_to_core as b2c
-from skinsafe.addon import register, unregister
+from skinsafe.addon import edits, register, unregister
 from skinsafe.addon.core_to_blender import srgb_to_linear
 
 PALETTE = np.array([[0.12, 0.47, 0.71], [1.0, 0.5, 0.05], [0.17, 0.63, 0.17], [0.84, 0.15, 0.16],
@@ -162,14 +162,13 @@ def render(scene, path: Path, color: str = "heat", size: int = 1000, view=(0.6, 
     sh.show_object_outline = True
     for o in robot_objs:
         o.color = (0.72, 0.73, 0.76, 1.0)
-    live, scene.skinsafe.auto_regenerate = scene.skinsafe.auto_regenerate, False  # the tiles are no move
-    tiles = _CellTiles(modules, {m.id: m.pitch for m in design.modules})
-    try:
-        r.filepath = str(path)
-        bpy.ops.render.render(write_still=True)
-    finally:
-        tiles.restore()
-        scene.skinsafe.auto_regenerate = live
+    with edits.paused():  # the tiles are the picture's, not an edit of the modules
+        tiles = _CellTiles(modules, {m.id: m.pitch for m in design.modules})
+        try:
+            r.filepath = str(path)
+            bpy.ops.render.render(write_still=True)
+        finally:
+            tiles.restore()
     if color == "heat" and _heat_range(modules) > 0:
         add_key(path, _heat_range(modules), "retractability |J_p^T z|, m/s per rad/s")
     if color == "live":

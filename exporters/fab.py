@@ -32,7 +32,7 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
-from skinsafe.core.design.placement import template_grid
+from skinsafe.core.design.placement import module_grid, template_grid
 from skinsafe.core.skin.model import DesignError, Module, SkinDesign
 
 FAB_DIR = "fab"
@@ -101,13 +101,14 @@ class FlatPattern:
 def flat_pattern(design: SkinDesign, module: Module) -> FlatPattern:
     """The module's flat pattern; DesignError when its taxels do not match its template."""
     m = module
-    outline = m.placement.get("outline")
-    uv, row, col = template_grid(m, outline)
     t = design.taxels
     idx = np.flatnonzero(t.module == m.id)
-    if len(idx) != len(uv):
+    grid = module_grid(m, len(idx))  # a mirrored module's pattern is the mirror image, in its taxels' order
+    if grid is None:
+        uv = template_grid(m, m.placement.get("outline"))[0]
         raise DesignError(f"module {m.id} '{m.name}': the map has {len(idx)} taxels on it but its {m.rows}x{m.cols} "
                           f"'{m.template}' template has {len(uv)}; re-place the module (or fix rows/cols) and save the map")
+    uv, row, col = grid
     h = max(m.pitch / 2, m.taxel_diameter / 2 + m.margin)
     loops, fingers = _outline(uv.tobytes(), h)
     return FlatPattern(m, t.ids[idx], t.board[idx], t.channel[idx], uv, loops, fingers,

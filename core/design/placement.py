@@ -416,13 +416,19 @@ def replace_module(design: SkinDesign, placed: PlacedModule) -> SkinDesign:
 
 def module_grid(module: Module, n: int):
     """The flat pattern of a module of a design holding `n` taxels: (uv (n,2) m, row, col) in taxel
-    order, from its template (and the outline its placement recorded); None when the template does
-    not give `n` pads (the module was edited into another shape: it cannot be checked as a grid)."""
-    outline = module.placement.get("outline") if isinstance(module.placement, dict) else None
+    order, from its template (and the outline its placement recorded); a mirrored module's (the
+    add-on's mirror: taxel k at the template's u -> -u, a mirror-image circuit) in its own order. None
+    when the template does not give `n` pads (the module was edited into another shape: it cannot be
+    checked as a grid)."""
+    placement = module.placement if isinstance(module.placement, dict) else {}
+    outline = placement.get("outline")
     try:
         uv, row, col = template_grid(module, None if outline is None else np.asarray(outline, float))
     except PlacementError:
         return None
+    if placement.get("mirrored"):
+        k = np.lexsort((-col, row))
+        uv, row, col = uv[k], row[k], col[k]
     return (uv, row, col) if len(uv) == n else None
 
 

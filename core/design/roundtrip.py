@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from skinsafe.core.design.placement import PlacedModule, module_grid, template_grid
+from skinsafe.core.design.placement import PlacedModule, module_grid
 from skinsafe.core.design.surface import Surface, cached_surfaces
 from skinsafe.core.skin.model import Module, SkinDesign
 
@@ -142,12 +142,10 @@ def wrapper_of(surface: Surface) -> Wrapper:
 def disagreement(surface: Surface, placed: PlacedModule) -> float:
     """m: the farthest a pad of a just-placed module is from where the independent wrap of its flat
     pattern about the same anchor and direction puts it (over `TOL`: the module is not built)."""
-    uv = template_grid(placed.module)[0] if placed.module.template != "curve" else None
-    if uv is None or len(uv) != len(placed):
-        grid = module_grid(placed.module, len(placed))
-        if grid is None:
-            return float("inf")
-        uv = grid[0]
+    grid = module_grid(placed.module, len(placed))
+    if grid is None:
+        return float("inf")
+    uv = grid[0]
     at = wrapper_of(surface).wrap(uv, placed.origin, placed.origin_frame[:, 0])
     return float(np.linalg.norm(at - placed.positions, axis=1).max())
 
