@@ -219,8 +219,9 @@ CASE = (np.array([-1.47764737, 2.25289619, 5.67401769, -1.99479205, -4.38420642,
         [52.03, 54.72, 38.42])
 """UR5, three contacts on the upper arm and wrist 1 from the audit's random sets: the retraction runs
 at the velocity limits while the contacts' rows turn; without viability rows the acceleration
-limits could not take the speed back (122 ticks infeasible) and the wrist taxel went 35 mm back
-into its contact; with them 22 ticks are flagged, by less than a micrometre of push."""
+limits could not take the speed back (114 ticks infeasible) and the wrist taxel went 7.6 mm back
+into its contact (35 mm on the sample before it wrapped at the pitch in arc length); with them 24 ticks are
+flagged, by less than a micrometre of push."""
 
 
 @pytest.mark.parametrize("viable", [True, False])
@@ -235,4 +236,4 @@ def test_turning_contacts_are_braked_for_in_time(viable, monkeypatch):
     if viable:  # a few ticks still flagged (the rows are linearised), none of them pushing a micrometre
         assert worst <= 1e-6 and infeasible < 30
     else:
-        assert worst > 30e-3 and infeasible > 100
+        assert worst > 5e-3 and infeasible > 100
