@@ -53,6 +53,7 @@ def pad_overlaps(design) -> int:
 def robot_row(name: str, rows: int, cols: int, pitch: float) -> dict:
     from skinsafe.core.design.audit import module_strains
     from skinsafe.core.design.cover import COVER_MODULE, cover_design, cover_report
+    from skinsafe.core.design.coverage import body_area
     from skinsafe.core.design.roundtrip import roundtrip
     from skinsafe.core.robot.catalog import description
     from skinsafe.core.robot.models import load_robot
@@ -67,8 +68,6 @@ def robot_row(name: str, rows: int, cols: int, pitch: float) -> dict:
     strains = np.array([v[0] for v in module_strains(design).values() if v is not None])
     errors = np.concatenate([r.error for r in roundtrip(design, robot.model)])
     report = cover_report(design, robot.model, robot.home)
-    from skinsafe.core.design.coverage import body_area
-
     area = {b: body_area(robot.model, b) for b in report}
     covered = sum(r["covered"] * r["exposed"] * area[b] for b, r in report.items())
     exposed = sum(r["exposed"] * area[b] for b, r in report.items())

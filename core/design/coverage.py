@@ -93,7 +93,8 @@ def covered_points(design: SkinDesign, body_index: int, q: np.ndarray, qn: np.nd
     on = np.flatnonzero(t.body == body_index)
     if not len(on):
         return np.zeros(len(q), bool)
-    half = np.array([{m.id: m.pitch for m in design.modules}.get(int(k), 0.0) / 2 for k in t.module[on]])
+    pitch = {m.id: m.pitch for m in design.modules}
+    half = np.array([pitch.get(int(k), 0.0) / 2 for k in t.module[on]])
     d, j = cKDTree(t.positions[on]).query(q, k=min(4, len(on)), distance_upper_bound=float(half.max()) * 1.5)
     d, j = d.reshape(len(q), -1), j.reshape(len(q), -1)
     ok = np.isfinite(d)

@@ -93,7 +93,7 @@ def exposed_span(model: mujoco.MjModel, poses: list[mujoco.MjData], geom: int, p
 
 
 def wrap_cylinder(model: mujoco.MjModel, geom: int, pitch: float, rows: int, cols: int, margin: float,
-                  first_module: int, first_taxel: int, body_index: int, body_name: str,
+                  first_module: int, body_index: int, body_name: str,
                   taxel_diameter: float, threshold: float, poses: list[mujoco.MjData] | None = None
                   ) -> tuple[list[Module], Taxels | None]:
     """Cover the cylindrical part of a capsule/cylinder geom with rows x cols modules: the whole
@@ -107,7 +107,7 @@ def wrap_cylinder(model: mujoco.MjModel, geom: int, pitch: float, rows: int, col
     R = R.reshape(3, 3)
     c = model.geom_pos[geom]
     modules, parts = [], []
-    mid, tid = first_module, first_taxel
+    mid = first_module
     lo, hi = -half + margin, half - margin  # one row grid for the whole part: blocks stay aligned
     n_along = int(np.floor((hi - lo) / pitch + 1e-9)) + 1 if hi >= lo else 0
     row_z = lo + np.arange(n_along) * pitch + (hi - lo - (n_along - 1) * pitch) / 2
@@ -134,7 +134,7 @@ def wrap_cylinder(model: mujoco.MjModel, geom: int, pitch: float, rows: int, col
             frames = np.stack([tangent, axis, radial], axis=2)  # x around, y along, z out
             k = len(phi)
             parts.append(Taxels(
-                ids=np.arange(tid, tid + k, dtype=np.int64),
+                ids=stable_ids(np.full(k, mid)),
                 body=np.full(k, body_index, np.int32),
                 positions=local @ R.T + c,
                 frames=np.einsum("ij,njk->nik", R, frames),
@@ -153,7 +153,7 @@ def wrap_cylinder(model: mujoco.MjModel, geom: int, pitch: float, rows: int, col
                 placement={"method": "cylinder_wrap", "geom": model.geom(geom).name,
                            "row0": int(r0), "col0": int(c0), "n_around": n_around},
             ))
-            mid, tid = mid + 1, tid + k
+            mid += 1
     return modules, Taxels.concatenate(parts) if parts else None
 
 
@@ -175,7 +175,7 @@ def make_sample_design(robot_name: str = "ur5", pitch: float = 0.01, rows: int =
         bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
         geom = int(np.flatnonzero(model.geom_bodyid == bid)[0])
         ms, tx = wrap_cylinder(model, geom, pitch, rows, cols, margin=0.5 * pitch,
-                               first_module=len(modules), first_taxel=sum(len(p) for p in parts),
+                               first_module=len(modules),
                                body_index=len(bodies), body_name=name, taxel_diameter=0.6 * pitch,
                                threshold=threshold, poses=poses)
         if tx is not None:  # a link whose capsule is all under housings carries no skin
@@ -188,7 +188,6 @@ def make_sample_design(robot_name: str = "ur5", pitch: float = 0.01, rows: int =
     modules = [Module(**{**m.__dict__, "board": of[m.id]}) for m in modules]
     taxels.board = np.array([of[int(m)] for m in taxels.module], dtype=np.int32)
     taxels.channel = number_channels(taxels.module, taxels.board)
-    taxels.ids = stable_ids(taxels.module)
     design = SkinDesign(RobotRef("builtin", robot_name), bodies, modules, boards, taxels)
     design.coverage = coverage_report(design, model)
     design.validate("sample skin", robot.body_names)

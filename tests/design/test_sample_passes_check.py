@@ -28,6 +28,6 @@ def test_the_old_end_to_end_wrap_is_refused():
     robot = build_ur5()
     design = make_sample_design("ur5", robot=robot)
     full = sample.wrap_cylinder(robot.model, int(robot.model.body("forearm_link").geomadr[0]), 0.01, 8, 8, 0.005,
-                                0, 0, design.bodies.index("forearm_link"), "forearm_link", 0.006, 2.0)[1]
+                                0, design.bodies.index("forearm_link"), "forearm_link", 0.006, 2.0)[1]
     assert len(full) > (design.taxels.body == design.bodies.index("forearm_link")).sum() == 750
     assert buried_taxels(design.with_taxels(full), robot.model, robot.home, poses=8).sum() > 0
