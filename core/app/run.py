@@ -55,18 +55,15 @@ from skinsafe.core.runtime.monitor import (
     table,
     travel,
 )
+from skinsafe.core.runtime.run_config import LINK_LATENCY_FREE, LINK_LATENCY_MAX, ROBOTS, RunConfig
 from skinsafe.core.runtime.tap import Tap
 from skinsafe.core.runtime.teleop import INTRUDER_DATAGRAMS, INTRUDER_WINDOW_S, Teleop, load_key
-from skinsafe.core.runtime.view_stream import DEFAULT_PORT
 from skinsafe.core.safety.retraction import RetractionParams
 from skinsafe.core.skin.files import atomic_write
 from skinsafe.core.skin.model import DesignError
 from skinsafe.hardware.client import baud_problem
 from skinsafe.hardware.franka import ROBOT_FAULTS  # the FR3 driver's plan (its robot's states)
 
-LINK_LATENCY_FREE = 0.05  # s of --link-latency accepted without --allow-link-latency
-LINK_LATENCY_MAX = 10.0
-MAX_TARE_FRAMES = 10_000
 SWITCH_S = 0.0005  # the interpreter's thread switch interval while the robot moves (default 5 ms)
 EXIT_CODES = {0: "ran as planned, robot stopped", 1: "a watchdog or the driver stopped the robot (named)",
               2: "bad input", 3: "pre-flight refused (the robot never moved)",
@@ -80,7 +77,7 @@ READER_FAULTS = ("reader-kill", "reader-stall")  # at S s after the robot is han
 
 def add_arguments(p) -> None:
     p.add_argument("map", help="taxel map (JSON) of the skin the boards run")
-    p.add_argument("--robot", choices=("sim", "fr3"), default="sim", help="sim: MuJoCo in this process (default); "
+    p.add_argument("--robot", choices=ROBOTS, default=RunConfig.robot, help="sim: MuJoCo in this process (default); "
                    "fr3: a Franka FR3 over libfranka (hardware/franka.py)")
     p.add_argument("--host", help="fr3: the robot's (or franky-sim's) address")
     p.add_argument("--boards", nargs="+", required=True, metavar="emulate|PORT",
@@ -90,9 +87,9 @@ def add_arguments(p) -> None:
     p.add_argument("--seconds", type=float, help="stop after this long on the robot's clock (default: a trajectory's "
                    "end plus 1 s; otherwise until Ctrl-C)")
     p.add_argument("--record", metavar="FILE.mcap", help="record the run (MCAP, ROS 2 messages); `skinsafe replay` re-runs it")
-    p.add_argument("--rate", type=int, default=100, help="frames per second per board (default 100: a board is "
+    p.add_argument("--rate", type=int, default=RunConfig.rate, help="frames per second per board (default 100: a board is "
                    "silent after 20 ms)")
-    p.add_argument("--link-latency", type=float, default=0.0, metavar="S",
+    p.add_argument("--link-latency", type=float, default=RunConfig.link_latency, metavar="S",
                    help="how late the host's serial input may deliver a board's frames before the board is named silent, "
                         "on top of 2 frame periods (default 0: silent after 2 frame periods); a loaded host's kernel "
                         "holds serial input for tens to hundreds of ms (docs: Run a robot safely); above "
@@ -101,31 +98,31 @@ def add_arguments(p) -> None:
                    help=f"accept a --link-latency above {LINK_LATENCY_FREE:g} s (up to {LINK_LATENCY_MAX:g} s): a board "
                         "may then be blind that much longer before it is named silent (the start prints each bound and "
                         "the distance a taxel travels blind within it)")
-    p.add_argument("--realtime", choices=("auto", "off"), default="auto",
+    p.add_argument("--realtime", choices=("auto", "off"), default=RunConfig.realtime,
                    help="auto: run the loop, the skin reader and the emulated boards at real-time priority "
                         "(SCHED_FIFO 10), and keep idle cores out of their sleep states while the robot moves "
                         "(/dev/cpu_dma_latency 0), where the system allows it, as libfranka's hosts do (default)")
     p.add_argument("--allow-non-realtime", action="store_true",
                    help="fr3: move without real-time scheduling (refused otherwise): for a simulated robot such as "
                         "franky-sim, never for a real arm")
-    p.add_argument("--baud", type=int, default=1_000_000, help="board link speed (real boards)")
-    p.add_argument("--tare-frames", type=int, default=100, help="frames per board for the tare and health checks")
-    p.add_argument("--noise-fraction", type=float, default=0.25,
+    p.add_argument("--baud", type=int, default=RunConfig.baud, help="board link speed (real boards)")
+    p.add_argument("--tare-frames", type=int, default=RunConfig.tare_frames, help="frames per board for the tare and health checks")
+    p.add_argument("--noise-fraction", type=float, default=RunConfig.noise_fraction,
                    help="a taxel whose reading spreads more than this fraction of its threshold at rest is noisy")
-    p.add_argument("--max-excluded", type=float, default=0.02,
+    p.add_argument("--max-excluded", type=float, default=RunConfig.max_excluded,
                    help="refuse to move when more than this fraction of the taxels is dead, stuck or noisy")
-    p.add_argument("--command-timeout", type=float, default=0.1, help="teleop: stop when no datagram came for this long, s")
+    p.add_argument("--command-timeout", type=float, default=RunConfig.command_timeout, help="teleop: stop when no datagram came for this long, s")
     p.add_argument("--teleop-key", metavar="FILE", help="teleop: the shared key file (`skinsafe teleop-key FILE`) the "
                    "leader signs its datagrams with; needed to listen beyond loopback")
     p.add_argument("--teleop-leader", metavar="HOST[:PORT]", help="teleop: the leader's address; datagrams from any other "
                    "are refused and named (default: the first sender whose datagram is valid is pinned)")
     p.add_argument("--tdm", help="a TDM checkpoint (skinsafe's torch format) for the strategy and modulation layers")
-    p.add_argument("--alpha", type=float, default=RetractionParams.alpha, help="retraction sensitivity, m/N")
-    p.add_argument("--after-contact", choices=tuple(AFTER_CONTACT), default="resume",
+    p.add_argument("--alpha", type=float, default=RunConfig.alpha, help="retraction sensitivity, m/N")
+    p.add_argument("--after-contact", choices=tuple(AFTER_CONTACT), default=RunConfig.after_contact,
                    help="; ".join(f"{k}: {v}" for k, v in AFTER_CONTACT.items()))
     sim = p.add_argument_group("sim robot")
-    sim.add_argument("--period", type=float, default=0.002, help="the sim's control period, s (default 0.002: 500 Hz)")
-    sim.add_argument("--contact", default="none", metavar="poke|post[:KEY=VALUE,...]|none",
+    sim.add_argument("--period", type=float, default=RunConfig.period, help="the sim's control period, s (default 0.002: 500 Hz)")
+    sim.add_argument("--contact", default=RunConfig.contact, metavar="poke|post[:KEY=VALUE,...]|none",
                      help="something in the sim's world to touch: poke (a sprung probe jabs the most upward taxel at "
                           "t=at s) or post (a sprung post in front of the taxel that rotating `joint` sweeps into it); "
                           "keys: at, taxel, joint, gap, depth, speed, stiffness")
@@ -144,7 +141,7 @@ def add_arguments(p) -> None:
                           "solve fails at the next retraction tick), reading-nan (a NaN reading on the first taxel not "
                           "excluded), command-nan (the command source's plan non-finite); each handed to the part "
                           "that fails as the run's FaultPlan (core/runtime/fault_plan.py)")
-    p.add_argument("--overruns", type=int, default=OVERRUNS, metavar="K",
+    p.add_argument("--overruns", type=int, default=RunConfig.overruns, metavar="K",
                    help=f"stop after K consecutive overruns: ticks more than {OVERRUN_PERIODS:g} control periods apart "
                         f"on the robot's own clock, its states missed (default {OVERRUNS}; 0: off)")
     p.add_argument("--feed", metavar="NAME", help="with --boards emulate: the emulated boards stream this existing "
@@ -152,8 +149,8 @@ def add_arguments(p) -> None:
                    "one the sim driver writes)")
     p.add_argument("--view", action="store_true", help="see the run live: publish a view stream (Blender's add-on "
                    "attaches to it) and serve the web page (`skinsafe view`, its own process) at --view-port")
-    p.add_argument("--view-port", type=int, default=8080, help="--view: the web page's port (0: no page, stream only)")
-    p.add_argument("--view-stream", default=f"127.0.0.1:{DEFAULT_PORT}", metavar="[HOST:]PORT",
+    p.add_argument("--view-port", type=int, default=RunConfig.view_port, help="--view: the web page's port (0: no page, stream only)")
+    p.add_argument("--view-stream", default=RunConfig.view_stream, metavar="[HOST:]PORT",
                    help="--view: where the view stream is published (port 0: any free one)")
     p.add_argument("--stats", metavar="FILE.json", help="write the run's figures (loop, latency, world, stop) as JSON")
     p.epilog = "exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items())
@@ -175,66 +172,35 @@ def _contact(text: str):
         raise DesignError(f"--contact {text!r}: {e}; e.g. poke, post:joint=0,gap=0.01 or poke:at=1.0") from None
 
 
-def _check(args) -> None:
-    if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
-        raise DesignError(f"--seconds {args.seconds}: give a positive duration")
-    if not 1 <= args.rate <= 65535:
-        raise DesignError(f"--rate {args.rate}: give frames per second per board, 1..65535")
-    if not (math.isfinite(args.link_latency) and 0 <= args.link_latency <= LINK_LATENCY_MAX):
-        raise DesignError(f"--link-latency {args.link_latency}: give 0..{LINK_LATENCY_MAX:g} s")
-    if args.link_latency > LINK_LATENCY_FREE and not args.allow_link_latency:
-        raise DesignError(f"--link-latency {args.link_latency:g}: above {LINK_LATENCY_FREE:g} s a board may be blind "
-                          "that long before it is named silent; pass --allow-link-latency to accept it (the start "
-                          "prints the distance a taxel travels blind)")
-    if args.overruns < 0:
-        raise DesignError(f"--overruns {args.overruns}: give 0 (off) or the consecutive overruns that stop")
-    if not 2 <= args.tare_frames <= MAX_TARE_FRAMES:
-        raise DesignError(f"--tare-frames {args.tare_frames}: give 2..{MAX_TARE_FRAMES} (each taxel's frames are kept)")
+def config(args) -> RunConfig:
+    """The run's configuration from its command line, validated (a bad option: DesignError naming the fix)."""
     if baud_problem(args.baud):
         raise DesignError(baud_problem(args.baud))
-    if args.robot == "sim":
-        from skinsafe.core.sim.robot_driver import PERIOD_S
-
-        if not (math.isfinite(args.period) and PERIOD_S[0] <= args.period <= PERIOD_S[1]):
-            raise DesignError(f"--period {args.period}: give the sim's control period, {PERIOD_S[0]}..{PERIOD_S[1]} s")
-    try:
-        RetractionParams(alpha=args.alpha)
-    except ValueError as e:
-        raise DesignError(f"--alpha {args.alpha}: {e}") from None
-    if not (0 <= args.max_excluded < 1) or not args.noise_fraction > 0:
-        raise DesignError("--max-excluded must be in [0, 1) and --noise-fraction positive")
-    if args.boards != ["emulate"] and "emulate" in args.boards:
-        raise DesignError("--boards: give 'emulate' alone or serial ports")
-    if args.robot == "fr3" and args.after_contact == "always-resume" and not args.allow_non_realtime:
-        raise DesignError("--after-contact always-resume resumes the plan after every retraction, flagged or not: "
-                          "refused on a hardware robot; use resume or hold (with --allow-non-realtime, a simulated "
-                          "robot such as franky-sim, it is accepted for benches)")
-    if args.robot == "sim" and args.host:
-        raise DesignError("--host is for --robot fr3")
-    if args.robot == "fr3" and args.boards == ["emulate"] and not args.feed:
-        raise DesignError("--robot fr3 --boards emulate needs --feed NAME: the force feed of the robot's simulated "
-                          "world (franky_world serve prints it)")
-    sim_only = [o for o, v in (("--contact", args.contact != "none"), ("--taxel-fault", args.taxel_fault),
-                               ("--inject sim-*", any(i.startswith("sim-") for i in args.inject))) if v]
-    if args.robot != "sim" and sim_only:
-        raise DesignError(f"{', '.join(sim_only)}: for --robot sim only")
-    if args.robot != "fr3" and any(i.startswith("robot-") for i in args.inject):
-        raise DesignError("--inject robot-*: for --robot fr3 only (the sim's are sim-*)")
+    return RunConfig(map=args.map, boards=tuple(args.boards), command=args.command, robot=args.robot, host=args.host,
+                     seconds=args.seconds, record=args.record, rate=args.rate, link_latency=args.link_latency,
+                     allow_link_latency=args.allow_link_latency, realtime=args.realtime,
+                     allow_non_realtime=args.allow_non_realtime, baud=args.baud, tare_frames=args.tare_frames,
+                     noise_fraction=args.noise_fraction, max_excluded=args.max_excluded,
+                     command_timeout=args.command_timeout, teleop_key=args.teleop_key,
+                     teleop_leader=args.teleop_leader, tdm=args.tdm, alpha=args.alpha, after_contact=args.after_contact,
+                     period=args.period, contact=args.contact, taxel_faults=_taxel_faults(args.taxel_fault),
+                     inject=_injections(args.inject), overruns=args.overruns, feed=args.feed, view=args.view,
+                     view_port=args.view_port, view_stream=args.view_stream, stats=args.stats)
 
 
-def _taxel_faults(items: list[str]) -> dict[int, str]:
-    out = {}
+def _taxel_faults(items: list[str]) -> tuple[tuple[int, str], ...]:
+    out = []
     for item in items:
         kind, _, i = item.partition(":")
         try:
-            out[int(i)] = kind
+            out.append((int(i), kind))
         except ValueError:
             raise DesignError(f"--taxel-fault {item!r}: give stuck:TAXEL or noisy:TAXEL (a taxel index)") from None
-    return out
+    return tuple(out)
 
 
-def _injections(items: list[str]) -> FaultPlan:
-    """--inject FAULT@SECONDS[:BOARD] as the run's FaultPlan (core/runtime/fault_plan.py)."""
+def _injections(items: list[str]) -> tuple[Injection, ...]:
+    """--inject FAULT@SECONDS[:BOARD], each a kind this run can inject."""
     from skinsafe.hardware.link_faults import LINK_FAULTS
 
     out = []
@@ -250,11 +216,10 @@ def _injections(items: list[str]) -> FaultPlan:
         if kind not in kinds or not (math.isfinite(t) and t >= 0):
             raise DesignError(f"--inject {item!r}: faults are {', '.join(kinds)}, at a time >= 0 s")
         out.append(Injection(kind, t, b))
-    return FaultPlan(tuple(out))
+    return tuple(out)
 
-
-def _driver(args, design, robot, feed, inject):
-    if args.robot == "fr3":
+def _driver(cfg: RunConfig, design, robot, feed, inject):
+    if cfg.robot == "fr3":
         try:
             franka = importlib.import_module("skinsafe.hardware.franka")
         except ModuleNotFoundError as e:
@@ -262,46 +227,46 @@ def _driver(args, design, robot, feed, inject):
                 raise
             raise DesignError("--robot fr3: the FR3 driver (skinsafe.hardware.franka) is not in this installation "
                               "yet; use --robot sim") from None
-        if not args.host:
+        if not cfg.host:
             raise DesignError("--robot fr3 needs --host IP: the robot's (or franky-sim's) address")
         try:
-            return franka.FrankaDriver(args.host, rate_limited=False, faults=inject)  # the runtime's limiter does it
+            return franka.FrankaDriver(cfg.host, rate_limited=False, faults=inject)  # the runtime's limiter does it
         except franka.FrankaError as e:
             raise DesignError(str(e)) from None
     from skinsafe.core.sim.robot_driver import SimDriver, SimFaults
 
     faults = SimFaults(**{SIM_FAULTS[i.kind]: i.at for i in inject.injections if i.kind in SIM_FAULTS})
     try:
-        return SimDriver(design, robot, feed, args.period, _contact(args.contact), faults=faults,
-                         taxel_faults=_taxel_faults(args.taxel_fault))
+        return SimDriver(design, robot, feed, cfg.period, _contact(cfg.contact), faults=faults,
+                         taxel_faults=dict(cfg.taxel_faults))
     except ValueError as e:
         raise DesignError(f"--robot sim: {e}") from None
 
 
-def _ports(args, design, stack: contextlib.ExitStack, feed) -> dict[int, str]:
+def _ports(cfg: RunConfig, design, stack: contextlib.ExitStack, feed) -> dict[int, str]:
     """Board id -> port: emulated boards fed by the simulation (the map deployed to them first), or the given ports."""
     from skinsafe.hardware.cli_deploy import find_ports
     from skinsafe.hardware.deploy import deploy
     from skinsafe.hardware.emulator import EmulatorProcess
 
-    if args.boards == ["emulate"]:
+    if cfg.boards == ("emulate",):
         flash = stack.enter_context(tempfile.TemporaryDirectory(prefix="skinsafe-flash-"))
-        em = stack.enter_context(EmulatorProcess([], flash, "--map", str(args.map), "--feed", feed.name))
+        em = stack.enter_context(EmulatorProcess([], flash, "--map", str(cfg.map), "--feed", feed.name))
         below_host(em.proc.pid)
         ports = {b.id: em.ports[b.uid] for b in design.boards}
         bad = [r.line() for r in deploy(design, ports) if not r.ok]
         if bad:
             raise DesignError(f"deploying the map to the emulated boards failed: {bad[0]}")
         return ports
-    ns = type("Ports", (), {"port": args.boards, "all": False, "glob": [], "timeout": 0.25, "retries": 4,
-                            "baud": args.baud, "board": None, "no_system_ports": True})()
+    ns = type("Ports", (), {"port": list(cfg.boards), "all": False, "glob": [], "timeout": 0.25, "retries": 4,
+                            "baud": cfg.baud, "board": None, "no_system_ports": True})()
     ports, _, _, problems = find_ports(design, ns)
     if problems:
         raise DesignError(problems[0])
     return ports
 
 
-def _view(args, stack: contextlib.ExitStack, design, driver, map_path: Path, map_hash: bytes) -> Tap:
+def _view(cfg: RunConfig, stack: contextlib.ExitStack, design, driver, map_path: Path, map_hash: bytes) -> Tap:
     """The loop's tap for a live view: it shares the newest tick (`SharedTap`); the view stream's publisher and the
     web page (`skinsafe view HOST:PORT`) run in their own processes at a lower priority, ready before the robot
     moves; all end with the run."""
@@ -310,18 +275,18 @@ def _view(args, stack: contextlib.ExitStack, design, driver, map_path: Path, map
     from skinsafe.core.runtime.view_share import SharedFrames, SharedTap, start_publisher
     from skinsafe.core.runtime.view_stream import hello
 
-    host, _, port = args.view_stream.rpartition(":")
+    host, _, port = cfg.view_stream.rpartition(":")
     msg = hello(design.n_taxels, design.taxels.ids, driver.joint_names, {b.uid: b.name for b in design.boards},
-                str(map_path.resolve()), map_hash.hex(), driver.period_s, board_period_s=1.0 / args.rate)
+                str(map_path.resolve()), map_hash.hex(), driver.period_s, board_period_s=1.0 / cfg.rate)
     frames = SharedFrames.create(design.n_taxels, len(driver.joint_names), [b.uid for b in design.boards])
     stack.callback(frames.close)
     pub, address = start_publisher(frames, msg, host or "127.0.0.1", int(port), preexec=background)
     stack.callback(_end, pub)
     where = f"{address[0]}:{address[1]}"
     print(f"skinsafe run: view stream at {where} (Blender: Skin > Live > Attach)", file=sys.stderr)
-    if args.view_port:
+    if cfg.view_port:
         page = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", "view", where, "--port",
-                                 str(args.view_port), "--until-ended"],
+                                 str(cfg.view_port), "--until-ended"],
                                 stdout=subprocess.PIPE, text=True, preexec_fn=background)
         stack.callback(_end, page)
         line = "-"
@@ -342,13 +307,23 @@ def _end(proc) -> None:
         proc.wait()
 
 
-def run(args, feed=None, ports=None, on_moving=None) -> int:
-    """The command. In-process callers (the fault bench) may pass an existing `feed` and the `ports` of boards
-    it feeds (already running this map), and `on_moving(runtime)`, called once the robot is handed over. The
+def run(args) -> int:
+    """The command: its configuration from the command line (a bad option: one line, exit 2), then `execute`."""
+    try:
+        cfg = config(args)
+    except DesignError as e:
+        print(f"skinsafe run: {e}", file=sys.stderr)
+        return 2
+    return execute(cfg)
+
+
+def execute(cfg: RunConfig, feed=None, ports=None, on_moving=None) -> int:
+    """The run `cfg` configures. In-process callers (the fault bench) may pass an existing `feed` and the `ports` of
+    boards it feeds (already running this map), and `on_moving(runtime)`, called once the robot is handed over. The
     operator's signal handler, once installed, stays until the report and the record are complete (a second
     Ctrl-C right after a quick stop must not cut them short)."""
     with contextlib.ExitStack() as signals:
-        return _run(args, feed, ports, on_moving, signals)
+        return _run(cfg, feed, ports, on_moving, signals)
 
 
 class _Refused(Exception):
@@ -374,14 +349,14 @@ class _Parts:
     link_faults: list
 
 
-def _run(args, feed, ports, on_moving, signals: contextlib.ExitStack) -> int:
+def _run(cfg: RunConfig, feed, ports, on_moving, signals: contextlib.ExitStack) -> int:
     """Load, wire, move, report; a refusal is one line and its exit code."""
     try:
-        inject, map_path, map_hash, robot, design = _load(args)
-        rt = _scheduling(args)
+        inject, map_path, map_hash, robot, design = _load(cfg)
+        rt = _scheduling(cfg)
         with contextlib.ExitStack() as stack:
-            p = _wire(args, stack, feed, ports, inject, map_path, map_hash, robot, design)
-            outcome, injected = _move(args, stack, p, design, inject, rt, signals, on_moving)
+            p = _wire(cfg, stack, feed, ports, inject, map_path, map_hash, robot, design)
+            outcome, injected = _move(cfg, stack, p, design, inject, rt, signals, on_moving)
             p.source.close()  # the robot has stopped: the boards stop, and the reader says what any silence was
             lost, skin = p.source.frames_lost(), p.source.summary
             if p.links is not None:
@@ -400,7 +375,7 @@ def _run(args, feed, ports, on_moving, signals: contextlib.ExitStack) -> int:
     onsets = [v for k, v in injected.items() if not k.endswith("-span") and isinstance(v, float)]
     if onsets and outcome.stats:  # an injected fault: the stop is measured from its onset (what the bench times)
         outcome.stopping = p.runtime.stopping(min(onsets)) | {"onset": "injected"}
-    _report(args, p, design, outcome, injected, lost, skin, rec, teleop)
+    _report(cfg, p, design, outcome, injected, lost, skin, rec, teleop)
     return outcome.exit_code
 
 
@@ -417,15 +392,14 @@ def _teleop(command) -> dict | None:
                         f"{refused}"}
 
 
-def _load(args):
+def _load(cfg: RunConfig):
     """(injections, map path, its sha256, robot, design), or refused (2)."""
     from skinsafe.core.robot.models import load_robot
     from skinsafe.core.skin.taxel_map import load
 
     try:
-        _check(args)
-        inject = _injections(args.inject)
-        map_path = Path(args.map)
+        inject = FaultPlan(cfg.inject)
+        map_path = Path(cfg.map)
         map_hash = hashlib.sha256(map_path.read_bytes()).digest()
         robot = load_robot(load(map_path).robot, base_dir=map_path.parent)
         return inject, map_path, map_hash, robot, load(map_path, robot.body_names)
@@ -433,11 +407,11 @@ def _load(args):
         raise _Refused(2, str(e)) from None
 
 
-def _scheduling(args) -> str:
+def _scheduling(cfg: RunConfig) -> str:
     """The real-time scheduling asked for (core/realtime.py); the FR3 without it is refused (2) unless allowed."""
-    rt = realtime(args.realtime)
-    if args.robot == "fr3" and not is_realtime():
-        if not args.allow_non_realtime:
+    rt = realtime(cfg.realtime)
+    if cfg.robot == "fr3" and not is_realtime():
+        if not cfg.allow_non_realtime:
             raise _Refused(2, f"--robot fr3 needs real-time scheduling (SCHED_FIFO), and this process has {rt}: run as "
                            "a user allowed rtprio (/etc/security/limits.conf) with --realtime auto, or pass "
                            "--allow-non-realtime for a simulated robot such as franky-sim")
@@ -446,7 +420,7 @@ def _scheduling(args) -> str:
     return rt
 
 
-def _wire(args, stack, feed, ports, inject, map_path, map_hash, robot, design) -> _Parts:
+def _wire(cfg: RunConfig, stack, feed, ports, inject, map_path, map_hash, robot, design) -> _Parts:
     """Driver, command source, boards (pre-flight), stack, recorder and view, each closed by `stack`; refused with
     2 (bad input) or 3 (the pre-flight)."""
     from skinsafe.core.robot.models import only_joints
@@ -457,78 +431,79 @@ def _wire(args, stack, feed, ports, inject, map_path, map_hash, robot, design) -
 
     try:
         if feed is None:
-            feed = stack.enter_context(ForceFeed.attach(args.feed) if args.feed else
+            feed = stack.enter_context(ForceFeed.attach(cfg.feed) if cfg.feed else
                                        ForceFeed.create(None, design.n_taxels))
             if feed.n != design.n_taxels:
-                raise DesignError(f"--feed {args.feed} holds {feed.n} taxels, the map {design.n_taxels}")
-        driver = _driver(args, design, robot, feed, inject)
+                raise DesignError(f"--feed {cfg.feed} holds {feed.n} taxels, the map {design.n_taxels}")
+        driver = _driver(cfg, design, robot, feed, inject)
         stack.callback(driver.close)
         arm = only_joints(robot, driver.joint_names)  # the joints the driver moves (the FR3: not its fingers)
         try:
             limits = JointLimits.of(driver.limits())  # validated once, here
         except ValueError as e:
-            raise DesignError(f"--robot {args.robot}: {e}") from None
-        key = load_key(args.teleop_key) if args.teleop_key else None
-        command = command_source(args.command, driver.joint_names, limits, args.command_timeout, key,
-                                 args.teleop_leader)
+            raise DesignError(f"--robot {cfg.robot}: {e}") from None
+        key = load_key(cfg.teleop_key) if cfg.teleop_key else None
+        command = command_source(cfg.command, driver.joint_names, limits, cfg.command_timeout, key,
+                                 cfg.teleop_leader)
         stack.callback(command.close)
-        ports = ports or _ports(args, design, stack, feed)
+        ports = ports or _ports(cfg, design, stack, feed)
         links = None
         link_faults = [(i.kind, i.at, i.board) for i in inject.injections
                        if i.kind not in (*SIM_FAULTS, *READER_FAULTS, *SOURCE_FAULTS, *ROBOT_FAULTS)]
         if link_faults:
             from skinsafe.hardware.link_faults import DELAY_S, LinkFaults
 
-            links = stack.enter_context(LinkFaults(ports, link_faults, max(DELAY_S, 3.0 / args.rate + args.link_latency)))
+            links = stack.enter_context(LinkFaults(ports, link_faults, max(DELAY_S, 3.0 / cfg.rate + cfg.link_latency)))
             ports = links.ports
-        source = SkinSource(design, ports, args.rate, args.noise_fraction, args.max_excluded,
-                            link_latency=args.link_latency, baud=args.baud, faults=inject)
+        source = SkinSource(design, ports, cfg.rate, cfg.noise_fraction, cfg.max_excluded,
+                            link_latency=cfg.link_latency, baud=cfg.baud, faults=inject)
         stack.callback(source.close)
-        report = source.preflight(map_hash, args.tare_frames)
+        report = source.preflight(map_hash, cfg.tare_frames)
     except (DesignError, CommandError, FeedError) as e:
         raise _Refused(2, str(e)) from None
     except (PreflightRefused, BoardError) as e:
         raise _Refused(3, f"pre-flight refused: {e}") from None
     print(f"skinsafe run: pre-flight passed: {len(report['boards'])} boards run this map, tared over "
-          f"{args.tare_frames} frames; excluded {report['excluded']} taxels (dead {report['dead'][:8]}, stuck "
+          f"{cfg.tare_frames} frames; excluded {report['excluded']} taxels (dead {report['dead'][:8]}, stuck "
           f"{report['stuck'][:8]}, noisy {report['noisy'][:8]}, disabled in the map {report['disabled_in_map']})",
           file=sys.stderr)
-    params = RetractionParams(alpha=args.alpha)
+    params = RetractionParams(alpha=cfg.alpha)
     try:
-        layers = build_stack(design, arm.model, limits["qd_max"], limits["qdd_max"], driver.period_s, params, args.tdm,
+        layers = build_stack(design, arm.model, limits["qd_max"], limits["qdd_max"], driver.period_s, params, cfg.tdm,
                              faults=inject)
     except (ValueError, OSError) as e:
         raise _Refused(2, f"--tdm: {e}") from None
     warm_up(layers, arm.home, design.taxels.thresholds["force"], driver.period_s)
-    seconds = args.seconds or (command.duration + 1.0 if isinstance(command, Trajectory) else None)
+    seconds = cfg.seconds or (command.duration + 1.0 if isinstance(command, Trajectory) else None)
     recorder = None
-    if args.record:
-        config = run_config(map_path, driver, limits, params, source.excluded, command.spec, args.tdm)
-        config["board_period_s"] = 1.0 / args.rate  # for the view's board health
+    if cfg.record:
+        config = run_config(map_path, driver, limits, params, source.excluded, command.spec, cfg.tdm)
+        config["run"] = cfg.to_json()  # the run's whole configuration, as given (RunConfig.from_json reads it)
+        config["board_period_s"] = 1.0 / cfg.rate  # for the view's board health
         if isinstance(command, Teleop):  # who may drive it, and with which key (its id, never its value)
-            config["teleop"] = {"leader": args.teleop_leader or "", "key": command.key.path, "key_id": command.key.key_id}
+            config["teleop"] = {"leader": cfg.teleop_leader or "", "key": command.key.path, "key_id": command.key.key_id}
         try:
-            recorder = Recorder(args.record, driver.joint_names, config)
+            recorder = Recorder(cfg.record, driver.joint_names, config)
         except OSError as e:
-            raise _Refused(2, f"--record {args.record}: {e.strerror or e}; choose a folder you can write to") from None
+            raise _Refused(2, f"--record {cfg.record}: {e.strerror or e}; choose a folder you can write to") from None
     tap = Tap()
-    if args.view:
+    if cfg.view:
         try:
-            tap = _view(args, stack, design, driver, map_path, map_hash)
+            tap = _view(cfg, stack, design, driver, map_path, map_hash)
         except (OSError, ValueError) as e:
             raise _Refused(2, f"--view: {e}") from None
     runtime = Runtime(driver, source, layers, command, source.excluded, design.taxels.thresholds["force"],
-                      recorder, tap, seconds=seconds, monitor=Monitor(args.after_contact), limiter=Limiter(limits, driver.period_s),
-                      overruns=args.overruns, faults=inject)
+                      recorder, tap, seconds=seconds, monitor=Monitor(cfg.after_contact), limiter=Limiter(limits, driver.period_s),
+                      overruns=cfg.overruns, faults=inject)
     return _Parts(driver, arm, limits, source, report, runtime, recorder, links, link_faults)
 
 
-def _move(args, stack, p: _Parts, design, inject, rt: str, signals: contextlib.ExitStack, on_moving):
+def _move(cfg: RunConfig, stack, p: _Parts, design, inject, rt: str, signals: contextlib.ExitStack, on_moving):
     """The operator's signals to the monitor, the injected faults started, the loop at its priority with no
     collector pause until the robot stops: (outcome, injected faults' onsets)."""
     runtime, driver, source = p.runtime, p.driver, p.source
-    _print_bounds(Timing(driver.period_s, 1.0 / args.rate, source.silence_s, runtime.command.stale_s,
-                         overruns=args.overruns), p.arm, design, p.limits)
+    _print_bounds(Timing(driver.period_s, 1.0 / cfg.rate, source.silence_s, runtime.command.stale_s,
+                         overruns=cfg.overruns), p.arm, design, p.limits)
     if p.links is not None:
         p.links.arm(source.silence_s)
 
@@ -544,7 +519,7 @@ def _move(args, stack, p: _Parts, design, inject, rt: str, signals: contextlib.E
               "not given: the first sender whose datagram is valid is pinned (--teleop-leader names it)") +
               f"; {INTRUDER_DATAGRAMS} datagrams refused within {INTRUDER_WINDOW_S:g} s stop the robot", file=sys.stderr)
     print(f"skinsafe run: {driver.name} robot moving under '{runtime.command.spec}' ({driver.period_s * 1e3:g} ms "
-          f"period, boards at {args.rate} Hz, {rt}); Ctrl-C stops it", file=sys.stderr, flush=True)
+          f"period, boards at {cfg.rate} Hz, {rt}); Ctrl-C stops it", file=sys.stderr, flush=True)
     inject.start()  # the hand-over: the plan's times count from now (the parts ask it)
     injected = _reader_faults(stack, inject, source, source.silence_s + 0.1)
     if on_moving is not None:
@@ -562,7 +537,7 @@ def _move(args, stack, p: _Parts, design, inject, rt: str, signals: contextlib.E
         sys.setswitchinterval(switch)
 
 
-def _report(args, p: _Parts, design, outcome, injected: dict, lost: int, skin: dict, rec: dict | None,
+def _report(cfg: RunConfig, p: _Parts, design, outcome, injected: dict, lost: int, skin: dict, rec: dict | None,
             teleop: dict | None = None) -> None:
     """The stop and the run's figures for the operator; with --stats, everything as JSON."""
     t = outcome.stats
@@ -591,7 +566,7 @@ def _report(args, p: _Parts, design, outcome, injected: dict, lost: int, skin: d
               + (f"; record {rec.get('path', rec.get('error'))}: {rec['written']} messages, the telemetry of "
                  f"{rec['dropped']} ticks dropped (every tick's joint state and command kept)"
                  if rec else ""))
-    if args.stats:
+    if cfg.stats:
         driver = p.driver
         world = getattr(driver, "stats", None)
         world = world if isinstance(world, dict) or world is None else vars(world)
@@ -602,7 +577,7 @@ def _report(args, p: _Parts, design, outcome, injected: dict, lost: int, skin: d
                "boards": len(design.boards), **t, "skin": skin, "teleop": teleop, "stopping": stop,
                "during_stop": list(outcome.during_stop),
                "world": {k: v for k, v in world.items() if k != "extra"} if world is not None else {}}
-        atomic_write(Path(args.stats), json.dumps(out, default=_plain))
+        atomic_write(Path(cfg.stats), json.dumps(out, default=_plain))
 
 
 def _print_bounds(tm: Timing, arm, design, limits: JointLimits) -> None:

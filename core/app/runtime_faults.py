@@ -232,15 +232,15 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
         for t in timers:
             t.start()
 
-    args = module_args(run_cmd, "skinsafe run", "", [str(map_path), *robot, "--boards", "emulate", "--command", command,
-                                                     "--rate", str(rate), "--link-latency", str(link_latency),
-                                                     "--allow-link-latency", "--tare-frames", "10", "--seconds", "3",
-                                                     "--record", str(record), "--stats", str(stats), *extra], "run")
+    cfg = run_cmd.config(module_args(run_cmd, "skinsafe run", "", [  # the operator's command line, as typed
+        str(map_path), *robot, "--boards", "emulate", "--command", command, "--rate", str(rate), "--link-latency",
+        str(link_latency), "--allow-link-latency", "--tare-frames", "10", "--seconds", "3", "--record", str(record),
+        "--stats", str(stats), *extra], "run"))
     err, tb = io.StringIO(), ""
     t0 = time.monotonic()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
         try:
-            code = run_cmd.run(args, feed=feed, ports=dict(ports), on_moving=moving)
+            code = run_cmd.execute(cfg, feed=feed, ports=dict(ports), on_moving=moving)
         except BaseException:
             code, tb = None, traceback.format_exc()
     stop.set()

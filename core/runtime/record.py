@@ -18,7 +18,8 @@ Topics (log time: host wall clock; header stamps: the robot's clock):
 - `/diagnostics` (diagnostic_msgs/msg/DiagnosticArray): layers (retracting, pool, flags), skin (board
   ages, frames lost), command (source age) at 10 Hz and on every change of the layers' flags; the
   watchdog's stop (level ERROR, its reason) once at the end.
-Metadata `skinsafe` holds the configuration a replay needs (map, limits, period, excluded taxels, ...).
+Metadata `skinsafe` holds the configuration a replay needs (map, limits, period, excluded taxels, ...) and, as
+`run`, the run's whole configuration as given (core/runtime/run_config.py `RunConfig.to_json`).
 
 The loop only enqueues (`put`, never blocks): a writer thread encodes and writes. When the writer is
 behind (`queue_size` ticks waiting) a tick's telemetry (its taxel forces, layers, diagnostics) is dropped

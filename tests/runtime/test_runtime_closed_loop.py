@@ -21,6 +21,7 @@ from mcap_ros2.decoder import DecoderFactory
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.runtime.leader import stream
+from skinsafe.core.runtime.run_config import RunConfig
 from skinsafe.core.skin.taxel_map import save
 
 LINK_LATENCY = 0.5  # s: the host's serial input may be this late before a board is named silent
@@ -88,6 +89,10 @@ def test_a_poke_is_retracted_and_the_record_replays_exactly(skin, tmp_path):
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["ticks"] == s["ticks"] and out["complete"] and out["max_abs_diff"] <= 1e-12
+    with open(record, "rb") as f:  # the record holds the run's configuration as given
+        config = json.loads(next(m for m in make_reader(f).iter_metadata() if m.name == "skinsafe").metadata["config"])
+    cfg = RunConfig.from_json(config["run"])
+    assert (cfg.contact, cfg.seconds, cfg.record, cfg.link_latency) == ("poke:at=0.4", 1.6, str(record), LINK_LATENCY)
 
 
 def test_a_trajectory_into_the_post_is_turned_back(skin, tmp_path):
