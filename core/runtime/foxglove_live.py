@@ -1,0 +1,83 @@
+"""`skinsafe run --foxglove [PORT]`: the run live in Foxglove, over its WebSocket protocol (foxglove-sdk's server).
+
+The same ROS 2 topics the record holds (core/runtime/ros2_topics.py, plus `/joint_states` and
+`/skinsafe/command`), CDR with their ros2msg schemas, so Foxglove's 3D panel shows the robot from
+`/robot_description` and `/tf` with the skin coloured by force. A thread of its own samples the loop's tap
+(`rate_hz`, the newest tick; the loop only stores a reference) and encodes and logs that tick's messages;
+the latched ones (the URDF, the taxel links) go out again to each new subscriber.
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+from foxglove.websocket import ServerListener
+
+from skinsafe.core.runtime.record import JointStateEncoder
+from skinsafe.core.runtime.ros2_msgs import schema
+from skinsafe.core.runtime.ros2_topics import LATCHED, TOPICS, Ros2Topics
+from skinsafe.core.runtime.tap import Tap
+
+JOINT_TOPICS = {"/joint_states": "sensor_msgs/msg/JointState", "/skinsafe/command": "sensor_msgs/msg/JointState"}
+RATE_HZ = 30.0
+
+
+class FoxgloveLive:
+    """A Foxglove WebSocket server at `host:port` (0: any free one, see `port`) fed from `tap`; `close()` ends it."""
+
+    def __init__(self, topics: Ros2Topics, joint_names: list[str], tap: Tap, port: int, host: str = "127.0.0.1",
+                 rate_hz: float = RATE_HZ):
+        import foxglove
+
+        self.topics, self.tap, self.period = topics, tap, 1.0 / rate_hz
+        self.joints = JointStateEncoder(joint_names)
+        self.context = foxglove.Context()
+        self.channels = {topic: foxglove.Channel(topic, message_encoding="cdr", context=self.context,
+                                                 schema=foxglove.Schema(name=typ, encoding="ros2msg",
+                                                                        data=schema(typ).encode()))
+                         for topic, typ in (TOPICS | JOINT_TOPICS).items()}
+        self.resend = set(LATCHED)  # latched topics a new subscriber is owed
+        self.server = foxglove.start_server(name="skinsafe", host=host, port=port, context=self.context,
+                                            server_listener=_Subscriptions(self.resend))
+        self.port = self.server.port
+        self.sent = 0
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._work, name="foxglove", daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self.thread.join()
+        self.server.stop()
+
+    def _work(self) -> None:
+        last = None
+        while not self._stop.wait(self.period):
+            if self.resend:
+                static = dict(self.topics.static())
+                while self.resend:
+                    topic = self.resend.pop()
+                    self._log(topic, static[topic])
+            k = self.tap.latest()
+            if k is None or k is last:
+                continue
+            last = k
+            for topic, data in self.topics.tick(k, every=True):
+                self._log(topic, data)
+            self._log("/joint_states", self.joints(k.t, k.q, () if k.qd is None else k.qd))
+            self._log("/skinsafe/command", self.joints(k.t, (), k.command))
+
+    def _log(self, topic: str, data: bytes) -> None:
+        self.channels[topic].log(data, log_time=time.time_ns())
+        self.sent += 1
+
+
+class _Subscriptions(ServerListener):
+    """Marks a latched topic owed when a client subscribes to it (called on the server's thread)."""
+
+    def __init__(self, owed: set):
+        self.owed = owed
+
+    def on_subscribe(self, client, channel) -> None:
+        if channel.topic in LATCHED:
+            self.owed.add(channel.topic)

@@ -1,0 +1,131 @@
+"""What a run says to ROS 2 tools and Foxglove: the robot on /tf, its skin placed and coloured by force, the
+layers' state and their faults, each tick turned into ROS 2 messages (core/runtime/ros2_msgs.py).
+
+| topic | type | when | frame |
+| --- | --- | --- | --- |
+| `/robot_description` | std_msgs/String | once (transient local) | the URDF with a link `taxel_<id>` per taxel |
+| `/tf_static` | tf2_msgs/TFMessage | once (transient local) | each `taxel_<id>` on its link (z: outward normal) |
+| `/tf` | tf2_msgs/TFMessage | every tick | each link on its parent link; the root links on `world` |
+| `/skinsafe/tactile` | tactile_msgs/TactileState | every new reading | one sensor per board (its name), values by channel (N; NaN: no taxel) |
+| `/skinsafe/skin` | sensor_msgs/PointCloud2 | `rate_hz` | `world`: x, y, z, force (N) of every taxel |
+| `/skinsafe/contacts` | sensor_msgs/PointCloud2 | `rate_hz` | `world`: x, y, z, force, priority (0 first) of the taxels the layers retract from |
+| `/skinsafe/state` | skinsafe_msgs/LayerState | `rate_hz` | danger potential, speed factor, retracting, the taxel ids retracted from, flags, stop |
+| `/rosout` | rcl_interfaces/Log | on a change of the layers' flags (WARN), on the stop (WARN) | |
+
+`world` is the MuJoCo model's world (the robot's base); stamps are the robot's clock. The rate is counted on
+the robot's clock, so a record holds the same messages however fast it was written; `every=True` (the live
+stream, which samples ticks) gives every topic of the tick.
+"""
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from skinsafe.core.robot.kinematics import body_ids
+from skinsafe.core.runtime import ros2_msgs as msgs
+from skinsafe.core.runtime.tick import Tick
+from skinsafe.core.skin.model import SkinDesign
+
+TOPICS = {"/robot_description": "std_msgs/msg/String", "/tf_static": "tf2_msgs/msg/TFMessage",
+          "/tf": "tf2_msgs/msg/TFMessage", "/skinsafe/tactile": "tactile_msgs/msg/TactileState",
+          "/skinsafe/skin": "sensor_msgs/msg/PointCloud2", "/skinsafe/contacts": "sensor_msgs/msg/PointCloud2",
+          "/skinsafe/state": "skinsafe_msgs/msg/LayerState", "/rosout": "rcl_interfaces/msg/Log"}
+LATCHED = ("/robot_description", "/tf_static")  # transient local: a late subscriber gets them
+WORLD = "world"
+SKIN_FIELDS = ("x", "y", "z", "force")
+CONTACT_FIELDS = ("x", "y", "z", "force", "priority")
+RATE_HZ = 30.0
+
+
+def _relative(qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
+    """conj(qa) * qb for quaternions (B, 4) w x y z, as x y z w: b's rotation in a's frame."""
+    w1, x1, y1, z1 = qa[:, 0], -qa[:, 1], -qa[:, 2], -qa[:, 3]
+    w2, x2, y2, z2 = qb.T
+    return np.column_stack([w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2, w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+                            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2, w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2])
+
+
+class Ros2Topics:
+    """A run's ROS 2 messages (module docstring) for the robot `model` (its qpos: the tick's q) and `design`."""
+
+    def __init__(self, model: mujoco.MjModel, design: SkinDesign, urdf: str, rate_hz: float = RATE_HZ):
+        if not rate_hz > 0:
+            raise ValueError(f"ROS 2 topics: rate {rate_hz} Hz must be positive")
+        self.model, self.data, self.urdf, self.period = model, mujoco.MjData(model), urdf, 1.0 / rate_hz
+        names = [model.body(b).name for b in range(model.nbody)]
+        self.children = names[1:]
+        self.parent_id = np.asarray(model.body_parentid[1:])
+        self.parents = [WORLD if p == 0 else names[p] for p in self.parent_id]
+        self.tf = msgs.TfEncoder(self.parents, self.children)
+        t = design.taxels
+        self.ids = np.asarray(t.ids)
+        self.body = body_ids(model, design)[t.body] if len(t) else np.zeros(0, np.int64)
+        self.local = np.asarray(t.positions, float)
+        self.taxel_parents = [names[b] for b in self.body]
+        self.taxel_quat = Rotation.from_matrix(t.frames).as_quat() if len(t) else np.zeros((0, 4))
+        self.boards = []  # (name, taxel rows, their channels, the board's vector length)
+        for b in design.boards:
+            rows = np.flatnonzero(t.board == b.id)
+            if len(rows):
+                self.boards.append((b.name, rows, np.asarray(t.channel[rows]), int(t.channel[rows].max()) + 1))
+        self.due, self.flags, self.stopped = -np.inf, (), False
+
+    def static(self, t: float = 0.0) -> list[tuple[str, bytes]]:
+        """The latched messages: the URDF and the taxel links on their links."""
+        return [("/robot_description", msgs.string_msg(self.urdf)),
+                ("/tf_static", msgs.tf_message(t, self.taxel_parents, [f"taxel_{int(i)}" for i in self.ids],
+                                               self.local, self.taxel_quat))]
+
+    def links(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each body's pose on its parent at q: translations (B, 3), rotations (B, 4) x y z w."""
+        d = self.data
+        d.qpos[:] = q
+        mujoco.mj_kinematics(self.model, d)
+        p = self.parent_id
+        R = d.xmat[p].reshape(-1, 3, 3)
+        xyz = np.einsum("bji,bj->bi", R, d.xpos[1:] - d.xpos[p])
+        return xyz, _relative(d.xquat[p], d.xquat[1:])
+
+    def taxel_positions(self) -> np.ndarray:
+        """The taxels' world positions (N, 3) at the q of the last `links`."""
+        d = self.data
+        return d.xpos[self.body] + np.einsum("nij,nj->ni", d.xmat[self.body].reshape(-1, 3, 3), self.local)
+
+    def tactile(self, force: np.ndarray) -> list[np.ndarray]:
+        """Each board's vector (by channel) of `force` (N, design order); NaN where no taxel is wired."""
+        out = []
+        for _, rows, channels, size in self.boards:
+            v = np.full(size, np.nan, np.float32)
+            v[channels] = force[rows]
+            out.append(v)
+        return out
+
+    def tick(self, k: Tick, every: bool = False) -> list[tuple[str, bytes]]:
+        """Tick k's messages (module docstring)."""
+        t = k.t
+        xyz, quat = self.links(k.q)
+        out = [("/tf", self.tf(t, xyz, quat))]
+        if k.force is not None and (k.force_new or every):
+            out.append(("/skinsafe/tactile", msgs.tactile_state(t, [b[0] for b in self.boards], self.tactile(k.force))))
+        pool = np.zeros(0, np.int64) if k.pool_taxels is None else np.asarray(k.pool_taxels, np.int64)
+        if every or t >= self.due:
+            self.due = t + self.period
+            pos = self.taxel_positions()
+            force = np.zeros(len(pos)) if k.force is None else np.nan_to_num(k.force)
+            skin = np.empty((len(pos), 4), np.float32)
+            skin[:, :3], skin[:, 3] = pos, force
+            contacts = np.empty((len(pool), 5), np.float32)
+            contacts[:, :4], contacts[:, 4] = skin[pool], np.arange(len(pool))
+            out += [("/skinsafe/skin", msgs.point_cloud(t, WORLD, SKIN_FIELDS, skin)),
+                    ("/skinsafe/contacts", msgs.point_cloud(t, WORLD, CONTACT_FIELDS, contacts)),
+                    ("/skinsafe/state", msgs.layer_state(t, k.potential, k.speed_factor, k.retracting, self.ids[pool],
+                                                         k.flags, k.stop))]
+        if k.flags != self.flags:
+            self.flags = k.flags
+            out.append(("/rosout", msgs.log(t, msgs.LOG_WARN, "skinsafe/layers",
+                                            "flags: " + (", ".join(k.flags) or "none"))))
+        if k.stop and not self.stopped:
+            self.stopped = True
+            out.append(("/rosout", msgs.log(t, msgs.LOG_WARN, "skinsafe/monitor", f"stopped: {k.stop}")))
+        return out
