@@ -2,6 +2,7 @@
 taxel), heat-map colours and the design stored in the .blend as a text datablock."""
 import json
 import random
+from dataclasses import replace
 
 import bpy
 import mujoco
@@ -12,6 +13,7 @@ from skinsafe.addon.blender_to_core import (
     TEXT_NAME,
     _designs,
     body_objects,
+    design_of,
     matrix_key,
     pose,
     robot_for,
@@ -202,15 +204,20 @@ def show_heat(scene, design, values: np.ndarray) -> None:
 
 def store_design(scene, design):
     """Keep the design, its taxel ids made stable (module id and index), in the .blend (text datablock,
-    taxel-map JSON) and in the session cache; returns what was stored."""
-    design = with_stable_ids(design)
+    taxel-map JSON) and in the session cache; returns what was stored. Its `retired_modules` keep the history:
+    every id the scene's design had (or, with none stored, every id below `next_module_id`: all were given) that
+    this one lacks, so boards and records never see an id come back meaning another module."""
+    s, old = scene.skinsafe, design_of(scene)
+    had = set(range(s.next_module_id)) if old is None else {m.id for m in old.modules} | set(old.retired_modules)
+    design = replace(with_stable_ids(design), retired_modules=tuple(sorted(
+        (had | set(design.retired_modules)) - {m.id for m in design.modules})))
     text = bpy.data.texts.get(TEXT_NAME) or bpy.data.texts.new(TEXT_NAME)
     # One value per line: Blender's text editor is quadratic in the length of a line.
     text.from_string(json.dumps(taxel_map.to_dict(design), indent=0, separators=(",", ":"), allow_nan=False))
     _new_rev(scene)
     _designs[scene.name] = (scene.skinsafe.design_rev, design)
-    s = scene.skinsafe
-    s.next_module_id = max(s.next_module_id, 1 + max((m.id for m in design.modules), default=-1))  # retired below
+    s.next_module_id = max(s.next_module_id, 1 + max([m.id for m in design.modules] + list(design.retired_modules),
+                                                     default=-1))
     return design
 
 

@@ -8,7 +8,7 @@ import bpy
 import numpy as np
 from bpy.props import StringProperty
 
-from skinsafe.addon import background
+from skinsafe.addon import background, designer
 from skinsafe.addon import blender_to_core as b2c
 from skinsafe.addon import core_to_blender as c2b
 from skinsafe.core.design.cover import cover_design, cover_report
@@ -18,19 +18,21 @@ from skinsafe.core.skin.model import DesignError, frames_from_normals
 
 def cover_inputs(scene, body: str) -> tuple:
     """What `cover_work` needs, read from the scene (Blender's thread): robot, its reference, the body, the
-    new-module template, board capacity, force threshold, the design to keep, the body's surface."""
+    new-module template, board capacity, force threshold, the design to keep, the body's surface, the first new
+    module id (`fresh_module_id`: none the design's history has used)."""
     bodies = b2c.body_objects(scene)
     if body not in bodies:
         raise DesignError(f"cover: no link selected; select a link of the robot or give body= one of {sorted(bodies)}")
     s = scene.skinsafe
     return (b2c.robot_for(scene), b2c.robot_ref(scene), body, b2c.settings_module(s.new_module, 0, "cover", body),
-            s.board_capacity, s.force_threshold, b2c.design_of(scene), b2c.surface_of(bodies[body]))
+            s.board_capacity, s.force_threshold, b2c.design_of(scene), b2c.surface_of(bodies[body]),
+            designer.fresh_module_id(scene))
 
 
-def cover_work(robot, ref, body, template, capacity, threshold, design, surface):
+def cover_work(robot, ref, body, template, capacity, threshold, design, surface, first_id):
     """The covered design (`skinsafe.core.design.cover`; no bpy: it may run in a worker thread)."""
     return cover_design(robot, ref, [body], template, board_capacity=capacity, force_threshold=threshold,
-                        keep=design, surfaces={body: surface})[0]
+                        keep=design, surfaces={body: surface}, first_id=first_id)[0]
 
 
 def keep_cover(scene, body: str, rev: int, new):

@@ -33,7 +33,7 @@ def fresh_module_id(scene, design=None) -> int:
     history (below `next_module_id`: boards and records keep ids, which must never mean another module)."""
     design = design if design is not None else b2c.design_of(scene)
     used = {o.skinsafe_module.module_id for o in b2c.module_objects(scene)}
-    used |= {m.id for m in design.modules} if design is not None else set()
+    used |= {m.id for m in design.modules} | set(design.retired_modules) if design is not None else set()
     return max(1 + max(used, default=-1), scene.skinsafe.next_module_id)
 
 
@@ -157,8 +157,8 @@ def regenerate_moved(scene, apply_scale: bool = True) -> list[str]:
 def sync(scene) -> list[str]:
     """Make the design follow the module objects after any edit: a module whose object is gone (deleted,
     undone) leaves the design; a renamed object renames its module; an object sharing its module id with
-    another (duplicated, pasted, appended) gets a fresh id and its own taxels where it is; a module object
-    without taxels in the design is placed. Returns the problems (each also in its object's `error`)."""
+    another (duplicated, pasted, appended), or holding a retired one, gets a fresh id and its own taxels where it
+    is; a module object without taxels in the design is placed. Returns the problems (each also in its object's `error`)."""
     design = b2c.design_of(scene)
     known = {m.id: m for m in design.modules} if design is not None else {}
     claims: dict[int, list] = {}
@@ -169,6 +169,8 @@ def sync(scene) -> list[str]:
         owner = _owner(group, known.get(mid))
         owners[mid] = owner
         copies += [o for o in group if o is not owner]
+    retired = set(design.retired_modules) if design is not None else set()
+    copies += [owners.pop(mid) for mid in list(owners) if mid in retired]  # e.g. appended: a retired id stays so
     kept = {mid: o for mid, o in owners.items() if mid in known}
     if design is not None and (len(kept) < len(known) or any(o.name != known[mid].name for mid, o in kept.items())):
         parts = []

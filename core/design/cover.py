@@ -223,12 +223,13 @@ def cover_link(surface: Surface, home: _Home, template: Module, body: str, first
 def cover_design(robot, ref: RobotRef, bodies: list[str] | None = None, template: Module = COVER_MODULE,
                  pitch: float | None = None, board_capacity: int = 512, force_threshold: float = 2.0,
                  limit: int | None = None, progress=None, keep: SkinDesign | None = None,
-                 surfaces: dict[str, Surface] | None = None) -> tuple[SkinDesign, dict]:
+                 surfaces: dict[str, Surface] | None = None, first_id: int = 0) -> tuple[SkinDesign, dict]:
     """A skin covering `bodies` (default: every moving link with a real surface, the whole arm) of
     `robot` with copies of `template` (at `pitch` if given, the taxel diameter and margin scaled
     with it), around the modules of `keep` (kept, numbered first, never overlapped), on
-    `surfaces` (default: the links' design surfaces, `cached_surfaces`). Returns the design and,
-    per link, the refused attempts by reason."""
+    `surfaces` (default: the links' design surfaces, `cached_surfaces`). New modules take ids from `first_id` on,
+    above every id `keep` has used (its retired ones too: an id never comes back meaning another module). Returns
+    the design and, per link, the refused attempts by reason."""
     if template.template not in ("rect", "strip"):
         raise DesignError(f"cover: a '{template.template}' module cannot be tiled; use rect or strip")
     if pitch is not None:
@@ -249,7 +250,7 @@ def cover_design(robot, ref: RobotRef, bodies: list[str] | None = None, template
         rot = lambda b: home.data.xmat[robot.model.body(b).id].reshape(3, 3)  # noqa: E731
         home.add(np.concatenate([home.world(p.module.body, p.positions) for p in kept]),
                  np.concatenate([p.frames[:, :, 2] @ rot(p.module.body).T for p in kept]))
-    first = 1 + max([p.module.id for p in kept], default=-1)
+    first = max(first_id, 1 + max([p.module.id for p in kept] + list(keep.retired_modules if keep else ()), default=-1))
     placed, refused = [], {}
     for b in bodies:
         left = None if limit is None else limit - sum(len(p) for p in kept + placed)
@@ -263,7 +264,7 @@ def cover_design(robot, ref: RobotRef, bodies: list[str] | None = None, template
     order = list(keep.bodies) if keep is not None else []
     order += [b for b in bodies if b not in order and any(p.module.body == b for p in placed)]
     design = build_design(ref, kept + placed, board_capacity, force_threshold, bodies=order)
-    return design, refused
+    return replace(design, retired_modules=keep.retired_modules if keep else ()), refused
 
 
 def cover_report(design: SkinDesign, model: mujoco.MjModel, home: np.ndarray) -> dict:

@@ -137,6 +137,7 @@ class SkinDesign:
     boards: list[Board]
     taxels: Taxels
     coverage: dict = field(default_factory=dict)  # per-body report, filled by the designer
+    retired_modules: tuple = ()  # ids of modules this design once had: never given to another module
 
     @property
     def n_taxels(self) -> int:
@@ -205,6 +206,15 @@ def validate_design(d: SkinDesign, source: str = "design", robot_bodies: set[str
                 _fail(source, f"module {m.id} '{m.name}'", "body", f"'{m.body}' does not exist in the robot",
                       f"use one of {sorted(robot_bodies)}")
     _check_ids(source, "module", [m.id for m in d.modules])
+    retired = [i for i in d.retired_modules if not isinstance(i, int) or isinstance(i, bool) or i < 0]
+    if retired:
+        _fail(source, "retired_modules", "id", f"{retired[0]!r} is not a non-negative whole number",
+              "list the ids of deleted modules")
+    reused = sorted({m.id for m in d.modules} & set(d.retired_modules))
+    if reused:
+        m = next(m for m in d.modules if m.id == reused[0])
+        _fail(source, f"module {m.id} '{m.name}'", "id", "is retired (a deleted module had it: boards and records "
+              "hold it)", "give the module a new id, above every id in 'retired_modules'")
     _check_ids(source, "board", [b.id for b in d.boards])
     _check_ids(source, "board uid", [b.uid for b in d.boards])
     module_ids = {m.id for m in d.modules}

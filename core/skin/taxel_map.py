@@ -30,7 +30,8 @@ FORMAT = "skinsafe.taxel_map"
 
 
 def to_dict(design: SkinDesign) -> dict:
-    """The JSON-ready dictionary of a design."""
+    """The JSON-ready dictionary of a design (`retired_modules` only where a module was deleted: a map without
+    one reads the same bytes as before the field)."""
     t = design.taxels
     taxels = {name: getattr(t, name).tolist() for name in ARRAY_FIELDS}
     taxels["frames"] = t.frames.reshape(len(t), 9).tolist()
@@ -44,7 +45,7 @@ def to_dict(design: SkinDesign) -> dict:
         "modules": [asdict(m) for m in design.modules],
         "taxels": taxels,
         "coverage": design.coverage,
-    }
+    } | ({"retired_modules": sorted(design.retired_modules)} if design.retired_modules else {})
 
 
 def dumps(design: SkinDesign) -> str:
@@ -95,7 +96,10 @@ def from_dict(raw: dict, src: str = "taxel map", robot_bodies: set[str] | None =
     bodies = raw["bodies"]
     if not isinstance(bodies, list) or not all(isinstance(b, str) for b in bodies):
         raise DesignError(f"{src}: field 'bodies' must be a list of body names")
-    design = SkinDesign(robot, bodies, modules, boards, taxels, raw.get("coverage", {}))
+    retired = raw.get("retired_modules", [])
+    if not isinstance(retired, list):
+        raise DesignError(f"{src}: field 'retired_modules' must be a list of module ids")
+    design = SkinDesign(robot, bodies, modules, boards, taxels, raw.get("coverage", {}), tuple(retired))
     design.validate(src, robot_bodies)
     return converted(design, src)
 

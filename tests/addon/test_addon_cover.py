@@ -30,11 +30,18 @@ def test_cover_link_fills_around_a_placed_module(scene):
     assert bpy.ops.skinsafe.place_module(body="forearm_link", anchor=(-0.2, 0.0, E + 0.04), direction=(-1, 0, 0),
                                          use_cursor=False) == {"FINISHED"}
     first = b2c.design_of(scene)
+    assert bpy.ops.skinsafe.place_module(body="upper_arm_link", anchor=(-0.2, 0.0, 0.19585), direction=(-1, 0, 0),
+                                         use_cursor=False) == {"FINISHED"}
+    for o in scene.objects:
+        o.select_set(o.skinsafe_module.module_id == 1)
+    assert bpy.ops.object.delete() == {"FINISHED"}  # module 1 placed and deleted: its id is retired
+    bpy.context.view_layer.update()
     _settings()
     assert bpy.ops.skinsafe.cover_link(body="forearm_link") == {"FINISHED"}
     design = b2c.design_of(scene)
-    # the hand-placed module is kept as it was, numbered first; every new module has its object
+    # the hand-placed module is kept as it was, numbered first; every new module has its object and a new id
     np.testing.assert_array_equal(design.taxels.positions[design.taxels.module == 0], first.taxels.positions)
+    assert design.retired_modules == (1,) and sorted(m.id for m in design.modules)[:2] == [0, 2]
     objects = b2c.module_objects(scene)
     assert sorted(o.skinsafe_module.module_id for o in objects) == sorted(m.id for m in design.modules)
     assert {o.name for o in objects} == {m.name for m in design.modules}

@@ -1,5 +1,6 @@
 """The taxel map file: exact round trip, validation naming file/item/field, atomic saves."""
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -61,6 +62,9 @@ def test_round_trip_is_exact(design, saved):
     (lambda r: r["taxels"]["thresholds"].update(smell=[1.0]), "thresholds.smell"),
     (lambda r: r["taxels"]["enabled"].__setitem__(0, 1), "field 'enabled'"),
     (lambda r: r.pop("boards"), "field 'boards' is missing"),
+    (lambda r: r.update(retired_modules=[0]), "module 0 'upper_arm_link_m0': field 'id' is retired"),
+    (lambda r: r.update(retired_modules=[2.5]), "retired_modules: field 'id' 2.5 is not"),
+    (lambda r: r.update(retired_modules=7), "field 'retired_modules' must be a list"),
 ])
 def test_invalid_maps_name_file_item_and_field(saved, tmp_path, mutate, expect):
     _, raw = saved
@@ -69,6 +73,17 @@ def test_invalid_maps_name_file_item_and_field(saved, tmp_path, mutate, expect):
     with pytest.raises(DesignError) as e:
         taxel_map.load(bad)
     assert str(bad) in str(e.value) and expect in str(e.value)
+
+
+def test_retired_module_ids_are_kept_in_the_map(design, saved, tmp_path):
+    """A design's deleted module ids are written and read back, so no later module takes one; a map without any
+    has no such field (its bytes as before)."""
+    path, raw = saved
+    assert "retired_modules" not in raw
+    spent = replace(design, retired_modules=(90, 91))
+    again = taxel_map.save(spent, tmp_path / "spent.json")
+    assert json.loads(again.read_text())["retired_modules"] == [90, 91]
+    assert taxel_map.load(again).retired_modules == (90, 91)
 
 
 def test_unknown_body_in_robot_is_refused(saved, tmp_path):
