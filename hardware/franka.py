@@ -104,7 +104,8 @@ class FrankaDriver:
         loop would see a faulty robot's states (ROBOT_FAULTS): from `robot-freeze` on the state stops updating (the
         read count still counts), `robot-clock-back` its clock goes back CLOCK_BACK_S once, `robot-nan` its first
         joint position reads NaN, `robot-overrun` its clock advances OVERRUN_STEP periods a state (states missed),
-        `robot-die` the driver stops talking to the robot (no ramp: the robot's own stop ends the motion)."""
+        `robot-die` the driver stops talking to the robot (no ramp: the robot's own stop ends the motion, watched on
+        the robot's state stream until the arm rests: `_observe`)."""
         import pylibfranka as pf
 
         self._pf = pf
@@ -188,9 +189,11 @@ class FrankaDriver:
                                 rs.control_command_success_rate)
             if self.faults is not None:
                 if self.faults.due("robot-die"):
-                    report("driver", "fr3: the driver stopped talking to the robot (injected)",
-                           self.faults.onsets["robot-die"], False)
-                    return self._end("fr3: the driver stopped talking to the robot (injected)", True, report)
+                    died = "fr3: the driver stopped talking to the robot (injected)"
+                    report("driver", died, self.faults.onsets["robot-die"], False)
+                    died = self._end(died, True, report)
+                    self._observe(seq, on_sent)
+                    return died
                 state = self._faulty(state)
             reason = self._reason
             if reason is None:
@@ -261,6 +264,25 @@ class FrankaDriver:
         report("driver", f"fr3: the stop's ramp did not bring the arm to rest in {RAMP_MAX_S:g} s (fastest joint "
                f"{self.stats.get('rest_qd', float('nan')):.3f} rad/s)", time.monotonic(), True)
         return self._end(f"{reason}; the ramp to zero did not finish in {RAMP_MAX_S} s", True, report)
+
+    def _observe(self, seq: int, on_sent) -> None:
+        """After the driver stopped talking (`robot-die`): the robot's own stop, watched from its state stream
+        (`read_once`, no command) until every joint is below REST_QD, for at most RAMP_MAX_S; each state goes to
+        `on_sent(state, None)` (nothing sent). `stats["rest_observed"]`: the arm was seen at rest; a state stream
+        that fails ends the watch (the rest then unknown)."""
+        self.stats["rest_observed"] = False
+        for _ in range(int(RAMP_MAX_S / PERIOD_S)):
+            try:
+                rs = self._robot.read_once()
+            except Exception:  # noqa: BLE001 - a robot gone entirely: the rest is unknown, and named so by the caller
+                return
+            seq += 1
+            state = FrankaState(rs.time.to_sec(), np.array(rs.q), np.array(rs.dq), seq, np.zeros(7),
+                                rs.control_command_success_rate)
+            on_sent(state, None)
+            if np.abs(state.qd).max() < REST_QD:
+                self.stats["rest_observed"] = True
+                return
 
     def _end(self, reason: str, motion_open: bool, report=None) -> str:
         """The robot's own stop after every motion (it ends one still open); its failure is named, and reported as a

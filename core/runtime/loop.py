@@ -301,11 +301,15 @@ class Runtime:
 
     def _on_sent(self, state, command) -> None:
         """The driver's `sent`: a command of the stop (the zero, the ramp, the hold) with the state it went out on,
-        for the tap and the record (the stack not ticked), and the arm's state kept until it rests."""
+        for the tap and the record (the stack not ticked), and the arm's state kept until it rests. `command` None:
+        nothing was sent (the driver lost the robot's command link and watches its own stop): recorded as the last
+        command sent, flagged `nothing-sent`."""
         self._keep(time.monotonic(), state)
-        self._sent = np.array(command, float)
+        if command is not None:
+            self._sent = np.array(command, float)
         r = self._state[1] if self._state is not None else None
-        self._publish_stop(state, r, self._sent, ("stop",))
+        last = self._sent if self._sent is not None else np.zeros(len(state.q))
+        self._publish_stop(state, r, last, ("stop",) if command is not None else ("stop", "nothing-sent"))
 
     def _publish_stop(self, state, r, command: np.ndarray, flags: tuple) -> None:
         self._stopped = True

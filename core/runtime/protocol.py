@@ -10,7 +10,9 @@ monitor Kind value, onset host time.monotonic()) before it stops, so the runtime
 and names the stop (core/runtime/monitor.py); a failure of the stop itself (its ramp, the robot's
 stop, the link lost meanwhile) is reported with `during_stop` True. Every command the stop sends (the
 zero, a ramp, the hold until the arm rests) goes to `sent(state, command)` with the state it was sent
-on: the record holds what was sent, and the arm's state until it rests.
+on: the record holds what was sent, and the arm's state until it rests. A driver that lost the robot's command link
+but still reads its states passes them as `sent(state, None)` (nothing sent) while the robot's own stop brings
+the arm to rest.
 
 `ReadingsSource`: `hardware/skin_source.py` (boards over serial). `newest()` never waits on I/O.
 """

@@ -15,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader
 
+from skinsafe.core.runtime.fault_plan import FaultPlan, Injection
 from skinsafe.core.runtime.limiter import JointLimits, Limiter, limits_config
 from skinsafe.core.runtime.loop import Runtime
 from skinsafe.core.runtime.record import Recorder
@@ -86,6 +87,12 @@ class Scripted:
     def stop(self):
         self.stopped += 1
 
+    def read_once(self):
+        """The state stream outside a motion: after `stop`, the robot's own stop brakes every joint at 10 rad/s^2."""
+        if self.stopped:
+            self.dq = np.sign(self.dq) * np.maximum(np.abs(self.dq) - 10.0 * 1e-3, 0.0)
+        return self.readOnce()[0]
+
 
 class Swing:
     """The command source: the base joint at 0.3 rad/s."""
@@ -135,8 +142,8 @@ class Kept:
         self.ticks.append(tick)
 
 
-def fr3_runtime(robot, seconds=None):
-    drv = FrankaDriver("scripted", realtime=False, rate_limited=False, robot=robot)
+def fr3_runtime(robot, seconds=None, faults=None):
+    drv = FrankaDriver("scripted", realtime=False, rate_limited=False, robot=robot, faults=faults)
     rec = Kept()
     rt = Runtime(drv, Source(), Layers(), Swing(), np.zeros(1, bool), np.ones(1), rec, seconds=seconds,
                  limiter=Limiter(limits_config(drv.limits()), drv.period_s))
@@ -171,6 +178,27 @@ def test_a_ramp_that_never_brings_the_arm_to_rest_changes_the_exit_code():
     assert out.kind == "end" and out.exit_code == 4, out
     assert "while stopping: fr3: the stop's ramp did not bring the arm to rest" in out.reason
     assert out.during_stop and out.stopping["stop_time_ms"] is None and "not at rest" in out.stopping["why"]
+
+
+def test_a_driver_that_lost_the_robot_records_its_own_stop_to_rest():
+    """The FR3 driver stops talking to the robot (robot-die) while the base swings at 0.3 rad/s: nothing more is
+    sent; the robot's own stop (braking at 10 rad/s^2 here) is watched on its state stream and recorded until the arm
+    rests (flagged nothing-sent, the last command sent), and the stop measured from the fault's onset."""
+    robot = Scripted()
+    plan = FaultPlan((Injection("robot-die", 0.2),))
+    rt, rec = fr3_runtime(robot, faults=plan)
+    plan.start()
+    out = rt.run(settle_s=0.0)
+    assert out.watchdog == "driver" and out.exit_code == 1 and "stopped talking" in out.reason, out.reason
+    assert out.onset_mono == plan.onsets["robot-die"] and robot.stopped == 1 and rt.driver.stats["rest_observed"]
+    after = [k for k in rec.ticks if not k.ticked]
+    # 0.3 rad/s less 0.01 a state until below 0.02: 28 states
+    assert len(after) == 28 and all(k.flags == ("stop", "nothing-sent") for k in after)
+    np.testing.assert_array_equal(after[-1].command, robot.written[-1][0])  # what was last sent, nothing since
+    assert len(robot.written) == rt.ticks and np.abs(after[-1].qd).max() < 0.02
+    s = out.stopping
+    assert s["speed_at_onset"] == pytest.approx(0.3) and s["stop_time_ms"] == pytest.approx(28.0, abs=1.0)
+    assert len(s["q_path"]) == 29  # the onset's state, then the 28 watched
 
 
 def test_a_driver_fault_reaches_the_monitor_with_its_onset(ur5):
