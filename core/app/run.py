@@ -86,7 +86,8 @@ def add_arguments(p) -> None:
                    "(default host 127.0.0.1; another only with --teleop-key)")
     p.add_argument("--seconds", type=float, help="stop after this long on the robot's clock (default: a trajectory's "
                    "end plus 1 s; otherwise until Ctrl-C)")
-    p.add_argument("--record", metavar="FILE.mcap", help="record the run (MCAP, ROS 2 messages); `skinsafe replay` re-runs it")
+    p.add_argument("--record", metavar="DIR", help="record the run as a rosbag2 folder (ROS 2 messages in MCAP: "
+                   "`ros2 bag play DIR`, Foxglove); `skinsafe replay DIR` re-runs it")
     p.add_argument("--rate", type=int, default=RunConfig.rate, help="frames per second per board (default 100: a board is "
                    "silent after 20 ms)")
     p.add_argument("--link-latency", type=float, default=RunConfig.link_latency, metavar="S",
@@ -152,6 +153,9 @@ def add_arguments(p) -> None:
     p.add_argument("--view-port", type=int, default=RunConfig.view_port, help="--view: the web page's port (0: no page, stream only)")
     p.add_argument("--view-stream", default=RunConfig.view_stream, metavar="[HOST:]PORT",
                    help="--view: where the view stream is published (port 0: any free one)")
+    p.add_argument("--foxglove", type=int, nargs="?", const=8765, metavar="PORT",
+                   help="serve the run live to Foxglove (its WebSocket protocol, the record's ROS 2 topics) at "
+                   "ws://127.0.0.1:PORT (default 8765; 0: any free one)")
     p.add_argument("--stats", metavar="FILE.json", help="write the run's figures (loop, latency, world, stop) as JSON")
     p.epilog = "exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items())
 
@@ -185,7 +189,8 @@ def config(args) -> RunConfig:
                      teleop_leader=args.teleop_leader, tdm=args.tdm, alpha=args.alpha, after_contact=args.after_contact,
                      period=args.period, contact=args.contact, taxel_faults=_taxel_faults(args.taxel_fault),
                      inject=_injections(args.inject), overruns=args.overruns, feed=args.feed, view=args.view,
-                     view_port=args.view_port, view_stream=args.view_stream, stats=args.stats)
+                     view_port=args.view_port, view_stream=args.view_stream, foxglove=args.foxglove,
+                     stats=args.stats)
 
 
 def _taxel_faults(items: list[str]) -> tuple[tuple[int, str], ...]:
@@ -296,6 +301,14 @@ def _view(cfg: RunConfig, stack: contextlib.ExitStack, design, driver, map_path:
             raise ValueError(f"the view page did not start (exit {page.wait()})")
         print(f"skinsafe run: the view page at {line.split(' at ')[-1].strip()}", file=sys.stderr)
     return SharedTap(frames)
+
+
+def _ros2_topics(robot, arm, design):
+    """The run's ROS 2 topics (core/runtime/ros2_topics.py): `arm`'s kinematics, the URDF of `robot` with its skin."""
+    from skinsafe.core.runtime.ros2_topics import Ros2Topics
+    from skinsafe.exporters.urdf import build_urdf
+
+    return Ros2Topics(arm.model, design, build_urdf(design, robot))
 
 
 def _end(proc) -> None:
@@ -483,7 +496,7 @@ def _wire(cfg: RunConfig, stack, feed, ports, inject, map_path, map_hash, robot,
         if isinstance(command, Teleop):  # who may drive it, and with which key (its id, never its value)
             config["teleop"] = {"leader": cfg.teleop_leader or "", "key": command.key.path, "key_id": command.key.key_id}
         try:
-            recorder = Recorder(cfg.record, driver.joint_names, config)
+            recorder = Recorder(cfg.record, driver.joint_names, config, topics=_ros2_topics(robot, arm, design))
         except OSError as e:
             raise _Refused(2, f"--record {cfg.record}: {e.strerror or e}; choose a folder you can write to") from None
     tap = Tap()
@@ -492,6 +505,16 @@ def _wire(cfg: RunConfig, stack, feed, ports, inject, map_path, map_hash, robot,
             tap = _view(cfg, stack, design, driver, map_path, map_hash)
         except (OSError, ValueError) as e:
             raise _Refused(2, f"--view: {e}") from None
+    if cfg.foxglove is not None:
+        from skinsafe.core.runtime.foxglove_live import FoxgloveLive
+
+        try:
+            live = FoxgloveLive(_ros2_topics(robot, arm, design), driver.joint_names, tap, cfg.foxglove)
+        except RuntimeError as e:  # foxglove-sdk: the port taken
+            raise _Refused(2, f"--foxglove {cfg.foxglove}: {e}; choose a free port (0: any)") from None
+        stack.callback(live.close)
+        print(f"skinsafe run: Foxglove at ws://127.0.0.1:{live.port} (Foxglove: Open connection > Foxglove "
+              "WebSocket; layout docs/run/skinsafe.foxglove.json)", file=sys.stderr)
     runtime = Runtime(driver, source, layers, command, source.excluded, design.taxels.thresholds["force"],
                       recorder, tap, seconds=seconds, monitor=Monitor(cfg.after_contact), limiter=Limiter(limits, driver.period_s),
                       overruns=cfg.overruns, faults=inject)

@@ -18,6 +18,11 @@ Topics (log time: host wall clock; header stamps: the robot's clock):
 - `/diagnostics` (diagnostic_msgs/msg/DiagnosticArray): layers (retracting, pool, flags), skin (board
   ages, frames lost), command (source age) at 10 Hz and on every change of the layers' flags; the
   watchdog's stop (level ERROR, its reason) once at the end.
+With `topics` (`skinsafe run --record DIR`, record version 2) the record is a rosbag2 folder a ROS 2 user plays
+(core/runtime/rosbag2.py: DIR/metadata.yaml beside DIR/DIR_0.mcap) and it also holds the ROS 2 tools' topics
+(core/runtime/ros2_topics.py: `/robot_description`, `/tf_static`, `/tf`, `/skinsafe/tactile`, `/skinsafe/skin`,
+`/skinsafe/contacts`, `/skinsafe/state`, `/rosout`), telemetry like the forces; without (an experiment's
+record, core/runtime/sim_record.py) a bare FILE.mcap (the layout of version 1).
 Metadata `skinsafe` holds the configuration a replay needs (map, limits, period, excluded taxels, ...) and, as
 `run`, the run's whole configuration as given (core/runtime/run_config.py `RunConfig.to_json`).
 
@@ -29,13 +34,14 @@ every tick, the stop's and the ramp's after it included, is in the record.
 Messages are CDR-encoded here (`JointStateEncoder`, `encode_float64_array`, `encode_diagnostics`:
 byte-equal to mcap-ros2-support's encoder, tested; that one writes arrays one element at a time,
 milliseconds for 4,096 floats where numpy takes microseconds) and written with `mcap`'s writer
-(ros2 profile, LZ4 chunks). The file is written as FILE.part and renamed when complete.
+(ros2 profile, LZ4 chunks). The file (the folder) is written as FILE.part and renamed when complete.
 """
 from __future__ import annotations
 
 import json
 import os
 import queue
+import shutil
 import struct
 import threading
 import time
@@ -45,6 +51,10 @@ import numpy as np
 from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
+from skinsafe.core.runtime import rosbag2
+from skinsafe.core.runtime.ros2_msgs import schema
+from skinsafe.core.runtime.ros2_topics import LATCHED, Ros2Topics
+from skinsafe.core.runtime.ros2_topics import TOPICS as ROS2_TOPICS
 from skinsafe.core.runtime.tick import Tick
 
 TIME = "================================================================================\nMSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n"
@@ -149,16 +159,28 @@ def encode_diagnostics(t: float, status: list) -> bytes:
 class Recorder:
     """A writer thread behind a bounded queue (module docstring)."""
 
-    def __init__(self, path: str | Path, joint_names: list[str], config: dict, queue_size: int = 8192):
+    def __init__(self, path: str | Path, joint_names: list[str], config: dict, queue_size: int = 8192,
+                 topics: Ros2Topics | None = None):
         self.path = Path(path)
         self.part = self.path.with_name(self.path.name + ".part")
-        self.file = open(self.part, "wb")
+        self.topics = topics
+        if topics is not None:  # a rosbag2 folder (module docstring)
+            if self.path.is_dir() and not (self.path / rosbag2.METADATA).exists():
+                raise FileExistsError(f"{self.path} is a folder but not a record; choose a new folder for the record")
+            self.part.mkdir(exist_ok=True)
+            config = config | {"record_version": rosbag2.RECORD_VERSION}
+        self.file = open(self.part / rosbag2.mcap_name(self.path) if topics else self.part, "wb")
         self.writer = Writer(self.file, compression=CompressionType.LZ4)
         self.writer.start(profile=Profile.ROS2, library="skinsafe")
         self.schemas = {name: self.writer.register_schema(name, SchemaEncoding.ROS2, text.encode())
                         for name, text in SCHEMAS.items()}
-        self.channels = {topic: self.writer.register_channel(topic, MessageEncoding.CDR, self.schemas[name])
-                         for topic, name in TOPICS.items()}
+        self.types = dict(TOPICS) | (ROS2_TOPICS if topics else {})
+        for name in set(self.types.values()) - set(self.schemas):
+            self.schemas[name] = self.writer.register_schema(name, SchemaEncoding.ROS2, schema(name).encode())
+        self.channels = {topic: self.writer.register_channel(topic, MessageEncoding.CDR, self.schemas[name],
+                                                             {"offered_qos_profiles": rosbag2.qos_text(topic in LATCHED)})
+                         for topic, name in self.types.items()}
+        self.counts = dict.fromkeys(self.types, 0)
         self.writer.add_metadata("skinsafe", {"config": json.dumps(config)})
         self.joints = JointStateEncoder(joint_names)
         self.names = list(joint_names)
@@ -166,6 +188,9 @@ class Recorder:
         self.queue_size = queue_size
         self.dropped = self.written = 0
         self.error = ""
+        self.first_ns = self.last_ns = time.time_ns()
+        for topic, data in topics.static() if topics else ():
+            self._raw(topic, data, self.first_ns)
         self._diag_t = -np.inf
         self._flags = ()
         self.thread = threading.Thread(target=self._work, name="recorder", daemon=True)
@@ -194,6 +219,13 @@ class Recorder:
         self.file.close()
         if self.error:
             return {"written": self.written, "dropped": self.dropped, "error": self.error}
+        if self.topics is not None:
+            rosbag2.write_metadata(self.part, rosbag2.mcap_name(self.path), self.types, self.counts, LATCHED,
+                                   self.first_ns, self.last_ns)
+            if self.path.is_dir():  # an earlier record (its metadata.yaml checked when this one began)
+                shutil.rmtree(self.path)
+            elif self.path.exists():
+                self.path.unlink()
         os.replace(self.part, self.path)
         return {"written": self.written, "dropped": self.dropped, "path": str(self.path)}
 
@@ -218,6 +250,8 @@ class Recorder:
     def _raw(self, topic: str, data: bytes, ns: int) -> None:
         self.writer.add_message(self.channels[topic], log_time=ns, data=data, publish_time=ns, sequence=self.written)
         self.written += 1
+        self.counts[topic] += 1
+        self.last_ns = max(self.last_ns, ns)
 
     def _safety(self, k: Tick) -> None:
         """A tick's safety topics (module docstring)."""
@@ -240,6 +274,7 @@ class Recorder:
             if OBSTACLES not in self.channels:
                 self.channels[OBSTACLES] = self.writer.register_channel(
                     OBSTACLES, MessageEncoding.CDR, self.schemas["std_msgs/msg/Float64MultiArray"])
+                self.types[OBSTACLES], self.counts[OBSTACLES] = "std_msgs/msg/Float64MultiArray", 0
             self._raw(OBSTACLES, encode_float64_array(np.ravel(k.obstacles)), ns)
         self._raw("/skinsafe/tick", encode_float64_array(
             np.array([t, k.dt, k.reading_seq, k.index, float(k.ticked)], float)), ns)
@@ -248,6 +283,8 @@ class Recorder:
         layers[:4] = k.potential, k.speed_factor, float(k.retracting), len(pool)
         layers[4:] = pool
         self._raw("/skinsafe/layers", encode_float64_array(layers), ns)
+        for topic, data in self.topics.tick(k) if self.topics else ():
+            self._raw(topic, data, ns)
         if k.flags != self._flags or t - self._diag_t >= DIAG_EVERY_S:
             self._flags, self._diag_t = k.flags, t
             layers = [("retracting", str(k.retracting)), ("pool", str(k.pool)), ("flags", ",".join(k.flags))]

@@ -1,4 +1,4 @@
-"""`skinsafe replay FILE.mcap`: re-run the layers on a record's readings and states, compare the commands.
+"""`skinsafe replay DIR` (or a FILE.mcap of version 1): re-run the layers on a record's readings and states, compare the commands.
 
 The record holds everything the stack needs to repeat itself (core/runtime/record.py): its
 configuration (metadata `skinsafe`: the map and its SHA-256, the robot's limits, the period, the
@@ -22,6 +22,7 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from skinsafe.core.runtime.limiter import Limiter
+from skinsafe.core.runtime.rosbag2 import record_file
 
 
 class ReplayError(ValueError):
@@ -37,10 +38,15 @@ def decode_float64_array(data: bytes) -> np.ndarray:
     return np.frombuffer(data, "<f8", n, 20 if n else 16).copy()
 
 
+REPLAYED = ("/joint_states", "/skinsafe/command", "/skinsafe/planned", "/skinsafe/taxels", "/skinsafe/tick",
+            "/skinsafe/layers", "/skinsafe/obstacles")  # what a replay and a viewer read of a record
+
+
 def read_record(path: str | Path, diagnostics: bool = False):
-    """(config dict, iterator of (topic, message)) of a record; JointStates (and, with `diagnostics`, the
-    DiagnosticArrays) decoded by mcap-ros2-support."""
-    path = Path(path)
+    """(config dict, iterator of (topic, message)) of a record (a rosbag2 folder, or a bare .mcap of version 1:
+    core/runtime/rosbag2.py), its `REPLAYED` topics; JointStates (and, with `diagnostics`, the DiagnosticArrays)
+    decoded by mcap-ros2-support."""
+    path = record_file(path)
     try:
         f = open(path, "rb")
     except OSError as e:
@@ -59,10 +65,11 @@ def read_record(path: str | Path, diagnostics: bool = False):
     def messages():
         decoders = {}
         with f:
-            for schema, channel, msg in reader.iter_messages(log_time_order=False):
+            topics = REPLAYED + (("/diagnostics",) if diagnostics else ())
+            for schema, channel, msg in reader.iter_messages(topics=topics, log_time_order=False):
                 if channel.topic in ("/skinsafe/taxels", "/skinsafe/tick", "/skinsafe/layers"):
                     yield channel.topic, decode_float64_array(msg.data)
-                elif diagnostics or channel.topic != "/diagnostics":
+                else:
                     if schema.id not in decoders:
                         decoders[schema.id] = DecoderFactory().decoder_for(channel.message_encoding, schema)
                     yield channel.topic, decoders[schema.id](msg.data)

@@ -56,17 +56,17 @@ def qos_text(latched: bool) -> str:
 def write_metadata(folder: Path, file: str, topics: dict[str, str], counts: dict[str, int], latched,
                    start_ns: int, end_ns: int) -> Path:
     """`folder/metadata.yaml` for `file` holding `topics` ({name: type}) with `counts` messages each."""
-    span = {"nanoseconds": max(0, end_ns - start_ns)}
-    start = {"nanoseconds_since_epoch": start_ns}
+    span = lambda: {"nanoseconds": max(0, end_ns - start_ns)}  # noqa: E731 (a new dict each: YAML without anchors)
+    start = lambda: {"nanoseconds_since_epoch": start_ns}  # noqa: E731
     total = sum(counts.values())
-    info = {"version": 9, "storage_identifier": "mcap", "relative_file_paths": [file], "duration": span,
-            "starting_time": start, "message_count": total,
+    info = {"version": 9, "storage_identifier": "mcap", "relative_file_paths": [file], "duration": span(),
+            "starting_time": start(), "message_count": total,
             "topics_with_message_count": [
                 {"topic_metadata": {"name": name, "type": typ, "serialization_format": "cdr",
                                     "offered_qos_profiles": qos(name in latched), "type_description_hash": type_hash(typ)},
                  "message_count": counts.get(name, 0)} for name, typ in topics.items()],
             "compression_format": "", "compression_mode": "",
-            "files": [{"path": file, "starting_time": start, "duration": span, "message_count": total}],
+            "files": [{"path": file, "starting_time": start(), "duration": span(), "message_count": total}],
             "custom_data": {"skinsafe_record_version": str(RECORD_VERSION)}, "ros_distro": "jazzy"}
     path = Path(folder) / METADATA
     path.write_text(_yaml({"rosbag2_bagfile_information": info}))

@@ -58,6 +58,7 @@ class RunConfig:
     view: bool = False
     view_port: int = 8080
     view_stream: str = f"127.0.0.1:{DEFAULT_PORT}"
+    foxglove: int | None = None  # the Foxglove WebSocket server's port (0: any free one); None: none
     stats: str | None = None
 
     def __post_init__(self):
@@ -100,6 +101,8 @@ class RunConfig:
             return f"--command-timeout {self.command_timeout}: give a positive time, s"
         if self.after_contact not in AFTER_CONTACT:
             return f"--after-contact {self.after_contact}: give one of {', '.join(AFTER_CONTACT)}"
+        if self.foxglove is not None and not 0 <= self.foxglove <= 65535:
+            return f"--foxglove {self.foxglove}: give a TCP port, 0..65535 (0: any free one), e.g. 8765"
         if self.boards != ("emulate",) and "emulate" in self.boards:
             return "--boards: give 'emulate' alone or serial ports"
         return self._robot_problem()
