@@ -1,5 +1,5 @@
 """Live link (View3D > N > Skin > Live): colour the designed taxels by what the skin feels, on the robot in
-the viewport, from a running `skinsafe run --view` (its view stream, HOST:PORT) or a record (FILE.mcap).
+the viewport, from a running `skinsafe run --view` (its view stream, HOST:PORT) or a record (a `run --record` folder, or FILE.mcap).
 
 Each module mesh gets a colour attribute `live` (one colour per taxel face, on the web page's scale:
 core/runtime/view_scale.py; grey: no reading, or a taxel the source does not have), matched by taxel id,
@@ -21,6 +21,7 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty, FloatProperty, StringProperty
 
+from skinsafe.core.runtime.rosbag2 import is_record
 from skinsafe.core.runtime.view_scale import colours, default_vmax
 from skinsafe.core.runtime.view_stream import StreamError, ViewClient
 
@@ -36,7 +37,7 @@ class _Link:
 
     def __init__(self, source: str):
         self.source, self.client, self.record = source, None, None
-        if source.endswith(".mcap"):
+        if is_record(source):
             from skinsafe.core.runtime.recording import Recording
             from skinsafe.core.skin.taxel_map import load
 
@@ -333,7 +334,7 @@ class SKINSAFE_OT_live_attach(bpy.types.Operator):
         lv = context.window_manager.skinsafe_live
         src = self.source or lv.source
         try:
-            msg = attach(context.scene, bpy.path.abspath(src) if src.endswith(".mcap") else src)
+            msg = attach(context.scene, bpy.path.abspath(src) if is_record(bpy.path.abspath(src)) else src)
         except (StreamError, ValueError, OSError) as e:
             lv.status = str(e)
             self.report({"ERROR"}, str(e))

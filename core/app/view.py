@@ -22,13 +22,14 @@ import numpy as np
 
 from skinsafe.core.runtime.recording import Recording
 from skinsafe.core.runtime.replay import ReplayError
+from skinsafe.core.runtime.rosbag2 import is_record
 from skinsafe.core.runtime.tap import Tap
 from skinsafe.core.runtime.view_stream import DEFAULT_PORT, StreamError, ViewClient, ViewPublisher, hello
 
 
 def add_arguments(p) -> None:
     p.add_argument("source", nargs="?", help="HOST:PORT of a live view stream (`skinsafe run --view`), or a record "
-                   "FILE.mcap")
+                   "folder (`skinsafe run --record DIR`) or FILE.mcap")
     p.add_argument("--host", default="127.0.0.1", help="address the page is served on (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8080, help="the page's port (default 8080)")
     p.add_argument("--fps", type=float, default=20.0, help="page updates per second at most (live; default 20)")
@@ -247,7 +248,7 @@ def run(args) -> int:
             args.source = _collaboration_record(args)
         if not args.source:
             raise ValueError("give HOST:PORT, a record FILE.mcap, --tracking RESULT.json or --collaboration RESULT.json")
-        if args.source.endswith(".mcap"):
+        if is_record(args.source):
             return serve_record(args, stop)
         return serve_live(args, stop)
     except (StreamError, ReplayError, ValueError, OSError) as e:

@@ -19,7 +19,7 @@ MESSAGE_DATA = 1
 
 async def collect(url: str, topics: list[str] | None, seconds: float, until: int | None = None) -> dict:
     """Connect to `url`, subscribe to `topics` (None: every advertised one), and gather what arrives for
-    `seconds` (or until each topic has `until` messages): {"channels": {topic: advertised channel},
+    `seconds` (or until each topic has `until` messages, or the server closes): {"channels": {topic: advertised channel},
     "messages": {topic: [(log time ns, payload bytes)]}}."""
     import websockets
 
@@ -29,7 +29,7 @@ async def collect(url: str, topics: list[str] | None, seconds: float, until: int
         while (left := end - time.monotonic()) > 0:
             try:
                 raw = await asyncio.wait_for(ws.recv(), left)
-            except TimeoutError:
+            except (TimeoutError, websockets.ConnectionClosed):  # the time is up, or the run ended
                 break
             if isinstance(raw, str):
                 op = json.loads(raw)

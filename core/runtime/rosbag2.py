@@ -11,10 +11,6 @@ from __future__ import annotations
 from io import StringIO
 from pathlib import Path
 
-from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
-from rosbags.rosbag2.metadata import dump_qos_v9
-from ruamel.yaml import YAML
-
 from skinsafe.core.runtime.ros2_msgs import type_hash
 
 RECORD_VERSION = 2
@@ -26,21 +22,26 @@ def mcap_name(folder: Path) -> str:
     return f"{Path(folder).name}_0.mcap"
 
 
+def is_record(source: str) -> bool:
+    """Whether a viewer's `source` names a record (a folder, or a bare .mcap) rather than a live HOST:PORT."""
+    return source.endswith(".mcap") or Path(source).is_dir()
+
+
 def record_file(path: str | Path) -> Path:
-    """The MCAP of a record: the one a folder's metadata.yaml names (version 2), or `path` itself (a bare
-    .mcap, version 1). A folder without metadata.yaml (a run still recording, or killed) names its MCAP."""
+    """The MCAP of a record: a folder's (version 2; its one .mcap, named as `mcap_name` when skinsafe wrote it), or
+    `path` itself (a bare .mcap, version 1). Read without a YAML parser: Blender's add-on reads records too."""
     path = Path(path)
     if not path.is_dir():
         return path
-    meta = path / METADATA
-    if meta.exists():
-        info = YAML(typ="safe").load(meta.read_text())["rosbag2_bagfile_information"]
-        return path / info["relative_file_paths"][0]
-    return path / mcap_name(path)
+    files = sorted(path.glob("*.mcap"))
+    return path / mcap_name(path) if path / mcap_name(path) in files or not files else files[0]
 
 
 def qos(latched: bool) -> list[dict]:
     """The QoS a topic is offered with, as rosbag2 writes it: reliable, keep last; latched ones transient local."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+    from rosbags.rosbag2.metadata import dump_qos_v9
+
     zero = QosTime(0, 0)
     q = Qos(QosHistory.KEEP_LAST, 1 if latched else 10, QosReliability.RELIABLE,
             QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE, zero, zero, QosLiveliness.AUTOMATIC,
@@ -74,6 +75,8 @@ def write_metadata(folder: Path, file: str, topics: dict[str, str], counts: dict
 
 
 def _yaml(data) -> str:
+    from ruamel.yaml import YAML  # rosbags' YAML library
+
     yaml = YAML(typ="safe")
     yaml.default_flow_style = False
     out = StringIO()

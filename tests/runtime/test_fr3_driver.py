@@ -21,6 +21,7 @@ from mcap_ros2.decoder import DecoderFactory
 
 from skinsafe.core.app.cli import main as skinsafe
 from skinsafe.core.bench.runtime import write_still, write_waypoints
+from skinsafe.core.runtime.rosbag2 import record_file
 from skinsafe.core.sim.franky_world import INITIAL_Q, MISSED_LIMIT, WorldProcess, franky_python, hand_in_reach
 from skinsafe.core.skin import taxel_map
 from skinsafe.hardware import franka
@@ -60,7 +61,7 @@ def run_fr3(fr3_map, world, tmp_path, seconds, when_moving=None, swing=False):
     asked then ramps a free arm to rest (one asked in the hand's push would measure the hand)."""
     still = (write_waypoints(tmp_path / "swing.csv", franka.JOINT_NAMES, (0.0, 2.0), (INITIAL_Q, INITIAL_Q + 0.4 * np.eye(7)[0]))
              if swing else write_still(tmp_path / "still.csv", franka.JOINT_NAMES, INITIAL_Q))
-    stats, record = tmp_path / "stats.json", tmp_path / "run.mcap"
+    stats, record = tmp_path / "stats.json", tmp_path / "run"
     args = ["run", fr3_map, "--robot", "fr3", "--host", world.host, "--boards", "emulate", "--feed", world.feed,
             "--command", f"trajectory:{still}", "--seconds", seconds, "--link-latency", LINK_LATENCY, "--allow-link-latency", "--allow-non-realtime",
             "--tare-frames", 20, "--record", record, "--stats", stats,
@@ -75,7 +76,7 @@ def topics(record):
     """topic -> [(the robot's clock at its tick, message)] of a record, decoded by mcap-ros2-support (the ROS 2
     reader); a tick's messages share their log time, its joint state holds the robot's clock."""
     out, clock = {}, {}
-    with open(record, "rb") as f:
+    with open(record_file(record), "rb") as f:
         for _, channel, raw, m in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
                 log_time_order=False):
             if channel.topic == "/joint_states":

@@ -21,6 +21,8 @@ from mcap_ros2.decoder import DecoderFactory
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.runtime.leader import stream
+from skinsafe.core.runtime.ros2_topics import TOPICS as ROS2_TOPICS
+from skinsafe.core.runtime.rosbag2 import record_file
 from skinsafe.core.runtime.run_config import RunConfig
 from skinsafe.core.skin.taxel_map import save
 
@@ -28,7 +30,7 @@ LINK_LATENCY = 0.5  # s: the host's serial input may be this late before a board
 # SCHED_FIFO loop pinned to core 0, timed watchdogs: one at a time (conftest.realtime_host)
 pytestmark = [pytest.mark.xdist_group("realtime"), pytest.mark.usefixtures("realtime_host")]
 TOPICS = {"/joint_states", "/skinsafe/command", "/skinsafe/planned", "/skinsafe/taxels", "/skinsafe/tick",
-          "/skinsafe/layers", "/diagnostics"}
+          "/skinsafe/layers", "/diagnostics", *ROS2_TOPICS}
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +47,7 @@ def skinsafe(*args, timeout=60, **kw):
 
 def run(skin, tmp_path, *extra, command="hold", seconds=1.5, when_moving=None):
     """`skinsafe run` with the emulated boards; `when_moving(proc)` is called once the robot moves."""
-    stats, record = tmp_path / "stats.json", tmp_path / "run.mcap"
+    stats, record = tmp_path / "stats.json", tmp_path / "run"
     args = ["run", skin, "--robot", "sim", "--boards", "emulate", "--command", command, "--link-latency", LINK_LATENCY, "--allow-link-latency", "--tare-frames", 10,
             "--seconds", seconds, "--record", record, "--stats", stats, *extra]
     code, out, err = start_run(args, when_moving)
@@ -54,8 +56,8 @@ def run(skin, tmp_path, *extra, command="hold", seconds=1.5, when_moving=None):
 
 
 def messages(record):
-    """Every message of a record, decoded by mcap-ros2-support (the ROS 2 reader)."""
-    with open(record, "rb") as f:
+    """Every message of a record (its folder's MCAP), decoded by mcap-ros2-support (the ROS 2 reader)."""
+    with open(record_file(record), "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         return [(c.topic, m) for _, c, _, m in reader.iter_decoded_messages(log_time_order=False)]
 
@@ -89,7 +91,7 @@ def test_a_poke_is_retracted_and_the_record_replays_exactly(skin, tmp_path):
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["ticks"] == s["ticks"] and out["complete"] and out["max_abs_diff"] <= 1e-12
-    with open(record, "rb") as f:  # the record holds the run's configuration as given
+    with open(record_file(record), "rb") as f:  # the record holds the run's configuration as given
         config = json.loads(next(m for m in make_reader(f).iter_metadata() if m.name == "skinsafe").metadata["config"])
     cfg = RunConfig.from_json(config["run"])
     assert (cfg.contact, cfg.seconds, cfg.record, cfg.link_latency) == ("poke:at=0.4", 1.6, str(record), LINK_LATENCY)
