@@ -5,7 +5,8 @@ runtime's tick runs on it (`control(state)`), and its joint velocities go back w
 in the same cycle. The robot stops the arm when 20 cycles in a row bring no command
 (`communication_constraints_violation`), so the tick must fit the cycle; `stats` counts the robot
 states a slow tick let pass (`states_skipped`, `longest_gap_ms`) and the robot's own
-`control_command_success_rate`; `zero_mono`: host time the stop's first command (its ramp to zero) went out.
+`control_command_success_rate`; `zero_mono`: host time the stop's first command (its ramp to zero) went out (after
+`robot-die`: the robot's own stop was asked).
 
 Chosen over franky-control 2.0.0 by measurement (README, "The FR3 case"): franky runs its own 1 kHz
 loop in C++ and takes new targets asynchronously through a jerk-limited planner, so a tick's
@@ -191,6 +192,7 @@ class FrankaDriver:
                 if self.faults.due("robot-die"):
                     died = "fr3: the driver stopped talking to the robot (injected)"
                     report("driver", died, self.faults.onsets["robot-die"], False)
+                    st["zero_mono"] = time.monotonic()  # no ramp: the robot's own stop, asked now, is the stop
                     died = self._end(died, True, report)
                     self._observe(seq, on_sent)
                     return died

@@ -191,6 +191,7 @@ def test_a_driver_that_lost_the_robot_records_its_own_stop_to_rest():
     out = rt.run(settle_s=0.0)
     assert out.watchdog == "driver" and out.exit_code == 1 and "stopped talking" in out.reason, out.reason
     assert out.onset_mono == plan.onsets["robot-die"] and robot.stopped == 1 and rt.driver.stats["rest_observed"]
+    assert out.onset_mono <= rt.driver.stats["zero_mono"]  # the robot's own stop asked after the onset: the bench times it
     after = [k for k in rec.ticks if not k.ticked]
     # 0.3 rad/s less 0.01 a state until below 0.02: 28 states
     assert len(after) == 28 and all(k.flags == ("stop", "nothing-sent") for k in after)
