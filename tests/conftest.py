@@ -2,6 +2,8 @@
 
 bpy is imported first: pymeshlab and bpy both bundle Embree, and bpy fails to import after pymeshlab.
 """
+import contextlib
+
 import bpy  # noqa: F401  (must precede any pymeshlab import)
 import matplotlib
 import pytest
@@ -99,6 +101,19 @@ def realtime_host(tmp_path_factory):
     pinned to the first core, the PM QoS target held at 0, boards named silent after a set latency). Two at once, one
     per pytest-xdist worker, stall each other's ticks and frames: the `realtime` group's tests take it in turn on one
     worker, the docs' blocks that run the loop wait for it on the other."""
+    with realtime_slot(tmp_path_factory):
+        yield
+
+
+@pytest.fixture(scope="module")
+def realtime_host_module(tmp_path_factory):
+    """`realtime_host` held for a module whose fixture runs the loop once for all its tests."""
+    with realtime_slot(tmp_path_factory):
+        yield
+
+
+@contextlib.contextmanager
+def realtime_slot(tmp_path_factory):
     import fcntl
 
     with open(run_folder(tmp_path_factory) / "realtime.lock", "w") as f:

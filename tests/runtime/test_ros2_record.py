@@ -1,0 +1,216 @@
+"""The record as ROS 2 tools and Foxglove see it: one short `skinsafe run --record DIR --foxglove 0` with a poke,
+a Foxglove WebSocket client connected while it runs; independent readers (rosbags with the ROS 2 Jazzy type
+store, mcap-ros2-support) decode every message; the skin sits where the taxel map and the recorded /tf put it;
+what Foxglove received equals the record."""
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from skinsafe.core.bench.foxglove_client import watch
+from skinsafe.core.design.sample import make_sample_design
+from skinsafe.core.robot.kinematics import TaxelKinematics
+from skinsafe.core.robot.models import build_ur5
+from skinsafe.core.runtime.ros2_msgs import typestore
+from skinsafe.core.runtime.ros2_topics import TOPICS, Ros2Topics
+from skinsafe.core.runtime.rosbag2 import record_file
+from skinsafe.core.runtime.tick import Tick
+from skinsafe.core.skin.taxel_map import load, save
+
+pytestmark = [pytest.mark.xdist_group("realtime")]
+LIVE = ["/tf", "/skinsafe/tactile", "/robot_description"]
+
+
+@pytest.fixture(scope="module")
+def ur5():
+    robot = build_ur5()
+    return robot, make_sample_design("ur5", pitch=0.02, robot=robot)  # 485 taxels
+
+
+@pytest.fixture(scope="module")
+def run(ur5, tmp_path_factory, realtime_host_module):
+    """The run's record folder, its map, and what a Foxglove client got while it ran."""
+    tmp = tmp_path_factory.mktemp("ros2")
+    save(ur5[1], tmp / "skin.json")
+    proc = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", "run", tmp / "skin.json", "--robot", "sim",
+                             "--boards", "emulate", "--command", "hold", "--link-latency", "0.5", "--allow-link-latency",
+                             "--tare-frames", "10", "--contact", "poke:at=0.3", "--seconds", "1.2",
+                             "--record", tmp / "run", "--foxglove", "0"], stderr=subprocess.PIPE, text=True)
+    live, err = {}, []
+    for line in proc.stderr:
+        err.append(line)
+        if "Foxglove at ws://" in line:
+            url = line.split(" at ")[1].split()[0]
+            client = threading.Thread(target=lambda: live.update(watch(url, LIVE, seconds=60)))
+            client.start()
+            break
+    err += proc.stderr.readlines()
+    assert proc.wait(60) == 0, "".join(err)
+    client.join()
+    return tmp / "run", tmp / "skin.json", live
+
+
+def rosbags_messages(folder: Path) -> dict:
+    """topic -> decoded messages, by rosbags (ROS 2 Jazzy type store; the bag's own schemas for the rest)."""
+    out = {}
+    with AnyReader([folder], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        for con, _, raw in reader.messages():
+            out.setdefault(con.topic, []).append(reader.deserialize(raw, con.msgtype))
+        assert {c.topic: c.msgcount for c in reader.connections} == {t: len(m) for t, m in out.items()}
+    return out
+
+
+def stamp(msg) -> float:
+    s = msg.header.stamp if hasattr(msg, "header") else msg.transforms[0].header.stamp
+    return s.sec + s.nanosec * 1e-9
+
+
+def links(tf) -> dict:
+    """child frame -> (parent frame, R, p) of a TFMessage."""
+    out = {}
+    for t in tf.transforms:
+        r, v = t.transform.rotation, t.transform.translation
+        R = np.zeros(9)
+        mujoco.mju_quat2Mat(R, np.array([r.w, r.x, r.y, r.z]))
+        out[t.child_frame_id] = (t.header.frame_id, R.reshape(3, 3), np.array([v.x, v.y, v.z]))
+    return out
+
+
+def world_poses(tf) -> dict:
+    """frame -> (R, p) in `world`, composed along a TFMessage's parent links."""
+    edges = links(tf)
+    out = {"world": (np.eye(3), np.zeros(3))}
+
+    def pose(frame):
+        if frame not in out:
+            parent, R, p = edges[frame]
+            R0, p0 = pose(parent)
+            out[frame] = (R0 @ R, R0 @ p + p0)
+        return out[frame]
+
+    for f in edges:
+        pose(f)
+    return out
+
+
+def cloud(msg) -> np.ndarray:
+    """A PointCloud2's float32 fields as (K, F)."""
+    assert all(f.datatype == 7 and f.offset == 4 * i for i, f in enumerate(msg.fields))
+    return np.frombuffer(bytes(msg.data), "<f4").reshape(msg.width, len(msg.fields))
+
+
+def test_rosbags_decodes_every_message_of_every_topic(run):
+    folder, skin, _ = run
+    msgs = rosbags_messages(folder)
+    assert set(TOPICS) <= set(msgs) and len(msgs["/tf"]) == len(msgs["/joint_states"]) > 100  # /tf every tick
+    jazzy = get_typestore(Stores.ROS2_JAZZY)
+    with AnyReader([folder]) as reader:  # the standard types as ROS 2 Jazzy defines them (hash of every field)
+        for c in reader.connections:
+            if c.msgtype in jazzy.fielddefs:
+                assert c.digest == jazzy.hash_rihs01(c.msgtype), c.topic
+        qos = {c.topic: c.ext.offered_qos_profiles[0].durability.name for c in reader.connections}
+    assert qos["/robot_description"] == qos["/tf_static"] == "TRANSIENT_LOCAL" and qos["/tf"] == "VOLATILE"
+    urdf = msgs["/robot_description"][0].data
+    design = load(skin)
+    assert urdf.count("<link name=\"taxel_") == design.n_taxels
+    tactile = msgs["/skinsafe/tactile"]  # every reading, equal to the float64 forces the layers saw
+    assert len(tactile) == len(msgs["/skinsafe/taxels"])
+    forces = np.array([m.data for m in msgs["/skinsafe/taxels"]])
+    t = design.taxels
+    names = {b.id: b.name for b in design.boards}
+    for m, f in zip(tactile, forces):
+        sensors = {s.name: s.values for s in m.sensors}
+        got = np.array([sensors[names[int(b)]][c] for b, c in zip(t.board, t.channel)])
+        np.testing.assert_array_equal(got, f.astype(np.float32))
+    assert forces.max() > 2.0  # the poke was felt
+    states = msgs["/skinsafe/state"]
+    assert any(s.retracting and len(s.pool_taxels) for s in states)  # the layers' state names the taxels by id
+    assert set(np.concatenate([s.pool_taxels for s in states])) <= set(t.ids.tolist())
+    assert any(m.msg.startswith("stopped: ") for m in msgs["/rosout"])
+
+
+def test_mcap_ros2_support_decodes_every_message(run):
+    folder, _, _ = run
+    counts = {}
+    with open(record_file(folder), "rb") as f:
+        for _, channel, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+            if channel.topic == "/skinsafe/tactile":
+                assert msg.sensors and all(len(s.values) for s in msg.sensors)
+    assert counts == {t: len(m) for t, m in rosbags_messages(folder).items()}
+
+
+def test_the_skin_points_are_the_taxel_map_through_the_recorded_tf(run):
+    folder, skin, _ = run
+    msgs = rosbags_messages(folder)
+    design = load(skin)
+    tf = {stamp(m): m for m in msgs["/tf"]}
+    static = links(msgs["/tf_static"][0])  # each taxel link on its body: the map's position and frame
+    for i, tid in enumerate(design.taxels.ids):
+        body, R, p = static[f"taxel_{tid}"]
+        assert body == design.body_of(i)
+        np.testing.assert_allclose(p, design.taxels.positions[i], atol=1e-12)
+        np.testing.assert_allclose(R, design.taxels.frames[i], atol=1e-9)
+    assert len(msgs["/skinsafe/skin"]) >= 10
+    for m in msgs["/skinsafe/skin"]:
+        poses = world_poses(tf[stamp(m)])
+        expect = np.array([poses[design.body_of(i)][0] @ design.taxels.positions[i] + poses[design.body_of(i)][1]
+                           for i in range(design.n_taxels)])
+        np.testing.assert_allclose(cloud(m)[:, :3], expect, atol=2e-6)  # float32 metres
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.floats(-3.1, 3.1), min_size=6, max_size=6))
+def test_every_taxel_is_where_the_tf_puts_it_at_any_pose(ur5, q):
+    robot, design = ur5
+    topics = Ros2Topics(robot.model, design, "<robot/>")
+    force = np.arange(design.n_taxels, dtype=float)
+    out = dict(topics.tick(Tick(t=1.0, q=np.array(q), command=np.zeros(6), force=force, force_new=True)))
+    store = typestore()
+    poses = world_poses(store.deserialize_cdr(out["/tf"], "tf2_msgs/msg/TFMessage"))
+    points = cloud(store.deserialize_cdr(out["/skinsafe/skin"], "sensor_msgs/msg/PointCloud2"))
+    kin = TaxelKinematics(robot.model, design)
+    pos, _ = kin.poses(np.array(q))  # MuJoCo's own taxel positions
+    np.testing.assert_allclose(points[:, :3], pos, atol=2e-6)
+    np.testing.assert_array_equal(points[:, 3], force.astype(np.float32))
+    for i in range(design.n_taxels):  # the taxel map through the TF tree
+        R, p = poses[design.body_of(i)]
+        np.testing.assert_allclose(R @ design.taxels.positions[i] + p, pos[i], atol=1e-9)
+
+
+def test_foxglove_gets_what_the_record_holds(run):
+    folder, skin, live = run
+    msgs = rosbags_messages(folder)
+    got = live["messages"]
+    assert len(got["/tf"]) >= 5 and len(got["/skinsafe/tactile"]) >= 5 and got["/robot_description"]
+    store = get_typestore(Stores.EMPTY)  # the types from what the server advertised, as Foxglove reads them
+    for topic in LIVE:
+        c = live["channels"][topic]
+        assert (c["encoding"], c["schemaEncoding"]) == ("cdr", "ros2msg")
+        store.register(get_types_from_msg(c["schema"], c["schemaName"]))
+    assert store.deserialize_cdr(got["/robot_description"][0][1], "std_msgs/msg/String").data == \
+        msgs["/robot_description"][0].data
+    tf = {stamp(m): m for m in msgs["/tf"]}
+    for _, data in got["/tf"]:
+        m = store.deserialize_cdr(data, "tf2_msgs/msg/TFMessage")
+        rec = tf[stamp(m)]  # the record's /tf of the same tick
+        assert [(t.child_frame_id, t.transform.translation.x, t.transform.rotation.w) for t in m.transforms] == \
+            [(t.child_frame_id, t.transform.translation.x, t.transform.rotation.w) for t in rec.transforms]
+    tactile = msgs["/skinsafe/tactile"]
+    times = np.array([stamp(m) for m in tactile])
+    for _, data in got["/skinsafe/tactile"]:
+        m = store.deserialize_cdr(data, "tactile_msgs/msg/TactileState")
+        rec = tactile[int(np.searchsorted(times, stamp(m), side="right")) - 1]  # the newest reading by then
+        for a, b in zip(m.sensors, rec.sensors, strict=True):
+            assert a.name == b.name
+            np.testing.assert_array_equal(a.values, b.values)
