@@ -496,8 +496,71 @@ def collaboration_sweep(root: Path) -> str:
     return sweep_table(load(root, COLLAB))
 
 
+def sample_skins(root: Path) -> str:
+    """The sample skins the docs use: the built-in robots' made now as `skinsafe sample` makes them, the
+    collaboration scene's from its results file."""
+    from skinsafe.core.design.sample import make_sample_design
+
+    lines = ["| skin | made by | modules | taxels | boards |", "| --- | --- | ---: | ---: | ---: |"]
+    for robot in ("ur5", "panda"):
+        d = make_sample_design(robot)
+        lines.append(f"| {robot.upper() if robot == 'ur5' else robot.title()} sample | `skinsafe sample --robot {robot}` | "
+                     f"{fmt(len(d.modules))} | {fmt(d.n_taxels)} | {fmt(len(d.boards))} |")
+    c = load(root, "results/collaboration/collaboration.json")
+    lines.append(f"| collaboration | `skinsafe experiment collaboration`: the UR5 sample plus modules where a person's "
+                 f"hand reaches | {fmt(c['skin_modules'])} | {fmt(c['skin_taxels'])} | — |")
+    return "\n".join(lines)
+
+
+def import_contracts(root: Path) -> str:
+    """The import-linter contracts of pyproject.toml (what `lint-imports` checks), one row each."""
+    import tomllib
+
+    contracts = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
+    lines = ["| contract | kind | what it names |", "| --- | --- | --- |"]
+    for c in contracts:
+        names = c.get("layers") or c.get("source_modules") or c.get("ancestors") or []
+        code = [", ".join(f"`{m}`" for m in n.replace("skinsafe.", "").split(" | ")) for n in names]
+        what = "top to bottom: " + " -> ".join(code) if c["type"] == "layers" else ", ".join(code)
+        if "forbidden_modules" in c:
+            what += " never import " + ", ".join(f"`{m.replace('skinsafe.', '')}`" for m in c["forbidden_modules"])
+        lines.append(f"| {c['name']} | {c['type']} | {what} |")
+    return "\n".join(lines)
+
+
+def hardware_constants(root: Path) -> str:
+    """The sensing chain's numbers as the code states them: the FSR model both the simulation and the boards'
+    readings go through, a board's channels, the link, a module's connector."""
+    import inspect
+    from dataclasses import fields
+
+    from skinsafe.core.sim.sensor_model import FSRModel
+    from skinsafe.core.skin.model import Board
+    from skinsafe.exporters.fab import PIN_PITCH_MM
+    from skinsafe.hardware.client import BoardClient
+    from skinsafe.hardware.emulated_board import BoardSpec
+
+    fsr = FSRModel()
+    what = {"r_1n": "FSR resistance at 1 N (ohm)", "alpha": "power-law exponent of R(F)",
+            "r_m": "divider resistor (ohm)", "r_min": "FSR resistance at saturation (ohm)",
+            "f_on": "turn-on force: below it the FSR reads 0 (N)", "bits": "ADC resolution (bits)",
+            "noise_counts": "ADC noise, standard deviation (counts)", "rate_hz": "a board's sample rate (Hz)",
+            "latency_s": "sampling to the host having the value (s)"}
+    rows = [(f"`FSRModel.{f.name}`", what[f.name], getattr(fsr, f.name)) for f in fields(fsr)]
+    rows += [("`Board.capacity`", "channels of a board (default)", Board.__dataclass_fields__["capacity"].default),
+             ("`BoardClient(baud=)`", "serial link speed (bit/s, `--baud`)",
+              inspect.signature(BoardClient).parameters["baud"].default),
+             ("`BoardSpec.max_chunk`", "the emulated board's config chunk (bytes)",
+              BoardSpec.__dataclass_fields__["max_chunk"].default),
+             ("`PIN_PITCH_MM`", "a module's FPC connector pitch (mm)", PIN_PITCH_MM)]
+    lines = ["| name in the code | what | value |", "| --- | --- | ---: |"]
+    lines += [f"| {name} | {text} | {fmt(value)} |" for name, text, value in rows]
+    return "\n".join(lines)
+
+
 FIGURES = {"maze-grid": maze_grid, "maze-ablation": maze_ablation, "tracking-labels": tracking_labels, "tracking-nstep": tracking_nstep, "safety-audit": safety_audit, "paper-results": paper_results,
-           "collaboration": collaboration, "collaboration-sweep": collaboration_sweep}
+           "collaboration": collaboration, "collaboration-sweep": collaboration_sweep, "sample-skins": sample_skins,
+           "import-contracts": import_contracts, "hardware-constants": hardware_constants}
 
 
 def _nav_files(nav) -> list[str]:

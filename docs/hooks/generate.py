@@ -34,14 +34,17 @@ ASSET_REF = re.compile(r'(\]\(|src=")((?:results|blend_assets)/[^)"\s]+)')
 
 
 def on_files(files, config):
-    """The pictures pages show from results/ and blend_assets/, served at the same paths, and the state machine's
-    picture drawn from docs/run/safety.md's own diagram (img/state_machine.png)."""
+    """The pictures pages show from results/ and blend_assets/, served at the same paths, the state machine's
+    picture drawn from its edges (docs/hooks/state_machine.mmd: img/state_machine.png) and DIAGRAMS
+    (img/NAME.png)."""
     from mkdocs.structure.files import File
 
     generated = ROOT / "build" / "docs-img"
-    source = MERMAID.search((ROOT / "docs" / "run" / "safety.md").read_text())
-    state_picture(source.group(1), generated / "img" / "state_machine.png")
+    state_picture(STATE_MACHINE.read_text(), generated / "img" / "state_machine.png")
     files.append(File("img/state_machine.png", str(generated), config["site_dir"], config["use_directory_urls"]))
+    for name, (nodes, edges, size) in DIAGRAMS.items():
+        flow_picture(nodes, edges, size, generated / "img" / f"{name}.png")
+        files.append(File(f"img/{name}.png", str(generated), config["site_dir"], config["use_directory_urls"]))
 
     for folder in ("results", "blend_assets/pictures"):
         for path in sorted((ROOT / folder).rglob("*.png")):
@@ -56,14 +59,15 @@ def _assets_from(markdown: str, page) -> str:
     return ASSET_REF.sub(lambda m: m.group(1) + up + m.group(2), markdown)
 
 
-MERMAID = re.compile(r"```mermaid\nstateDiagram-v2\n(.*?)```", re.S)
+STATE_MACHINE = Path(__file__).with_name("state_machine.mmd")  # a mermaid stateDiagram's edges
 EDGE = re.compile(r"^\s*(\S+)\s*-->\s*(\S+?)(?::\s*(.*))?$")
 STATE_XY = {"[*]": (-1.6, 3), "preflight": (0, 3), "armed": (3, 3), "moving": (6.2, 3), "retracting": (6.2, 0.8),
             "protective_stop": (3, -0.3), "ended": (10, 1.4)}
 
 
 def state_picture(source: str, path: Path) -> None:
-    """A PNG of a mermaid stateDiagram's edges (the page's own source), for readers without the mermaid script."""
+    """A PNG of a mermaid stateDiagram's edges (docs/hooks/state_machine.mmd), for readers without the mermaid
+    script."""
 
     import matplotlib
 
@@ -101,4 +105,67 @@ def state_picture(source: str, path: Path) -> None:
     ax.axis("off")
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
+# Box-and-arrow pictures: name -> (nodes {id: (x, y, label)}, edges [(a, b, label)], figure size in inches)
+DIAGRAMS = {
+    "pipeline": ({
+        "addon": (0, 2, "Blender add-on\n(addon/)"), "cli": (0, 0, "skinsafe design / sample\n(core/design)"),
+        "map": (3.2, 1, "skin design\n= taxel map (JSON)\n(core/skin)"),
+        "mjcf": (6.5, 2.6, "MuJoCo scene (MJCF)\n(exporters/)"), "sim": (11, 2.6, "contacts, the three layers,\n"
+                                                                            "experiments (core/sim, safety)"),
+        "boards": (6.5, -0.6, "interface boards\n(hardware/: deploy)"),
+        "runtime": (10.5, 0.6, "the runtime (core/runtime):\nboards -> layers -> robot"),
+        "robot": (15.2, 0.6, "robot driver:\nMuJoCo sim or FR3")},
+        [("addon", "map", "export"), ("cli", "map", "save"), ("map", "mjcf", "skinsafe export"), ("mjcf", "sim", ""),
+         ("map", "boards", "skinsafe deploy"), ("boards", "runtime", "serial frames"), ("map", "runtime", ""),
+         ("runtime", "robot", "joint velocity")], (14, 5)),
+    "tick": ({
+        "clock": (0, 2, "the robot's clock\n(driver: sim 2 ms step,\nlibfranka 1 kHz)"),
+        "read": (3.6, 2, "newest readings\n(shared memory;\nnever waits)"),
+        "watch": (7.2, 2, "watchdogs -> monitor\n(a fault: protective\nstop, named)"),
+        "stack": (10.8, 2, "SafetyStack.tick\n(strategy, modulation,\ndefensiveness)"),
+        "limit": (10.8, 0, "limiter\n(the robot's q, qd, qdd\nlimits)"),
+        "send": (7.2, 0, "driver.send\n(joint velocity)"),
+        "tap": (3.6, 0, "Tick record -> recorder,\nlive view (copies;\nmay drop frames)"),
+        "reader": (3.6, 4, "reader process: epoll on\nevery board's port, decode,\ntare (hardware/skin_reader)")},
+        [("clock", "read", "tick"), ("reader", "read", "latest force per taxel"), ("read", "watch", ""),
+         ("watch", "stack", "measured dt, q, qd"), ("stack", "limit", "command"), ("limit", "send", "what is sent"),
+         ("send", "tap", "what is logged")], (13, 6)),
+    "deploy": ({
+        "find": (0, 0, "find boards\n(--all: every serial port,\nidentify by unique id)"),
+        "check": (3.4, 0, "refuse a misfit\n(uid, channels, firmware,\nchunk size, streaming)"),
+        "push": (6.8, 0, "push the board's part\nof the map in chunks"),
+        "commit": (10.2, 0, "commit with its SHA-256\n(old or new config,\nnever a mix)"),
+        "verify": (13.6, 0, "read back and\ncompare hashes\n(one line per board)")},
+        [("find", "check", ""), ("check", "push", ""), ("push", "commit", ""), ("commit", "verify", "")], (15, 2.2)),
+}
+
+
+def flow_picture(nodes: dict, edges: list, size: tuple, path: Path) -> None:
+    """A PNG of boxes (id -> x, y, label) joined by labelled arrows."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import FancyArrowPatch
+
+    fig, ax = plt.subplots(figsize=size)
+    box = {n: ax.text(x, y, label, ha="center", va="center", fontsize=10, zorder=2,
+                      bbox=dict(boxstyle="round,pad=0.5", fc="#d9ead3", ec="black")) for n, (x, y, label) in nodes.items()}
+    fig.canvas.draw()  # the boxes' outlines exist once drawn: the arrows end at them
+    for a, b, label in edges:
+        (x0, y0, _), (x1, y1, _) = nodes[a], nodes[b]
+        ax.add_patch(FancyArrowPatch((x0, y0), (x1, y1), arrowstyle="-|>", mutation_scale=16, shrinkA=2, shrinkB=2,
+                                     patchA=box[a].get_bbox_patch(), patchB=box[b].get_bbox_patch(), color="#444", zorder=3))
+        if label:
+            ax.text((x0 + x1) / 2, (y0 + y1) / 2, label, ha="center", va="center", fontsize=8.5, style="italic",
+                    bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="none"))
+    xs, ys = [n[0] for n in nodes.values()], [n[1] for n in nodes.values()]
+    ax.set_xlim(min(xs) - 1.5, max(xs) + 1.5)
+    ax.set_ylim(min(ys) - 0.9, max(ys) + 0.9)
+    ax.axis("off")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)
