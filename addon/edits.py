@@ -22,16 +22,17 @@ def transforming() -> bool:
 
 
 def step(scene, apply_scale: bool = True) -> list[str]:
-    """One round: put the robot's links and the module objects back true (`integrity`: what an Object-menu edit
-    changed, said in the panel's message), sync the design with the objects, then re-generate moved modules
-    (scaled ones only with `apply_scale`). Returns the problems; the last is shown in the panel."""
+    """One round: split joined modules back out, put the robot's links and the module objects back true
+    (`integrity`: what an Object-menu edit changed, said in the panel's message), sync the design with the objects,
+    then re-generate moved modules (scaled ones only with `apply_scale`). Returns the problems; the last is shown in the panel."""
     global _busy
     if _busy or not scene.skinsafe.robot_kind:
         return []
     _busy = True
     try:
-        said, kept = integrity.links(scene)
-        said += integrity.modules(scene, kept)
+        said = integrity.joined(scene)
+        more, kept = integrity.links(scene)
+        said += more + integrity.modules(scene, kept)
         if said:
             scene.skinsafe.message = "; ".join(said)
         errors = designer.sync(scene)

@@ -8,11 +8,14 @@ or object again from the robot description.
 Each module object is one whole FPC of the design (`modules`): its parent and transform are normalised keeping
 where it is (parented to another link, it moves onto that link); a mesh whose data changed while its pads stay
 where the design has them (transforms applied, origin set, modifiers applied) is rebuilt from the design at its
-placement; a join is split back into its modules; a separated piece is put back; a converted object is made a
-module again. Both return what they did, a line each, for the panel."""
+placement; a separated piece is put back; a converted object is made a module again; a curve module whose outline
+curve was joined, converted or deleted gets it again from the design. A module joined into another object (a
+module, a robot link, any mesh) is split back out of it (`joined`, before the links are put back). Each returns
+what it did, a line each, for the panel."""
 import warnings
 from types import SimpleNamespace
 
+import bmesh
 import bpy
 import mujoco
 import numpy as np
@@ -163,6 +166,81 @@ def remake(scene, design, mid: int) -> bpy.types.Object:
     return c2b.new_module_object(scene, b2c.body_objects(scene)[m.body], m, p, settings)
 
 
+def _corners(scene, design, mid: int) -> np.ndarray:
+    """World corners of a design module's pads, as its object's mesh has them (`module_mesh`)."""
+    p = placed_from_design(design, mid)
+    ang = np.arange(6) * np.pi / 3
+    ring = np.cos(ang)[None, :, None] * p.frames[:, None, :, 0] + np.sin(ang)[None, :, None] * p.frames[:, None, :, 1]
+    local = (p.positions[:, None] + 0.5 * p.module.taxel_diameter * ring + 1e-4 * p.frames[:, None, :, 2]).reshape(-1, 3)
+    W = np.array(b2c.body_objects(scene)[p.module.body].matrix_world)
+    return local @ W[:3, :3].T + W[:3, 3]
+
+
+def joined(scene) -> list[str]:
+    """Split back every module whose object is gone while its pads are in another mesh object (Ctrl+J with another
+    module, a robot link or any mesh active): the module gets its object again and its pads leave that object (a
+    link's mesh is put back whole by `links`, a module's made from the design by `modules`). Only objects whose
+    mesh changed are searched, so a copy left in place keeps its pads; what was done."""
+    design = b2c.design_of(scene)
+    if design is None:
+        return []
+    present = {o.skinsafe_module.module_id for o in b2c.module_objects(scene)}
+    corners = {m.id: _corners(scene, design, m.id) for m in design.modules if m.id not in present}
+    if not corners:
+        return []
+    link_keys = {it.object.as_pointer(): tuple(it.mesh_key) for it in scene.skinsafe.links if it.object is not None}
+    said = []
+    for o in [o for o in scene.objects if o.type == "MESH" and o.mode != "EDIT" and len(o.data.vertices)]:
+        key = tuple(o.skinsafe_module.mesh_key) if o.skinsafe_module.is_module else link_keys.get(o.as_pointer())
+        if key is not None and _same_key(b2c.mesh_key(o.data), key):
+            continue
+        co = np.empty(len(o.data.vertices) * 3)
+        o.data.vertices.foreach_get("co", co)
+        W = np.array(o.matrix_world)
+        tree = cKDTree(co.reshape(-1, 3) @ W[:3, :3].T + W[:3, 3])
+        for mid in list(corners):
+            dist, at = tree.query(corners[mid])
+            if dist.max() >= PAD_TOL:
+                continue
+            del corners[mid]
+            name = remake(scene, design, mid).name
+            said.append(f"module '{name}' was joined into '{o.name}': a module is one FPC, split back")
+            if key is None:  # neither a module nor a link: the pads cut out of it
+                bm = bmesh.new()
+                bm.from_mesh(o.data)
+                bm.verts.ensure_lookup_table()
+                bmesh.ops.delete(bm, geom=[bm.verts[i] for i in np.unique(at)], context="VERTS")
+                bm.to_mesh(o.data)
+                bm.free()
+    return said
+
+
+def _outline(scene, obj, design) -> str:
+    """A curve module whose outline curve is gone (joined into another curve, deleted), is no curve (converted) or
+    holds more than its one closed spline (another curve joined into it): a curve object made again from the
+    design's outline (its placement record), so the module re-generates as designed; what was done ("": none)."""
+    st = obj.skinsafe_module.settings
+    cu = st.outline
+    if st.template != "curve" or (cu is not None and scene.objects.get(cu.name) is cu and cu.type == "CURVE"
+                                  and len(cu.data.splines) == 1):
+        return ""
+    rec = next(m for m in design.modules if m.id == obj.skinsafe_module.module_id).placement
+    if "outline" not in rec:
+        return ""
+    data = bpy.data.curves.new(f"{obj.name} outline", "CURVE")
+    sp = data.splines.new("POLY")
+    pts = np.asarray(rec["outline"], float) * ((-1.0 if st.mirrored else 1.0), 1.0)  # the record's is mirrored
+    sp.points.add(len(pts) - 1)
+    for p, (x, y) in zip(sp.points, pts):
+        p.co = (x, y, 0.0, 1.0)
+    sp.use_cyclic_u = True
+    new = bpy.data.objects.new(data.name, data)
+    obj.users_collection[0].objects.link(new)
+    st.outline = new
+    return (f"module '{obj.name}': its outline curve was joined, converted or deleted; made again from the design "
+            f"('{new.name}')")
+
+
 def modules(scene, kept: set[str] = frozenset()) -> list[str]:
     """Make every module object one whole FPC of the design again after an edit of its object or data; what
     was done. The modules on the links in `kept` (just put back by `links`) go back to their placements: an edit of
@@ -193,6 +271,8 @@ def modules(scene, kept: set[str] = frozenset()) -> list[str]:
             _reattach(o, bodies[mm.body])
         elif mm.body in bodies:
             designer.attach(o, bodies[mm.body])
+        if mm.module_id in known and (line := _outline(scene, o, design)):
+            said.append(line)
         if mm.module_id not in known or _same_key(b2c.mesh_key(o.data), mm.mesh_key):
             continue
         centres, own = _centres(o), _design_world(scene, design, mm.module_id)
@@ -201,12 +281,6 @@ def modules(scene, kept: set[str] = frozenset()) -> list[str]:
                         "pads were put back")
             bpy.data.objects.remove(o, do_unlink=True)
             continue
-        if centres is not None and len(centres) > len(own):
-            present = {x.skinsafe_module.module_id for x in b2c.module_objects(scene)}
-            for m in design.modules:
-                if m.id not in present and _within(_design_world(scene, design, m.id), centres):
-                    remake(scene, design, m.id)
-                    said.append(f"module '{m.name}' was joined into '{o.name}': a module is one FPC, split back")
         if centres is None or len(centres) != len(own) or not _within(centres, own):
             said.append(f"module '{o.name}': its mesh is made from the design (its data was edited): made again")
         rebuild(o, design, mm.module_id)

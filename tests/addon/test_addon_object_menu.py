@@ -5,6 +5,8 @@ module object, taxel ids unique and stable (module id x 65,536 + index), every m
 every pad on its link within 1 mm, every link at the robot's pose, and the modules the row does not edit unchanged
 to 1e-6 m. Add an operator to OPS and it is tested. Headless Blender pushes an undo step only when asked
 (`ed.undo_push`, what the window manager does after each operator)."""
+import json
+
 import bpy
 import mujoco
 import numpy as np
@@ -12,13 +14,28 @@ import pytest
 
 from skinsafe.addon import blender_to_core as b2c
 from skinsafe.core.design.surface import cached_surfaces
+from skinsafe.core.skin import taxel_map
 from skinsafe.core.skin.ids import SHIFT
 
 pytestmark = pytest.mark.xdist_group("object-menu")  # one worker walks the table on one scene, built once
 E = 0.13585 - 0.1197  # UR5 forearm capsule axis height (body frame), radius 0.04
 UP = 0.13585 + 0.06  # a point above the upper arm's axis
 MODULES = {0: ("forearm_link", (-0.3, 0, E + 0.05)), 1: ("forearm_link", (-0.06, 0, E + 0.05)),
-           2: ("upper_arm_link", (-0.2, 0, UP))}
+           2: ("upper_arm_link", (-0.2, 0, UP)), 3: ("upper_arm_link", (-0.34, 0, UP))}  # 3: a curve's outline
+OUTLINE = [(-0.03, -0.02), (0.03, -0.02), (0.03, 0.0), (0.0, 0.025), (-0.03, 0.02)]
+
+
+def _curve(name: str, points) -> bpy.types.Object:
+    """A closed poly curve object in the scene."""
+    cu = bpy.data.curves.new(name, "CURVE")
+    sp = cu.splines.new("POLY")
+    sp.points.add(len(points) - 1)
+    for p, (x, y) in zip(sp.points, points):
+        p.co = (x, y, 0.0, 1.0)
+    sp.use_cyclic_u = True
+    o = bpy.data.objects.new(name, cu)
+    bpy.context.scene.collection.objects.link(o)
+    return o
 
 
 @pytest.fixture(scope="module")
@@ -28,9 +45,12 @@ def scene():
     bpy.ops.skinsafe.import_robot(source="ur5")
     s = bpy.context.scene.skinsafe.new_module
     s.rows, s.cols, s.pitch, s.taxel_diameter, s.margin = 8, 8, 0.01, 0.006, 0.002
-    for body, anchor in MODULES.values():
+    for mid, (body, anchor) in MODULES.items():
+        if mid == 3:
+            s.template, s.outline = "curve", _curve("outline", OUTLINE)
         assert bpy.ops.skinsafe.place_module(body=body, anchor=anchor, direction=(-1, 0, 0), use_cursor=False) \
             == {"FINISHED"}
+    s.template = "rect"
     bpy.ops.ed.undo_push(message="Place Module")
     return bpy.context.scene
 
@@ -65,15 +85,18 @@ def state() -> dict:
     d.qpos[:] = b2c.pose(scene)
     mujoco.mj_kinematics(robot.model, d)
     bodies = b2c.body_objects(scene)
-    for body, o in bodies.items():  # every link in the scene, at the pose
+    keys = {it.body: tuple(it.mesh_key) for it in scene.skinsafe.links}  # each link's mesh as the description made it
+    for body, o in bodies.items():  # every link in the scene, at the pose, its mesh the robot description's
         assert o.name in scene.objects
+        assert o.type == "EMPTY" or np.allclose(b2c.mesh_key(o.data), keys[body], rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(np.array(o.matrix_world)[:3, 3], d.xpos[robot.model.body(body).id], atol=1e-5)
     out = {}
     for o in objs:
         mid = o.skinsafe_module.module_id
         (m,) = [m for m in design.modules if m.id == mid]
         on = np.flatnonzero(t.module == mid)
-        assert m.name == o.name and o.type == "MESH" and len(on) == len(o.data.polygons) == m.rows * m.cols
+        assert m.name == o.name and o.type == "MESH" and len(on) == len(o.data.polygons)
+        assert len(on) == (m.rows * m.cols if m.template == "rect" else 21)  # the outline's 21 cells
         assert np.array_equal(t.ids[on], (mid << SHIFT) + np.arange(len(on)))
         surf = cached_surfaces(robot.model, [m.body])[m.body]
         assert surf.closest(t.positions[on])[3].max() < 1e-3  # pads on their link
@@ -139,32 +162,85 @@ def _dup_in_place_then_delete_original():
     return bpy.ops.object.delete()
 
 
+def _exported(after, tmp="/tmp/skinsafe_object_menu_map.json"):
+    """File > Export's taxel map holds the scene's pads, each where its object shows it."""
+    assert bpy.ops.skinsafe.export_taxel_map(filepath=tmp) == {"FINISHED"}
+    d, bodies = taxel_map.load(tmp), b2c.body_objects(bpy.context.scene)
+    assert d.n_taxels == sum(len(o.data.polygons) for o in b2c.module_objects(bpy.context.scene))
+    for mid, (_, ids, world) in after.items():
+        on = d.taxels.module == mid
+        W = np.array(bodies[d.body_of(int(np.argmax(on)))].matrix_world)
+        assert np.array_equal(d.taxels.ids[on], ids)
+        np.testing.assert_allclose(d.taxels.positions[on] @ W[:3, :3].T + W[:3, 3], world, atol=1e-6)
+
+
 def _ids_retired(before, after):
-    """The module deleted leaves for good: the next module placed takes a new id, never its."""
-    assert sorted(after) == [0, 2]
+    """The module deleted leaves for good, kept in the taxel map's retired ids: the next module placed takes a new
+    id, never its."""
+    assert sorted(after) == [0, 2, 3]
+    assert json.loads(bpy.data.texts[b2c.TEXT_NAME].as_string())["retired_modules"] == [1]
     assert bpy.ops.skinsafe.place_module(body="forearm_link", anchor=MODULES[1][1], direction=(-1, 0, 0),
                                          use_cursor=False) == {"FINISHED"}
-    assert sorted(state()) == [0, 2, 3]
+    assert sorted(state()) == [0, 2, 3, 4]
+    assert b2c.design_of(bpy.context.scene).retired_modules == (1,)
 
 
 def _dup_entered(before, after):
+    """The copy left in place enters the design once its original is deleted: the export holds the scene's pads."""
     (new,) = set(after) - set(before)
-    assert sorted(after) == [0, 2, new] and new == 3
+    assert sorted(after) == [0, 2, 3, new] and new == 4
     np.testing.assert_allclose(after[new][2], before[1][2], atol=1e-6)  # the copy, where the original was
+    _exported(after)
+
+
+def _elbow_moves(before):
+    """The elbow turns: every module's pads stay on their link (`state`), then it turns back."""
+    joint = bpy.context.scene.skinsafe.joints["elbow_joint"]
+    joint.value += 0.3
+    moved = state()
+    joint.value -= 0.3
+    same(before, state())
+    return moved
 
 
 def _put_back(before, after):
-    """Parented to a link it does not lie on: put back on its own, and said."""
+    """Parented to a link it does not lie on: put back on its own, and said; it stays there when the elbow turns."""
     same(before, after)
     assert "put back on 'forearm_link'" in bpy.context.scene.skinsafe.message
+    assert b2c.body_objects(bpy.context.scene)["forearm_link"] is module(0).parent
+    _elbow_moves(after)
 
 
 def _move_joint_then(before, after):
     same(before, after)
     assert not b2c.stray_bodies(bpy.context.scene)  # the robot's own link, not a copy
-    bpy.context.scene.skinsafe.joints["elbow_joint"].value += 0.3  # the link moved into a collection still poses
-    state()
-    bpy.context.scene.skinsafe.joints["elbow_joint"].value -= 0.3
+    _elbow_moves(after)  # the link moved into a collection still poses
+
+
+def _link_put_back(before, after):
+    """A robot link deleted is put back, and Check's export (the design) is the scene's."""
+    same(before, after)
+    assert "cannot be deleted" in bpy.context.scene.skinsafe.message
+    _exported(after)
+
+
+def _then_moved(mid: int, taxels: int):
+    """After the edit, the next 2 cm move of module `mid` along its link moves its pads 2 cm (within 1 mm) and keeps
+    its `taxels`; the move is undone again (one undo step of its own)."""
+    def check(before, after):
+        same(before, after)
+        o = module(mid)
+        W = np.array(o.parent.matrix_world)
+        select(o)
+        assert bpy.ops.transform.translate(value=tuple(W[:3, 0] * 0.02)) == {"FINISHED"}
+        bpy.ops.ed.undo_push(message="Move")
+        moved = state()
+        same(before, moved, ids=[m for m in before if m != mid])
+        assert len(moved[mid][1]) == taxels
+        np.testing.assert_allclose(moved[mid][2], before[mid][2] + W[:3, 0] * 0.02, atol=1e-3)
+        assert bpy.ops.ed.undo() == {"FINISHED"}
+        same(after, state())
+    return check
 
 
 def _snap_to_cursor():
@@ -186,37 +262,111 @@ def _joined(before, after):
     assert "split back" in bpy.context.scene.skinsafe.message
 
 
+def _join_into(active):
+    """Ctrl+J with a module selected and `active` (a robot link, any mesh) the active object."""
+    def edit():
+        target = active()
+        select(target, module(0))
+        return bpy.ops.object.join()
+    return edit
+
+
+def _plane():
+    bpy.ops.mesh.primitive_plane_add(size=0.1, location=(1, 1, 0))
+    return bpy.context.active_object
+
+
+def _joined_into_plane(before, after):
+    _joined(before, after)
+    assert len(bpy.data.objects["Plane"].data.polygons) == 1  # the module's pads cut out of it
+
+
+def _outline_join(outline_active: bool):
+    """Ctrl+J of the curve module's outline with another curve (the outline joined away, or another curve into it)."""
+    def edit():
+        other = _curve("other curve", [(0, 0), (0.1, 0), (0.1, 0.1)])
+        outline = module(3).skinsafe_module.settings.outline
+        select(*((outline, other) if outline_active else (other, outline)))
+        return bpy.ops.object.join()
+    return edit
+
+
+def _outline_kept(before, after):
+    """The module's outline is made again from the design, said; its next move keeps its cells."""
+    assert "outline curve was joined, converted or deleted" in bpy.context.scene.skinsafe.message
+    cu = module(3).skinsafe_module.settings.outline
+    assert cu.type == "CURVE" and len(cu.data.splines) == 1
+    np.testing.assert_allclose([tuple(p.co[:2]) for p in cu.data.splines[0].points], OUTLINE, atol=1e-6)
+    _then_moved(3, len(before[3][1]))(before, after)
+
+
+def _link_copy_named(before, after):
+    """Shift+D on a robot link: the copy is named for deletion (it is not the robot's), the design unchanged."""
+    same(before, after)
+    scene = bpy.context.scene
+    (copy,) = b2c.stray_bodies(scene)
+    assert copy.startswith("forearm_link.") and copy in scene.skinsafe.error and "delete them" in scene.skinsafe.error
+
+
 # (the edit, what it does; check(before, after), None: every module as before)
+def _on_module(mid: int, op, **kw):
+    select(module(mid))
+    return op(**kw)
+
+
 OPS = [
-    ("Apply > All Transforms on a module", lambda: _apply(location=True, rotation=True, scale=True), None),
-    ("Apply > Location on a module", lambda: _apply(location=True, rotation=False, scale=False), None),
-    ("Apply > Rotation on a module", lambda: _apply(location=False, rotation=True, scale=False), None),
-    ("Set Origin on a module", lambda: (select(module(0)), bpy.ops.object.origin_set(type="ORIGIN_GEOMETRY"))[1], None),
+    ("Apply > All Transforms on a module", lambda: _apply(location=True, rotation=True, scale=True), _then_moved(0, 64)),
+    ("Apply > Location on a module", lambda: _apply(location=True, rotation=False, scale=False), _then_moved(0, 64)),
+    ("Apply > Rotation on a module", lambda: _apply(location=False, rotation=True, scale=False), _then_moved(0, 64)),
+    ("Apply > Scale on a module", lambda: _apply(location=False, rotation=False, scale=True), None),
+    ("Set Origin to Geometry on a module", lambda: _on_module(0, bpy.ops.object.origin_set, type="ORIGIN_GEOMETRY"),
+     None),
+    ("Set Origin to 3D Cursor on a module", lambda: _on_module(0, bpy.ops.object.origin_set, type="ORIGIN_CURSOR"),
+     _then_moved(0, 64)),
     ("Apply a modifier on a module", _modifier_applied, None),
     ("Snap a module to the cursor", _snap_to_cursor, _snapped),
-    ("Shade Smooth on a module", lambda: (select(module(0)), bpy.ops.object.shade_smooth())[1], None),
-    ("Convert to Curve a module", lambda: (select(module(0)), bpy.ops.object.convert(target="CURVE"))[1], None),
+    ("Shade Smooth on a module", lambda: _on_module(0, bpy.ops.object.shade_smooth), None),
+    ("Shade Flat on a module", lambda: _on_module(0, bpy.ops.object.shade_flat), None),
+    ("Convert to Curve a module", lambda: _on_module(0, bpy.ops.object.convert, target="CURVE"), None),
+    ("Convert to Mesh a module", lambda: _on_module(0, bpy.ops.object.convert, target="MESH"), None),
     ("Ctrl+P to another link", lambda: _parent_to("upper_arm_link", False), _put_back),
     ("Ctrl+P to another link, Keep Transform", lambda: _parent_to("upper_arm_link", True), _put_back),
-    ("Alt+P Clear Parent on a module", lambda: (select(module(0)), bpy.ops.object.parent_clear(type="CLEAR"))[1], None),
+    ("Alt+P Clear Parent on a module", lambda: _on_module(0, bpy.ops.object.parent_clear, type="CLEAR"), None),
     ("Alt+P Clear and Keep Transformation on a module",
-     lambda: (select(module(0)), bpy.ops.object.parent_clear(type="CLEAR_KEEP_TRANSFORM"))[1], None),
+     lambda: _on_module(0, bpy.ops.object.parent_clear, type="CLEAR_KEEP_TRANSFORM"), None),
     ("Ctrl+J two modules", _join, _joined),
+    ("Ctrl+J a module into a robot link", _join_into(lambda: obj("forearm_link")), _joined),
+    ("Ctrl+J a module into another mesh", _join_into(_plane), _joined_into_plane),
+    ("Ctrl+J a curve module's outline into another curve", _outline_join(False), _outline_kept),
+    ("Ctrl+J another curve into a curve module's outline", _outline_join(True), _outline_kept),
+    ("Convert a curve module's outline to a mesh",
+     lambda: (select(module(3).skinsafe_module.settings.outline), bpy.ops.object.convert(target="MESH"))[1],
+     _outline_kept),
     ("P Separate a module by loose parts", _separate, None),
     ("Shift+D in place, then the original deleted", _dup_in_place_then_delete_original, _dup_entered),
-    ("X on a module; the next module placed", lambda: (select(module(1)), bpy.ops.object.delete())[1], _ids_retired),
+    ("X on a module; the next module placed", lambda: _on_module(1, bpy.ops.object.delete), _ids_retired),
     # H and the outliner's eye and screen: what object.hide_view_set does (its poll needs a viewport)
     ("Hide a module", lambda: module(0).hide_set(True) or {"FINISHED"}, None),
     ("Disable a module in viewports", lambda: setattr(module(0), "hide_viewport", True) or {"FINISHED"}, None),
+    ("Disable a module in renders", lambda: setattr(module(0), "hide_render", True) or {"FINISHED"}, None),
+    ("Add a Collection Instance of the robot",
+     lambda: bpy.ops.object.collection_instance_add(collection=b2c.COLLECTION), None),
     ("Move a module to a new collection",
      lambda: (select(module(0)), bpy.ops.object.move_to_collection(collection_uid=bpy.context.scene.collection.session_uid, is_new=True,
                                                                  new_collection_name="pads"))[1], None),
     ("Link a module to a new collection",
      lambda: (select(module(0)), bpy.ops.object.link_to_collection(collection_uid=bpy.context.scene.collection.session_uid, is_new=True,
                                                                  new_collection_name="pads"))[1], None),
-    ("X on a robot link", lambda: _on_link("forearm_link", bpy.ops.object.delete), None),
+    ("X on a robot link", lambda: _on_link("forearm_link", bpy.ops.object.delete), _link_put_back),
+    ("Shift+D on a robot link", lambda: _on_link("forearm_link", bpy.ops.object.duplicate), _link_copy_named),
     ("Apply > All Transforms on a robot link",
      lambda: _on_link("forearm_link", bpy.ops.object.transform_apply, location=True, rotation=True, scale=True), None),
+    ("Set Origin on a robot link", lambda: _on_link("forearm_link", bpy.ops.object.origin_set, type="ORIGIN_GEOMETRY"),
+     None),
+    ("Apply a modifier on a robot link", lambda: (_on_link("forearm_link", bpy.ops.object.modifier_add, type="DISPLACE"),
+                                                  bpy.ops.object.modifier_apply(modifier="Displace"))[1], None),
+    ("Ctrl+P a robot link to a module", lambda: (select(module(2), obj("forearm_link")),
+                                                 bpy.ops.object.parent_set(type="OBJECT"))[1], None),
     ("G on a robot link", lambda: _on_link("forearm_link", bpy.ops.transform.translate, value=(0.05, 0, 0)), None),
     ("Alt+P Clear Parent on a robot link", lambda: _on_link("forearm_link", bpy.ops.object.parent_clear,
                                                             type="CLEAR"), None),
@@ -250,11 +400,11 @@ def test_a_copy_left_on_its_original_is_named_on_the_object_and_in_check(scene):
     bpy.context.view_layer.update()
     bpy.ops.ed.undo_push(message="Duplicate")
     scene = bpy.context.scene
-    (copy,) = [o for o in b2c.module_objects(scene) if o.skinsafe_module.module_id == 3]
+    (copy,) = [o for o in b2c.module_objects(scene) if o.skinsafe_module.module_id not in MODULES]
     assert "overlaps module 1" in copy.skinsafe_module.error
     with pytest.raises(RuntimeError, match="problems, listed in Skin > Check"):
         bpy.ops.skinsafe.check(poses=1)
     first = scene.skinsafe_findings[0]
-    assert f"'{copy.name}' is not where the design has it" in first.text and first.module_id == 3
+    assert f"'{copy.name}' is not where the design has it" in first.text and first.module_id == 4
     assert bpy.ops.ed.undo() == {"FINISHED"}
-    assert sorted(state()) == [0, 1, 2]
+    assert sorted(state()) == [0, 1, 2, 3]
