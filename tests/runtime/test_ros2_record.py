@@ -2,6 +2,8 @@
 a Foxglove WebSocket client connected while it runs; independent readers (rosbags with the ROS 2 Jazzy type
 store, mcap-ros2-support) decode every message; the skin sits where the taxel map and the recorded /tf put it;
 what Foxglove received equals the record."""
+import json
+import re
 import subprocess
 import sys
 import threading
@@ -21,6 +23,7 @@ from skinsafe.core.bench.foxglove_client import watch
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.robot.models import build_ur5
+from skinsafe.core.runtime.foxglove_layout import layout
 from skinsafe.core.runtime.ros2_msgs import typestore
 from skinsafe.core.runtime.ros2_topics import TOPICS, Ros2Topics
 from skinsafe.core.runtime.rosbag2 import record_file
@@ -214,3 +217,15 @@ def test_foxglove_gets_what_the_record_holds(run):
         for a, b in zip(m.sensors, rec.sensors, strict=True):
             assert a.name == b.name
             np.testing.assert_array_equal(a.values, b.values)
+
+
+def test_the_docs_layout_is_the_one_built_and_shows_recorded_topics():
+    doc = json.loads((Path(__file__).parents[2] / "docs/run/skinsafe.foxglove.json").read_text())
+    assert doc == layout()
+    text = json.dumps(doc)
+    shown = set(re.findall(r'"(/[a-z_/]+)', text))
+    assert shown == {"/robot_description", "/skinsafe/skin", "/skinsafe/contacts", "/skinsafe/state", "/rosout"}
+    assert shown <= set(TOPICS)
+    fields = set(re.findall(r"/skinsafe/state\.([a-z_]+)", text))  # the plotted fields are LayerState's
+    assert fields == {"potential", "speed_factor", "retracting"}
+    assert fields <= {name for name, _ in typestore().fielddefs["skinsafe_msgs/msg/LayerState"][1]}
