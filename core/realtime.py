@@ -11,7 +11,9 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
+import resource
 import sys
+import time
 
 RT_PRIORITY = 10  # the run's process and what it starts (the boards' reader, the emulator)
 LOOP_PRIORITY = RT_PRIORITY + 1  # the loop's thread while the robot moves: above everything it started
@@ -66,6 +68,56 @@ def loop_priority(rt: str):
             os.close(awake)
         os.sched_setscheduler(0, policy, param)
         os.sched_setaffinity(0, cpus)
+
+
+def host_stalls(seconds: float, threshold_s: float = 1e-4, window_s: float = 0.2) -> dict:
+    """What this host takes from a thread that never waits: the calling thread at the loop's priority (where
+    allowed) on the loop's core reads the clock in a tight loop for `seconds` (in windows of `window_s` with a
+    quarter of that asleep between: under the kernel's real-time throttling, which would pause it itself); every gap
+    over `threshold_s` between two reads is time it lost. `stall_ms_max`, `stalls`, `switched_out` (its involuntary
+    context switches: 0 means no other thread ran there meanwhile, so the time went below the scheduler, to
+    interrupts or, on a virtual machine, the hypervisor), `realtime` (whether it ran at the loop's priority).
+    Scheduling and cores restored after."""
+    cpus, policy, param = os.sched_getaffinity(0), os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(LOOP_PRIORITY))
+        rt = True
+    except (PermissionError, OSError):
+        rt = False
+    os.sched_setaffinity(0, loop_cores(cpus)[0])
+    clock, limit = time.perf_counter_ns, int(threshold_s * 1e9)
+    worst, stalls = 0, 0
+    before = resource.getrusage(resource.RUSAGE_THREAD).ru_nivcsw
+    try:
+        for _ in range(max(1, round(seconds / window_s))):
+            last = clock()
+            end = last + int(window_s * 1e9)
+            while last < end:
+                now = clock()
+                if now - last > limit:
+                    stalls += 1
+                    worst = max(worst, now - last)
+                last = now
+            time.sleep(window_s / 4)  # a voluntary switch: not counted below
+        switched = resource.getrusage(resource.RUSAGE_THREAD).ru_nivcsw - before
+    finally:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, policy, param)
+        os.sched_setaffinity(0, cpus)
+    return {"stall_ms_max": worst / 1e6, "stalls": stalls, "switched_out": switched, "realtime": rt}
+
+
+def steal_s(cpu: int) -> float | None:
+    """Seconds the hypervisor has run something else while core `cpu` of this virtual machine wanted to run (its
+    `steal` in /proc/stat, since boot; 10 ms resolution); None where not reported."""
+    try:
+        with open("/proc/stat") as f:
+            for line in f:
+                if line.startswith(f"cpu{cpu} "):
+                    return int(line.split()[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+    return None
 
 
 def loop_cores(cpus) -> tuple[set[int], set[int]]:

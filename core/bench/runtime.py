@@ -22,7 +22,12 @@ into it. Per row, over `--repeats` runs (worst case where it says so):
 - stale_stops: runs a staleness watchdog (silent board, robot state, command) stopped with nothing
   injected (the shared machine's stalls), or a board was silent before the robot moved; such a run is run
   again (up to RETRIES times) and the row's figures are those of the runs that went to the end;
-  frames_lost: frames sent that never arrived.
+  frames_lost: frames sent that never arrived;
+- the loop's stalls beside the host's own: work_ms_max and off_cpu_ms_max / slowest_tick_off_cpu_ms (a tick's
+  wall time less its thread's CPU time), host_stall_ms_max (the longest a thread at the loop's priority on the
+  loop's core lost while it spun for PROBE_S just before each run, with host_switched_out, its involuntary
+  switches: core/realtime.py `host_stalls`) and steal_ms_max (the time the hypervisor took from the loop's core
+  during one run, /proc/stat). The `fr3` rows carry the same.
 `--view off page browser browser-shared`: a row per mode (key `view`), the modes' runs alternating (each repeat
 in an order turned by one) so they share the machine's load: without the live view, with `run --view` (its
 stream and page process), and with a headless Chromium on the page too, off the loop's core or on any;
@@ -71,6 +76,7 @@ from pathlib import Path
 import numpy as np
 
 from skinsafe.core.design.sample import make_sample_design
+from skinsafe.core.realtime import host_stalls, loop_cores, steal_s
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.skin.boards import assign_boards, number_channels
 from skinsafe.core.skin.model import Module, SkinDesign
@@ -84,6 +90,7 @@ SECONDS = 3.0
 STALE = ("skin-silent", "robot-state", "command-stale")
 RETRIES = 5
 FR3_SECONDS = 60.0
+PROBE_S = 2.0  # s of the host's own stalls measured before each run (core/realtime.py `host_stalls`)
 VIEW_PORT = 8480
 LOCAL_BROWSER = {"browser", "browser-shared", "alternating", "alternating-pinned"}  # --view modes with a Chromium here
 
@@ -214,7 +221,13 @@ def _run(args, map_path: Path, command: str, stats: Path, seconds: float, *extra
         p = _with_browser(cmd, shared=view in ("browser-shared", "alternating"), block=args.block if alternating else None,
                           pause=pause, remote=view == "alternating-remote")
     else:
+        host = host_stalls(PROBE_S)  # the host's own stalls of a thread at the loop's priority, just before
+        core = min(loop_cores(os.sched_getaffinity(0))[0])
+        steal = steal_s(core)
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=600 + 20 * seconds)
+        after = steal_s(core)
+        pause = {"host_stall_ms_max": host["stall_ms_max"], "host_switched_out": host["switched_out"],
+                 "steal_ms": (after - steal) * 1e3 if steal is not None and after is not None else None}
     if not stats.exists():
         raise RuntimeError(f"bench runtime: `skinsafe run` exited {p.returncode} without figures: {p.stderr[-800:]}")
     return json.loads(stats.read_text()) | pause
@@ -362,6 +375,7 @@ def _row(design, runs: list[dict], stale: int, ref: dict, args) -> dict:
         "peak_N_run": float(max(x["peak_N"] for x in w)), "peak_N_run_in_process": float(ref["peak_N"]),
         "work_ms_p99": worst("work_ms_p99"), "work_ms_max": worst("work_ms_max"),
         "off_cpu_ms_max": worst("off_cpu_ms_max"), "slowest_tick_off_cpu_ms": worst("slowest_tick_off_cpu_ms"),
+        **_host(runs),
         "latency_wait_ms_p50": _pooled(runs, "latency_wait", 50), "latency_wait_ms_p99": _pooled(runs, "latency_wait"),
         "latency_tick_ms_p50": _pooled(runs, "latency_tick", 50), "latency_tick_ms_p99": _pooled(runs, "latency_tick"),
         "publish_ms_p99": float(max(r["skin"].get("publish_ms_p99") or 0.0 for r in runs)),
@@ -372,6 +386,16 @@ def _row(design, runs: list[dict], stale: int, ref: dict, args) -> dict:
         "per_run_period_ms_p99": [round(r["period_ms_p99"], 4) for r in runs],
         "per_run_latency_ms_p99": [round(r["latency_ms_p99"], 4) for r in runs],
         "per_run_peak_N": [round(x["first_peak_N"], 2) for x in w]}
+
+
+def _host(runs: list[dict]) -> dict:
+    """The host beside the loop's figures: the longest its own stall of a thread at the loop's priority just before a
+    run (`host_stall_ms_max`, with `host_switched_out`: that thread's involuntary switches, all runs), and the time
+    the hypervisor stole from the loop's core during the runs (`steal_ms_max`, the most in one run)."""
+    steal = [r["steal_ms"] for r in runs if r.get("steal_ms") is not None]
+    return {"host_stall_ms_max": max((r.get("host_stall_ms_max", np.nan) for r in runs), default=np.nan),
+            "host_switched_out": int(sum(r.get("host_switched_out", 0) for r in runs)),
+            "steal_ms_max": max(steal) if steal else None}
 
 
 SAMPLES = {  # a run's samples of each pooled figure (ms): every tick's period, every contact frame's latency
@@ -516,7 +540,9 @@ def fr3_row(r: dict, w: dict, stale: int, args) -> dict:
             "robot_s": rnd(r["robot_s"], 1), "realtime_factor": w["realtime_factor"],
             "loop_hz_wall_p50": rnd(r["loop_hz_p50"], 1), "period_ms_wall_p99": rnd(r["period_ms_p99"]),
             "frame_delay_ms_p99": r["skin"].get("frame_delay_ms_p99"), "frame_delay_ms_max": r["skin"].get("frame_delay_ms_max"),
-            "work_ms_p99": rnd(r["work_ms_p99"]), "stop": r["reason"]}
+            "work_ms_p99": rnd(r["work_ms_p99"]), "work_ms_max": rnd(r["work_ms_max"]),
+            "off_cpu_ms_max": rnd(r["off_cpu_ms_max"]), "slowest_tick_off_cpu_ms": rnd(r["slowest_tick_off_cpu_ms"]),
+            **_host([r]), "stop": r["reason"]}
 
 
 def fault_rows(args) -> list[dict]:

@@ -1,7 +1,9 @@
-"""The runtime bench's view comparison: pooled tails, their ratio to the runs without the view, the noise floor."""
+"""The runtime bench's view comparison: pooled tails, their ratio to the runs without the view, the noise floor; the
+host's own stalls beside the loop's figures."""
 import numpy as np
 
-from skinsafe.core.bench.runtime import _vs_off
+from skinsafe.core.bench.runtime import _host, _vs_off
+from skinsafe.core.realtime import host_stalls, steal_s
 
 
 def _run(periods, latencies, waits=None):
@@ -54,3 +56,25 @@ def test_view_change_interval_resamples_the_repeats_as_pairs():
     assert lo <= other["period_p99_vs_off"] <= hi and hi - lo > 0.1
     assert not other["shown_within_5pct"]
     assert "period_p99_vs_off_ci95" not in _vs_off({"off": runs(1.0, load[:1]), "page": runs(1.0, load[:1])}, "page")
+
+
+def test_the_host_rows_take_the_worst_stall_and_steal_and_sum_the_switches():
+    runs = [{"host_stall_ms_max": 0.4, "host_switched_out": 1, "steal_ms": 20.0},
+            {"host_stall_ms_max": 2.5, "host_switched_out": 0, "steal_ms": None},
+            {"host_stall_ms_max": 0.1, "host_switched_out": 2, "steal_ms": 10.0}]
+    assert _host(runs) == {"host_stall_ms_max": 2.5, "host_switched_out": 3, "steal_ms_max": 20.0}
+    assert _host([{"steal_ms": None}])["steal_ms_max"] is None
+
+
+def test_the_host_stall_probe_counts_every_gap_over_its_threshold():
+    """At a threshold no clock read beats, every gap is a stall (its count in the thousands in 0.1 s); at 1 s none
+    of 0.1 s is; the probe's scheduling and cores are restored."""
+    import os
+
+    cpus, policy = os.sched_getaffinity(0), os.sched_getscheduler(0)
+    every = host_stalls(0.1, threshold_s=1e-12, window_s=0.05)
+    assert every["stalls"] > 1000 and 0 < every["stall_ms_max"] < 100
+    none = host_stalls(0.1, threshold_s=1.0, window_s=0.05)
+    assert none["stalls"] == 0 and none["stall_ms_max"] == 0.0
+    assert os.sched_getaffinity(0) == cpus and os.sched_getscheduler(0) == policy
+    assert steal_s(min(cpus)) is None or steal_s(min(cpus)) >= 0
