@@ -148,3 +148,12 @@ def test_sample_blend_asset_holds_a_full_skin():
     assert {it.body for it in scene.skinsafe.links} == set(b2c.robot_for(scene).body_names)
     for m in d.modules:  # each module on one board, within capacity
         assert set(d.taxels.board[d.taxels.module == m.id].tolist()) == {m.board}
+    # its first edit (a module deleted) renumbers no other module's taxels; the deleted id is retired
+    gone = d.modules[0]
+    for o in scene.objects:
+        o.select_set(o.skinsafe_module.module_id == gone.id)
+    assert bpy.ops.object.delete() == {"FINISHED"}
+    bpy.context.view_layer.update()
+    after = b2c.design_of(scene)
+    keep = d.taxels.module != gone.id
+    assert np.array_equal(after.taxels.ids, d.taxels.ids[keep]) and gone.id in after.retired_modules
