@@ -17,8 +17,9 @@ one stop). Per run: the fault kind the monitor named (is it the
 one injected: `EXPECT`, no text matched), onset -> the time the driver sent zero velocity (not the
 detection), any traceback, is the record readable (every message decodes with mcap-ros2-support and
 the last one is the stop's diagnostics), was the stop latched (the monitor's protective stop)?
-Every run but the contact kinds' (a poke on an arm at rest: stack-qp-fail, after-contact under
---after-contact hold) sweeps the first joint at a speed (`--speeds`, fractions of its velocity limit; franky-sim's arm
+Every run but the contact kinds' (a contact on an arm at rest: stack-qp-fail, after-contact under
+--after-contact hold; the sim's a poke, the FR3's a hand in franky-sim's world, given on their own with `--kinds`,
+the arm held at its start pose) sweeps the first joint at a speed (`--speeds`, fractions of its velocity limit; franky-sim's arm
 from where the last run left it, toward the further end of its range), so the stop is measured as a safety engineer
 states it: from the onset to every joint at rest (`Runtime.stopping`, on the arm's measured state), and the furthest
 any taxel travelled meanwhile (`monitor.travel`), beside the printed bounds' model at the top speed measured.
@@ -59,11 +60,12 @@ EXPECT = {"board-unplug": "link-lost", "frame-delay": "board-silent", "frame-lag
           "robot-clock-back": "robot-clock-back", "robot-nan": "robot-nonfinite", "robot-overrun": "overrun",
           "robot-die": "driver"}  # injected -> the monitor's kind
 INTRUDER_HZ = 100.0  # the intruder's datagrams per second (the issue's hijack)
-CONTACT = ("stack-qp-fail", "after-contact")  # a poke on the arm at rest (a retraction): speed 0 only
+CONTACT = ("stack-qp-fail", "after-contact")  # a contact on the arm at rest (a retraction): speed 0 only
 SPEEDS = (0.25, 0.5, 1.0)  # the swept joint's speed, a fraction of its velocity limit, for every other kind
 SWEEP_S = 1.2  # s the swept joint moves at its speed from the start (then the arm holds)
 # per driver: the robot's own faults as sim-* (the sim's SimFaults) or robot-* (the FR3 driver's view of franky-sim's
-# states, its FaultPlan); fr3 has no contact kinds: its storm's world has no hand or obstacle, so nothing is retracted
+# states, its FaultPlan). The FR3's contact kinds come from a hand in franky-sim's world (`--kinds` with only them: the
+# other kinds' runs have no hand, so nothing is retracted); the sim's from a poke
 KINDS = {"sim": tuple(k for k in EXPECT if not k.startswith("robot-")),
          "fr3": tuple(k for k in EXPECT if not k.startswith("sim-") and k not in CONTACT)}
 SIGNALS = {"ctrl-c": (0.0,), "ctrl-c-twice": (0.0, 0.01)}  # SIGINTs to this process, s after the fault's time
@@ -182,7 +184,7 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
     arm holds); `the`: the arm's joints, limits and the model of the printed stopping bounds."""
     from skinsafe.core.app import run as run_cmd
     from skinsafe.core.app.cli import module_args
-    from skinsafe.core.bench.runtime import write_waypoints
+    from skinsafe.core.bench.runtime import write_still, write_waypoints
     from skinsafe.core.runtime.leader import stream
 
     record, stats = out / f"run{k}.mcap", out / f"run{k}.json"
@@ -215,11 +217,16 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
         intruder = _Intruder(("127.0.0.1", port), home, key, out / "other.key", stop, done)
         threading.Thread(target=stream, args=(("127.0.0.1", port), times, targets, stop, 100.0, key),
                          daemon=True).start()
-    elif kind == "after-contact":  # a poke at `at`: its retraction's end latches under --after-contact hold
-        command, extra = "hold", ["--after-contact", "hold", "--contact", f"poke:at={at:.3f}"]
+    if kind in CONTACT:  # the sim: a poke (at `at`); the FR3: the world's hand, the arm held at franky-sim's start pose
+        from skinsafe.core.sim.franky_world import INITIAL_Q
+
+        sim = robot[1] == "sim"
+        command = "hold" if sim else f"trajectory:{write_still(out / 'still.csv', the.joints, INITIAL_Q)}"
+        poke = ["--contact", f"poke:at={at:.3f}" if kind == "after-contact" else "poke"] if sim else []
+    if kind == "after-contact":  # the retraction's end latches under --after-contact hold
+        extra = ["--after-contact", "hold", *poke]
     elif kind not in SIGNALS:
-        extra = ["--inject", f"{kind}@{at:.3f}"] + (["--contact", "poke"] if kind == "stack-qp-fail" else [])
-        command = "hold" if kind == "stack-qp-fail" else command
+        extra = ["--inject", f"{kind}@{at:.3f}"] + (poke if kind == "stack-qp-fail" else [])
 
     def moving(runtime):
         done["runtime"] = runtime
@@ -293,9 +300,10 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
 
 
 @contextlib.contextmanager
-def _setup(driver: str, tmp: Path):
+def _setup(driver: str, tmp: Path, hand: bool = False):
     """(map, feed, ports, home, the run's robot options) of `driver`'s world: the UR5 sample skin in the sim, or
-    a skin on franky-sim's FR3 (its own process, no hand in its world); one emulator serves every run."""
+    a skin on franky-sim's FR3 (its own process; with `hand`, a hand reaching into the arm at its start pose 0.8 s
+    into every run, then every 2 s: `franky_world.Hand`); one emulator serves every run."""
     from skinsafe.core.skin.force_feed import ForceFeed
     from skinsafe.core.skin.taxel_map import load, save
     from skinsafe.hardware.deploy import deploy
@@ -314,7 +322,7 @@ def _setup(driver: str, tmp: Path):
             import subprocess
 
             from skinsafe.core.app.cli import main as skinsafe
-            from skinsafe.core.sim.franky_world import INITIAL_Q, WorldProcess, require_franky_python
+            from skinsafe.core.sim.franky_world import INITIAL_Q, WorldProcess, hand_in_reach, require_franky_python
 
             subprocess.run([str(require_franky_python()), "-m", "skinsafe.core.sim.franky_world", "mjcf",
                             str(tmp / "fr3.xml")], check=True, capture_output=True)
@@ -322,7 +330,8 @@ def _setup(driver: str, tmp: Path):
                 if skinsafe(["design", str(tmp / "fr3.xml"), "--bodies", "fr3_link5,fr3_link6", "--out",
                              str(tmp / "skin.json")]):
                     raise SystemExit("runtime faults: designing the FR3 skin failed")
-            world = stack.enter_context(WorldProcess(tmp / "skin.json", tmp / "world.json", realtime=True))
+            world = stack.enter_context(WorldProcess(tmp / "skin.json", tmp / "world.json", realtime=True, hand=hand_in_reach(
+                str(tmp / "skin.json"), INITIAL_Q) if hand else None))
             feed = stack.enter_context(ForceFeed.attach(world.feed))
             home, options = np.array(INITIAL_Q), ("--robot", "fr3", "--host", world.host, "--feed", world.feed,
                                                    "--allow-non-realtime")
@@ -400,7 +409,7 @@ def add_arguments(p) -> None:
     p.add_argument("--driver", choices=tuple(KINDS), default="sim", help="sim (default) or fr3 (franky-sim's FR3 in "
                    "its own process: `make franky-sim`); fr3 has no sim-* faults")
     p.add_argument("--kinds", nargs="+", metavar="FAULT", help="only these fault kinds, in turn (default: every kind "
-                   "of the driver)")
+                   "of the driver; fr3's contact kinds stack-qp-fail after-contact only on their own: their world has a hand)")
     p.add_argument("--speeds", type=float, nargs="+", default=list(SPEEDS), metavar="FRACTION",
                    help="the swept joint's speeds, fractions of its velocity limit; every kind runs at each in turn "
                         f"(the contact kinds {', '.join(CONTACT)} on an arm at rest; default {' '.join(map(str, SPEEDS))})")
@@ -418,13 +427,20 @@ def run(args) -> int:
     rows = []
     kinds = KINDS[args.driver]
     if args.kinds:
-        unknown = [k for k in args.kinds if k not in kinds]
+        known = kinds + (CONTACT if args.driver == "fr3" else ())
+        unknown = [k for k in args.kinds if k not in known]
         if unknown:
             print(f"skinsafe faults: --kinds {' '.join(unknown)}: the {args.driver} driver's kinds are "
-                  f"{', '.join(kinds)}", file=sys.stderr)
+                  f"{', '.join(known)}", file=sys.stderr)
+            return 2
+        hand = [k in CONTACT for k in args.kinds] if args.driver == "fr3" else [False]
+        if any(hand) and not all(hand):
+            print(f"skinsafe faults: --kinds: the FR3's contact kinds ({', '.join(CONTACT)}) need a hand in its "
+                  "world, the others none: give them on their own", file=sys.stderr)
             return 2
         kinds = tuple(args.kinds)
-    with tempfile.TemporaryDirectory(prefix="skinsafe-faults-") as tmp, _setup(args.driver, Path(tmp)) as world:
+    hand = args.driver == "fr3" and set(kinds) <= set(CONTACT)
+    with tempfile.TemporaryDirectory(prefix="skinsafe-faults-") as tmp, _setup(args.driver, Path(tmp), hand) as world:
         map_path, feed, ports, home, options = world
         from skinsafe.core.runtime.monitor import Timing
 
