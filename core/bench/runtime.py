@@ -71,6 +71,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -132,13 +133,14 @@ def add_arguments(p) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--view", nargs="+", default=["off"],
                    choices=("off", "page", "browser", "browser-shared", "alternating", "alternating-pinned",
-                            "alternating-remote"),
+                            "alternating-remote", "foxglove"),
                    help="rows without the live view (off), with `run --view` (page: the stream and its page process), "
                    "and also with a headless Chromium showing the page, kept off the loop's core (browser) or free to "
                    "use it (browser-shared); the runs alternate between them. alternating (-pinned): browser-shared "
                    "(browser) with the view's processes paused and resumed every --block s, the ticks compared inside "
                    "each run (core/bench/view_pause.py); alternating-remote: so, the page open on another computer "
-                   "(core/bench/remote_viewer.py) instead of a local browser")
+                   "(core/bench/remote_viewer.py) instead of a local browser; foxglove: `run --foxglove` with a Foxglove "
+                   "WebSocket client subscribed to every topic (core/bench/foxglove_client.py)")
     p.add_argument("--sweep", type=float, metavar="S", help="the arm into the post and back every S seconds (contacts "
                    "all run long) instead of the pan on into it")
     p.add_argument("--block", type=float, default=0.5, help="--view alternating: seconds the view works, then is paused")
@@ -214,11 +216,15 @@ def _run(args, map_path: Path, command: str, stats: Path, seconds: float, *extra
            "--seconds", str(seconds), "--rate", str(args.rate), "--link-latency", str(args.link_latency), "--allow-link-latency",
            "--after-contact", "always-resume",  # the rows measure every contact of a sweep, flagged or not
            "--stats", str(stats), *extra]
-    if view != "off":
+    if view == "foxglove":
+        cmd += ["--foxglove", "0"]
+    elif view != "off":
         cmd += ["--view", "--view-port", str(VIEW_PORT), "--view-stream", "127.0.0.1:0"]
     stats.unlink(missing_ok=True)
     pause = {}
-    if view not in ("off", "page"):
+    if view == "foxglove":
+        p = _with_foxglove(cmd, pause)
+    elif view not in ("off", "page"):
         alternating = view.startswith("alternating")
         p = _with_browser(cmd, shared=view in ("browser-shared", "alternating"), block=args.block if alternating else None,
                           pause=pause, remote=view == "alternating-remote")
@@ -298,6 +304,27 @@ def _with_browser(cmd: list[str], shared: bool = False, block: float | None = No
         if pauser is not None:
             pauser.stop()
             pause |= {"switches": pauser.switches, "view_cpu_s": pauser.cpu_s}
+    return subprocess.CompletedProcess(cmd, proc.returncode, out, "".join(err) + rest)
+
+
+def _with_foxglove(cmd: list[str], got: dict) -> subprocess.CompletedProcess:
+    """`cmd` (a `run --foxglove 0`) with a Foxglove client subscribed to every topic from before the robot moves to
+    the run's end, as the Foxglove app would be (a thread of this process); the messages it got in `got`."""
+    from skinsafe.core.bench.foxglove_client import watch
+
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    err, live, client = [], {}, None
+    for line in proc.stderr:
+        err.append(line)
+        if "Foxglove at ws://" in line:
+            url = line.split(" at ")[1].split()[0]
+            client = threading.Thread(target=lambda: live.update(watch(url, None, seconds=600)), daemon=True)
+            client.start()
+            break
+    out, rest = proc.communicate(timeout=600)
+    if client is not None:
+        client.join(30)
+    got["client_messages"] = sum(len(m) for m in live.get("messages", {}).values())
     return subprocess.CompletedProcess(cmd, proc.returncode, out, "".join(err) + rest)
 
 
@@ -428,6 +455,8 @@ def _vs_off(runs: dict[str, list[dict]], view: str, seed: int = 0) -> dict:
     `within_5pct`: every change within 5%; `not_slower_5pct`: none more than 5% above off's; `shown_within_5pct` /
     `shown_not_slower_5pct`: the same of the whole intervals; `resolvable`: off's halves within 5% of each other."""
     out = {"view": view}
+    if view == "foxglove":
+        out["client_messages"] = int(sum(r["client_messages"] for r in runs[view]))
     if "off" not in runs:
         return out
     off = runs["off"]
