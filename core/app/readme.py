@@ -242,21 +242,21 @@ def maze_ablation(root: Path) -> str:
 
 
 def safety_audit(root: Path) -> str:
-    """`skinsafe bench safety`'s rows, limits and counts side by side."""
+    """`skinsafe bench safety`'s rows, limits and counts side by side (related counts share a cell)."""
     rows = load(root, "results/safety/safety_audit.json")
-    lines = ["| robot | contacts | cases | feasible | into_contact_mm_worst | into_contact_mm_worst_all | infeasible_cases | "
-             "dominant_ratio_min (cases) | vel / acc limit violations | nonfinite_cases | missing_cases | fail_open | "
-             "solver_failed | ms_median | ms_p999 | ms_worst |",
-             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    lines = ["| robot | contacts | cases (feasible / infeasible) | into_contact_mm_worst (all cases) | "
+             "dominant_ratio_min (cases) | vel / acc limit violations, nonfinite / missing cases | fail_open / solver_failed | "
+             "ms median / p99.9 / worst |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in rows:
         ratio = "—" if r.get("dominant_ratio_min") is None else f"{r['dominant_ratio_min']:.3f}"
         lines.append(
-            f"| {r['robot']} | {r['contacts']} | {fmt(r['cases'])} | {fmt(r['feasible'])} | "
-            f"{r['into_contact_mm_worst']:.3f} | {_opt(r, 'into_contact_mm_worst_all', '.3f')} | "
-            f"{_opt(r, 'infeasible_cases', ',')} | {ratio} ({fmt(r['dominant_cases'])}) | "
-            f"{r['vel_limit_violations']} / {r['acc_limit_violations']} | {r['nonfinite_cases']} | "
-            f"{_opt(r, 'missing_cases', ',')} | {r['fail_open']} | "
-            f"{r.get('solver_failed', '—')} | {r['ms_median']:.2f} | {r['ms_p999']:.1f} | {r['ms_worst']:.0f} |")
+            f"| {r['robot']} | {r['contacts']} | {fmt(r['cases'])} ({fmt(r['feasible'])} / {_opt(r, 'infeasible_cases', ',')}) | "
+            f"{r['into_contact_mm_worst']:.3f} ({_opt(r, 'into_contact_mm_worst_all', '.3f')}) | "
+            f"{ratio} ({fmt(r['dominant_cases'])}) | "
+            f"{r['vel_limit_violations']} / {r['acc_limit_violations']}, {r['nonfinite_cases']} / "
+            f"{_opt(r, 'missing_cases', ',')} | {r['fail_open']} / {r.get('solver_failed', '—')} | "
+            f"{r['ms_median']:.2f} / {r['ms_p999']:.1f} / {r['ms_worst']:.0f} |")
     return "\n".join(lines)
 
 
@@ -558,9 +558,18 @@ def hardware_constants(root: Path) -> str:
     return "\n".join(lines)
 
 
+def fault_table(root: Path) -> str:
+    """The safety monitor's fault table for the sim's defaults on the UR5 sample skin (`python -m
+    skinsafe.core.runtime.monitor`)."""
+    from skinsafe.core.runtime.monitor import sim_defaults_table
+
+    return sim_defaults_table()[1]
+
+
 FIGURES = {"maze-grid": maze_grid, "maze-ablation": maze_ablation, "tracking-labels": tracking_labels, "tracking-nstep": tracking_nstep, "safety-audit": safety_audit, "paper-results": paper_results,
            "collaboration": collaboration, "collaboration-sweep": collaboration_sweep, "sample-skins": sample_skins,
-           "import-contracts": import_contracts, "hardware-constants": hardware_constants}
+           "import-contracts": import_contracts, "hardware-constants": hardware_constants,
+           "fault-table": fault_table}
 
 
 def _nav_files(nav) -> list[str]:

@@ -139,8 +139,8 @@ def tables(res: dict) -> str:
 def nominal_table(res: dict) -> str:
     """The nominal runs per scenario and stack: contacts, the worst ratio and its contact, peaks,
     sensing, the layers that acted, task times."""
-    lines = ["| scenario | stack | contacts | worst ratio (kind, region) | peak N | peak N/cm^2 | sensed (latest, ms) "
-             "| layers that acted | task s (no person) |", "| --- | --- | ---: | --- | ---: | ---: | --- | --- | ---: |"]
+    lines = ["| scenario | stack | contacts | worst ratio (kind, region) | peak N (N/cm^2) | sensed (latest, ms) "
+             "| layers that acted | task s (no person) |", "| --- | --- | ---: | --- | ---: | --- | --- | ---: |"]
     for key, r in res["runs"].items():
         scenario, stack = key.split("/")
         ev = [e for e in res["contacts"] if e["scenario"] == scenario and e["stack"] == stack]
@@ -152,7 +152,7 @@ def nominal_table(res: dict) -> str:
             task += f" ({r['no_person_task_time_s']:.2f})"
         lines.append(f"| {scenario} | {stack} | {len(ev)} | "
                      + (f"{worst['ratio']:.2f} ({worst['kind']}, {worst['region']})" if worst else "-")
-                     + f" | {r['peak_N']:.0f} | {max((e['peak_pressure_N_cm2'] for e in ev), default=0):.0f} | "
+                     + f" | {r['peak_N']:.0f} ({max((e['peak_pressure_N_cm2'] for e in ev), default=0):.0f}) | "
                      + ("all" if r["sensed"] else "**not all**") + f" ({late:.1f}) | {'+'.join(acted)} | {task} |")
     return "\n".join(lines)
 

@@ -346,19 +346,20 @@ def markdown(tm: Timing, speed: float, stops: dict[Kind, tuple[float, float]] | 
     """The fault table of docs/run/safety.md (`stops`: `stopping`'s bounds, for the stop columns)."""
     b = bounds(tm)
     rows = ["| fault | detection | bound (ms) | blind distance (mm) | stop within (ms) | stopping distance (mm) | "
-            "stop category | leaves the robot | test |", "|---|---|---:|---:|---:|---:|---|---|---|"]
+            "leaves the robot (stop category) | test |", "|---|---|---:|---:|---:|---:|---|---|"]
     for k in Kind:
         s = SPECS[k]
         t, d = (stops or {}).get(k, (float("nan"), float("nan")))
-        cat = "robot's own" if STOP_CATEGORY[k] is None else str(STOP_CATEGORY[k])
+        cat = "the robot's own" if STOP_CATEGORY[k] is None else str(STOP_CATEGORY[k])
         rows.append(f"| `{k.value}` | {s.detection} | {b[k] * 1e3:.1f} | {speed * b[k] * 1e3:.1f} | {t * 1e3:.0f} | "
-                    f"{d * 1e3:.0f} | {cat} | {s.leaves} | `{s.test}` |")
+                    f"{d * 1e3:.0f} | {s.leaves} ({cat}) | `{s.test}` |")
     return "\n".join(rows)
 
 
-def main() -> None:
-    """The table for `skinsafe run --robot sim`'s defaults (2 ms period, boards at 100 Hz, no link latency, teleop
-    timeout 0.1 s) on the UR5 sample skin, its fastest taxel at home with every joint at its limit."""
+def sim_defaults_table() -> tuple[float, str]:
+    """The fastest taxel's speed (m/s) and the table for `skinsafe run --robot sim`'s defaults (2 ms period, boards
+    at 100 Hz, no link latency, teleop timeout 0.1 s) on the UR5 sample skin, its fastest taxel at home with every
+    joint at its limit (docs/run/safety.md's fault table)."""
     from skinsafe.core.design.sample import make_sample_design
     from skinsafe.core.robot.kinematics import TaxelKinematics
     from skinsafe.core.robot.models import build_ur5
@@ -368,8 +369,13 @@ def main() -> None:
     J = TaxelKinematics(robot.model, design).jacobians_of(np.arange(design.n_taxels), robot.home)[0]
     speed = fastest_taxel_speed(J, robot.vel_limits)
     tm = Timing(0.002, 0.01, 0.02, 0.1)
+    return speed, markdown(tm, speed, stopping(tm, J, robot.vel_limits, robot.acc_limits))
+
+
+def main() -> None:
+    speed, text = sim_defaults_table()
     print(f"UR5 sample skin, fastest taxel {speed:.2f} m/s; `skinsafe run --robot sim` defaults\n")
-    print(markdown(tm, speed, stopping(tm, J, robot.vel_limits, robot.acc_limits)))
+    print(text)
 
 
 if __name__ == "__main__":

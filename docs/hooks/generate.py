@@ -34,7 +34,8 @@ ASSET_REF = re.compile(r'(\]\(|src=")((?:results|blend_assets)/[^)"\s]+)')
 
 
 def on_files(files, config):
-    """The pictures pages show from results/ and blend_assets/, served at the same paths, the state machine's
+    """The pictures pages show from results/ and blend_assets/ and the results files (not an experiment's per-task
+    files) that tables link to for their full rows, served at the same paths, the state machine's
     picture drawn from its edges (docs/hooks/state_machine.mmd: img/state_machine.png) and DIAGRAMS
     (img/NAME.png)."""
     from mkdocs.structure.files import File
@@ -46,10 +47,10 @@ def on_files(files, config):
         flow_picture(nodes, edges, size, generated / "img" / f"{name}.png")
         files.append(File(f"img/{name}.png", str(generated), config["site_dir"], config["use_directory_urls"]))
 
-    for folder in ("results", "blend_assets/pictures"):
-        for path in sorted((ROOT / folder).rglob("*.png")):
-            rel = path.relative_to(ROOT).as_posix()
-            files.append(File(rel, str(ROOT), config["site_dir"], config["use_directory_urls"]))
+    served = [p for folder in ("results", "blend_assets/pictures") for p in sorted((ROOT / folder).rglob("*.png"))]
+    served += [p for p in sorted((ROOT / "results").rglob("*.json")) if "tasks" not in p.parts]  # a table's full rows
+    for path in served:
+        files.append(File(path.relative_to(ROOT).as_posix(), str(ROOT), config["site_dir"], config["use_directory_urls"]))
     return files
 
 
