@@ -303,7 +303,24 @@ def _view(cfg: RunConfig, stack: contextlib.ExitStack, design, driver, map_path:
     return SharedTap(frames)
 
 
-def _ros2_topics(robot, arm, design):
+def _foxglove(cfg: RunConfig, stack: contextlib.ExitStack, design, driver, map_path: Path, tap: Tap) -> Tap:
+    """The Foxglove server's process (core/app/foxglove_serve.py, at the view's low priority) fed by the loop's shared
+    newest tick: the view's (`--view`) or its own; ready before the robot moves, ended with the run."""
+    from skinsafe.core.app.foxglove_serve import start
+    from skinsafe.core.runtime.view_share import SharedFrames, SharedTap
+
+    if not isinstance(tap, SharedTap):
+        frames = SharedFrames.create(design.n_taxels, len(driver.joint_names), [b.uid for b in design.boards])
+        stack.callback(frames.close)
+        tap = SharedTap(frames)
+    proc, port = start(tap.frames, map_path.resolve(), driver.joint_names, cfg.foxglove, preexec=background)
+    stack.callback(_end, proc)
+    print(f"skinsafe run: Foxglove at ws://127.0.0.1:{port} (Foxglove: Open connection > Foxglove WebSocket; "
+          "layout docs/run/skinsafe.foxglove.json)", file=sys.stderr)
+    return tap
+
+
+def ros2_topics(robot, arm, design):
     """The run's ROS 2 topics (core/runtime/ros2_topics.py): `arm`'s kinematics, the URDF of `robot` with its skin."""
     from skinsafe.core.runtime.ros2_topics import Ros2Topics
     from skinsafe.exporters.urdf import build_urdf
@@ -496,7 +513,7 @@ def _wire(cfg: RunConfig, stack, feed, ports, inject, map_path, map_hash, robot,
         if isinstance(command, Teleop):  # who may drive it, and with which key (its id, never its value)
             config["teleop"] = {"leader": cfg.teleop_leader or "", "key": command.key.path, "key_id": command.key.key_id}
         try:
-            recorder = Recorder(cfg.record, driver.joint_names, config, topics=_ros2_topics(robot, arm, design))
+            recorder = Recorder(cfg.record, driver.joint_names, config, topics=ros2_topics(robot, arm, design))
         except OSError as e:
             raise _Refused(2, f"--record {cfg.record}: {e.strerror or e}; choose a folder you can write to") from None
     tap = Tap()
@@ -506,15 +523,10 @@ def _wire(cfg: RunConfig, stack, feed, ports, inject, map_path, map_hash, robot,
         except (OSError, ValueError) as e:
             raise _Refused(2, f"--view: {e}") from None
     if cfg.foxglove is not None:
-        from skinsafe.core.runtime.foxglove_live import FoxgloveLive
-
         try:
-            live = FoxgloveLive(_ros2_topics(robot, arm, design), driver.joint_names, tap, cfg.foxglove)
-        except RuntimeError as e:  # foxglove-sdk: the port taken
-            raise _Refused(2, f"--foxglove {cfg.foxglove}: {e}; choose a free port (0: any)") from None
-        stack.callback(live.close)
-        print(f"skinsafe run: Foxglove at ws://127.0.0.1:{live.port} (Foxglove: Open connection > Foxglove "
-              "WebSocket; layout docs/run/skinsafe.foxglove.json)", file=sys.stderr)
+            tap = _foxglove(cfg, stack, design, driver, map_path, tap)
+        except OSError as e:
+            raise _Refused(2, f"--foxglove: {e}") from None
     runtime = Runtime(driver, source, layers, command, source.excluded, design.taxels.thresholds["force"],
                       recorder, tap, seconds=seconds, monitor=Monitor(cfg.after_contact), limiter=Limiter(limits, driver.period_s),
                       overruns=cfg.overruns, faults=inject)

@@ -2,34 +2,39 @@
 
 The same ROS 2 topics the record holds (core/runtime/ros2_topics.py, plus `/joint_states` and
 `/skinsafe/command`), CDR with their ros2msg schemas, so Foxglove's 3D panel shows the robot from
-`/robot_description` and `/tf` with the skin coloured by force. A thread of its own samples the loop's tap
-(`rate_hz`, the newest tick; the loop only stores a reference) and encodes and logs that tick's messages;
-the latched ones (the URDF, the taxel links) go out again to each new subscriber.
+`/robot_description` and `/tf` with the skin coloured by force. A thread samples `latest` (`rate_hz`, the
+newest tick) and encodes and logs that tick's messages; the latched ones (the URDF, the taxel links) go out
+again to each new subscriber. `skinsafe run --foxglove` runs it in a process of its own (core/app/foxglove_serve.py)
+fed by the loop's shared tick (core/runtime/view_share.py): in the loop's process its encoding shared the loop's
+interpreter lock, and the tick period's p99 rose by half with a client connected (`skinsafe bench runtime
+--view foxglove`).
 """
 from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 from foxglove.websocket import ServerListener
 
 from skinsafe.core.runtime.record import JointStateEncoder
 from skinsafe.core.runtime.ros2_msgs import schema
 from skinsafe.core.runtime.ros2_topics import LATCHED, TOPICS, Ros2Topics
-from skinsafe.core.runtime.tap import Tap
+from skinsafe.core.runtime.tick import Tick
 
 JOINT_TOPICS = {"/joint_states": "sensor_msgs/msg/JointState", "/skinsafe/command": "sensor_msgs/msg/JointState"}
 RATE_HZ = 30.0
 
 
 class FoxgloveLive:
-    """A Foxglove WebSocket server at `host:port` (0: any free one, see `port`) fed from `tap`; `close()` ends it."""
+    """A Foxglove WebSocket server at `host:port` (0: any free one, see `port`) fed by `latest()` (the newest tick,
+    None before the first); `close()` ends it."""
 
-    def __init__(self, topics: Ros2Topics, joint_names: list[str], tap: Tap, port: int, host: str = "127.0.0.1",
-                 rate_hz: float = RATE_HZ):
+    def __init__(self, topics: Ros2Topics, joint_names: list[str], latest: Callable[[], Tick | None], port: int,
+                 host: str = "127.0.0.1", rate_hz: float = RATE_HZ):
         import foxglove
 
-        self.topics, self.tap, self.period = topics, tap, 1.0 / rate_hz
+        self.topics, self.latest, self.period = topics, latest, 1.0 / rate_hz
         self.joints = JointStateEncoder(joint_names)
         self.context = foxglove.Context()
         self.channels = {topic: foxglove.Channel(topic, message_encoding="cdr", context=self.context,
@@ -37,8 +42,9 @@ class FoxgloveLive:
                                                                         data=schema(typ).encode()))
                          for topic, typ in (TOPICS | JOINT_TOPICS).items()}
         self.resend = set(LATCHED)  # latched topics a new subscriber is owed
+        self.subscriptions = _Subscriptions(self.resend)
         self.server = foxglove.start_server(name="skinsafe", host=host, port=port, context=self.context,
-                                            server_listener=_Subscriptions(self.resend))
+                                            server_listener=self.subscriptions)
         self.port = self.server.port
         self.sent = 0
         self._stop = threading.Event()
@@ -58,7 +64,9 @@ class FoxgloveLive:
                 while self.resend:
                     topic = self.resend.pop()
                     self._log(topic, static[topic])
-            k = self.tap.latest()
+            if not self.subscriptions.count:  # nobody watching: no tick taken (the loop then shares none)
+                continue
+            k = self.latest()
             if k is None or k is last:
                 continue
             last = k
@@ -73,11 +81,16 @@ class FoxgloveLive:
 
 
 class _Subscriptions(ServerListener):
-    """Marks a latched topic owed when a client subscribes to it (called on the server's thread)."""
+    """Counts the clients' subscriptions and marks a latched topic owed when a client subscribes to it (called on
+    the server's thread)."""
 
     def __init__(self, owed: set):
-        self.owed = owed
+        self.owed, self.count = owed, 0
 
     def on_subscribe(self, client, channel) -> None:
+        self.count += 1
         if channel.topic in LATCHED:
             self.owed.add(channel.topic)
+
+    def on_unsubscribe(self, client, channel) -> None:
+        self.count -= 1
