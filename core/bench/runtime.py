@@ -38,6 +38,8 @@ than 5% above), `*_p99_vs_off_ci95` (the change's 95% interval, the repeats resa
 next to each other) with `shown_within_5pct` / `shown_not_slower_5pct` (the whole intervals), and the noise
 floor: `off_spread`, how far the runs without the view differ from themselves (even runs against odd),
 `resolvable` when that is within 5%.
+`--view foxglove record`: the same rows for `run --foxglove` with a Foxglove WebSocket client subscribed to every
+topic (`client_messages`: what it got) and for `run --record` (the rosbag2 folder and its ROS 2 topics).
 `--view alternating alternating-pinned alternating-remote` (core/bench/view_pause.py): the comparison inside each
 run instead (a local Chromium on any core, off the loop's core, or the page open on another computer), the view
 attached throughout and its processes paused and resumed every `--block` s: `*_p50_vs_paused`, `*_p99_vs_paused`
@@ -133,14 +135,15 @@ def add_arguments(p) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--view", nargs="+", default=["off"],
                    choices=("off", "page", "browser", "browser-shared", "alternating", "alternating-pinned",
-                            "alternating-remote", "foxglove"),
+                            "alternating-remote", "foxglove", "record"),
                    help="rows without the live view (off), with `run --view` (page: the stream and its page process), "
                    "and also with a headless Chromium showing the page, kept off the loop's core (browser) or free to "
                    "use it (browser-shared); the runs alternate between them. alternating (-pinned): browser-shared "
                    "(browser) with the view's processes paused and resumed every --block s, the ticks compared inside "
                    "each run (core/bench/view_pause.py); alternating-remote: so, the page open on another computer "
                    "(core/bench/remote_viewer.py) instead of a local browser; foxglove: `run --foxglove` with a Foxglove "
-                   "WebSocket client subscribed to every topic (core/bench/foxglove_client.py)")
+                   "WebSocket client subscribed to every topic (core/bench/foxglove_client.py); record: `run --record` "
+                   "(the rosbag2 folder with its ROS 2 topics, written by the run's writer thread)")
     p.add_argument("--sweep", type=float, metavar="S", help="the arm into the post and back every S seconds (contacts "
                    "all run long) instead of the pan on into it")
     p.add_argument("--block", type=float, default=0.5, help="--view alternating: seconds the view works, then is paused")
@@ -218,13 +221,15 @@ def _run(args, map_path: Path, command: str, stats: Path, seconds: float, *extra
            "--stats", str(stats), *extra]
     if view == "foxglove":
         cmd += ["--foxglove", "0"]
+    elif view == "record":
+        cmd += ["--record", str(stats.with_suffix(".record"))]
     elif view != "off":
         cmd += ["--view", "--view-port", str(VIEW_PORT), "--view-stream", "127.0.0.1:0"]
     stats.unlink(missing_ok=True)
     pause = {}
     if view == "foxglove":
         p = _with_foxglove(cmd, pause)
-    elif view not in ("off", "page"):
+    elif view not in ("off", "page", "record"):
         alternating = view.startswith("alternating")
         p = _with_browser(cmd, shared=view in ("browser-shared", "alternating"), block=args.block if alternating else None,
                           pause=pause, remote=view == "alternating-remote")
