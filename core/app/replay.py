@@ -1,4 +1,4 @@
-"""`skinsafe replay FILE.mcap [--map MAP]`: re-run the layers on a record, report the largest command difference.
+"""`skinsafe replay DIR [--map MAP]` (a `run --record` folder, or a FILE.mcap of an earlier skinsafe): re-run the layers on a record, report the largest command difference.
 
 Exit codes: 0 replayed, every command reproduced within `--tol` and the record complete; 1 a difference
 above it, or an incomplete record (ticks dropped by the recorder); 2 a record or map that cannot be read.
@@ -14,7 +14,7 @@ from skinsafe.core.runtime.replay import ReplayError, replay
 
 
 def add_arguments(p) -> None:
-    p.add_argument("record", help="an MCAP record of `skinsafe run --record`")
+    p.add_argument("record", help="a record of `skinsafe run --record`: its folder (or a bare FILE.mcap of an earlier skinsafe)")
     p.add_argument("--map", help="the taxel map the run used (default: the path in the record)")
     p.add_argument("--tol", type=float, default=1e-9, help="largest difference counted as floating-point noise (rad/s)")
     p.add_argument("--json", action="store_true", help="print the result as one JSON object")
