@@ -176,9 +176,12 @@ class FrankaDriver:
         while reason is None:
             try:
                 rs, gap = active.readOnce()
-            except errors as e:
+            except errors as e:  # the robot ended the motion (its reflex, the link): its own stop, watched to rest
                 report("driver", _fault(e), time.monotonic(), False)
-                return self._end(_fault(e), False, report)
+                st["zero_mono"] = time.monotonic()
+                reason = self._end(_fault(e), False, report)
+                self._observe(seq, on_sent)
+                return reason
             seq += 1
             gap_ms = gap.to_sec() * 1e3
             st["ticks"] = seq
@@ -268,8 +271,9 @@ class FrankaDriver:
         return self._end(f"{reason}; the ramp to zero did not finish in {RAMP_MAX_S} s", True, report)
 
     def _observe(self, seq: int, on_sent) -> None:
-        """After the driver stopped talking (`robot-die`): the robot's own stop, watched from its state stream
-        (`read_once`, no command) until every joint is below REST_QD, for at most RAMP_MAX_S; each state goes to
+        """After the robot ended the motion itself (a libfranka exception) or the driver stopped talking (`robot-die`):
+        the robot's own stop, watched from its state stream (`read_once`, no command) until every joint is below
+        REST_QD, for at most RAMP_MAX_S; each state goes to
         `on_sent(state, None)` (nothing sent). `stats["rest_observed"]`: the arm was seen at rest; a state stream
         that fails ends the watch (the rest then unknown)."""
         self.stats["rest_observed"] = False

@@ -2,6 +2,7 @@
 environment (`make franky-sim`), a hand reaching into the arm in its world, the skin's readings from its contacts
 through emulated boards over pseudo-terminals: three processes, two protocols (serial, libfranka), no shortcut.
 One franky-sim world serves the module (the last test kills it); the driver's own stops run on it too."""
+import faulthandler
 import json
 import signal
 import subprocess
@@ -32,6 +33,17 @@ SWING = np.array([0.3, 0, 0, 0, 0, 0, 0])  # rad/s of the base joint
 LINK_LATENCY = 0.5  # s: the shared test machine's kernel holds serial input this late at times (README)
 # one world, in order (the last test kills it); SCHED_FIFO (conftest.realtime_host)
 pytestmark = [pytest.mark.xdist_group("realtime"), pytest.mark.usefixtures("realtime_host")]
+HANG_S = 300  # s: no test here takes a tenth of it
+
+
+@pytest.fixture(autouse=True)
+def no_hang():
+    """pylibfranka's readOnce waits for the robot's next state holding the interpreter lock, so a world that stops
+    sending states would hang the suite where no Python timeout can act: faulthandler's watchdog (a C thread, no
+    lock needed) dumps every thread's stack and ends the process instead, a failure that names where it stood."""
+    faulthandler.dump_traceback_later(HANG_S, exit=True)
+    yield
+    faulthandler.cancel_dump_traceback_later()
 
 
 @pytest.fixture(scope="module")

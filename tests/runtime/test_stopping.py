@@ -5,10 +5,12 @@ rest) changes the exit code; the record's last command is the driver's last one 
 writer drops telemetry, never a tick's safety topics (the stop's included). The FR3 here is pylibfranka's interface
 as a script (`Scripted`: its clock as given, the arm following each command exactly), handed to the driver."""
 import json
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import pylibfranka
 import pytest
 import test_runtime_loop as loop
 from hypothesis import given, settings
@@ -62,14 +64,19 @@ class Scripted:
     state), the arm following each command exactly (dq = the last command), or stuck moving at `stuck` rad/s once
     the ramp begins; `written`: every command sent."""
 
-    def __init__(self, times=(), stuck=None):
+    def __init__(self, times=(), stuck=None, reflex_at=None):
         self.times, self.stuck, self.written, self.k = list(times), stuck, [], 0
+        self.reflex_at = reflex_at  # the read that raises libfranka's ControlException (the robot's own reflex)
         self.q, self.dq, self.stopped = np.array(franka.Q_MIN + franka.Q_MAX) / 2, np.zeros(7), 0
 
     def start_joint_velocity_control(self, mode):
         return self
 
     def readOnce(self):
+        if self.k == self.reflex_at:
+            self.k += 1
+            raise pylibfranka.ControlException("libfranka: Move command aborted: motion aborted by reflex! "
+                                             "[\"joint_velocity_violation\"]")
         t = self.times[self.k] if self.k < len(self.times) else (self.times[-1] if self.times else 0.0) + \
             (self.k - len(self.times) + 1) * 1e-3
         self.k += 1
@@ -201,6 +208,23 @@ def test_a_driver_that_lost_the_robot_records_its_own_stop_to_rest():
     # onset -> rest: 29 states on the robot's clock, less the host time from the last tick's start to the onset
     assert s["speed_at_onset"] == pytest.approx(0.3) and 0 < s["stop_time_ms"] <= 29.0
     assert len(s["q_path"]) == 29  # the onset's state, then the 28 watched
+
+
+def test_an_fr3_exception_reaches_the_monitor_with_its_onset():
+    """libfranka raises (the robot's reflex) at the 101st read while the base swings: the driver reports it, typed
+    `driver` with the instant it met it, before it ends the motion; the monitor names it, and the robot's own stop is
+    watched to rest on its state stream (recorded as nothing sent: the last command stays the last one sent)."""
+    robot = Scripted(reflex_at=100)
+    rt, rec = fr3_runtime(robot)
+    before = time.monotonic()
+    out = rt.run(settle_s=0.0)
+    assert out.watchdog == "driver" and out.exit_code == 1 and out.kind == "driver", out.reason
+    assert out.reason.startswith("fr3: the robot stopped the motion: libfranka: Move command aborted")
+    assert before < out.onset_mono <= out.detected_mono and robot.stopped == 1 and rt.ticks == 100
+    after = [k for k in rec.ticks if not k.ticked]  # its own stop watched to rest, nothing sent
+    assert len(after) == 28 and all(k.flags == ("stop", "nothing-sent") for k in after)
+    np.testing.assert_array_equal(rec.ticks[-1].command, robot.written[-1][0])
+    assert out.stopping["stop_time_ms"] is not None and rt.driver.stats["rest_observed"]
 
 
 def test_a_driver_fault_reaches_the_monitor_with_its_onset(ur5):
