@@ -217,16 +217,16 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
         intruder = _Intruder(("127.0.0.1", port), home, key, out / "other.key", stop, done)
         threading.Thread(target=stream, args=(("127.0.0.1", port), times, targets, stop, 100.0, key),
                          daemon=True).start()
-    if kind in CONTACT:  # the sim: a poke (at `at`); the FR3: the world's hand, the arm held at franky-sim's start pose
+    elif kind in CONTACT:  # the sim: a poke (at `at`); the FR3: the world's hand, the arm held at its start pose
         from skinsafe.core.sim.franky_world import INITIAL_Q
 
         sim = robot[1] == "sim"
         command = "hold" if sim else f"trajectory:{write_still(out / 'still.csv', the.joints, INITIAL_Q)}"
         poke = ["--contact", f"poke:at={at:.3f}" if kind == "after-contact" else "poke"] if sim else []
-    if kind == "after-contact":  # the retraction's end latches under --after-contact hold
-        extra = ["--after-contact", "hold", *poke]
+        # after-contact: the retraction's end latches under --after-contact hold
+        extra = ["--after-contact", "hold", *poke] if kind == "after-contact" else ["--inject", f"{kind}@{at:.3f}", *poke]
     elif kind not in SIGNALS:
-        extra = ["--inject", f"{kind}@{at:.3f}"] + (poke if kind == "stack-qp-fail" else [])
+        extra = ["--inject", f"{kind}@{at:.3f}"]
 
     def moving(runtime):
         done["runtime"] = runtime
