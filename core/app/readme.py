@@ -566,10 +566,21 @@ def fault_table(root: Path) -> str:
     return sim_defaults_table()[1]
 
 
+def iso_limits(root: Path) -> str:
+    """ISO/TS 15066 Annex A's limits per body region as the code holds them (core/sim/body_regions.py `REGIONS`)."""
+    from skinsafe.core.sim.body_regions import REGIONS
+
+    lines = ["| region | quasi-static N | transient N | quasi-static N/cm^2 | m_H kg | k N/mm |",
+             "| --- | ---: | ---: | ---: | ---: | ---: |"]
+    lines += [f"| {r.label} | {fmt(r.quasi_static_N)} | {'none' if r.transient_N is None else fmt(r.transient_N)} | "
+              f"{fmt(r.pressure_N_cm2)} | {fmt(r.mass_kg)} | {fmt(r.k_N_per_m / 1e3)} |" for r in REGIONS.values()]
+    return "\n".join(lines)
+
+
 FIGURES = {"maze-grid": maze_grid, "maze-ablation": maze_ablation, "tracking-labels": tracking_labels, "tracking-nstep": tracking_nstep, "safety-audit": safety_audit, "paper-results": paper_results,
            "collaboration": collaboration, "collaboration-sweep": collaboration_sweep, "sample-skins": sample_skins,
            "import-contracts": import_contracts, "hardware-constants": hardware_constants,
-           "fault-table": fault_table}
+           "fault-table": fault_table, "iso-limits": iso_limits}
 
 
 def _nav_files(nav) -> list[str]:
