@@ -1,6 +1,7 @@
 """The Place Skin tool's benchmark in a fresh process (`skinsafe bench design` starts it):
 `python -m skinsafe.addon.bench_tool T0` prints one JSON row, `first_place_s` and `preview_ms`."""
 import json
+import os
 import sys
 import time
 
@@ -16,7 +17,9 @@ from skinsafe.addon import unregister as unregister_addon
 def bench(t0: float, moves: int = 50) -> dict:
     """This process's first placement (the UR5 imported, an 8x8 module placed with the tool along a ray) in
     s since `t0` (time.time() when the process was started), then the tool's work per mouse move (`preview`:
-    ray cast and placement check) median over `moves` rays along the forearm, in ms."""
+    ray cast and placement check) median over `moves` rays along the forearm, in ms; `loadavg`: the machine's
+    1, 5 and 15-minute load averages as it ran (both figures are wall-clock times)."""
+    load = os.getloadavg()
     register_addon()
     try:
         bpy.ops.wm.read_homefile(use_empty=True)
@@ -42,7 +45,7 @@ def bench(t0: float, moves: int = 50) -> dict:
             assert pv.body == "forearm_link"
         return {"tool": "place_skin", "module": "8x8", "n_taxels": 64, "modules": 1, "first_place_s": first,
                 "preview_ms": float(np.median(times) * 1e3), "preview_ms_max": float(np.max(times) * 1e3),
-                "moves": moves}
+                "moves": moves, "loadavg": [round(x, 2) for x in load]}
     finally:
         unregister_addon()
 

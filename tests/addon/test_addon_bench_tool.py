@@ -8,3 +8,4 @@ def test_place_tool_row_places_a_module_and_times_every_move():
     assert (row["tool"], row["module"], row["n_taxels"], row["modules"], row["moves"]) == \
         ("place_skin", "8x8", 64, 1, 50)
     assert 0 < row["preview_ms"] <= row["preview_ms_max"] and row["first_place_s"] > 0
+    assert len(row["loadavg"]) == 3 and min(row["loadavg"]) >= 0  # the load it ran under, stated with the figures
