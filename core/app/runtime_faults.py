@@ -72,12 +72,15 @@ SIGNALS = {"ctrl-c": (0.0,), "ctrl-c-twice": (0.0, 0.01)}  # SIGINTs to this pro
 
 
 def _readable(record: Path) -> bool:
+    """Every message of the record (its rosbag2 folder's MCAP) decodes, the last the stop's diagnostics."""
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
+    from skinsafe.core.runtime.rosbag2 import record_file
+
     try:
         last = None
-        with open(record, "rb") as f:
+        with open(record_file(record), "rb") as f:
             for _, channel, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
                     log_time_order=False):
                 last = (channel.topic, msg)
