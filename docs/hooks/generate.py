@@ -134,6 +134,15 @@ DIAGRAMS = {
         [("clock", "read", "tick"), ("reader", "read", "latest force per taxel"), ("read", "watch", ""),
          ("watch", "stack", "measured dt, q, qd"), ("stack", "limit", "command"), ("limit", "send", "what is sent"),
          ("send", "tap", "what is logged")], (13, 6)),
+    "data_model": ({
+        "design": (0, 2, "SkinDesign\n(one per skin)"), "robot": (-3.4, 3.6, "RobotRef\n(builtin, URDF, MJCF)"),
+        "bodies": (-3.4, 0.4, "bodies\n(the skinned links)"),
+        "modules": (3.4, 3.6, "Module\n(one FPC: rows x cols pads,\non one body, read by one board)"),
+        "boards": (7.2, 2, "Board\n(uid, channel capacity)"),
+        "taxels": (3.4, 0.4, "Taxels (arrays of N)\nids, positions, frames, area,\nthresholds, enabled")},
+        [("design", "robot", "for"), ("design", "bodies", ""), ("design", "modules", ""), ("design", "taxels", ""),
+         ("modules", "boards", "board"), ("taxels", "modules", "module"), ("taxels", "boards", "board, channel"),
+         ("taxels", "bodies", "body")], (13, 5)),
     "deploy": ({
         "find": (0, 0, "find boards\n(--all: every serial port,\nidentify by unique id)"),
         "check": (3.4, 0, "refuse a misfit\n(uid, channels, firmware,\nchunk size, streaming)"),
