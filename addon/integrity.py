@@ -29,6 +29,7 @@ from skinsafe.core.skin.ids import IdRuleWarning
 from skinsafe.core.skin.model import DesignError
 
 PAD_TOL = 5e-4  # m: a pad within this of its design place has not moved
+JOIN_TOL = 1e-5  # m: a joined pad's corners keep their place to float32 rounding (a mesh near it is not one)
 
 
 def _same_key(a, b) -> bool:
@@ -200,7 +201,7 @@ def joined(scene) -> list[str]:
         tree = cKDTree(co.reshape(-1, 3) @ W[:3, :3].T + W[:3, 3])
         for mid in list(corners):
             dist, at = tree.query(corners[mid])
-            if dist.max() >= PAD_TOL:
+            if dist.max() >= JOIN_TOL:
                 continue
             del corners[mid]
             name = remake(scene, design, mid).name
