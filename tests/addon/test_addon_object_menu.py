@@ -166,9 +166,9 @@ def _modifier_applied():
     return bpy.ops.object.modifier_apply(modifier=module(0).modifiers[0].name)
 
 
-def _dup_in_place_then_delete_original():
+def _dup_in_place_then_delete_original(linked=False):
     select(module(1))
-    bpy.ops.object.duplicate()  # Shift+D, cancelled where it stands
+    bpy.ops.object.duplicate(linked=linked)  # Shift+D (Alt+D: linked), cancelled where it stands
     bpy.context.view_layer.update()
     select(module(1))
     return bpy.ops.object.delete()
@@ -356,6 +356,8 @@ OPS = [
      _outline_kept),
     ("P Separate a module by loose parts", _separate, None),
     ("Shift+D in place, then the original deleted", _dup_in_place_then_delete_original, _dup_entered),
+    ("Alt+D in place, then the original deleted", lambda: _dup_in_place_then_delete_original(linked=True),
+     _dup_entered),
     ("X on a module; the next module placed", lambda: _on_module(1, bpy.ops.object.delete), _ids_retired),
     # H and the outliner's eye and screen: what object.hide_view_set does (its poll needs a viewport)
     ("Hide a module", lambda: module(0).hide_set(True) or {"FINISHED"}, None),
