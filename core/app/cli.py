@@ -52,8 +52,8 @@ COMMANDS = {
     "readme": ("skinsafe.core.app.readme", "fill the README's figures from the results files (make readme-figures)"),
 }
 EXPERIMENTS = {
-    "maze": ("skinsafe.core.experiments.maze", "strategy layer: safe RL in the maze (paper Fig. 9)"),
-    "tracking": ("skinsafe.core.experiments.tracking", "modulation layer: UR5 tracking among balls (Fig. 11)"),
+    "maze": ("skinsafe.core.app.experiment_maze", "strategy layer: safe RL in the maze (paper Fig. 9)"),
+    "tracking": ("skinsafe.core.app.experiment_tracking", "modulation layer: UR5 tracking among balls (Fig. 11)"),
     "desk": ("skinsafe.core.experiments.scenes", "retraction toward a desk stopped by modulation (Fig. 14)"),
     "collaboration": ("skinsafe.core.experiments.collaboration", "a person beside a delivery: ISO/TS 15066 per contact (Fig. 15)"),
 }

@@ -128,32 +128,35 @@ DEMO_MAZE_METHODS = "SAC,SAC-TDM,AC,AC-TDM"
 
 
 def stage_maze(ctx) -> Section:
-    from skinsafe.core.experiments import maze
+    from skinsafe.core.experiments.maze import PRESETS
+    from skinsafe.core.experiments.maze_claims import LAST, LEARNED_AT
+    from skinsafe.core.experiments.maze_report import claim_statement
 
     out = ctx["out"] / "maze"
     argv = ["--out", str(out), "--no-progress"] + ([] if ctx["full"] else ["--demo", "--methods", DEMO_MAZE_METHODS])
-    _command("skinsafe.core.experiments.maze", argv, "maze")
+    _command("skinsafe.core.app.experiment_maze", argv, "maze")
     results = json.loads((out / "maze_results.json").read_text())
-    res = results["summary"]
+    res = results["replicates"][0]["summary"]
+    full = PRESETS["full"]
     grid_file = REPO / "results" / "maze" / "maze_results.json"
     grid = json.loads(grid_file.read_text()) if grid_file.is_file() else None
     rows = [{"method": m, **{k: v[k] for k in ("total_contacts_mean", "total_contacts_std", "goal_rate_mean",
                                                  "goal_rate_last_mean", "mean_steps")}} for m, v in res["methods"].items()]
-    cfg = res["config"]
-    text = res["claim"]["statement"]
+    cfg = {**results["evaluation_conditions"], "seeds": len(results["eval_seeds"])}
+    text = claim_statement(res["claim"])
     if not ctx["full"]:
         text = (f"Reduced budget: {cfg['seeds']} seeds x {cfg['episodes']} episodes (at most {cfg['max_steps']} "
-                f"macro-actions) of {len(rows)} of the {len(maze.METHODS)} methods; the paper's budget is "
-                f"`skinsafe experiment maze` ({maze.FULL['seeds']} seeds x {maze.FULL['episodes']} episodes, all nine). "
+                f"macro-actions) of {len(rows)} of the {len(full.methods)} methods; the paper's budget is "
+                f"`skinsafe experiment maze` ({len(full.eval_seeds)} seeds x {full.episodes} episodes, all nine). "
                 "What this run can show: the -TDM variants' contact events stopping within the first episodes (cost "
                 "curves) and whether each method finds the goal at this budget. What it cannot show: the nine-way "
-                f"ranking of Fig. 9b over {maze.FULL['seeds']} held-out seeds (the full grid's result is in the README and "
+                f"ranking of Fig. 9b over {len(full.eval_seeds)} held-out seeds (the full grid's result is in the README and "
                 "results/maze/). ")
-        slow = [m for m, v in res["methods"].items() if v["goal_rate_last_mean"] < maze.LEARNED_AT]
-        text += (f"Here {', '.join(slow)} reached the goal in fewer than {maze.LEARNED_AT:.0%} of the last "
-                 f"{min(maze.LAST, cfg['episodes'])} episodes, so their totals are not yet those of a trained policy.\n\n"
-                 if slow else f"Every method shown reached the goal in at least {maze.LEARNED_AT:.0%} of the last "
-                 f"{min(maze.LAST, cfg['episodes'])} episodes.\n\n") + res["claim"]["statement"]
+        slow = [m for m, v in res["methods"].items() if v["goal_rate_last_mean"] < LEARNED_AT]
+        text += (f"Here {', '.join(slow)} reached the goal in fewer than {LEARNED_AT:.0%} of the last "
+                 f"{min(LAST, cfg['episodes'])} episodes, so their totals are not yet those of a trained policy.\n\n"
+                 if slow else f"Every method shown reached the goal in at least {LEARNED_AT:.0%} of the last "
+                 f"{min(LAST, cfg['episodes'])} episodes.\n\n") + claim_statement(res["claim"])
     budget = (f"{figs.plural(cfg['seeds'], 'seed')} x {figs.plural(cfg['episodes'], 'episode')} of at most "
               f"{cfg['max_steps']} macro-actions")
     third = ("the -TDM variants against the safe-RL baselines of this run" if grid is None or
@@ -171,10 +174,12 @@ def stage_maze(ctx) -> Section:
 
 def stage_tracking(ctx) -> Section:
     out = ctx["out"] / "tracking"
-    _command("skinsafe.core.experiments.tracking", ["--out", str(out), "--no-progress"] + ([] if ctx["full"] else ["--quick"]),
+    from skinsafe.core.experiments.tracking_report import label_set_statement
+
+    _command("skinsafe.core.app.experiment_tracking", ["--out", str(out), "--no-progress"] + ([] if ctx["full"] else ["--quick"]),
              "tracking")
     res = json.loads((out / "tracking.json").read_text())
-    cfg = res["config"]
+    cfg = {**res["config"], "seeds": res["experiment"]["seeds"]}
     ticks = sorted(res["path_contact_ticks"].values())
     span = str(ticks[0]) if ticks[0] == ticks[-1] else f"{ticks[0]}-{ticks[-1]}"
     text = (f"Vanilla velocity tracking vs TDM modulation vs 2-step TDM modulation, the TDM re-trained on all "
@@ -182,7 +187,7 @@ def stage_tracking(ctx) -> Section:
             f"sit on the path: the exact desired path itself overlaps a ball in {span} of "
             f"{int(round(cfg['duration'] / cfg['control_dt']))} ticks, so only leaving the path avoids contact. ")
     if ctx["full"]:
-        text += res["claim"]["statement"]
+        text += label_set_statement(res["labels"][res["headline"]])
     else:
         text += (f"Reduced budget: {len(cfg['seeds'])} seed x {cfg['episodes']} episodes on a coarser skin; the paper's "
                  "budget is `skinsafe experiment tracking` (10 held-out seeds x 10 episodes). It can show the first re-trainings "
@@ -207,7 +212,7 @@ def tracking_rows(res: dict) -> list[dict]:
     window) only when the run had 10 episodes."""
     n = res["config"]["episodes"]
     rows = []
-    for r in res["summary"]:
+    for r in res["labels"][res["headline"]]["replicates"][0]["summary"]:
         row = {"method": r["method"], "contacts_first": r["contacts_first"], f"contacts_last (episode {n})":
                r["contacts_last"], f"contacts_mean (episodes 1-{n})": r["contacts_mean"]}
         if n >= 10:

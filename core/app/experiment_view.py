@@ -1,5 +1,5 @@
 """`skinsafe view --tracking RESULT.json` / `--collaboration RESULT.json`: an episode of the tracking
-experiment (core/experiments/tracking.py, paper Fig. 11) or of the collaboration experiment
+experiment (core/experiments/tracking_runs.py, paper Fig. 11) or of the collaboration experiment
 (core/experiments/collaboration.py, Fig. 15) in the live view, as a record of the runtime's format
 (core/runtime/sim_record.py).
 
@@ -69,7 +69,7 @@ class _Tapped:
 def record_tracking(result: str | Path, out: str | Path, method: str = "vanilla", seed: int = 0,
                     episode: int = 0) -> dict:
     """Run episode `episode` of `method`/`seed` of a tracking result again into the record `out`."""
-    from skinsafe.core.experiments.tracking import Learner, TrackingConfig, run_episode
+    from skinsafe.core.experiments.tracking_runs import Learner, RunConfig, run_episode
     from skinsafe.core.learn.tracking_env import TrackingEnv, TrackingScene, TrackingTask
 
     doc = json.loads(Path(result).read_text())
@@ -79,7 +79,7 @@ def record_tracking(result: str | Path, out: str | Path, method: str = "vanilla"
                          + ", ".join(f"{m} seeds {sorted(r)}" for m, r in doc.get("runs", {}).items()))
     if not 0 <= episode < len(rows):
         raise ValueError(f"{result}: {method} seed {seed} has episodes 0..{len(rows) - 1}, not {episode}")
-    cfg = TrackingConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in doc["config"].items()})
+    cfg = RunConfig.from_dict(doc["config"])
     task = TrackingTask(**{f.name: getattr(cfg, f.name) for f in fields(TrackingTask)})
     scene = TrackingScene(task, seed)
     env = TrackingEnv(task, scene=scene)

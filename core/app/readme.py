@@ -179,65 +179,59 @@ def _short(s: str) -> str:
 # --- composite figures: the README's tables that combine several results files -------------------
 
 
-def _lo(lo: float, data: dict) -> float:
-    """A 95% interval's lower end as computed; results from before issue 41 (no `replicates`) as they were
-    published (clipped at 0)."""
-    return lo if "replicates" in data else max(lo, 0)
+def _chosen(rep: dict, method: str) -> str:
+    """The configuration a replicate evaluated: tuning's trial, or its defaults where no trial met the criterion."""
+    from skinsafe.core.experiments.maze_report import config_text
 
-
-def _chosen(rec: dict) -> str:
-    """The configuration tuning chose: Optuna's trial (issue 41: `trials`), or the earlier grid's keywords."""
-    if "trials" not in rec:
-        return ", ".join(f"{k} {v}" for k, v in rec["chosen"].items()) or "defaults"
-    from skinsafe.core.experiments.maze import config_text
-
-    if not rec["met_criterion"]:
-        return f"no trial of {rec['trials']} met the goal criterion: defaults"
-    return f"trial {rec['chosen_index']} of {rec['trials']}: {config_text(rec['chosen'])}"
+    t = rep["tuning"].get(method)
+    conf = config_text({k: v for k, v in rep["chosen"][method].items() if k != "cost_limit"})
+    if t is None:
+        return f"defaults: {conf}"
+    if not t["met_criterion"]:
+        return f"no trial of {t['trials']} met the goal criterion: defaults ({conf})"
+    return f"trial {t['chosen_index']} of {t['trials']}: {conf}"
 
 
 def maze_grid(root: Path) -> str:
-    """The full maze grid on the held-out seeds: contacts per method (mean and 95% interval, online and
-    offline apart, per seed), goal rates per seed, the configuration tuning chose; beside it each further
-    replicate's mean total contacts ("defaults": its tuning met no criterion)."""
+    """The maze grid, one table per replicate (its tuning seeds, its verdicts): per method total contacts on
+    the held-out seeds (mean and 95% interval as computed, online / offline, per seed), goal rates, the
+    configuration its tuning chose."""
     data = load(root, "results/maze/maze_results.json")
-    summary, tuning = data["summary"], data.get("tuning", {})
-    tdm = {m for m in summary["methods"] if m.endswith("-TDM")}
-    seeds, reps = data["eval_seeds"], data.get("replicates", [])[1:]
-    other = "".join(f" replicate {k + 2} (tuning seeds {r['tuning_seeds'][0]}-{r['tuning_seeds'][-1]}): total contacts |"
-                    for k, r in enumerate(reps))
-    lines = [f"| method | total contacts, mean [95% CI] over seeds {seeds[0]}-{seeds[-1]} | online / offline | per seed "
-             f"(total) | goal rate, last 20 episodes (per seed) | tuned configuration |{other}",
-             "| --- | ---: | ---: | --- | --- | --- |" + " ---: |" * len(reps)]
-    for method, s in summary["methods"].items():
-        mine = sorted((r for r in data["per_seed"] if r["method"] == method), key=lambda r: r["seed"])
-        per_seed = " / ".join(fmt(int(r["total_contacts"])) for r in mine)
-        rates = [r["goal_rate_last"] for r in mine]
-        goal = "1.00 (all)" if all(g == 1 for g in rates) else \
-            f"{s['goal_rate_last_mean']:.2f} ({', '.join(fmt(round(g, 2)) for g in rates)})"
-        lo, hi = s["total_contacts_ci95"]
-        cell = f"{s['total_contacts_mean']:,.1f} [{_lo(lo, data):,.1f}, {hi:,.1f}]"
-        split = f"{s['online_contacts_mean']:,.1f} / {s['offline_contacts_mean']:,.1f}"
-        chosen = _chosen(tuning[method]) if method in tuning else "—"
-        name = f"**{method}**" if method in tdm else method
-        more = "".join(f" {r['total_contacts_mean'][method]:,.1f}" + ("" if r["met_criterion"][method] else " (defaults)") + " |"
-                       for r in reps)
-        lines.append(f"| {name} | {'**' + cell + '**' if method in tdm else cell} | {split} | {per_seed} | {goal} | {chosen} |{more}")
-    return "\n".join(lines)
+    seeds = data["eval_seeds"]
+    out = []
+    for k, rep in enumerate(data["replicates"]):
+        sm = rep["summary"]
+        tdm = {m for m in sm["methods"] if m.endswith("-TDM")}
+        verdict = sm["claim"]["verdict"] if sm["claim"] else "—"
+        online = f"; online contacts only: {sm['claim_online']['verdict']}" if sm["claim_online"] else ""
+        out += [f"**Replicate {k + 1}** (tuning seeds {', '.join(map(str, rep['tuning_seeds'])) or 'none'}): the claim "
+                f"{verdict}{online}.", "",
+                f"| method | total contacts, mean [95% CI] over seeds {seeds[0]}-{seeds[-1]} | online / offline | per seed (total) "
+                "| goal rate, last 20 episodes (seeds >= 0.8) | configuration |", "| --- | ---: | ---: | --- | --- | --- |"]
+        for m, v in sm["methods"].items():
+            mine = sorted((r for r in rep["per_seed"] if r["method"] == m), key=lambda r: r["seed"])
+            lo, hi = v["total_contacts_ci95"]
+            cell = f"{v['total_contacts_mean']:,.1f} [{lo:,.1f}, {hi:,.1f}]"
+            out.append(f"| {'**' + m + '**' if m in tdm else m} | {'**' + cell + '**' if m in tdm else cell} | "
+                       f"{v['online_contacts_mean']:,.1f} / {v['offline_contacts_mean']:,.1f} | "
+                       f"{' / '.join(fmt(int(r['total_contacts'])) for r in mine)} | {v['goal_rate_last_mean']:.2f} "
+                       f"({v['seeds_reaching']}/{v['seeds']}) | {_chosen(rep, m)} |")
+        out.append("")
+    return "\n".join(out).rstrip()
 
 
-def maze_ablation(root: Path) -> str:
-    """Each -TDM extra removed in turn, and given to the baselines where it applies."""
-    data = load(root, "results/maze/maze_results.json")
-    rows = data["ablation"]
-    lines = ["| variant | seeds | total contacts, mean [95% CI] | vs its method's chosen configuration [95% CI] | "
-             "goal rate, last 20 |", "| --- | ---: | ---: | ---: | ---: |"]
-    for r in rows:
-        lo, hi = r["ci95"]
-        diff = "—" if r.get("difference_to_chosen") is None else \
-            f"{r['difference_to_chosen']:+,.1f} [{r['difference_ci95'][0]:+,.1f}, {r['difference_ci95'][1]:+,.1f}]"
-        lines.append(f"| {r['variant']} | {r['seeds']} | {r['total_contacts_mean']:,.1f} [{_lo(lo, data):,.1f}, {hi:,.1f}] | "
-                     f"{diff} | {r['goal_rate_last_mean']:.2f} |")
+def maze_defaults(root: Path) -> str:
+    """Every maze method's trial 0, its search space and where its defaults come from (`maze.SPACES`,
+    `maze.DEFAULTS_SOURCE`: the code the experiment runs)."""
+    from skinsafe.core.experiments.maze import DEFAULTS_SOURCE, SPACES
+
+    def space(values) -> str:
+        return " / ".join(map(str, values)) if isinstance(values, list) else f"{values[0]} {values[1]:g} to {values[2]:g}"
+
+    lines = ["| method | trial 0 (defaults) | search space | source of the defaults |", "| --- | --- | --- | --- |"]
+    for m, sp in SPACES.items():
+        lines.append(f"| {m} | {', '.join(f'{k} {d:.3g}' if isinstance(d, float) else f'{k} {d}' for k, (d, _) in sp.items())} | "
+                     f"{'; '.join(f'{k} {space(v)}' for k, (_, v) in sp.items())} | {DEFAULTS_SOURCE[m]} |")
     return "\n".join(lines)
 
 
@@ -261,24 +255,37 @@ def safety_audit(root: Path) -> str:
 
 
 def tracking_labels(root: Path) -> str:
-    """Fig. 11 on the held-out seeds, the paper's binary labels and the soft extension side by side."""
+    """Fig. 11 per label set (the headline first) and replicate: contact ticks over episodes 6-10 (mean and 95%
+    interval over seeds, per seed), onsets, the potential's alignment and tracking error."""
     track = load(root, "results/tracking/tracking.json")
-    onsets = "replicates" in track  # issue 41: contact onsets and the potential's alignment beside the ticks
-    lines = ["| labels | method | episode 1 | episodes 6-10, mean [95% CI] over seeds | per seed (episodes 6-10) | "
-             + ("onsets, episodes 6-10 [95% CI] | cos(n, -grad d) before the balls | " if onsets else "")
-             + "tracking error mm |", "| --- | --- | ---: | ---: | --- | " + ("---: | ---: | " if onsets else "") + "---: |"]
+    lines = ["| labels | replicate (seeds) | method | episode 1 | episodes 6-10, mean [95% CI] | per seed (episodes 6-10) | "
+             "onsets, episodes 6-10 [95% CI] | cos(n, -grad d) before the balls | tracking error mm |",
+             "| --- | --- | --- | ---: | ---: | --- | ---: | ---: | ---: |"]
     for labels, res in track["labels"].items():
-        per = {(r["method"], r["seed"]): r for r in res["per_seed"]}
-        for r in res["summary"]:
-            seeds = " / ".join(f"{per[(r['method'], sd)]['contacts_ep6_10']:.1f}" for sd in track["config"]["seeds"]
-                               if (r["method"], sd) in per)
-            extra = "" if not onsets else (
-                f"{r['onsets_ep6_10']:.1f} [{r['onsets_ep6_10_ci95_low']:.1f}, {r['onsets_ep6_10_ci95_high']:.1f}] | "
-                + ("—" if r["alignment_cos_ep6_10"] is None else f"{r['alignment_cos_ep6_10']:+.2f}") + " | ")
-            lines.append(f"| {labels} | {r['method']} | {r['contacts_first']:.1f} | {r['contacts_ep6_10']:.1f} "
-                         f"[{_lo(r['contacts_ep6_10_ci95_low'], track):.1f}, {r['contacts_ep6_10_ci95_high']:.1f}] | "
-                         f"{seeds} | {extra}{r['tracking_error_mm']:.0f} |")
+        for k, rep in enumerate(res["replicates"]):
+            per = {(r["method"], r["seed"]): r for r in rep["per_seed"]}
+            for r in rep["summary"]:
+                seeds = " / ".join(f"{per[(r['method'], sd)]['contacts_ep6_10']:.1f}" for sd in rep["seeds"] if (r["method"], sd) in per)
+                align = "—" if r["alignment_cos_ep6_10"] is None else f"{r['alignment_cos_ep6_10']:+.2f}"
+                lines.append(f"| {labels} ({res['role']}) | {k + 1} ({rep['seeds'][0]}-{rep['seeds'][-1]}) | {r['method']} | "
+                             f"{r['contacts_first']:.1f} | {r['contacts_ep6_10']:.1f} [{r['contacts_ep6_10_ci95_low']:.1f}, "
+                             f"{r['contacts_ep6_10_ci95_high']:.1f}] | {seeds} | {r['onsets_ep6_10']:.1f} "
+                             f"[{r['onsets_ep6_10_ci95_low']:.1f}, {r['onsets_ep6_10_ci95_high']:.1f}] | {align} | "
+                             f"{r['tracking_error_mm']:.0f} |")
     return "\n".join(lines)
+
+
+def tracking_claims(root: Path) -> str:
+    """Per label set what its labels use and its verdict, settled across its replicates, in contact ticks
+    (Fig. 11e's count) and in onsets; per replicate each comparison with its Holm-adjusted p-value."""
+    from skinsafe.core.experiments.tracking_report import claim_statement, label_set_statement
+
+    track = load(root, "results/tracking/tracking.json")
+    out = []
+    for name, res in track["labels"].items():
+        out += [f"- **{name}** ({res['uses']}): {label_set_statement(res)}"]
+        out += [f"    - replicate {k + 1}: {claim_statement(rep['claim'])}" for k, rep in enumerate(res["replicates"]) if rep["claim"]]
+    return "\n".join(out)
 
 
 NSTEP = re.compile(r"tdm(\d+)@([0-9.]+)s")
@@ -314,82 +321,62 @@ def tracking_nstep(root: Path) -> str:
     return "\n".join(lines) + f"\n\nChosen on seeds {seeds} (lowest contact ticks over episodes 6-10): " + "; ".join(chosen) + "."
 
 
-def _soft(track: dict, name: dict) -> str:
-    """The soft-label extension's line of the Fig. 11 row, where the result has it."""
-    soft = track.get("labels", {}).get("soft")
-    if not soft:
-        return ""
-    c = soft["claim"]
-    per = ", ".join(f"{name.get(r['method'], r['method'])} {r['contacts_ep6_10']:.1f}" for r in soft["summary"])
-    return (f". Extension, soft distance labels: {per}; 2-step / vanilla {c['tdm2_over_vanilla']:.1%} "
-            f"[{c['tdm2_over_vanilla_ci95'][0]:.1%}, {c['tdm2_over_vanilla_ci95'][1]:.1%}]: {c['verdict']}")
+def _why(comparisons: list[dict]) -> str:
+    """The comparisons that did not hold, with their difference and Holm-adjusted p (why a claim fails or is open)."""
+    off = [f"{c['name']} ({c['difference']:+.1f}, Holm p {c['p_holm']:.2g}: {c['verdict']})" for c in comparisons if c["verdict"] != "holds"]
+    return f"; not shown: {', '.join(off)}" if off else ""
 
 
-def _maze_effort(maze: dict, n: int) -> str:
-    """How the maze's methods were tuned and whether the replicates agree (issue 41), or the earlier grid's phrase."""
-    tuning = maze.get("tuning", {})
-    if "replicates" not in maze:
-        return f"all {n} methods tuned alike"
-    trials = sorted({t["trials"] for t in tuning.values()})
-    never = [m for m, t in tuning.items() if not t["met_criterion"]]
-    reps = maze["replicates"]
-    return (f"every method {'/'.join(map(str, trials))} Optuna trials over its own search space"
-            + (f"; never met the goal criterion: {', '.join(never)}" if never else "")
-            + f"; {len(reps)} replicates (tuning seeds " + ", ".join(f"{r['tuning_seeds'][0]}-{r['tuning_seeds'][-1]}" for r in reps)
-            + f"): {', '.join(r['verdict'] for r in reps)}, {'agree' if maze['verdict_agrees'] else 'differ: not settled'}")
+def _grid(root: Path, file: str) -> dict | None:
+    """A full grid's result, or None while its grid is not complete (the file is written at the end)."""
+    return load(root, file) if (root / file).is_file() else None
 
 
-def _maze_verdict(maze: dict) -> str:
-    """Fig. 9's verdict word: the computed verdict (issue 41: holds, does not hold, not resolved, not settled), or
-    the earlier grid's yes / no."""
-    claim = maze["summary"]["claim"]
-    return claim["verdict"] if "replicates" in maze else "yes" if claim["holds"] else "no"
+def _pending(name: str) -> str:
+    """The cell of a claim whose full grid is not complete: what to run (it resumes from the finished runs)."""
+    return (f"**not computed yet** under the current protocol: `nice skinsafe experiment {name}` writes it (a stopped run "
+            f"resumes from the finished runs in results/{name}/tasks)")
 
 
-def _reaching(claim: dict, learned: list[str]) -> str:
-    """The verdict among the goal-reaching methods and which of SAC, AC and their -TDM variants learned."""
-    among = claim.get("holds_among_goal_reaching")
-    head = "no method reaches the goal" if among is None else f"among the methods that reach the goal it {'holds' if among else 'does not hold'}"
-    return f"{head}; {', '.join(learned) or 'none of ' + ', '.join(claim['learned'])} reach the goal in >= 80% of the last 20 episodes"
+def _fig9(maze: dict) -> str:
+    """Fig. 9's cell: the verdict settled across the replicates, then each replicate's verdict, totals and why."""
+    from skinsafe.core.experiments.maze_report import FASTER
+
+    cl, proto = maze["claims"], maze["protocol"]
+    reps = []
+    for k, rep in enumerate(maze["replicates"]):
+        c = rep["summary"]["claim"]
+        means = ", ".join(f"{m} {fmt(v)}" for m, v in sorted(c["means"].items(), key=lambda kv: kv[1]))
+        reps.append(f"replicate {k + 1} (tuning seed{'s' if len(rep['tuning_seeds']) > 1 else ''} "
+                    f"{', '.join(map(str, rep['tuning_seeds']))}): **{c['verdict']}**, total contacts {means}{_why(c['comparisons'])}; "
+                    f"reach the goal: {', '.join(c['reaching']) or 'none'}")
+    online = f". Online contacts only (recovery-rl's accounting): {cl['online']['verdict']}" if cl["online"] else ""
+    conv = "".join(f". Fig. 9c {k}: {FASTER.get(v['verdict'], v['verdict'])} (replicates: "
+                   f"{', '.join(FASTER[x] for x in v['replicate_verdicts'])})" for k, v in cl["convergence"].items())
+    return (f"**{cl['total']['verdict']}** ({len(maze['eval_seeds'])} held-out seeds x {proto['episodes']} episodes; every method "
+            f"{proto['trials']} Optuna trials from its published defaults, tuned as it is evaluated; Holm-corrected Welch tests; "
+            f"replicates: {', '.join(cl['total']['replicate_verdicts'])}). " + ". ".join(reps) + online + conv)
 
 
-def _fig9c(summary: dict) -> str:
-    """Fig. 9c (faster convergence) per -TDM variant, where the result has it."""
-    pairs = summary.get("convergence", {}).get("pairs", {})
-    return "".join(f"; Fig. 9c {k}: {p['verdict']} ({p['difference']:+.1f} episodes [{p['ci95'][0]:+.1f}, {p['ci95'][1]:+.1f}])"
-                   for k, p in pairs.items())
+def _fig11(track: dict) -> str:
+    """Fig. 11's cell: the headline's verdict settled across its replicates (ticks, onsets), each replicate's
+    means and why, and each extension's verdict with what it uses."""
+    from skinsafe.core.experiments.tracking_report import NAMES
 
-
-def _onsets(rows: dict, name: dict) -> str:
-    """Contact onsets beside the ticks (issue 41), where the result has them."""
-    if not all("onsets_ep6_10" in r for r in rows.values()):
-        return ""
-    return "; contact onsets per episode " + ", ".join(f"{name.get(k, k)} {r['onsets_ep6_10']:.1f}" for k, r in rows.items())
-
-
-def _track_replicates(track: dict) -> str:
-    """The tracking grid's replicates and whether their verdicts agree (issue 41), where the result has them."""
-    reps = track.get("replicates", [])
-    if len(reps) < 2:
-        return ""
-    return ("; replicates (seeds " + ", ".join(f"{r['seeds'][0]}-{r['seeds'][-1]}: {r['verdict']}" for r in reps)
-            + f") {'agree' if track['verdict_agrees'] else 'differ: not settled'}")
-
-
-def _against(claim: dict) -> str:
-    """The pairs a -TDM variant does not beat, as '; not below: A vs B (difference [CI])'."""
-    lost = [f"{k} ({v['difference']:+.1f} [{v['ci95'][0]:+.1f}, {v['ci95'][1]:+.1f}])"
-            for k, v in claim.get("pairs", {}).items() if v["verdict"] != "lower"]
-    return f"; not below: {', '.join(lost)}" if lost else ""
-
-
-def _online(claim: dict) -> str:
-    """The verdict with only the online contacts counted (recovery-rl's accounting), where the result has it."""
-    online = claim.get("online_only")
-    if not online:
-        return ""
-    return (f". Online contacts only (recovery-rl's accounting): **{online['verdict']}**"
-            + _against(online).replace("; not below", ", not below"))
+    head = track["labels"][track["headline"]]
+    reps = []
+    for rep in head["replicates"]:
+        c = rep["claim"]
+        reps.append(f"seeds {rep['seeds'][0]}-{rep['seeds'][-1]}: **{c['verdict']}**, contact ticks per episode (episodes "
+                    "6-10) " + ", ".join(f"{NAMES[m]} {v:.1f}" for m, v in c["means"].items())
+                    + f", 2-step / vanilla {c['tdm2_over_vanilla']:.0%}{_why(c['comparisons'])}")
+    ext = "".join(f". Extension {name} ({res['uses'].split(': ', 1)[-1]}): {res['settled']['verdict']}"
+                  for name, res in track["labels"].items() if res["role"] == "extension")
+    return (f"**{head['settled']['verdict']}** with the paper's labels (what the skin felt at visited states; "
+            f"{len(head['replicates'])} replicates of {len(head['replicates'][0]['seeds'])} held-out seeds x "
+            f"{track['config']['episodes']} episodes, {fmt(track['n_taxels'])} taxels; contacts counted in ticks as Fig. 11e; "
+            "vanilla most, TDM and 2-step below it, 2-step <= 10% of vanilla and below the TDM, Holm-corrected paired tests). "
+            + "; ".join(reps) + f". Counted in contact onsets: {head['settled_onsets']['verdict']}{ext}")
 
 
 def _opt(row: dict, key: str, spec: str) -> str:
@@ -412,22 +399,11 @@ def _fig7(poke: dict) -> str:
 def paper_results(root: Path) -> str:
     """The paper's claims against ours, each figure from its results file."""
     poke = load(root, "results/poke/poke_results.json")
-    maze_doc = load(root, "results/maze/maze_results.json")
-    maze = maze_doc["summary"]
-    track = load(root, "results/tracking/tracking.json")
+    maze, track = (_grid(root, f"results/{name}") for name in ("maze/maze_results.json", "tracking/tracking.json"))
     desk = load(root, "results/desk/desk.json")
     collab = load(root, COLLAB)
     fs, alpha = poke["force_sweep"], poke["params"]["alpha"]
     forms = poke["forms"]
-    m = maze["methods"]
-    order = sorted(m, key=lambda k: m[k]["total_contacts_mean"])
-    totals = ", ".join(f"{k} {fmt(m[k]['total_contacts_mean'])}" for k in order)
-    learned = [k for k, v in maze["claim"]["learned"].items() if v]
-    ts = {r["method"]: r for r in track["summary"]}
-    ep = "episodes 6-10" if track["config"]["episodes"] >= 10 else f"the last of {track['config']['episodes']} episodes"
-    name = {"vanilla": "vanilla", "tdm": "TDM", "tdm2": "2-step TDM"}
-    tr = ", ".join(f"{name.get(k, k)} {ts[k]['contacts_ep6_10']:.1f} ± {ts[k]['contacts_ep6_10_std']:.1f}" for k in ts)
-    err = ", ".join(f"{name.get(k, k)} {ts[k]['tracking_error_mm']:.0f} mm" for k in ts)
     touches = [r["touch_N"] for r in desk["sweep"]]
     desk_cells = ", ".join(f"{r['stack']}: {r['min_clearance_mm']:+.1f} mm ({fmt(r['desk_force_N'])} N on the desk)"
                            for r in desk["sweep_worst"])
@@ -440,18 +416,10 @@ def paper_results(root: Path) -> str:
         ("III-C", "6-D task (zero rotation)",
          f"the 6-D task achieves a median {forms['6d']['achieved_median']:.0%} of the commanded −z distance, a 3-D "
          f"task {forms['3d']['achieved_median']:.0%}: we default to 3-D", "`skinsafe poke --out results/poke`"),
-        ("Fig. 9", "-TDM variants have the lowest total collisions",
-         f"**{_maze_verdict(maze_doc)}** ({maze['config']['seeds']} held-out seeds x "
-         f"{maze['config']['episodes']} episodes, {_maze_effort(maze_doc, len(m))}; verdict from 95% intervals in "
-         f"`maze_results.json`): total contacts {totals}{_against(maze['claim'])}; " + _reaching(maze['claim'], learned) + _online(maze["claim"]) + _fig9c(maze),
+        ("Fig. 9", "-TDM variants have the lowest total collisions", _fig9(maze) if maze else _pending("maze"),
          "`skinsafe experiment maze`"),
         ("Fig. 11", "vanilla most contacts; TDM reduces but doesn't improve; 2-step ≈ 0 after 6 episodes",
-         f"**{track['claim'].get('verdict', 'holds' if track['claim']['holds'] else 'does not hold')}** with the "
-         f"paper's binary labels ({len(track['config']['seeds'])} held-out seeds x {track['config']['episodes']} "
-         f"episodes, {fmt(track['n_taxels'])} taxels; verdict from 95% intervals in `tracking.json`): mean contact "
-         f"ticks per episode over {ep}: {tr}{_onsets(ts, name)}{_track_replicates(track)}; mean tracking error {err} "
-         "(the balls sit on the path)"
-         + _soft(track, name), "`skinsafe experiment tracking`"),
+         _fig11(track) if track else _pending("tracking"), "`skinsafe experiment tracking`"),
         ("Fig. 14", "modulation stops the retraction before the desk", f"worst min clearance over touches of {fmt(min(touches))}-{fmt(max(touches))} N"
          + (f" ({desk['labels']} labels, tangent gain {desk['tangent_gain']:g})" if "labels" in desk else "") + f": {desk_cells}",
          "`skinsafe experiment desk`"),
@@ -577,7 +545,8 @@ def iso_limits(root: Path) -> str:
     return "\n".join(lines)
 
 
-FIGURES = {"maze-grid": maze_grid, "maze-ablation": maze_ablation, "tracking-labels": tracking_labels, "tracking-nstep": tracking_nstep, "safety-audit": safety_audit, "paper-results": paper_results,
+FIGURES = {"maze-grid": maze_grid, "maze-defaults": maze_defaults, "tracking-labels": tracking_labels,
+           "tracking-claims": tracking_claims, "tracking-nstep": tracking_nstep, "safety-audit": safety_audit, "paper-results": paper_results,
            "collaboration": collaboration, "collaboration-sweep": collaboration_sweep, "sample-skins": sample_skins,
            "import-contracts": import_contracts, "hardware-constants": hardware_constants,
            "fault-table": fault_table, "iso-limits": iso_limits}

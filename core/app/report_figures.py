@@ -67,11 +67,12 @@ def maze(results: dict, grid: dict | None = None, window: int = 5):
     """Return and contact events per episode of a maze run, and the -TDM variants against the
     safe-RL baselines (cumulative contacts) from `grid` (the full grid) when the run has no baselines."""
     plt = _plt()
-    summary, runs = results["summary"], results["runs"]
+    rep = results["replicates"][0]
+    summary, runs = rep["summary"], rep["runs"]
     methods = list(summary["methods"])
-    cfg = summary["config"]
+    cfg = {"seeds": len(results["eval_seeds"]), "episodes": results["evaluation_conditions"]["episodes"]}
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.2))
-    every = list(dict.fromkeys(methods + list((grid or results)["summary"]["methods"])))
+    every = list(dict.fromkeys(methods + list((grid or results)["replicates"][0]["summary"]["methods"])))
     colors = dict(zip(every, plt.rcParams["axes.prop_cycle"].by_key()["color"] * 3))
     budget = f"{plural(cfg['seeds'], 'seed')} x {plural(cfg['episodes'], 'episode')}"
     for ax, key, ylabel in ((axes[0], "returns", "episode return (points; +100 at the goal)"),
@@ -84,11 +85,11 @@ def maze(results: dict, grid: dict | None = None, window: int = 5):
         ax.legend(fontsize=7)
     axes[0].set_title(f"Return per episode ({budget})")
     axes[1].set_title(f"Contact events per episode ({budget})")
-    src, src_budget = results, budget
+    src, src_budget = rep, budget
     if not any(b in methods for b in BASELINES) and grid is not None:
-        src = grid
-        gc = grid["summary"]["config"]
-        src_budget = f"full grid, {gc['seeds']} seeds x {gc['episodes']} episodes"
+        src = grid["replicates"][0]
+        src_budget = (f"full grid, replicate 1, {len(grid['eval_seeds'])} seeds x "
+                      f"{grid['evaluation_conditions']['episodes']} episodes")
     ax = axes[2]
     shown = [m for m in src["summary"]["methods"] if m.endswith("-TDM") or m in BASELINES]
     for m in shown:
@@ -117,7 +118,7 @@ def tracking_contacts(res: dict):
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("episode (number; the TDM is re-trained after each)")
     ax.set_ylabel(f"contact ticks per episode (count of {cfg['control_dt'] * 1e3:.0f} ms ticks)")
-    ax.set_title(f"UR5 tracking among balls (Fig. 11): {plural(len(cfg['seeds']), 'seed')} x "
+    ax.set_title(f"UR5 tracking among balls (Fig. 11): {plural(len(next(iter(res['runs'].values()))), 'seed')} x "
                  f"{plural(cfg['episodes'], 'episode')}")
     ax.legend(fontsize=8)
     fig.tight_layout()

@@ -26,7 +26,7 @@ import numpy as np
 MOVING = 4  # pan, lift, elbow, wrist 1: the joints whose state the TDM sees (wrist 2 and 3 are held)
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrackingTask:
     """The scene and the path."""
 

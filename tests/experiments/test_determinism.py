@@ -15,11 +15,10 @@ import ray
 from skinsafe.core.experiments import runner
 from skinsafe.core.experiments.maze import run_row
 from skinsafe.core.experiments.maze_runs import run_one
-from skinsafe.core.experiments.tracking import TrackingConfig, run_method
+from skinsafe.core.experiments.tracking_runs import RunConfig, run_method
 
-cfg = TrackingConfig.quick()
-cfg.episodes = 2
-conf = {k: v for k, v in json.loads(json.dumps(asdict(cfg))).items() if k not in ("seeds", "methods", "label_sets")}
+conf = json.loads(json.dumps(asdict(RunConfig.quick())))
+conf["episodes"] = 2
 maze = [{"method": m, "seed": 3, "episodes": 2, "max_steps": 30, "agent_kw": kw}
         for m, kw in (("AC-TDM", {}), ("SAC", {}), ("SQRL", {"offline_transitions": 80, "pretrain_steps": 10}))]
 track = [{"method": "tdm2", "seed": 0, "config": dict(conf, labels="binary")}]

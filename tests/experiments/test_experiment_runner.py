@@ -48,20 +48,13 @@ def test_tasks_run_on_ray_are_cached_and_reused(tmp_path, monkeypatch):
 
 
 def test_agent_overrides_get_their_own_task_file_and_reach_the_agent(tmp_path):
-    import argparse
-
-    from skinsafe.core.experiments import maze
-
-    p = argparse.ArgumentParser()
-    maze.add_arguments(p)
-    kw = maze.tdm_overrides(p.parse_args(["--tdm-refit-steps", "7", "--tdm-unseen-max", "0.6", "--tdm-prior-count", "0.2"]))
+    kw = maze.TdmOverrides(7, 0.6, 0.2).agent_kw()
     assert kw == {"fit": {"steps": 7, "min_steps": 7, "batch_size": 64, "val_fraction": 0.1}, "unseen_max": 0.6,
                   "prior_count": 0.2}
-    assert maze.tdm_overrides(p.parse_args([])) == {}
-    with pytest.raises(SystemExit, match="unseen-max"):
-        maze.tdm_overrides(p.parse_args(["--tdm-unseen-max", "0"]))
-    with pytest.raises(SystemExit, match="prior-count"):
-        maze.tdm_overrides(p.parse_args(["--tdm-prior-count", "-1"]))
+    assert maze.TdmOverrides().agent_kw() == {}
+    for bad, match in (({"unseen_max": 0.0}, "unseen-max"), ({"prior_count": -1.0}, "prior-count"), ({"refit_steps": 0}, "refit")):
+        with pytest.raises(ValueError, match=match):
+            maze.TdmOverrides(**bad)
     plain = {"method": "AC-TDM", "seed": 0, "episodes": 1, "max_steps": 5}
     tuned = dict(plain, agent_kw=kw)
     assert runner.task_file(tmp_path, plain).name == "AC-TDM_s0.json"
@@ -96,7 +89,7 @@ def test_seeds_are_named_never_counted():
     assert parse_seeds("11,12,13") == parse_seeds(["11", "12 13"]) == [11, 12, 13]
     assert parse_seeds("3") == [3]  # seed 3, not three seeds
     for bad in ("19-10", "a", ""):
-        with pytest.raises(SystemExit, match="seeds"):
+        with pytest.raises(ValueError, match="seeds"):
             parse_seeds(bad)
 
 
@@ -124,114 +117,70 @@ def test_tuning_chooses_by_one_criterion_for_every_method():
     for r in rows:
         r["goal_rate_last_mean"] = 0.5
     assert maze.choose(rows) is None  # none reaches it: no rescue by the highest goal rate
-    assert set(maze.SPACES) == set(maze.METHODS)
-    for m in maze.TDM_METHODS:  # the -TDM mechanisms are switches of their search space, the offline phase too
-        space = maze.SPACES[m]
-        assert space["raw_floor"][1] == [0.05, 0.0] and space["shrink"][1] == [True, False]
-        assert space["contact_steps"][1] == [100, 0] and space["offline_transitions"][1] == [0, 4000]
-    for m in maze.BASELINES_GIVEN:
-        assert maze.SPACES[m]["offline_transitions"][1] == [4000, 0]
-    chosen = {"SAC-TDM": {"prior_count": 0.5}, "RRL": {}, "SAC": {}}
-    abl = maze.ablation_tasks(chosen, ["SAC-TDM", "RRL", "SAC"], {"episodes": 3, "max_steps": 5}, [10, 11])
-    variants = sorted({h["variant"] for h, _ in abl})
-    # the prior count is already 0.5: that variant is the chosen configuration itself and is left out
-    assert variants == sorted([f"SAC-TDM - {w.split(' (')[0]}" for w, _ in maze.TDM_EXTRAS[:4]]
-                              + [f"RRL + {w.split(' (')[0]}" for w, _ in maze.BASELINE_EXTRAS])
+    assert set(maze.SPACES) == set(maze.METHODS) == set(maze.DEFAULTS_SOURCE)
+    for m in maze.TDM_METHODS:  # trial 0: the paper's filter, this project's mechanisms off and tuned as switches
+        d = maze.defaults(m)
+        assert (d["raw_floor"], d["unfiltered_entropy"], d["shrink"], d["contact_steps"], d["offline_transitions"]) == (0.0, False, False, 0, 0)
+        assert d["lr"] == maze.defaults(m[:-4])["lr"]  # its base method's published learning rate
+    assert maze.defaults("SAC")["lr"] == 3e-4 and maze.defaults("SAC-RP")["cost_penalty"] == 50.0 and maze.defaults("CPO")["target_kl"] == 0.01
+    cfg = maze.MazeConfig(methods=("SAC-TDM", "RRL", "SAC"), ablation=True, ablation_seeds=(10, 11), ablation_episodes=3)
+    chosen = {"SAC-TDM": {**maze.defaults("SAC-TDM"), "raw_floor": 0.05, "shrink": True}, "RRL": {}, "SAC": {}}
+    abl = maze.ablation_tasks(chosen, cfg)
+    # only what the chosen configuration has is removed: the floor and shrinkage
+    assert sorted({h["variant"] for h, _ in abl}) == sorted(["SAC-TDM - 5% uniform floor", "SAC-TDM - visit-count shrinkage"]
+                                                            + [f"RRL + {w.split(' (')[0]}" for w, _ in maze.BASELINE_EXTRAS])
     assert {t["seed"] for _, t in abl} == {10, 11} and all(h["agent_kw"] == t["agent_kw"] for h, t in abl)
+    assert maze.MazeConfig().conditions() == {"episodes": 60, "max_steps": 200, "cost_limit": pytest.approx(68 / 60)}
+    for bad, match in (({"tuning_seeds": (10,)}, "held-out"), ({"methods": ("X",)}, "unknown"), ({"trials": 0}, ">= 1"),
+                       ({"ablation": True, "ablation_seeds": (3,)}, "evaluation seeds")):
+        with pytest.raises(ValueError, match=match):
+            maze.MazeConfig(**bad)
 
 
-def test_convergence_and_replicate_verdicts_from_numbers():
-    # the first window of 10 episodes with >= 8 goals starts at episode 4 (2 misses, 8 goals); never: 31
-    assert maze.converged_at([0] * 5 + [1] * 20) == 4 and maze.converged_at([0] * 30) == 31
-    assert maze.converged_at([1, 0] * 4 + [1] * 12) == 5
-    runs = [{"method": m, "goals": [0] * k + [1] * (40 - k)} for m, ks in (("AC", (20, 22, 24)), ("AC-TDM", (5, 6, 7)))
-            for k in ks]
-    c = maze.convergence(runs, ["AC", "AC-TDM"])
-    assert c["methods"]["AC-TDM"]["episode_mean"] == 5.0 and c["methods"]["AC"]["episode_mean"] == 21.0
-    p = c["pairs"]["AC-TDM vs AC"]
-    assert p["difference"] == 16.0 and p["ci95"][0] > 0 and p["verdict"] == "faster"
-    claim = {"verdict": "holds", "holds": True, "statement": "S.", "online_only": {"verdict": "does not hold"}}
-    reps = [{"tuning_seeds": [0, 1], "summary": {"claim": claim}},
-            {"tuning_seeds": [2, 3], "summary": {"claim": dict(claim, verdict="does not hold")}}]
-    out = maze.settle(claim, reps)
-    assert out["verdict"] == "not settled" and out["holds"] is False and out["verdict_agrees"] is False
-    assert out["replicate_verdicts"] == ["holds", "does not hold"] and "not settled" in out["statement"]
-    assert out["online_only"]["verdict"] == "does not hold"  # both replicates agree on it
-    same = maze.settle(claim, reps[:1] * 2)
-    assert same["verdict"] == "holds" and same["verdict_agrees"]
-    slower = {"pairs": {"AC-TDM vs AC": dict(p, verdict="not resolved")}}
-    reps = [{"summary": {"convergence": c}}, {"summary": {"convergence": slower}}]
-    settled = maze.settle_convergence(c, reps)["pairs"]["AC-TDM vs AC"]
-    assert settled["verdict"] == "not settled" and settled["replicate_verdicts"] == ["faster", "not resolved"]
-    assert maze.settle_convergence(c, reps[:1] * 2)["pairs"]["AC-TDM vs AC"]["verdict"] == "faster"
-
-
-def test_full_protocol_tunes_evaluates_on_held_out_seeds_and_ablates(tmp_path, monkeypatch):
+def test_full_protocol_reports_each_replicate_as_itself(tmp_path, monkeypatch):
     import argparse
 
+    from skinsafe.core.app import experiment_maze as app
     from skinsafe.core.app import readme
 
     root, tmp_path = tmp_path, tmp_path / "results" / "maze"
-
     p = argparse.ArgumentParser()
-    maze.add_arguments(p)
+    app.add_arguments(p)
     args = p.parse_args(["--out", str(tmp_path), "--methods", "AC-TDM,CPO", "--trials", "3", "--tuning-seeds", "0",
-                         "--seeds", "10-11", "--episodes", "2", "--tuning-episodes", "1", "--max-steps", "8", "--ablation-seeds", "10-11",
-                         "--ablation-episodes", "1", "--workers", "0", "--no-progress"])
-    assert maze.run(args) == 0
+                         "--seeds", "10-11", "--episodes", "2", "--max-steps", "8", "--workers", "0", "--no-progress"])
+    assert app.run(args) == 0
     doc = json.loads((tmp_path / "maze_results.json").read_text())
-    assert doc["eval_seeds"] == [10, 11]
-    assert {m: t["trials"] for m, t in doc["tuning"].items()} == {"AC-TDM": 3, "CPO": 3}  # equal effort by construction
-    for m in ("AC-TDM", "CPO"):
-        rec = doc["tuning"][m]
-        assert rec["tuning_seeds"] == [0] and len(rec["configs"]) == 3 and set(rec["space"]) == set(maze.SPACES[m])
-        assert rec["configs"][0]["config"] == {k: d for k, (d, _) in maze.SPACES[m].items()}  # trial 0: the defaults
-        i = maze.choose(rec["configs"])
-        assert rec["chosen_index"] == i and rec["met_criterion"] == (i is not None)
-        assert rec["chosen"] == rec["configs"][0 if i is None else i]["config"]  # none met: the default, reported so
-        assert all(set(c["config"]) == set(maze.SPACES[m]) for c in rec["configs"])
+    assert doc["eval_seeds"] == [10, 11] and doc["tuning_conditions"] == doc["evaluation_conditions"]
+    assert doc["evaluation_conditions"]["cost_limit"] == pytest.approx(68 / 2)  # CPO tuned and evaluated at one limit
     assert len(doc["replicates"]) == 2 and [r["tuning_seeds"] for r in doc["replicates"]] == [[0], [1]]
-    assert doc["verdict_agrees"] == (len({(r["verdict"], r["online_only_verdict"]) for r in doc["replicates"]}) == 1)
-    assert doc["summary"]["claim"]["replicate_verdicts"] == [r["verdict"] for r in doc["replicates"]]
-    for r in doc["replicates"]:  # each replicate keeps its own verdict and statement, not the settled claim's
-        assert r["verdict"] != "not settled" and "Replicates:" not in r["statement"]
-    assert {"code_sha1", "versions"} <= set(doc["provenance"]) and "AC-TDM vs AC" not in doc["summary"]["convergence"]["pairs"]
-    never = [m for m in ("AC-TDM", "CPO") if not doc["tuning"][m]["met_criterion"]]
-    assert doc["summary"]["claim"].get("never_met_criterion", []) == never
-    assert {(r["method"], r["seed"]) for r in doc["per_seed"]} == {(m, s) for m in ("AC-TDM", "CPO") for s in (10, 11)}
-    assert all({"method", "seed", "total_contacts", "goal_rate"} <= set(r) for r in doc["per_seed"])
-    for r in doc["runs"]:  # the evaluation runs are the chosen configurations on the held-out seeds
-        assert r["seed"] in (10, 11) and len(r["costs"]) == 2
-    rows = {r["variant"]: r for r in doc["ablation"]}
-    assert "AC-TDM (chosen configuration)" in rows and "AC-TDM - visit-count shrinkage" in rows
-    for r in rows.values():
-        assert {"variant", "removed", "total_contacts_mean", "ci95"} <= set(r) and r["ci95"][0] <= r["total_contacts_mean"] <= r["ci95"][1]
-    per = [p["total_contacts"] for p in rows["AC-TDM - visit-count shrinkage"]["per_seed"]]
-    assert rows["AC-TDM - visit-count shrinkage"]["total_contacts_mean"] == pytest.approx(np.mean(per))
-    # each variant against the same (first) episodes of its method's evaluation runs
-    ref = rows["AC-TDM (chosen configuration)"]
-    assert ref["episodes"] == 1 and [p["total_contacts"] for p in ref["per_seed"]] == [
-        r["costs"][0] for r in doc["runs"] if r["method"] == "AC-TDM"]
-    cpo = doc["summary"]["methods"]["CPO"]["agent_kw"]
-    assert cpo == {**doc["tuning"]["CPO"]["chosen"], "cost_limit": pytest.approx(68 / 2)}  # wall-facing moves over the run's episodes
-    assert doc["tuning"]["CPO"]["configs"][0]["agent_kw"]["cost_limit"] == pytest.approx(68 / 1)  # tuning ran 1 episode
-    assert "Ablation" in (tmp_path / "maze_contacts.md").read_text()
-    grid = readme.maze_grid(root)  # the docs' table: every method's trials, intervals as computed (not clipped at 0)
-    lows = [doc["summary"]["methods"][m]["total_contacts_ci95"][0] for m in ("AC-TDM", "CPO")]
-    assert all(f"[{lo:,.1f}, " in grid for lo in lows)
-    for m in ("AC-TDM", "CPO"):
-        rec = doc["tuning"][m]
-        want = f"trial {rec['chosen_index']} of 3: " if rec["met_criterion"] else "no trial of 3 met the goal criterion: defaults"
-        assert want in grid
-    with pytest.raises(SystemExit, match="held-out"):
-        maze.run(p.parse_args(["--out", str(tmp_path), "--tuning-seeds", "0-1", "--seeds", "1-3"]))
+    for r in doc["replicates"]:  # each replicate: its own tuning (equal trials), summary, runs and verdicts
+        assert {m: t["trials"] for m, t in r["tuning"].items()} == {"AC-TDM": 3, "CPO": 3}
+        for m in ("AC-TDM", "CPO"):
+            rec = r["tuning"][m]
+            assert rec["configs"][0]["config"] == maze.defaults(m) and set(rec["space"]) == set(maze.SPACES[m])
+            i = maze.choose(rec["configs"])
+            assert rec["chosen_index"] == i and rec["chosen"] == rec["configs"][0 if i is None else i]["config"]
+            assert rec["configs"][0]["agent_kw"].get("cost_limit") == (pytest.approx(34.0) if m == "CPO" else None)
+        assert {(x["method"], x["seed"]) for x in r["per_seed"]} == {(m, s) for m in ("AC-TDM", "CPO") for s in (10, 11)}
+        assert all(x["seed"] in (10, 11) and len(x["costs"]) == 2 for x in r["runs"])
+        assert r["summary"]["claim"]["verdict"] in ("holds", "does not hold", "not resolved")
+    settled = doc["claims"]["total"]
+    assert settled["replicate_verdicts"] == [r["summary"]["claim"]["verdict"] for r in doc["replicates"]]
+    assert settled["verdict"] == (settled["replicate_verdicts"][0] if settled["agrees"] else "not settled")
+    assert not {"summary", "tuning", "runs", "per_seed"} & set(doc) and {"code_sha1", "versions"} <= set(doc["provenance"])
+    grid = readme.maze_grid(root)  # the docs' table, one block per replicate, intervals as computed
+    for r in doc["replicates"]:
+        lo = r["summary"]["methods"]["CPO"]["total_contacts_ci95"][0]
+        assert f"[{lo:,.1f}, " in grid
     # the tuner is a function of the runs: run again, every trial it asks is a finished task (Ray never starts)
     import ray
 
     monkeypatch.setattr(ray, "init", lambda *a, **k: (_ for _ in ()).throw(AssertionError("a new trial was asked")))
-    assert maze.run(args) == 0
+    assert app.run(args) == 0
     again = json.loads((tmp_path / "maze_results.json").read_text())
-    assert again["tuning"] == doc["tuning"] and again["replicates"] == doc["replicates"]
+    assert [r["tuning"] for r in again["replicates"]] == [r["tuning"] for r in doc["replicates"]]
+    with pytest.raises(SystemExit, match="held-out"):
+        app.config_from_args(p.parse_args(["--tuning-seeds", "0-1", "--seeds", "1-3"]))
 
 
 @pytest.mark.parametrize("method, kw", [("AC-TDM", None), ("SAC-TDM", None), ("SQRL", {"offline_transitions": 60, "pretrain_steps": 5})])

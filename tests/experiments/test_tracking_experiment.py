@@ -1,22 +1,22 @@
 """The UR5 tracking experiment (Fig. 11), reduced, and the safety stack / scenes on the real scene."""
 import argparse
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 
+from skinsafe.core.experiments import tracking, tracking_report
 from skinsafe.core.experiments.tracking import (
-    Learner,
     TrackingConfig,
-    alignment_cos,
-    claim_check,
+    claim,
     contacts_per_episode,
     per_seed,
-    run_episode,
     run_experiment,
     summary,
 )
+from skinsafe.core.experiments.tracking_runs import Learner, alignment_cos, run_episode
 from skinsafe.core.learn.tracking_env import TrackingEnv
 from skinsafe.core.safety.modulation import ModulationLayer
 from skinsafe.core.safety.stack import SafetyStack, StrategyFilter, TeleopStream, TrajectorySource
@@ -27,15 +27,13 @@ pytestmark = pytest.mark.xdist_group("tracking-experiment")  # one worker builds
 
 @pytest.fixture(scope="module")
 def quick_results():
-    cfg = TrackingConfig.quick()
-    cfg.label_sets = ("binary", "soft")  # the paper's labels and the soft extension, on the same seed
+    cfg = replace(TrackingConfig.quick(), label_sets=("binary", "soft"))  # the paper's labels and the soft extension
     return cfg, run_experiment(cfg, progress=False, workers=0)
 
 
 def test_both_label_sets_learn_apart_on_one_vanilla_run(quick_results):
     cfg, res = quick_results
     b, s = res["labels"]["binary"]["runs"], res["labels"]["soft"]["runs"]
-    assert res["runs"] is b  # the top level is the paper's setting
     assert b["vanilla"] == s["vanilla"] and len(res["labels"]["binary"]["cpu_seconds"]["vanilla"]) == 1
     # the labels reach the learner: the same first re-training data give other models, other episodes
     fb, fs = b["tdm"]["0"][0]["fit"], s["tdm"]["0"][0]["fit"]
@@ -48,7 +46,7 @@ def test_quick_tracking_run_modulated_contacts_fewer_than_vanilla(quick_results)
     runs = res["labels"]["soft"]["runs"]
     assert set(runs) == {"vanilla", "tdm", "tdm2"}
     c = {m: np.array([r["contacts"] for r in runs[m]["0"]]) for m in runs}
-    assert all(len(v) == cfg.episodes for v in c.values())
+    assert all(len(v) == cfg.run.episodes for v in c.values())
     assert c["vanilla"].min() > 20  # the balls really are in the way, felt by the skin readout
     # episode 0 has no experience yet: every method runs unmodulated and sees the same contacts
     assert c["tdm"][0] == c["vanilla"][0] == c["tdm2"][0]
@@ -61,15 +59,16 @@ def test_quick_tracking_run_modulated_contacts_fewer_than_vanilla(quick_results)
     assert all(0 < r["onsets"] <= r["contacts"] for r in runs["vanilla"]["0"])
     assert all(v is None for r in runs["vanilla"]["0"] for v in r["alignment_cos"])
     cos = [v for r in runs["tdm2"]["0"][1:] for v in r["alignment_cos"]]
-    assert len(cos) == 2 * cfg.n_balls and all(v is not None and -1 <= v <= 1 for v in cos)
+    assert len(cos) == 2 * cfg.run.n_balls and all(v is not None and -1 <= v <= 1 for v in cos)
     assert all(v is None for v in runs["tdm2"]["0"][0]["alignment_cos"])  # episode 1: nothing learned yet
 
 
 def test_episode_logs_are_consistent(quick_results):
     cfg, res = quick_results
+    cfg = cfg.run
     env = TrackingEnv(cfg, seed=0)
     ep = run_episode(env, None, seed=0)
-    assert ep.contacts == res["runs"]["vanilla"]["0"][0]["contacts"]  # same seed, same episode
+    assert ep.contacts == res["labels"]["binary"]["runs"]["vanilla"]["0"][0]["contacts"]  # same seed, same episode
     assert ep.states.shape == (cfg.ticks, 4) and ep.dangers.shape[0] == cfg.ticks
     assert ep.contacts == int(ep.dangers.any(1).sum())
     assert len(ep.contact_points) == ep.contacts and len(ep.lit_points) == ep.dangers.sum()
@@ -83,7 +82,7 @@ def test_episode_logs_are_consistent(quick_results):
 def test_noisy_copies_are_labelled_by_the_skin_at_the_noisy_state(quick_results):
     """Fig. 11e's binary labels: a noisy copy of a touching state that no longer touches gets label 0."""
     cfg, _ = quick_results
-    cfg = TrackingConfig(**{**cfg.__dict__, "labels": "binary"})
+    cfg = replace(cfg.run, labels="binary", augment=3)  # the oracle extension's copies
     env = TrackingEnv(cfg, seed=0)
     sc = env.scene
     ep = run_episode(env, None, seed=0)
@@ -109,7 +108,7 @@ def test_noisy_copies_are_labelled_by_the_skin_at_the_noisy_state(quick_results)
 
 def test_alignment_cos_is_one_for_the_distance_gradient_itself(quick_results):
     cfg, _ = quick_results
-    sc = TrackingEnv(cfg, seed=0).scene
+    sc = TrackingEnv(cfg.run, seed=0).scene
     q = sc.desired(1.0)[0]
     h = 1e-4
     g = np.array([(sc.ball_distances(q + h * e)[0] - sc.ball_distances(q - h * e)[0]) / (2 * h) for e in np.eye(6)[:4]])
@@ -117,68 +116,60 @@ def test_alignment_cos_is_one_for_the_distance_gradient_itself(quick_results):
     assert alignment_cos(sc, q, np.zeros(4), 0) is None
 
 
-def test_claim_check_from_numbers():
-    rows = [{"method": m, "contacts_ep6_10": v} for m, v in (("vanilla", 150.0), ("tdm", 40.0), ("tdm2", 9.0))]
-    assert claim_check(rows)["holds"] and claim_check(rows)["tdm2_over_vanilla"] == pytest.approx(0.06)
-    rows[2]["contacts_ep6_10"] = 16.0
-    assert not claim_check(rows)["holds"]
+def test_claim_is_decided_on_paired_seeds_with_holms_correction():
+    """The same means decide differently with the seeds' spread: 9 of 150 everywhere holds; 0 on nine seeds and
+    90 on one (mean 9) is not resolved; 20 everywhere does not hold; vanilla below the TDM does not hold."""
+    def seeds(tdm2, tdm=40.0):
+        return [{"method": m, "seed": i, "contacts_ep6_10": v, "onsets_ep6_10": v / 10} for i, t2 in enumerate(tdm2)
+                for m, v in (("vanilla", 150.0 + i), ("tdm", tdm), ("tdm2", t2))]
 
-
-def test_claim_check_decides_on_intervals_over_seeds():
-    """The same means decide differently with the seeds' spread: 9 of 150 everywhere holds; 0 on nine
-    seeds and 90 on one (mean 9) is not resolved; 20 everywhere does not hold."""
-    def seeds(tdm2):
-        return [{"method": m, "seed": i, "contacts_ep6_10": v} for i, t2 in enumerate(tdm2)
-                for m, v in (("vanilla", 150.0 + i), ("tdm", 40.0), ("tdm2", t2))]
-
-    def rows(ps):
-        return [{"method": m, "contacts_ep6_10": float(np.mean([p["contacts_ep6_10"] for p in ps if p["method"] == m]))}
-                for m in ("vanilla", "tdm", "tdm2")]
-
-    for tdm2, verdict in (([9.0] * 10, "holds"), ([0.0] * 9 + [90.0], "is not resolved"), ([20.0] * 10, "does not hold")):
-        ps = seeds(tdm2)
-        c = claim_check(rows(ps), ps)
-        assert c["verdict"] == verdict and c["holds"] == (verdict == "holds") and c["seeds"] == list(range(10))
-        assert c["tdm2_over_vanilla_ci95"][0] <= c["tdm2_over_vanilla"] <= c["tdm2_over_vanilla_ci95"][1]
+    for tdm2, verdict in (([9.0] * 10, "holds"), ([0.0] * 9 + [90.0], "not resolved"), ([20.0] * 10, "does not hold")):
+        c = claim(seeds(tdm2))
+        assert c.verdict == verdict and c.seeds == tuple(range(10)) and c.count == "contacts"
+        assert c.tdm2_over_vanilla_ci95[0] <= c.tdm2_over_vanilla <= c.tdm2_over_vanilla_ci95[1]
+    c = claim(seeds([9.0] * 10))
+    share = next(x for x in c.comparisons if x.name.startswith("2-step TDM at most"))
+    assert share.difference == pytest.approx(np.mean([15.0 + i / 10 - 9.0 for i in range(10)]))
+    assert all(x.p_holm >= x.p for x in c.comparisons)  # Holm never lowers a p-value
+    c = claim(seeds([9.0] * 10, tdm=200.0))  # vanilla below the TDM: "vanilla has the most contacts" fails
+    assert c.verdict == "does not hold" and next(x for x in c.comparisons if x.name == "vanilla above TDM").verdict == "does not hold"
+    assert claim(seeds([9.0] * 10), "onsets").means["tdm2"] == pytest.approx(0.9)
+    assert claim([r for r in seeds([9.0]) if r["method"] != "tdm"]) is None
     rows = [{"contacts": k, "onsets": k % 3, "tracking_error": 0.01, "alignment_cos": [0.5, None, -0.1]} for k in range(10)]
     assert per_seed({"runs": {"tdm": {"3": rows}}}) == [
         {"method": "tdm", "seed": 3, "contacts_ep6_10": 7.0, "contacts_last": 9, "onsets_ep6_10": 1.0,
          "alignment_cos_ep6_10": pytest.approx(0.2), "tracking_error_mm": pytest.approx(10.0)}]
 
 
-def test_tracking_cli_writes_outputs(tmp_path, quick_results, monkeypatch):
-    from skinsafe.core.experiments import tracking as et
+def test_tracking_document_report_and_options(tmp_path, quick_results):
+    from skinsafe.core.app import experiment_tracking as app
 
     cfg, res = quick_results
-    monkeypatch.setattr(et, "run_experiment", lambda c, **kw: res)
-    args = argparse.Namespace(out=str(tmp_path), quick=True, episodes=None, seeds=None, methods=None, no_progress=True)
-    assert et.run(args) == 0
-    doc = json.loads((tmp_path / "tracking.json").read_text())
-    assert {r["method"] for r in doc["summary"]} == {"vanilla", "tdm", "tdm2"}
-    for name in ("binary", "soft"):  # both label sets, each with its contact ticks per episode by method
+    doc = tracking.document(res, cfg)
+    assert doc["headline"] == "binary" and doc["labels"]["binary"]["role"] == "headline" and doc["runs"] is doc["labels"]["binary"]["runs"]
+    assert doc["labels"]["binary"]["augment"] == 0 and doc["labels"]["soft"]["role"] == "extension"
+    assert doc["config"]["augment"] == 0 and doc["config"]["labels"] == "binary" and "Holm" in doc["correction"]
+    for name in ("binary", "soft"):  # each label set: its replicates, each with its own summary and claims
         lab = doc["labels"][name]
-        assert {m: len(v) for m, v in lab["contacts_per_episode"].items()} == dict.fromkeys(et.METHODS, cfg.episodes)
-        assert all(not isinstance(v, (list, dict)) for r in lab["summary"] for k, v in r.items() if k != "first_zero_episode")
-        assert lab["claim"]["statement"] in (tmp_path / "tracking.md").read_text()
-    assert doc["claim"] == doc["labels"]["binary"]["claim"] and "paper's setting" in (tmp_path / "tracking.md").read_text()
-    assert doc["claim"]["holds"] in (True, False) and "vanilla" in doc["claim"]["statement"]
-    for rows in doc["runs"]["vanilla"].values():  # per-episode contacts and tracking error
-        assert all({"contacts", "tracking_error"} <= set(r) for r in rows)
-    assert doc["claim"]["statement"] in (tmp_path / "tracking.md").read_text()
-    for name in ("contacts.png", "trajectories.png"):
-        assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
-    with pytest.raises(SystemExit, match="episodes"):
-        et.config_from_args(argparse.Namespace(quick=True, episodes=0, seeds=None, methods=None))
-    full = et.config_from_args(argparse.Namespace(quick=False, episodes=None, seeds=["11,12", "15-16"], methods=None, labels="both"))
-    assert full.seeds == (11, 12, 15, 16) and full.label_sets == ("binary", "soft") and et.TrackingConfig().seeds == et.HELD_OUT
-    assert full.replicate_seeds == () and et.TrackingConfig().replicate_seeds == tuple(range(20, 30))  # named seeds: one replicate
-    again = et.config_from_args(argparse.Namespace(quick=False, episodes=None, seeds=["11"], methods=None, replicate_seeds="12-13",
-                                                   horizons="1,3", rollout_dts="0.1"))
+        assert {m: len(v) for m, v in lab["contacts_per_episode"].items()} == dict.fromkeys(tracking.METHODS, cfg.run.episodes)
+        (rep,) = lab["replicates"]
+        assert rep["seeds"] == [0] and {r["method"] for r in rep["summary"]} == set(tracking.METHODS)
+        assert list(lab["settled"]["replicate_verdicts"]) == [rep["claim"]["verdict"]] and rep["claim_onsets"]["count"] == "onsets"
+    md = tracking_report.markdown(doc)
+    assert tracking_report.claim_statement(doc["labels"]["binary"]["replicates"][0]["claim"]) in md and "Extension" in md
+    assert [p.name for p in tracking_report.plot(doc, tmp_path)] == ["contacts.png", "trajectories.png"]
+    assert (tmp_path / "contacts.png").read_bytes()[:4] == b"\x89PNG"
+    p = argparse.ArgumentParser()
+    app.add_arguments(p)
+    full = app.config_from_args(p.parse_args(["--seeds", "11,12", "15-16", "--labels", "binary", "soft"]))
+    assert full.seeds == (11, 12, 15, 16) and full.label_sets == ("binary", "soft") and full.replicate_seeds == ()
+    assert TrackingConfig().replicates("soft") == [tracking.HELD_OUT] and len(TrackingConfig().replicates("binary")) == 2
+    again = app.config_from_args(p.parse_args(["--seeds", "11", "--replicate-seeds", "12-13", "--horizons", "1,3", "--rollout-dts", "0.1"]))
     assert again.replicate_seeds == (12, 13) and again.nstep_grid == ((1, 0.1), (3, 0.1))
-    with pytest.raises(SystemExit, match="overlaps"):
-        et.config_from_args(argparse.Namespace(quick=False, episodes=None, seeds=["11"], methods=None, replicate_seeds="11"))
-    with pytest.raises(SystemExit, match="range"):
-        et.config_from_args(argparse.Namespace(quick=False, episodes=None, seeds=["12-10"], methods=None))
+    for argv, match in ((["--quick", "--episodes", "0"], "episodes"), (["--seeds", "11", "--replicate-seeds", "11"], "overlap"),
+                        (["--seeds", "12-10"], "range")):
+        with pytest.raises(SystemExit, match=match):
+            app.config_from_args(p.parse_args(argv))
 
 
 def test_stack_filters_planner_and_teleop_sources():

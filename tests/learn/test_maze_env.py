@@ -1,11 +1,15 @@
 """The maze environment (reward, cost, termination on hand-placed positions), the agents and the experiment."""
 import json
+from dataclasses import asdict
 
 import numpy as np
 import pytest
 import torch
 
-from skinsafe.core.experiments import maze as experiment_maze
+from skinsafe.core.app import experiment_maze as app_maze
+from skinsafe.core.experiments import maze, maze_report
+from skinsafe.core.experiments.maze_claims import claim_check, converged_at, convergence
+from skinsafe.core.experiments.verdicts import Settled, settle
 from skinsafe.core.learn.baselines import AGENTS, make_agent
 from skinsafe.core.learn.maze_env import BACKWARD, FORWARD, LEFT, RIGHT, MazeEnv, MazeFeatures, parse_layout
 
@@ -121,57 +125,56 @@ QUICK_METHODS = ["SAC", "SAC-TDM", "AC-TDM", "CPO"]
 
 def test_quick_experiment_writes_plots_table_and_claim(tmp_path):
     args = experiment_maze_args(tmp_path)
-    assert experiment_maze.run(args) == 0
+    assert app_maze.run(args) == 0
     data = json.loads((tmp_path / "maze_results.json").read_text())
-    s = data["summary"]
-    assert list(s["methods"]) == QUICK_METHODS
-    assert s["config"] == experiment_maze.QUICK
-    for r in data["runs"]:
-        assert len(r["returns"]) == len(r["costs"]) == len(r["goals"]) == experiment_maze.QUICK["episodes"]
-        assert all(0 <= c <= n <= experiment_maze.QUICK["max_steps"] for c, n in zip(r["costs"], r["steps"]))
+    (rep,) = data["replicates"]  # --quick: one replicate of the published defaults, no tuning
+    s = rep["summary"]
+    assert list(s["methods"]) == QUICK_METHODS and rep["tuning"] == {} and data["tuning_conditions"] is None
+    assert data["evaluation_conditions"] == {"episodes": 2, "max_steps": 20, "cost_limit": pytest.approx(68 / 2)}
+    for r in rep["runs"]:
+        assert len(r["returns"]) == len(r["costs"]) == len(r["goals"]) == 2
+        assert all(0 <= c <= n <= 20 for c, n in zip(r["costs"], r["steps"]))
     for m, v in s["methods"].items():
-        totals = [sum(r["costs"]) for r in data["runs"] if r["method"] == m]
+        totals = [sum(r["costs"]) for r in rep["runs"] if r["method"] == m]
         assert v["total_contacts_mean"] == pytest.approx(np.mean(totals))
-        assert v["goal_rate_mean"] == pytest.approx(np.mean([np.mean(r["goals"]) for r in data["runs"] if r["method"] == m]))
-    tdm = next(r for r in data["runs"] if r["method"] == "SAC-TDM")
-    assert tdm["stats"]["tdm"]["fits"] >= 2 and tdm["tdm_fits"][-1]["steps"] >= 1  # refits during episodes
-    assert s["claim"]["holds"] in (True, False) and s["claim"]["statement"]
+        assert v["goal_rate_mean"] == pytest.approx(np.mean([np.mean(r["goals"]) for r in rep["runs"] if r["method"] == m]))
+    tdm = next(r for r in rep["runs"] if r["method"] == "SAC-TDM")
+    assert tdm["tdm_fits"][-1]["steps"] >= 1  # refits during episodes
+    assert s["claim"]["verdict"] in ("holds", "does not hold", "not resolved")
+    assert data["claims"]["total"]["replicate_verdicts"] == [s["claim"]["verdict"]] and data["claims"]["total"]["agrees"]
     assert (tmp_path / "maze_curves.png").read_bytes()[:4] == b"\x89PNG"
     md = (tmp_path / "maze_contacts.md").read_text()
-    assert "| SAC-TDM |" in md and s["claim"]["statement"] in md
-    # one task file per run; CPO's configuration (the maze's cost budget) adds a digest to its name
+    assert "| SAC-TDM |" in md and maze_report.claim_statement(s["claim"]) in md
+    # one task file per run; a configuration (published defaults, CPO's cost limit) adds a digest to its name
     names = sorted(p.name for p in (tmp_path / "tasks").glob("*.json"))
-    assert len(names) == len(QUICK_METHODS) and all(f"{m}_s0.json" in names for m in QUICK_METHODS if m != "CPO")
-    assert s["methods"]["CPO"]["agent_kw"] == {"cost_limit": pytest.approx(68 / experiment_maze.QUICK["episodes"])}
-    assert data["eval_seeds"] == [0] and data["tuning"] == {} and data["ablation"] == []
-    assert [(p["method"], p["seed"]) for p in data["per_seed"]] == [(m, 0) for m in QUICK_METHODS]
+    assert len(names) == len(QUICK_METHODS) and all(n.startswith(f"{m}_s0_") for n, m in zip(names, sorted(QUICK_METHODS)))
+    assert rep["chosen"]["CPO"] == {**maze.defaults("CPO"), "cost_limit": pytest.approx(68 / 2)}
+    assert set(data["defaults_source"]) == set(QUICK_METHODS) and "Holm" in data["correction"]
+    assert data["eval_seeds"] == [0] and data["ablation"] == []
+    assert [(p["method"], p["seed"]) for p in rep["per_seed"]] == [(m, 0) for m in QUICK_METHODS]
+    assert not {"summary", "tuning", "runs", "per_seed"} & set(data)  # nothing of one replicate at the top level
 
 
-def test_claim_check_reports_both_ways():
-    rows = {m: {"total_contacts_mean": v, "goal_rate_last_mean": g}
-            for m, v, g in (("SAC", 100.0, 0.9), ("SAC-TDM", 20.0, 0.95), ("RRL", 50.0, 0.1))}
-    c = experiment_maze.claim_check(rows)
-    assert c["holds"] and c["ratio_best_other_to_best_tdm"] == pytest.approx(2.5)
-    assert "80% fewer contacts than SAC" in c["statement"] and c["all_learned"]
-    rows["SAC"]["goal_rate_last_mean"] = 0.5
-    c = experiment_maze.claim_check(rows)
-    assert c["learned"] == {"SAC": False, "SAC-TDM": True} and not c["all_learned"] and "SAC reach" in c["statement"]
-    rows["RRL"]["total_contacts_mean"] = 10.0
-    c = experiment_maze.claim_check(rows)
-    assert not c["holds"] and "RRL" in c["statement"]
-    assert c["holds_among_goal_reaching"] is None  # SAC-TDM is the only goal-reaching method: nothing to compare
-    rows["SAC"]["goal_rate_last_mean"] = 0.9
-    c = experiment_maze.claim_check(rows)
+def test_claim_check_counts_the_pairs_and_the_goal_reaching_methods():
+    def rows(totals, goals):
+        return [{"method": m, "seed": i, "total_contacts": t + i, "online_contacts": t + i, "goal_rate_last": goals[m]}
+                for m, t in totals.items() for i in range(5)]
+
+    goals = {"SAC": 0.9, "SAC-TDM": 0.95, "RRL": 0.1}
+    c = claim_check(rows({"SAC": 100.0, "SAC-TDM": 20.0, "RRL": 50.0}, goals), ["SAC", "SAC-TDM", "RRL"])
+    assert c.verdict == "holds" and [x.name for x in c.comparisons] == ["SAC-TDM vs SAC", "SAC-TDM vs RRL"]
+    assert c.comparisons[0].difference == pytest.approx(80.0) and c.reaching == ("SAC", "SAC-TDM")
+    assert c.learned == {"SAC": True, "SAC-TDM": True} and c.verdict_among_reaching == "holds"
+    c = claim_check(rows({"SAC": 100.0, "SAC-TDM": 20.0, "RRL": 10.0}, goals), ["SAC", "SAC-TDM", "RRL"])
     # RRL touches less but never learned the task: among the goal-reaching methods the claim holds
-    assert not c["holds"] and c["holds_among_goal_reaching"] is True and "Among the methods that reach the goal" in c["statement"]
-    rows["SAC"]["total_contacts_mean"] = 15.0
-    assert experiment_maze.claim_check(rows)["holds_among_goal_reaching"] is False
+    assert c.verdict == "does not hold" and c.verdict_among_reaching == "holds" and not c.holds_on_means
+    assert claim_check(rows({"SAC": 1.0}, goals), ["SAC"]) is None
 
 
 def experiment_maze_args(out):
     import argparse
     p = argparse.ArgumentParser()
-    experiment_maze.add_arguments(p)
+    app_maze.add_arguments(p)
     return p.parse_args(["--quick", "--out", str(out), "--workers", "0", "--no-progress", "--methods", ",".join(QUICK_METHODS)])
 
 
@@ -367,7 +370,7 @@ def test_wall_moves_are_the_moves_that_bump_and_a_reset_can_start_anywhere():
                 assert env.cell == (r, c) and env.heading == h and env.t == 0
                 bumps += int(env.step(a)[4]["cost"])
     assert bumps == wall_moves(env.walls) == 68
-    assert experiment_maze.cpo_budget(200) == pytest.approx(68 / 200)
+    assert maze.cpo_budget(200) == pytest.approx(68 / 200)
 
 
 def test_the_tdm_extras_can_each_be_removed():
@@ -405,18 +408,27 @@ def test_claim_is_decided_on_intervals_over_seeds_and_names_the_seeds_that_break
                 + [{"method": "RRL", "seed": i, "total_contacts": t + offline, "online_contacts": t, "goal_rate_last": rrl_goal}
                    for i, t in enumerate(rrl)])
 
-    def rows(ps):
-        return {m: {"goal_rate_last_mean": float(np.mean([p["goal_rate_last"] for p in ps if p["method"] == m])),
-                    "seeds": sum(p["method"] == m for p in ps)} for m in ("SAC-TDM", "RRL")}
-
-    ps = per_seed([60, 62, 64, 66], [100, 110, 105, 95])
-    c = experiment_maze.claim_check(rows(ps), ps)
-    assert c["verdict"] == "holds" and c["pairs"]["SAC-TDM vs RRL"]["ci95"][0] > 0 and c["seeds_beaten"] == []
-    ps = per_seed([60, 62, 64, 66], [40, 150, 45, 160])  # RRL lower on two seeds, higher on two: wide interval
-    c = experiment_maze.claim_check(rows(ps), ps)
-    assert c["verdict"] == "not resolved" and not c["holds"] and c["holds_on_means"]
-    assert [(b["seed"], b["total_contacts"]) for b in c["seeds_beaten"]] == [(0, 40), (2, 45)] and "seed 0: 40" in c["statement"]
+    both = ["SAC-TDM", "RRL"]
+    c = claim_check(per_seed([60, 62, 64, 66], [100, 110, 105, 95]), both)
+    assert c.verdict == "holds" and c.comparisons[0].ci95[0] > 0 and c.seeds_beaten == ()
+    c = claim_check(per_seed([60, 62, 64, 66], [40, 150, 45, 160]), both)  # RRL lower on two seeds, higher on two
+    assert c.verdict == "not resolved" and c.holds_on_means
+    assert [(b["seed"], b["total_contacts"]) for b in c.seeds_beaten] == [(0, 40), (2, 45)]
+    assert "seed 0: 40" in maze_report.claim_statement(asdict(c))
     ps = per_seed([60, 62, 64, 66], [30, 31, 29, 30], offline=900)  # online fewer, but the offline phase counts
-    c = experiment_maze.claim_check(rows(ps), ps)
-    online = experiment_maze.claim_check(rows(ps), ps, key="online_contacts")
-    assert c["verdict"] == "holds" and online["verdict"] == "does not hold" and "does not hold" in online["statement"]
+    assert claim_check(ps, both).verdict == "holds" and claim_check(ps, both, "online_contacts").verdict == "does not hold"
+
+
+def test_never_converged_runs_are_censored_and_compared_by_log_rank():
+    # the first window of 10 episodes with >= 8 goals starts at episode 4 (2 misses, 8 goals); never: 31
+    assert converged_at([0] * 5 + [1] * 20) == 4 and converged_at([0] * 30) == 31
+    runs = [{"method": m, "goals": [0] * k + [1] * (40 - k)} for m, ks in (("AC", (20, 22, 24, 40, 40)), ("AC-TDM", (5, 6, 7, 5, 6)))
+            for k in ks]
+    c = convergence(runs, ["AC", "AC-TDM"])
+    assert c.methods["AC"] == {"converged": 3, "never": 2, "median_episode_converged": 21.0}
+    (x,) = c.comparisons
+    assert x.name == "AC-TDM vs AC" and x.difference > 0 and x.verdict == "holds"  # the -TDM variant converges sooner
+    assert convergence([dict(r, method="AC") for r in runs[:5]] + [dict(r, method="AC-TDM") for r in runs[:5]],
+                       ["AC", "AC-TDM"]).comparisons[0].verdict == "not resolved"
+    reps = ["holds", "not resolved"]
+    assert settle(reps) == Settled("not settled", tuple(reps), False) and settle(reps[:1] * 2).verdict == "holds"

@@ -3,13 +3,13 @@ format (core/runtime/sim_record.py) with the same contact ticks as the result sa
 opens (ticks, taxel forces, the balls as obstacles, "next contact" on the first tick over the threshold) and
 a replay refuses in one line."""
 import json
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
 
 from skinsafe.core.app.experiment_view import record_tracking
-from skinsafe.core.experiments.tracking import TrackingConfig, run_method
+from skinsafe.core.experiments.tracking_runs import RunConfig, run_method
 from skinsafe.core.runtime.recording import Recording
 from skinsafe.core.runtime.replay import ReplayError, replay
 
@@ -20,10 +20,8 @@ pytestmark = pytest.mark.xdist_group("tracking-view")
 @pytest.fixture(scope="module")
 def result(tmp_path_factory):
     """A vanilla tracking result: one 3 s episode on the coarse skin (the experiment's own code)."""
-    cfg = TrackingConfig.quick()
-    cfg.episodes, cfg.duration = 1, 3.0
-    config = json.loads(json.dumps(asdict(cfg)))
-    r = run_method("vanilla", 0, {k: v for k, v in config.items() if k not in ("seeds", "methods")})
+    config = json.loads(json.dumps(asdict(replace(RunConfig.quick(), episodes=1, duration=3.0))))
+    r = run_method("vanilla", 0, config)
     path = tmp_path_factory.mktemp("tracking") / "tracking.json"
     path.write_text(json.dumps({"config": config, "runs": {"vanilla": {"0": r["rows"]}}, "balls": {"0": r["balls"]}}))
     return path, r
