@@ -156,14 +156,17 @@ def apply_pose(scene) -> None:
         obj.matrix_basis = to_matrix(local)
 
 
-def module_mesh(obj, positions, frames, diameter: float) -> None:
-    """Show a module's taxels (body frame) as hexagons of the taxel diameter in `obj`'s frame."""
-    M = np.array(obj.matrix_basis)
-    Minv = np.linalg.inv(M)
+def pad_corners(positions, frames, diameter: float) -> np.ndarray:
+    """(N x 6, 3) corners of the hexagon pads a module object shows for its taxels (in their frame), 0.1 mm above."""
     ang = np.arange(6) * np.pi / 3
     ring = (np.cos(ang)[None, :, None] * frames[:, None, :, 0] + np.sin(ang)[None, :, None] * frames[:, None, :, 1])
-    corners = positions[:, None, :] + 0.5 * diameter * ring + 1e-4 * frames[:, None, :, 2]
-    local = corners.reshape(-1, 3) @ Minv[:3, :3].T + Minv[:3, 3]
+    return (positions[:, None, :] + 0.5 * diameter * ring + 1e-4 * frames[:, None, :, 2]).reshape(-1, 3)
+
+
+def module_mesh(obj, positions, frames, diameter: float) -> None:
+    """Show a module's taxels (body frame) as hexagons of the taxel diameter in `obj`'s frame."""
+    Minv = np.linalg.inv(np.array(obj.matrix_basis))
+    local = pad_corners(positions, frames, diameter) @ Minv[:3, :3].T + Minv[:3, 3]
     old = obj.data
     me = _mesh_from_arrays(old.name, local, polys=np.arange(len(local)).reshape(-1, 6))
     me.attributes.new("retractability", "FLOAT", "FACE")

@@ -170,11 +170,8 @@ def remake(scene, design, mid: int) -> bpy.types.Object:
 def _corners(scene, design, mid: int) -> np.ndarray:
     """World corners of a design module's pads, as its object's mesh has them (`module_mesh`)."""
     p = placed_from_design(design, mid)
-    ang = np.arange(6) * np.pi / 3
-    ring = np.cos(ang)[None, :, None] * p.frames[:, None, :, 0] + np.sin(ang)[None, :, None] * p.frames[:, None, :, 1]
-    local = (p.positions[:, None] + 0.5 * p.module.taxel_diameter * ring + 1e-4 * p.frames[:, None, :, 2]).reshape(-1, 3)
     W = np.array(b2c.body_objects(scene)[p.module.body].matrix_world)
-    return local @ W[:3, :3].T + W[:3, 3]
+    return c2b.pad_corners(p.positions, p.frames, p.module.taxel_diameter) @ W[:3, :3].T + W[:3, 3]
 
 
 def joined(scene) -> list[str]:
@@ -228,9 +225,15 @@ def _outline(scene, obj, design) -> str:
     rec = next(m for m in design.modules if m.id == obj.skinsafe_module.module_id).placement
     if "outline" not in rec:
         return ""
+    pts = np.asarray(rec["outline"], float)
+    for c in [c for c in scene.objects if c.type == "CURVE" and len(c.data.splines) == 1]:  # still there: taken
+        if (got := b2c.outline_of(SimpleNamespace(template="curve", outline=c, mirrored=st.mirrored))).shape == \
+                pts.shape and b2c.close(got.ravel(), pts.ravel(), 1e-7):
+            st.outline = c
+            return ""
     data = bpy.data.curves.new(f"{obj.name} outline", "CURVE")
     sp = data.splines.new("POLY")
-    pts = np.asarray(rec["outline"], float) * ((-1.0 if st.mirrored else 1.0), 1.0)  # the record's is mirrored
+    pts = pts * ((-1.0 if st.mirrored else 1.0), 1.0)  # the record's is mirrored
     sp.points.add(len(pts) - 1)
     for p, (x, y) in zip(sp.points, pts):
         p.co = (x, y, 0.0, 1.0)

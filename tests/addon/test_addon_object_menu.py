@@ -274,6 +274,12 @@ def _joined(before, after):
     assert "split back" in bpy.context.scene.skinsafe.message
 
 
+def _curve_module_joined(before, after):
+    """A curve module split back takes its outline curve again (the one it had, still in the scene)."""
+    _joined(before, after)
+    assert module(3).skinsafe_module.settings.outline is bpy.data.objects["outline"]
+
+
 def _join_into(active):
     """Ctrl+J with a module selected and `active` (a robot link, any mesh) the active object."""
     def edit():
@@ -348,6 +354,8 @@ OPS = [
      lambda: _on_module(0, bpy.ops.object.parent_clear, type="CLEAR_KEEP_TRANSFORM"), None),
     ("Ctrl+J two modules", _join, _joined),
     ("Ctrl+J a module into a robot link", _join_into(lambda: obj("forearm_link")), _joined),
+    ("Ctrl+J a curve module into another module", lambda: (select(module(2), module(3)), bpy.ops.object.join())[1],
+     _curve_module_joined),
     ("Ctrl+J a module into another mesh", _join_into(_plane), _joined_into_plane),
     ("Ctrl+J a curve module's outline into another curve", _outline_join(False), _outline_kept),
     ("Ctrl+J another curve into a curve module's outline", _outline_join(True), _outline_kept),
