@@ -138,6 +138,27 @@ def tactile_state(t: float, names: list[str], values: list[np.ndarray]) -> bytes
     return c.bytes()
 
 
+class TactileEncoder:
+    """`tactile_state` for fixed sensors, laid out once: sensor j holds `sizes[j]` values, taxel i's value goes to
+    sensor `sensor[i]` at `index[i]`, the rest NaN; a message writes the forces in place (one scatter)."""
+
+    def __init__(self, names: list[str], sizes: list[int], sensor: np.ndarray, index: np.ndarray):
+        c = Cdr().header(0.0).pack("I", len(names))
+        starts = []
+        for name, size in zip(names, sizes):
+            c.string(name).pack("I", size)
+            starts.append(len(c.buf) // 4)  # float32 slots: 4-aligned after the header, so whole words
+            c.buf += np.full(size, np.nan, "<f4").tobytes()
+        self.template = bytes(c.buf)
+        self.slots = np.asarray(starts, np.intp)[np.asarray(sensor, np.intp)] + np.asarray(index, np.intp)
+
+    def __call__(self, t: float, force: np.ndarray) -> bytes:
+        buf = bytearray(self.template)
+        struct.pack_into("<iI", buf, 4, *_sec_ns(t))
+        np.frombuffer(buf, "<f4")[self.slots] = force
+        return bytes(buf)
+
+
 def layer_state(t: float, potential: float, speed_factor: float, retracting: bool, pool_taxels: np.ndarray,
                 flags: tuple[str, ...], stop: str) -> bytes:
     """skinsafe_msgs/msg/LayerState (`LAYER_STATE`)."""

@@ -5,7 +5,7 @@ layers' state and their faults, each tick turned into ROS 2 messages (core/runti
 | --- | --- | --- | --- |
 | `/robot_description` | std_msgs/String | once (transient local) | the URDF with a link `taxel_<id>` per taxel |
 | `/tf_static` | tf2_msgs/TFMessage | once (transient local) | each `taxel_<id>` on its link (z: outward normal) |
-| `/tf` | tf2_msgs/TFMessage | every tick | each link on its parent link; the root links on `world` |
+| `/tf` | tf2_msgs/TFMessage | `rate_hz` | each link on its parent link; the root links on `world` |
 | `/skinsafe/tactile` | tactile_msgs/TactileState | every new reading | one sensor per board (its name), values by channel (N; NaN: no taxel) |
 | `/skinsafe/skin` | sensor_msgs/PointCloud2 | `rate_hz` | `world`: x, y, z, force (N) of every taxel |
 | `/skinsafe/contacts` | sensor_msgs/PointCloud2 | `rate_hz` | `world`: x, y, z, force, priority (0 first) of the taxels the layers retract from |
@@ -64,11 +64,16 @@ class Ros2Topics:
         self.local = np.asarray(t.positions, float)
         self.taxel_parents = [names[b] for b in self.body]
         self.taxel_quat = Rotation.from_matrix(t.frames).as_quat() if len(t) else np.zeros((0, 4))
-        self.boards = []  # (name, taxel rows, their channels, the board's vector length)
-        for b in design.boards:
-            rows = np.flatnonzero(t.board == b.id)
-            if len(rows):
-                self.boards.append((b.name, rows, np.asarray(t.channel[rows]), int(t.channel[rows].max()) + 1))
+        order = np.argsort(self.body, kind="stable")  # taxels by body: one product per body's slice
+        self.inverse = None if (order == np.arange(len(order))).all() else np.argsort(order)
+        self.local_by_body = self.local[order]
+        bounds = np.flatnonzero(np.diff(self.body[order])) + 1
+        self.groups = [(int(self.body[order[a]]), slice(a, b))
+                       for a, b in zip([0, *bounds], [*bounds, len(order)]) if b > a]
+        boards = sorted((b for b in design.boards if (t.board == b.id).any()), key=lambda b: b.id)
+        self.board_names = [b.name for b in boards]  # /skinsafe/tactile's sensors, one per board by channel
+        self.tactile = msgs.TactileEncoder(self.board_names, [int(t.channel[t.board == b.id].max()) + 1 for b in boards],
+                                           np.searchsorted([b.id for b in boards], t.board), t.channel)
         self.due, self.flags, self.stopped = -np.inf, (), False
 
     def static(self, t: float = 0.0) -> list[tuple[str, bytes]]:
@@ -89,28 +94,21 @@ class Ros2Topics:
 
     def taxel_positions(self) -> np.ndarray:
         """The taxels' world positions (N, 3) at the q of the last `links`."""
-        d = self.data
-        return d.xpos[self.body] + np.einsum("nij,nj->ni", d.xmat[self.body].reshape(-1, 3, 3), self.local)
-
-    def tactile(self, force: np.ndarray) -> list[np.ndarray]:
-        """Each board's vector (by channel) of `force` (N, design order); NaN where no taxel is wired."""
-        out = []
-        for _, rows, channels, size in self.boards:
-            v = np.full(size, np.nan, np.float32)
-            v[channels] = force[rows]
-            out.append(v)
-        return out
+        d, out = self.data, np.empty((len(self.body), 3))
+        for b, rows in self.groups:
+            np.matmul(self.local_by_body[rows], d.xmat[b].reshape(3, 3).T, out=out[rows])
+            out[rows] += d.xpos[b]
+        return out if self.inverse is None else out[self.inverse]
 
     def tick(self, k: Tick, every: bool = False) -> list[tuple[str, bytes]]:
         """Tick k's messages (module docstring)."""
-        t = k.t
-        xyz, quat = self.links(k.q)
-        out = [("/tf", self.tf(t, xyz, quat))]
+        t, out = k.t, []
         if k.force is not None and (k.force_new or every):
-            out.append(("/skinsafe/tactile", msgs.tactile_state(t, [b[0] for b in self.boards], self.tactile(k.force))))
+            out.append(("/skinsafe/tactile", self.tactile(t, k.force)))
         pool = np.zeros(0, np.int64) if k.pool_taxels is None else np.asarray(k.pool_taxels, np.int64)
         if every or t >= self.due:
             self.due = t + self.period
+            out.append(("/tf", self.tf(t, *self.links(k.q))))
             pos = self.taxel_positions()
             force = np.zeros(len(pos)) if k.force is None else np.nan_to_num(k.force)
             skin = np.empty((len(pos), 4), np.float32)
