@@ -7,6 +7,7 @@ A figure sits between two HTML comments, which Markdown does not show:
     <!-- fig:table FILE COLUMN[:FORMAT],... [where=KEY=VALUE,...] -->   a table of a file's rows
     | ... |
     <!-- /fig -->
+    <!-- fig:const MODULE NAME.ATTR[:FORMAT] -->0.05<!-- /fig -->        a constant or default of the code
     <!-- fig:NAME -->...<!-- /fig -->                                   a composite figure (FIGURES below)
 
 Arguments are split as a shell would (quote a path with spaces: `"runs.no modulation.peak"`).
@@ -68,6 +69,25 @@ def lookup(data, path: str):
     for op in ops:
         data = data * float(op[1:]) if op[0] == "*" else data / float(op[1:])
     return data
+
+
+def constant(module: str, path: str):
+    """The value at NAME.ATTR... in a module of the code (a constant, a dataclass's default, a dict's entry), scaled
+    as `lookup` scales: the docs quote the code's own settings, never a copy of them."""
+    import importlib
+
+    path, *ops = re.split(r"(?=[*/][0-9.])", path)
+    try:
+        data = importlib.import_module(module)
+    except ImportError as e:
+        raise FigureError(f"no module '{module}' ({e})") from None
+    for key in path.split("."):
+        try:
+            data = data[int(key) if isinstance(data, list) else key] if isinstance(data, (dict, list)) else \
+                getattr(data, key)
+        except (KeyError, IndexError, ValueError, AttributeError):
+            raise FigureError(f"no '{key}' in '{module}.{path}'") from None
+    return lookup({"v": data}, "v" + "".join(ops))
 
 
 def fmt(v, spec: str = "") -> str:
@@ -136,6 +156,11 @@ def render(kind: str, args: list[str], root: Path) -> str:
             raise FigureError("use <!-- fig:value FILE KEY.PATH[:FORMAT] -->")
         path, _, spec = args[1].partition(":")
         return fmt(lookup(load(root, args[0]), path), spec)
+    if kind == "const":
+        if len(args) != 2:
+            raise FigureError("use <!-- fig:const MODULE NAME.ATTR[:FORMAT] -->")
+        path, _, spec = args[1].partition(":")
+        return fmt(constant(args[0], path), spec)
     if kind == "table":
         if len(args) not in (2, 3) or (len(args) == 3 and not args[2].startswith("where=")):
             raise FigureError("use <!-- fig:table FILE COLUMN[:FORMAT],... [where=KEY=VALUE,...] -->")
@@ -147,7 +172,7 @@ def render(kind: str, args: list[str], root: Path) -> str:
         if args:
             raise FigureError(f"fig:{kind} takes no arguments")
         return "\n" + FIGURES[kind](root) + "\n"
-    raise FigureError(f"unknown figure 'fig:{kind}'; use value, table or one of {sorted(FIGURES)}")
+    raise FigureError(f"unknown figure 'fig:{kind}'; use value, table, const or one of {sorted(FIGURES)}")
 
 
 def fill(text: str, root: Path = REPO) -> tuple[str, list[str]]:
@@ -545,11 +570,19 @@ def iso_limits(root: Path) -> str:
     return "\n".join(lines)
 
 
+def exit_codes(root: Path) -> str:
+    """`skinsafe run`'s exit codes as the command states them (core/app/run.py `EXIT_CODES`)."""
+    from skinsafe.core.app.run import EXIT_CODES
+
+    return "\n".join(["| code | meaning |", "| ---: | --- |"] + [f"| {k} | {v} |" for k, v in EXIT_CODES.items()])
+
+
 FIGURES = {"maze-grid": maze_grid, "maze-defaults": maze_defaults, "tracking-labels": tracking_labels,
            "tracking-claims": tracking_claims, "tracking-nstep": tracking_nstep, "safety-audit": safety_audit, "paper-results": paper_results,
            "collaboration": collaboration, "collaboration-sweep": collaboration_sweep, "sample-skins": sample_skins,
            "import-contracts": import_contracts, "hardware-constants": hardware_constants,
-           "fault-table": fault_table, "iso-limits": iso_limits}
+           "fault-table": fault_table, "iso-limits": iso_limits,
+           "exit-codes": exit_codes}
 
 
 def _nav_files(nav) -> list[str]:

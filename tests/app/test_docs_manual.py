@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from skinsafe.core.app.readme import FENCE, MARKER, pages
+from skinsafe.core.app.readme import FENCE, MARKER, FigureError, fill, pages
 
 ROOT = Path(__file__).resolve().parents[2]
 PAGES = {p.relative_to(ROOT).as_posix(): p.read_text() for p in pages(ROOT)}
@@ -74,7 +74,7 @@ HAND_WRITTEN = {
     "README.md": 5, "docs/benchmarks.md": 627, "docs/contributing.md": 9, "docs/deploy/index.md": 18,
     "docs/design/addon.md": 13, "docs/design/blender.md": 34, "docs/design/buildable.md": 29, "docs/design/cli.md": 31,
     "docs/design/fabrication.md": 31, "docs/design/jacobians.md": 2, "docs/design/robots.md": 51,
-    "docs/reference/formats.md": 2, "docs/run/fr3.md": 77, "docs/run/index.md": 140, "docs/run/live.md": 42,
+    "docs/reference/formats.md": 2, "docs/run/fr3.md": 77, "docs/run/index.md": 121, "docs/run/live.md": 42,
     "docs/run/ros2.md": 15, "docs/run/safety.md": 152, "docs/simulate/defensiveness.md": 105,
     "docs/simulate/index.md": 6, "docs/simulate/pfl.md": 228, "docs/simulate/trade.md": 18,
 }
@@ -96,6 +96,20 @@ def test_numbers_from_results_and_constants_pass_and_hand_written_ones_are_found
     assert hand_written(text) == []
     found = hand_written("The sensing kernel costs 0.253 of the step, 189x faster, on 2,149 taxels.")
     assert [f.split(":")[0] for f in found] == ["0.253", "189", "2,149"]
+
+
+def test_a_setting_is_quoted_from_the_code_itself():
+    from skinsafe.core.runtime.run_config import LINK_LATENCY_FREE, RunConfig
+
+    text = ("<!-- fig:const skinsafe.core.runtime.run_config RunConfig.max_excluded:.0% -->x<!-- /fig --> "
+            "<!-- fig:const skinsafe.core.runtime.run_config LINK_LATENCY_FREE*1000:g -->x<!-- /fig -->")
+    new, changed = fill(text)
+    assert len(changed) == 2 and f"-->{RunConfig.max_excluded:.0%}<!--" in new and \
+        f"-->{LINK_LATENCY_FREE * 1000:g}<!--" in new and hand_written(new) == []
+    with pytest.raises(FigureError, match="no 'nope' in 'skinsafe.core.runtime.run_config.RunConfig.nope'"):
+        fill("<!-- fig:const skinsafe.core.runtime.run_config RunConfig.nope -->1<!-- /fig -->")
+    with pytest.raises(FigureError, match="no module 'skinsafe.nowhere'"):
+        fill("<!-- fig:const skinsafe.nowhere X -->1<!-- /fig -->")
 
 
 @pytest.mark.parametrize("page", sorted(set(PAGES) - LEARNING_PAGES - {"docs/changelog.md"}))
