@@ -169,9 +169,9 @@ def render(kind: str, args: list[str], root: Path) -> str:
             rows = _where(rows, args[2][len("where="):])
         return "\n" + table(rows, _columns(args[1])) + "\n"
     if kind in FIGURES:
-        if args:
-            raise FigureError(f"fig:{kind} takes no arguments")
-        return "\n" + FIGURES[kind](root) + "\n"
+        if len(args) > (1 if kind in GRIDS else 0):
+            raise FigureError(f"fig:{kind} takes " + ("at most a results file" if kind in GRIDS else "no arguments"))
+        return "\n" + FIGURES[kind](root, *args) + "\n"
     raise FigureError(f"unknown figure 'fig:{kind}'; use value, table, const or one of {sorted(FIGURES)}")
 
 
@@ -217,11 +217,16 @@ def _chosen(rep: dict, method: str) -> str:
     return f"trial {t['chosen_index']} of {t['trials']}: {conf}"
 
 
-def maze_grid(root: Path) -> str:
-    """The maze grid, one table per replicate (its tuning seeds, its verdicts): per method total contacts on
-    the held-out seeds (mean and 95% interval as computed, online / offline, per seed), goal rates, the
-    configuration its tuning chose."""
-    data = load(root, "results/maze/maze_results.json")
+MAZE, TRACKING = "results/maze/maze_results.json", "results/tracking/tracking.json"
+
+
+def maze_grid(root: Path, file: str = MAZE) -> str:
+    """The maze grid (`file`: the full grid's, or a reduced run's), one table per replicate (its tuning seeds, its
+    verdicts): per method total contacts on the held-out seeds (mean and 95% interval as computed, online /
+    offline, per seed), goal rates, the configuration its tuning chose."""
+    from skinsafe.core.experiments.verdicts import phrase
+
+    data = load(root, file)
     seeds = data["eval_seeds"]
     out = []
     for k, rep in enumerate(data["replicates"]):
@@ -230,7 +235,7 @@ def maze_grid(root: Path) -> str:
         verdict = sm["claim"]["verdict"] if sm["claim"] else "—"
         online = f"; online contacts only: {sm['claim_online']['verdict']}" if sm["claim_online"] else ""
         out += [f"**Replicate {k + 1}** (tuning seeds {', '.join(map(str, rep['tuning_seeds'])) or 'none'}): the claim "
-                f"{verdict}{online}.", "",
+                f"{phrase(verdict)}{online}.", "",
                 f"| method | total contacts, mean [95% CI] over seeds {seeds[0]}-{seeds[-1]} | online / offline | per seed (total) "
                 "| goal rate, last 20 episodes (seeds >= 0.8) | configuration |", "| --- | ---: | ---: | --- | --- | --- |"]
         for m, v in sm["methods"].items():
@@ -279,13 +284,13 @@ def safety_audit(root: Path) -> str:
     return "\n".join(lines)
 
 
-def tracking_labels(root: Path) -> str:
+def tracking_labels(root: Path, file: str = TRACKING) -> str:
     """Fig. 11 per label set (the headline first) and replicate: contact ticks over episodes 6-10 (mean and 95%
     interval over seeds, per seed), onsets, the potential's alignment and tracking error."""
-    track = load(root, "results/tracking/tracking.json")
-    lines = ["| labels | replicate (seeds) | method | episode 1 | episodes 6-10, mean [95% CI] | per seed (episodes 6-10) | "
+    track = load(root, file)
+    lines = ["| labels | replicate (seeds) | method | contact ticks, episodes 6-10, mean [95% CI] | per seed | "
              "onsets, episodes 6-10 [95% CI] | cos(n, -grad d) before the balls | tracking error mm |",
-             "| --- | --- | --- | ---: | ---: | --- | ---: | ---: | ---: |"]
+             "| --- | --- | --- | ---: | --- | ---: | ---: | ---: |"]
     for labels, res in track["labels"].items():
         for k, rep in enumerate(res["replicates"]):
             per = {(r["method"], r["seed"]): r for r in rep["per_seed"]}
@@ -293,19 +298,19 @@ def tracking_labels(root: Path) -> str:
                 seeds = " / ".join(f"{per[(r['method'], sd)]['contacts_ep6_10']:.1f}" for sd in rep["seeds"] if (r["method"], sd) in per)
                 align = "—" if r["alignment_cos_ep6_10"] is None else f"{r['alignment_cos_ep6_10']:+.2f}"
                 lines.append(f"| {labels} ({res['role']}) | {k + 1} ({rep['seeds'][0]}-{rep['seeds'][-1]}) | {r['method']} | "
-                             f"{r['contacts_first']:.1f} | {r['contacts_ep6_10']:.1f} [{r['contacts_ep6_10_ci95_low']:.1f}, "
+                             f"{r['contacts_ep6_10']:.1f} [{r['contacts_ep6_10_ci95_low']:.1f}, "
                              f"{r['contacts_ep6_10_ci95_high']:.1f}] | {seeds} | {r['onsets_ep6_10']:.1f} "
                              f"[{r['onsets_ep6_10_ci95_low']:.1f}, {r['onsets_ep6_10_ci95_high']:.1f}] | {align} | "
                              f"{r['tracking_error_mm']:.0f} |")
     return "\n".join(lines)
 
 
-def tracking_claims(root: Path) -> str:
+def tracking_claims(root: Path, file: str = TRACKING) -> str:
     """Per label set what its labels use and its verdict, settled across its replicates, in contact ticks
     (Fig. 11e's count) and in onsets; per replicate each comparison with its Holm-adjusted p-value."""
     from skinsafe.core.experiments.tracking_report import claim_statement, label_set_statement
 
-    track = load(root, "results/tracking/tracking.json")
+    track = load(root, file)
     out = []
     for name, res in track["labels"].items():
         out += [f"- **{name}** ({res['uses']}): {label_set_statement(res)}"]
@@ -424,7 +429,7 @@ def _fig7(poke: dict) -> str:
 def paper_results(root: Path) -> str:
     """The paper's claims against ours, each figure from its results file."""
     poke = load(root, "results/poke/poke_results.json")
-    maze, track = (_grid(root, f"results/{name}") for name in ("maze/maze_results.json", "tracking/tracking.json"))
+    maze, track = _grid(root, MAZE), _grid(root, TRACKING)
     desk = load(root, "results/desk/desk.json")
     collab = load(root, COLLAB)
     fs, alpha = poke["force_sweep"], poke["params"]["alpha"]
@@ -570,6 +575,7 @@ def iso_limits(root: Path) -> str:
     return "\n".join(lines)
 
 
+GRIDS = {"maze-grid", "tracking-labels", "tracking-claims"}  # figures that take a results file (default: the full grid's)
 def exit_codes(root: Path) -> str:
     """`skinsafe run`'s exit codes as the command states them (core/app/run.py `EXIT_CODES`)."""
     from skinsafe.core.app.run import EXIT_CODES

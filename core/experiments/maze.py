@@ -182,10 +182,9 @@ class MazeConfig:
         span = self.tuning_seeds[-1] - self.tuning_seeds[0] + 1
         return [s + r * span for s in self.tuning_seeds]
 
-    def conditions(self, episodes: int | None = None) -> dict:
-        """What a run is trained under: episodes, max steps and CPO's cost limit per episode."""
-        n = episodes or self.episodes
-        return {"episodes": n, "max_steps": self.max_steps, "cost_limit": cpo_budget(n)}
+    def conditions(self) -> dict:
+        """What every tuning and evaluation run is trained under: episodes, max steps, CPO's cost limit per episode."""
+        return {"episodes": self.episodes, "max_steps": self.max_steps, "cost_limit": cpo_budget(self.episodes)}
 
 
 DEMO = MazeConfig(episodes=60, eval_seeds=(0, 1), replicates=1, tune=False)

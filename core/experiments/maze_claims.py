@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from skinsafe.core.experiments.stats import diff_ci, logrank_p, mean_ci, welch_p
-from skinsafe.core.experiments.verdicts import FAILS, HOLDS, OPEN, Comparison, Test, decide, overall
+from skinsafe.core.experiments.verdicts import Comparison, Test, decide, overall
 
 LAST = 20  # episodes over which the final goal rate is measured
 LEARNED_AT = 0.8  # a method "reaches the goal" when its mean goal rate over the last LAST episodes is at least this
@@ -101,5 +101,3 @@ def convergence(runs: list[dict], methods: list[str]) -> Convergence:
         tests.append(Test(f"{t} vs {t[:-4]}", z, (z - 1.96, z + 1.96), p))
     return Convergence(WINDOW, episodes, rows, decide(tests))
 
-
-VERDICT_WORDS = {HOLDS: "faster", FAILS: "slower", OPEN: "not resolved"}

@@ -10,7 +10,7 @@ import numpy as np
 
 from skinsafe.core.experiments.maze import METHODS
 from skinsafe.core.experiments.maze_claims import LAST, LEARNED_AT
-from skinsafe.core.experiments.verdicts import FAILS, HOLDS, OPEN
+from skinsafe.core.experiments.verdicts import FAILS, HOLDS, OPEN, phrase
 
 FASTER = {HOLDS: "faster", FAILS: "slower", OPEN: "not resolved"}
 
@@ -31,12 +31,12 @@ def claim_statement(c: dict) -> str:
     s = (f"{what.capitalize()}, mean [95% interval] over {c['seeds']} seed{'s' if c['seeds'] > 1 else ''}: "
          + ", ".join(f"{m} {c['means'][m]:.1f} [{c['ci95'][m][0]:.1f}, {c['ci95'][m][1]:.1f}]" for m in order) + ". ")
     off = [x for x in c["comparisons"] if x["verdict"] != HOLDS]
-    s += (f"The paper's claim {'is ' if c['verdict'] == OPEN else ''}{c['verdict']} (every -TDM variant below every other "
+    s += (f"The paper's claim {phrase(c['verdict'])} (every -TDM variant below every other "
           "method, Holm-corrected Welch tests)" + (": " + "; ".join(_cmp(x) for x in off) if off else "") + ". "
           f"On the means alone it {'holds' if c['holds_on_means'] else 'does not hold'}.")
     if c["verdict_among_reaching"] is not None:
         s += (f" Among the methods that reach the goal in >= {LEARNED_AT:.0%} of the last {LAST} episodes "
-              f"({', '.join(c['reaching'])}) it {'is ' if c['verdict_among_reaching'] == OPEN else ''}{c['verdict_among_reaching']}.")
+              f"({', '.join(c['reaching'])}) it {phrase(c['verdict_among_reaching'])}.")
     if c["seeds_beaten"]:
         b = c["seeds_beaten"]
         s += (f" Per seed the ordering breaks {len(b)} time{'s' if len(b) > 1 else ''}: a goal-reaching run of another "

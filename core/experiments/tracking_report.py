@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from skinsafe.core.experiments.tracking import COUNTS
+from skinsafe.core.experiments.verdicts import phrase
 from skinsafe.core.skin.files import write_png
 
 NAMES = {"vanilla": "vanilla", "tdm": "TDM", "tdm2": "2-step TDM"}
@@ -29,18 +30,17 @@ def claim_statement(c: dict) -> str:
     return (f"Episodes 6-10, mean {what} per episode over {n} seed{'s' if n > 1 else ''}: "
             + ", ".join(f"{NAMES[m]} {v:.1f}" for m, v in c["means"].items())
             + f"; 2-step / vanilla {c['tdm2_over_vanilla']:.1%} [{c['tdm2_over_vanilla_ci95'][0]:.1%}, "
-            f"{c['tdm2_over_vanilla_ci95'][1]:.1%}]. {parts}. The paper's claim {'is ' if c['verdict'] == 'not resolved' else ''}"
-            f"{c['verdict']} here.")
+            f"{c['tdm2_over_vanilla_ci95'][1]:.1%}]. {parts}. The paper's claim {phrase(c['verdict'])} here.")
 
 
 def label_set_statement(rec: dict) -> str:
     """A label set's verdict settled across its replicates, each replicate's beside, ticks then onsets."""
-    def line(key: str, settled: dict) -> str:
+    def line(settled: dict) -> str:
         reps = "; ".join(f"{_seeds(r['seeds'])}: {v}" for r, v in zip(rec["replicates"], settled["replicate_verdicts"]))
         n = len(rec["replicates"])
         return (f"{settled['verdict']} ({reps}" + (f"; {'they agree' if settled['agrees'] else 'they differ'})" if n > 1 else ")"))
-    return (f"Counted in contact ticks (Fig. 11e's count): {line('claim', rec['settled'])}. "
-            f"Counted in contact onsets: {line('claim_onsets', rec['settled_onsets'])}.")
+    return (f"Counted in contact ticks (Fig. 11e's count): {line(rec['settled'])}. "
+            f"Counted in contact onsets: {line(rec['settled_onsets'])}.")
 
 
 def markdown_table(rows: list[dict], title: str = "") -> str:

@@ -5,7 +5,8 @@ and two-sided p-value). `decide` corrects the family's p-values by Holm's step-d
 gives each comparison its verdict: `HOLDS` where the adjusted p is below `ALPHA` on the claimed side,
 `FAILS` where it is below on the other side, else `OPEN`; the claim holds when every comparison does and
 does not hold when any comparison fails. `settle` is the one rule for replicates: a verdict is stated only
-where every replicate gives it, else `NOT_SETTLED`.
+where every replicate gives it, else `NOT_SETTLED`. `phrase` is a verdict's words after "the claim" (the
+reports' sentences).
 """
 from __future__ import annotations
 
@@ -72,3 +73,8 @@ def settle(verdicts) -> Settled:
         raise ValueError("settle needs at least one replicate's verdict")
     agrees = len(set(v)) == 1
     return Settled(v[0] if agrees else NOT_SETTLED, v, agrees)
+
+
+def phrase(verdict: str) -> str:
+    """"holds", "does not hold", "is not resolved", "is not settled"."""
+    return verdict if verdict in (HOLDS, FAILS) else f"is {verdict}"

@@ -58,8 +58,8 @@ def _maze(seeds: int, methods=("SAC", "SAC-TDM"), episodes=12) -> dict:
     rng = np.random.default_rng(seeds)
     runs = [{"method": m, "seed": s, "returns": rng.uniform(0, 100, episodes).tolist(),
              "costs": rng.integers(0, 40, episodes).tolist()} for m in methods for s in range(seeds)]
-    return {"summary": {"methods": {m: {} for m in methods}, "config": {"seeds": seeds, "episodes": episodes,
-                                                                          "max_steps": 20}}, "runs": runs}
+    return {"replicates": [{"summary": {"methods": {m: {} for m in methods}}, "runs": runs}], "eval_seeds": list(range(seeds)),
+            "evaluation_conditions": {"episodes": episodes, "max_steps": 20}}
 
 
 def test_maze_plot_draws_seeds_as_lines_below_three_and_bands_within_their_range(tmp_path):
@@ -76,7 +76,7 @@ def test_maze_plot_draws_seeds_as_lines_below_three_and_bands_within_their_range
     for ax, key in ((fig.axes[0], "returns"), (fig.axes[1], "costs")):
         for band in ax.collections:  # every band inside what the seeds span (contacts never below 0)
             lo = band.get_paths()[0].vertices[:, 1].min()
-            assert lo >= min(min(r[key]) for r in five["runs"]) - 1e-9 and lo >= 0
+            assert lo >= min(min(r[key]) for r in five["replicates"][0]["runs"]) - 1e-9 and lo >= 0
     assert rf.save(fig, tmp_path / "m.png").stat().st_size > 10_000
 
 
@@ -84,7 +84,7 @@ def test_results_plots_are_labelled_with_units():
     from skinsafe.core.app import report_figures as rf
 
     root = ROOT / "results"
-    tracking = json.loads((root / "tracking" / "tracking.json").read_text())
+    tracking = json.loads((root / "tracking" / "reduced" / "tracking.json").read_text())
     poke = json.loads((root / "poke" / "poke_results.json").read_text())
     for fig in (rf.tracking_contacts(tracking), rf.tracking_paths(tracking), rf.poke_force(poke),
                 rf.poke_multicontact(poke), rf.desk(json.loads((root / "desk" / "desk.json").read_text())),
@@ -97,8 +97,9 @@ def test_results_plots_are_labelled_with_units():
 def test_tables_show_what_was_run_and_say_why_a_value_is_missing():
     from skinsafe.core.app.demo import safety_row, tracking_rows
 
-    run = json.loads((ROOT / "results" / "tracking" / "tracking.json").read_text())
-    assert "contacts_ep6_10" in tracking_rows(run)[0]  # the full run: 10 episodes
+    run = json.loads((ROOT / "results" / "tracking" / "reduced" / "tracking.json").read_text())
+    run["config"]["episodes"] = 10
+    assert "contacts_ep6_10" in tracking_rows(run)[0]  # a run of 10 episodes
     run["config"]["episodes"] = 3
     row = tracking_rows(run)[0]
     assert not any("ep6_10" in k for k in row) and "contacts_last (episode 3)" in row
