@@ -60,11 +60,12 @@ def test_a_page_describes_the_current_state(page):
 # Numbers that are names or constants, never results: a reference into the paper or a standard (Fig. 12, eq. 10-13,
 # Table A.3, section III-C, ISO 10218, ISO/TS 15066, IEC 60204-1), a protocol version (hardware/PROTOCOL.md), an
 # exit code (`skinsafe run`'s, core/app/run.py), a software version (pinned in pyproject.toml and the Makefile), an
-# array's shape ((N, 3)).
+# array's shape ((N, 3)), a cited paper's year (Flacco et al. 2012), a dimension (3-D, 6-D).
 CONSTANT = re.compile(r"(?:\bFigs?\.|\bFigures?|\b[Ee]qs?\.|\bequations?|\bTables?|\b[Ss]ections?|\bISO(?:/TS)?|\bIEC|"
                       r"\bprotocol version|\bexits?(?: codes?)?|"
                       r"\b(?:Python|Blender|bpy|PyTorch|MuJoCo|KiCad|franky-sim|numpy|libfranka|Chromium|ROS)(?: version)?)"
-                      r"\s*[A-Z]?\d[\d.]*[a-z]?(?:\s*(?:,|-|–|and|or|to|/)\s*[A-Z]?\d[\d.]*[a-z]?)*|\(N(?:, \d+)+\)")
+                      r"\s*[A-Z]?\d[\d.]*[a-z]?(?:\s*(?:,|-|–|and|or|to|/)\s*[A-Z]?\d[\d.]*[a-z]?)*|\(N(?:, \d+)+\)|"
+                      r"\b[A-Z][a-z]+(?: et al\.)? (?:19|20)\d\d\b|\b\d-D\b")
 NUMBER = re.compile(r"(?<![\w.])(?<![A-Za-z]-)\d[\d,]*(?:\.\d+)?")
 
 # Pages that still hold numbers written by hand (measurements pasted from a run, settings restated in words): the
@@ -91,7 +92,8 @@ def hand_written(text: str) -> list[str]:
 
 def test_numbers_from_results_and_constants_pass_and_hand_written_ones_are_found():
     text = ("Took <!-- fig:value results/r.json wall_s:mins -->3 min 39 s<!-- /fig --> (Fig. 7, 8 and 12; eq. 10-13; "
-            "ISO/TS 15066; exit 1; Python 3.11; `--period 0.002`; (N, 3) array).\n\n1. a step\n\n"
+            "ISO/TS 15066; exit 1; Python 3.11; `--period 0.002`; (N, 3) array; Flacco et al. 2012; the 3-D form)."
+            "\n\n1. a step\n\n"
             "```bash\nskinsafe run --seconds 3\n```\n")
     assert hand_written(text) == []
     found = hand_written("The sensing kernel costs 0.253 of the step, 189x faster, on 2,149 taxels.")
