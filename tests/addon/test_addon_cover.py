@@ -41,7 +41,7 @@ def test_cover_link_fills_around_a_placed_module(scene):
     design = b2c.design_of(scene)
     # the hand-placed module is kept as it was, numbered first; every new module has its object and a new id
     np.testing.assert_array_equal(design.taxels.positions[design.taxels.module == 0], first.taxels.positions)
-    assert design.retired_modules == (1,) and sorted(m.id for m in design.modules)[:2] == [0, 2]
+    assert sorted(m.id for m in design.modules)[:2] == [0, 2] and design.retired_modules == (1,)
     objects = b2c.module_objects(scene)
     assert sorted(o.skinsafe_module.module_id for o in objects) == sorted(m.id for m in design.modules)
     assert {o.name for o in objects} == {m.name for m in design.modules}
