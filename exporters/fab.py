@@ -191,7 +191,8 @@ def rect_union(rects: np.ndarray) -> list[np.ndarray]:
             p = q
         pts = np.array(path)
         prev, after = np.roll(pts, 1, 0), np.roll(pts, -1, 0)
-        turn = np.cross(pts - prev, after - pts) != 0
+        (ax, ay), (bx, by) = (pts - prev).T, (after - pts).T
+        turn = ax * by - ay * bx != 0  # a corner: the 2-D cross product (numpy 2 dropped 2-D np.cross)
         pts = pts[turn]
         loops.append(np.stack([xs[pts[:, 0]], ys[pts[:, 1]]], axis=1))
     return loops
