@@ -73,7 +73,7 @@ def picture(folder: Path, path: Path, vmax: float = VMAX_N) -> Path:
             ax.plot(*np.stack([a, b]).T, color="0.55", lw=2)
         order = np.argsort(np.nan_to_num(pts[:, 3]))  # the pressed taxels drawn last, larger
         p = pts[order]
-        sc = ax.scatter(*p[:, :3].T, c=p[:, 3], cmap="turbo", s=5 + 40 * np.clip(p[:, 3] / vmax, 0, 1), vmin=0,
+        sc = ax.scatter(*p[:, :3].T, c=p[:, 3], cmap="turbo", s=2 + 120 * np.clip(p[:, 3] / vmax, 0, 1), vmin=0,
                         vmax=vmax, depthshade=False)
         ax.scatter(*hit[:, :3].T, s=60, facecolors="none", edgecolors="red", linewidths=1.2)
         ax.view_init(elev, azim)
