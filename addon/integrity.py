@@ -86,15 +86,15 @@ def links(scene) -> tuple[list[str], set[str]]:
     d = mujoco.MjData(m)
     d.qpos[:] = b2c.pose(scene)
     mujoco.mj_kinematics(m, d)
+    R, par = d.xmat.reshape(-1, 3, 3), m.body_parentid
+    local = np.zeros((m.nbody, 4, 4))  # each body in its parent's frame (the root's parent is itself: identity)
+    local[:, :3, :3] = np.einsum("nji,njk->nik", R[par], R)  # rigid inverses by transposes: no LAPACK call per
+    local[:, :3, 3] = np.einsum("nji,nj->ni", R[par], d.xpos - d.xpos[par])  # link (its threads stall under load)
+    local[:, 3, 3] = 1.0
     moved = []
     for b, o in objs.items():
-        parent = objs.get(int(m.body_parentid[b])) if b else None
-        W = np.eye(4)
-        W[:3, :3], W[:3, 3] = d.xmat[b].reshape(3, 3), d.xpos[b]
-        if b:
-            P = np.eye(4)
-            P[:3, :3], P[:3, 3] = d.xmat[m.body_parentid[b]].reshape(3, 3), d.xpos[m.body_parentid[b]]
-            W = np.linalg.solve(P, W)
+        parent = objs.get(int(par[b])) if b else None
+        W = local[b]
         ident = b2c.close(np.array(o.matrix_parent_inverse), np.eye(4), 1e-6)
         if o.parent is not parent or not ident or not b2c.close(np.array(o.matrix_basis), W, 1e-5):
             o.parent = parent

@@ -187,13 +187,13 @@ def _exported(after, tmp="/tmp/skinsafe_object_menu_map.json"):
 
 
 def _ids_retired(before, after):
-    """The module deleted leaves for good, kept in the taxel map's retired ids: the next module placed takes a new
-    id, never its."""
-    assert sorted(after) == [0, 2, 3]
-    assert bpy.ops.skinsafe.place_module(body="forearm_link", anchor=MODULES[1][1], direction=(-1, 0, 0),
+    """The module deleted (the newest: its id is the one a counter would give again) leaves for good, kept in the
+    taxel map's retired ids: the next module placed takes a new id, never its."""
+    assert sorted(after) == [0, 1, 2]
+    assert bpy.ops.skinsafe.place_module(body="upper_arm_link", anchor=MODULES[3][1], direction=(-1, 0, 0),
                                          use_cursor=False) == {"FINISHED"}
-    assert sorted(state()) == [0, 2, 3, 4]
-    assert json.loads(bpy.data.texts[b2c.TEXT_NAME].as_string())["retired_modules"] == [1]
+    assert sorted(state()) == [0, 1, 2, 4]
+    assert json.loads(bpy.data.texts[b2c.TEXT_NAME].as_string())["retired_modules"] == [3]
 
 
 def _dup_entered(before, after):
@@ -365,7 +365,7 @@ OPS = [
     ("Shift+D in place, then the original deleted", _dup_in_place_then_delete_original, _dup_entered),
     ("Alt+D in place, then the original deleted", lambda: _dup_in_place_then_delete_original(linked=True),
      _dup_entered),
-    ("X on a module; the next module placed", lambda: _on_module(1, bpy.ops.object.delete), _ids_retired),
+    ("X on a module; the next module placed", lambda: _on_module(3, bpy.ops.object.delete), _ids_retired),
     # H and the outliner's eye and screen: what object.hide_view_set does (its poll needs a viewport)
     ("Hide a module", lambda: module(0).hide_set(True) or {"FINISHED"}, None),
     ("Disable a module in viewports", lambda: setattr(module(0), "hide_viewport", True) or {"FINISHED"}, None),
