@@ -156,7 +156,8 @@ def test_no_table_is_wider_than_a_reader_takes_in(page):
 
 # results/<area>/ -> the docs folder whose pages own that area's pictures
 TOPIC = {"design": "docs/design", "poke": "docs/simulate", "desk": "docs/simulate", "collaboration": "docs/simulate",
-         "maze": "docs/simulate", "tracking": "docs/simulate", "runtime": "docs/run", "view": "docs/run", "run": "docs/run"}
+         "maze": "docs/simulate", "tracking": "docs/simulate", "runtime": "docs/run", "view": "docs/run", "run": "docs/run",
+         "trade": "docs/simulate"}
 
 
 # owned by #51 (the maze's and tracking's pictures placed on the learning pages there)
