@@ -583,12 +583,24 @@ def exit_codes(root: Path) -> str:
     return "\n".join(["| code | meaning |", "| ---: | --- |"] + [f"| {k} | {v} |" for k, v in EXIT_CODES.items()])
 
 
+def commands(root: Path) -> str:
+    """Every `skinsafe` command, experiment and bench with its one line of help, as the command line lists them
+    (core/app/cli.py `COMMANDS`, `EXPERIMENTS`, `BENCHES`)."""
+    from skinsafe.core.app.cli import BENCHES, COMMANDS, EXPERIMENTS
+
+    lines = ["| command | what it does |", "| --- | --- |"]
+    for prefix, table in [("", COMMANDS), ("experiment ", EXPERIMENTS), ("bench ", BENCHES)]:
+        lines += [f"| [`skinsafe {prefix}{name}`](#skinsafe-{(prefix + name).replace(' ', '-')}) | {text} |"
+                  for name, (_, text) in table.items()]
+    return "\n".join(lines)
+
+
 FIGURES = {"maze-grid": maze_grid, "maze-defaults": maze_defaults, "tracking-labels": tracking_labels,
            "tracking-claims": tracking_claims, "tracking-nstep": tracking_nstep, "safety-audit": safety_audit, "paper-results": paper_results,
            "collaboration": collaboration, "collaboration-sweep": collaboration_sweep, "sample-skins": sample_skins,
            "import-contracts": import_contracts, "hardware-constants": hardware_constants,
            "fault-table": fault_table, "iso-limits": iso_limits,
-           "exit-codes": exit_codes}
+           "exit-codes": exit_codes, "commands": commands}
 
 
 def _nav_files(nav) -> list[str]:
