@@ -44,7 +44,9 @@ robots: $(ROBOTS_STAMP)
 $(ROBOTS_STAMP): blend_assets/robots/fetch.py $(STAMP)
 	$(BIN)/python blend_assets/robots/fetch.py
 
-# the clean-Blender test's bpy-only environment (under $SKINSAFE_CACHE; at once when it is there)
+# the clean-Blender test's bpy-only environments, one per tested Blender (tests/addon/bpy_only.py: 4.5 LTS and
+# 5.0.1 on Python 3.11, 5.3.0 on Python 3.13 from PATH or pyenv; under $SKINSAFE_CACHE, a 300-400 MB wheel and
+# about a minute each, two at a time; at once when they are there)
 bpy-only: $(STAMP)
 	$(BIN)/python tests/addon/bpy_only.py > /dev/null
 

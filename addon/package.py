@@ -32,9 +32,12 @@ DEPS = ["mujoco", "mujoco-core", "scipy", "trimesh", "pycollada", "python-dateut
         "pymeshlab", "numba", "llvmlite", "mcap", "mcap-ros2-support", "lz4", "pyserial", "kiutils", "ezdxf",
         "pyparsing", "fonttools", "typing_extensions", "potpourri3d"]
 # The platform the manifest names (`platforms = ["linux-x64"]`: glibc 2.35+, pymeshlab's floor; pip
-# does not widen a --platform to older manylinux tags itself) and Blender 4.2-5.0's Python (3.11).
+# does not widen a --platform to older manylinux tags itself).
 PLATFORM = [a for glibc in range(35, 16, -1) for a in ("--platform", f"manylinux_2_{glibc}_x86_64")] + [
-    "--platform", "manylinux2014_x86_64", "--python-version", "3.11", "--implementation", "cp", "--only-binary=:all:"]
+    "--platform", "manylinux2014_x86_64", "--implementation", "cp", "--only-binary=:all:"]
+# The Pythons of the Blenders the manifest admits: 3.11 (Blender 4.2-5.0) and 3.13 (5.1 and later). The zip
+# carries each one's wheels; Blender installs those matching its own Python.
+PYTHONS = ("3.11", "3.13")
 
 
 def blender_ext() -> Path:
@@ -61,7 +64,9 @@ def build(out: Path, with_deps: bool = True) -> Path:
     if with_deps:
         from importlib.metadata import version  # the versions this checkout is tested with
         pinned = [f"{d}=={version(d)}" for d in DEPS]
-        subprocess.run(pip + ["download", "--no-deps", "-d", str(wheels)] + PLATFORM + pinned, check=True)
+        for python in PYTHONS:  # a pure-Python wheel comes once: pip keeps the file already there
+            subprocess.run(pip + ["download", "--no-deps", "-d", str(wheels), "--python-version", python] + PLATFORM
+                           + pinned, check=True)
     names = sorted(f"./wheels/{w.name}" for w in wheels.glob("*.whl"))
     manifest = stage / "blender_manifest.toml"
     text = re.sub(r"(?m)^wheels = \[\]$", "wheels = [\n" + "".join(f'  "{n}",\n' for n in names) + "]",
