@@ -17,12 +17,14 @@ one stop). Per run: the fault kind the monitor named (is it the
 one injected: `EXPECT`, no text matched), onset -> the time the driver sent zero velocity (not the
 detection), any traceback, is the record readable (every message decodes with mcap-ros2-support and
 the last one is the stop's diagnostics), was the stop latched (the monitor's protective stop)?
-Every run but the contact kinds' (a contact on an arm at rest: stack-qp-fail, after-contact under
---after-contact hold; the sim's a poke, the FR3's a hand in franky-sim's world, given on their own with `--kinds`,
-the arm held at its start pose) sweeps the first joint at a speed (`--speeds`, fractions of its velocity limit; franky-sim's arm
+Every run but the sim's contact kinds' (a poke on the arm at rest: stack-qp-fail, after-contact under
+--after-contact hold) sweeps the first joint at a speed (`--speeds`, fractions of its velocity limit; franky-sim's arm
 from where the last run left it, toward the further end of its range), so the stop is measured as a safety engineer
 states it: from the onset to every joint at rest (`Runtime.stopping`, on the arm's measured state), and the furthest
 any taxel travelled meanwhile (`monitor.travel`), beside the printed bounds' model at the top speed measured.
+The FR3's contact kinds (given on their own with `--kinds`: their world has an obstacle) sweep the first joint at
+each speed into a sphere in franky-sim's world 0.4 rad along it from the start pose (`franky_world.obstacle_in_path`:
+its first contact on skin), the arm first brought back to that pose.
 A frame-lag is a ramp: its onset is when the newest frame the link proxy had passed to the host became older
 than the run's silence since the board sent it (hardware/link_faults.py, measured on the frames), not its
 first late byte.
@@ -60,12 +62,15 @@ EXPECT = {"board-unplug": "link-lost", "frame-delay": "board-silent", "frame-lag
           "robot-clock-back": "robot-clock-back", "robot-nan": "robot-nonfinite", "robot-overrun": "overrun",
           "robot-die": "driver"}  # injected -> the monitor's kind
 INTRUDER_HZ = 100.0  # the intruder's datagrams per second (the issue's hijack)
-CONTACT = ("stack-qp-fail", "after-contact")  # a contact on the arm at rest (a retraction): speed 0 only
+CONTACT = ("stack-qp-fail", "after-contact")  # a contact (a retraction): the sim's on the arm at rest, speed 0 only
+CONTACT_LEAD_RAD = 0.4  # the FR3's obstacle: this far along its first joint from the start pose
+CONTACT_SWEEP_RAD = 0.8  # the FR3's contact sweep: this far along it, through the obstacle
+RETURN_S = 1.0  # s the FR3's contact run takes back to the start pose before its sweep
 SPEEDS = (0.25, 0.5, 1.0)  # the swept joint's speed, a fraction of its velocity limit, for every other kind
 SWEEP_S = 1.2  # s the swept joint moves at its speed from the start (then the arm holds)
 # per driver: the robot's own faults as sim-* (the sim's SimFaults) or robot-* (the FR3 driver's view of franky-sim's
-# states, its FaultPlan). The FR3's contact kinds come from a hand in franky-sim's world (`--kinds` with only them: the
-# other kinds' runs have no hand, so nothing is retracted); the sim's from a poke
+# states, its FaultPlan). The FR3's contact kinds come from an obstacle in franky-sim's world (`--kinds` with only
+# them: the other kinds' runs have none, so nothing is retracted); the sim's from a poke on the arm at rest
 KINDS = {"sim": tuple(k for k in EXPECT if not k.startswith("robot-")),
          "fr3": tuple(k for k in EXPECT if not k.startswith("sim-") and k not in CONTACT)}
 SIGNALS = {"ctrl-c": (0.0,), "ctrl-c-twice": (0.0, 0.01)}  # SIGINTs to this process, s after the fault's time
@@ -187,7 +192,7 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
     arm holds); `the`: the arm's joints, limits and the model of the printed stopping bounds."""
     from skinsafe.core.app import run as run_cmd
     from skinsafe.core.app.cli import module_args
-    from skinsafe.core.bench.runtime import write_still, write_waypoints
+    from skinsafe.core.bench.runtime import write_waypoints
     from skinsafe.core.runtime.leader import stream
 
     record, stats = out / f"run{k}.mcap", out / f"run{k}.json"
@@ -220,11 +225,9 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
         intruder = _Intruder(("127.0.0.1", port), home, key, out / "other.key", stop, done)
         threading.Thread(target=stream, args=(("127.0.0.1", port), times, targets, stop, 100.0, key),
                          daemon=True).start()
-    elif kind in CONTACT:  # the sim: a poke (at `at`); the FR3: the world's hand, the arm held at its start pose
-        from skinsafe.core.sim.franky_world import INITIAL_Q
-
-        sim = robot[1] == "sim"
-        command = "hold" if sim else f"trajectory:{write_still(out / 'still.csv', the.joints, INITIAL_Q)}"
+    elif kind in CONTACT:  # the sim: a poke (at `at`) on the arm at rest; the FR3: back to its start pose, then the
+        sim = robot[1] == "sim"  # sweep into the world's obstacle
+        command = "hold" if sim else f"trajectory:{_into_obstacle(out / 'contact.csv', the, home, abs(v))}"
         poke = ["--contact", f"poke:at={at:.3f}" if kind == "after-contact" else "poke"] if sim else []
         # after-contact: the retraction's end latches under --after-contact hold
         extra = ["--after-contact", "hold", *poke] if kind == "after-contact" else ["--inject", f"{kind}@{at:.3f}", *poke]
@@ -302,11 +305,24 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
         (intruder.row(s.get("teleop") or {}) if intruder is not None else {})
 
 
+def _into_obstacle(path: Path, the: _Stopping, home, v: float) -> Path:
+    """The FR3's contact run as a trajectory: from `home` back to franky-sim's start pose (RETURN_S, then held 0.5 s),
+    then the first joint swept at `v` rad/s CONTACT_SWEEP_RAD along it, through the world's obstacle (held at the
+    start pose when `v` is 0)."""
+    from skinsafe.core.bench.runtime import write_waypoints
+    from skinsafe.core.sim.franky_world import INITIAL_Q
+
+    start = np.asarray(INITIAL_Q, float)
+    end = start + np.eye(len(start))[0] * (CONTACT_SWEEP_RAD if v else 0.0)
+    t = [0.0, RETURN_S, RETURN_S + 0.5, RETURN_S + 0.5 + (CONTACT_SWEEP_RAD / v if v else 1.0)]
+    return write_waypoints(path, the.joints, t, [np.asarray(home, float), start, start, end])
+
+
 @contextlib.contextmanager
-def _setup(driver: str, tmp: Path, hand: bool = False):
+def _setup(driver: str, tmp: Path, obstacle: bool = False):
     """(map, feed, ports, home, the run's robot options) of `driver`'s world: the UR5 sample skin in the sim, or
-    a skin on franky-sim's FR3 (its own process; with `hand`, a hand reaching into the arm at its start pose 0.8 s
-    into every run, then every 2 s: `franky_world.Hand`); one emulator serves every run."""
+    a skin on franky-sim's FR3 (its own process; with `obstacle`, a sphere its first joint sweeps the skin into,
+    CONTACT_LEAD_RAD from the start pose: `franky_world.obstacle_in_path`); one emulator serves every run."""
     from skinsafe.core.skin.force_feed import ForceFeed
     from skinsafe.core.skin.taxel_map import load, save
     from skinsafe.hardware.deploy import deploy
@@ -325,7 +341,7 @@ def _setup(driver: str, tmp: Path, hand: bool = False):
             import subprocess
 
             from skinsafe.core.app.cli import main as skinsafe
-            from skinsafe.core.sim.franky_world import INITIAL_Q, WorldProcess, hand_in_reach, require_franky_python
+            from skinsafe.core.sim.franky_world import INITIAL_Q, WorldProcess, obstacle_in_path, require_franky_python
 
             subprocess.run([str(require_franky_python()), "-m", "skinsafe.core.sim.franky_world", "mjcf",
                             str(tmp / "fr3.xml")], check=True, capture_output=True)
@@ -333,8 +349,9 @@ def _setup(driver: str, tmp: Path, hand: bool = False):
                 if skinsafe(["design", str(tmp / "fr3.xml"), "--bodies", "fr3_link5,fr3_link6", "--out",
                              str(tmp / "skin.json")]):
                     raise SystemExit("runtime faults: designing the FR3 skin failed")
-            world = stack.enter_context(WorldProcess(tmp / "skin.json", tmp / "world.json", realtime=True, hand=hand_in_reach(
-                str(tmp / "skin.json"), INITIAL_Q) if hand else None))
+            sphere = obstacle_in_path(str(tmp / "skin.json"), np.eye(7)[0], INITIAL_Q, CONTACT_LEAD_RAD) if obstacle else None
+            world = stack.enter_context(WorldProcess(tmp / "skin.json", tmp / "world.json", obstacle=sphere,
+                                                     realtime=True))
             feed = stack.enter_context(ForceFeed.attach(world.feed))
             home, options = np.array(INITIAL_Q), ("--robot", "fr3", "--host", world.host, "--feed", world.feed,
                                                    "--allow-non-realtime")
@@ -412,10 +429,10 @@ def add_arguments(p) -> None:
     p.add_argument("--driver", choices=tuple(KINDS), default="sim", help="sim (default) or fr3 (franky-sim's FR3 in "
                    "its own process: `make franky-sim`); fr3 has no sim-* faults")
     p.add_argument("--kinds", nargs="+", metavar="FAULT", help="only these fault kinds, in turn (default: every kind "
-                   "of the driver; fr3's contact kinds stack-qp-fail after-contact only on their own: their world has a hand)")
+                   "of the driver; fr3's contact kinds stack-qp-fail after-contact only on their own: their world has an obstacle)")
     p.add_argument("--speeds", type=float, nargs="+", default=list(SPEEDS), metavar="FRACTION",
                    help="the swept joint's speeds, fractions of its velocity limit; every kind runs at each in turn "
-                        f"(the contact kinds {', '.join(CONTACT)} on an arm at rest; default {' '.join(map(str, SPEEDS))})")
+                        f"(the sim's contact kinds {', '.join(CONTACT)} on an arm at rest; default {' '.join(map(str, SPEEDS))})")
     p.add_argument("--picture", metavar="FILE.png", help="draw each taxel's stopping distance of the run whose furthest "
                    "taxel travelled furthest, on the arm's pose at its onset")
     p.add_argument("--json", action="store_true", help="print the per-run rows as one JSON list")
@@ -436,22 +453,22 @@ def run(args) -> int:
             print(f"skinsafe faults: --kinds {' '.join(unknown)}: the {args.driver} driver's kinds are "
                   f"{', '.join(known)}", file=sys.stderr)
             return 2
-        hand = [k in CONTACT for k in args.kinds] if args.driver == "fr3" else [False]
-        if any(hand) and not all(hand):
-            print(f"skinsafe faults: --kinds: the FR3's contact kinds ({', '.join(CONTACT)}) need a hand in its "
+        contact = [k in CONTACT for k in args.kinds] if args.driver == "fr3" else [False]
+        if any(contact) and not all(contact):
+            print(f"skinsafe faults: --kinds: the FR3's contact kinds ({', '.join(CONTACT)}) need an obstacle in its "
                   "world, the others none: give them on their own", file=sys.stderr)
             return 2
         kinds = tuple(args.kinds)
-    hand = args.driver == "fr3" and set(kinds) <= set(CONTACT)
-    with tempfile.TemporaryDirectory(prefix="skinsafe-faults-") as tmp, _setup(args.driver, Path(tmp), hand) as world:
+    obstacle = args.driver == "fr3" and set(kinds) <= set(CONTACT)
+    with tempfile.TemporaryDirectory(prefix="skinsafe-faults-") as tmp, _setup(args.driver, Path(tmp), obstacle) as world:
         map_path, feed, ports, home, options = world
         from skinsafe.core.runtime.monitor import Timing
 
         period = 0.001 if args.driver == "fr3" else 0.002  # the drivers' periods (skinsafe run's sim default)
         frame = 1.0 / args.rate
         the = _arm(args.driver, map_path, Timing(period, frame, 2 * frame + args.link_latency, 0.1))
-        plan = [(kind, 0.0) if kind in CONTACT else (kind, v) for v in args.speeds for kind in kinds]
-        plan = list(dict.fromkeys(plan))  # the contact kinds once per round of speeds
+        at_rest = CONTACT if args.driver == "sim" else ()  # the sim's poke: speed 0, once per round of speeds
+        plan = list(dict.fromkeys((kind, 0.0) if kind in at_rest else (kind, v) for v in args.speeds for kind in kinds))
         pose, worst = home, None
         for k in tqdm(range(args.runs), desc=f"fault runs ({args.driver})", file=sys.stderr):
             kind, speed = plan[k % len(plan)]

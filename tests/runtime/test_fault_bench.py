@@ -61,3 +61,12 @@ def test_every_sim_fault_kind_is_one_row_stopped_within_its_bound():
             # brake a 0.5 rad/s arm in ~60 ms, slower than the model's acceleration limit (docs: Not done yet)
             assert r["over_model"] in (0, 1), r
     assert max(bound[k] for k in (Kind.READER_DIED, Kind.LINK_LOST)) * 1e3 <= 2 * 2 + 5 + 1e-9  # whatever the latency
+
+
+def test_the_fr3_contact_kinds_are_given_on_their_own():
+    """Their world has an obstacle the others' runs must not meet: mixed with other kinds, refused in one line."""
+    out = subprocess.run([SKINSAFE, "faults", "--driver", "fr3", "--kinds", "stack-qp-fail", "board-unplug"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert out.stderr.strip() == ("skinsafe faults: --kinds: the FR3's contact kinds (stack-qp-fail, after-contact) "
+                                  "need an obstacle in its world, the others none: give them on their own")
