@@ -190,3 +190,15 @@ def test_the_api_reference_documents_every_module_the_examples_import():
     imported = set(re.findall(r"^\s*from (skinsafe\.\S+) import", code, re.M))
     assert imported, "no Python example imports skinsafe: the check would hold for nothing"
     assert imported <= documented, f"docs/reference/api.md lacks modules the examples import: {imported - documented}"
+
+
+# --- what a safety tool must say ---------------------------------------------------------------------------------------
+
+def test_the_index_the_run_pages_and_the_readme_say_what_skinsafe_is_not():
+    statement = (ROOT / "docs" / "snippets" / "safety.txt").read_text()
+    assert "does not replace the robot's own safety functions" in statement and "ISO 10218" in statement
+    pages_ = ["docs/index.md"] + [p for p in PAGES if p.startswith("docs/run/")]
+    lacking = [p for p in pages_ if '--8<-- "docs/snippets/safety.txt"' not in PAGES[p]]
+    assert len(pages_) > 2 and not lacking, f"pages without the safety statement (include docs/snippets/safety.txt): {lacking}"
+    readme = " ".join(PAGES["README.md"].split())
+    assert "does not replace the robot's own safety functions" in readme and "ISO 10218" in readme
