@@ -6,7 +6,7 @@ layers' state and their faults, each tick turned into ROS 2 messages (core/runti
 | `/robot_description` | std_msgs/String | once (transient local) | the URDF with a link `taxel_<id>` per taxel |
 | `/tf_static` | tf2_msgs/TFMessage | once (transient local) | each `taxel_<id>` on its link (z: outward normal) |
 | `/tf` | tf2_msgs/TFMessage | `rate_hz` | each link on its parent link; the root links on `world` |
-| `/skinsafe/tactile` | tactile_msgs/TactileState | every new reading | one sensor per board (its name), values by channel (N; NaN: no taxel) |
+| `/skinsafe/tactile` | tactile_msgs/TactileState | `rate_hz` | one sensor per board (its name), values by channel (N; NaN: no taxel): the newest reading |
 | `/skinsafe/skin` | sensor_msgs/PointCloud2 | `rate_hz` | `world`: x, y, z, force (N) of every taxel |
 | `/skinsafe/contacts` | sensor_msgs/PointCloud2 | `rate_hz` | `world`: x, y, z, force, priority (0 first) of the taxels the layers retract from |
 | `/skinsafe/state` | skinsafe_msgs/LayerState | `rate_hz` | danger potential, speed factor, retracting, the taxel ids retracted from, flags, stop |
@@ -103,12 +103,12 @@ class Ros2Topics:
     def tick(self, k: Tick, every: bool = False) -> list[tuple[str, bytes]]:
         """Tick k's messages (module docstring)."""
         t, out = k.t, []
-        if k.force is not None and (k.force_new or every):
-            out.append(("/skinsafe/tactile", self.tactile(t, k.force)))
         pool = np.zeros(0, np.int64) if k.pool_taxels is None else np.asarray(k.pool_taxels, np.int64)
         if every or t >= self.due:
             self.due = t + self.period
             out.append(("/tf", self.tf(t, *self.links(k.q))))
+            if k.force is not None:
+                out.append(("/skinsafe/tactile", self.tactile(t, k.force)))
             pos = self.taxel_positions()
             force = np.zeros(len(pos)) if k.force is None else np.nan_to_num(k.force)
             skin = np.empty((len(pos), 4), np.float32)

@@ -24,6 +24,7 @@ from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.runtime.foxglove_layout import layout
+from skinsafe.core.runtime.recording import Recording
 from skinsafe.core.runtime.ros2_msgs import typestore
 from skinsafe.core.runtime.ros2_topics import TOPICS, Ros2Topics
 from skinsafe.core.runtime.rosbag2 import record_file
@@ -71,6 +72,11 @@ def rosbags_messages(folder: Path) -> dict:
             out.setdefault(con.topic, []).append(reader.deserialize(raw, con.msgtype))
         assert {c.topic: c.msgcount for c in reader.connections} == {t: len(m) for t, m in out.items()}
     return out
+
+
+def log_times(folder: Path, topic: str) -> np.ndarray:
+    with AnyReader([folder]) as reader:
+        return np.array([ns for _, ns, _ in reader.messages([c for c in reader.connections if c.topic == topic])])
 
 
 def stamp(msg) -> float:
@@ -126,12 +132,13 @@ def test_rosbags_decodes_every_message_of_every_topic(run):
     urdf = msgs["/robot_description"][0].data
     design = load(skin)
     assert urdf.count("<link name=\"taxel_") == design.n_taxels
-    tactile = msgs["/skinsafe/tactile"]  # every reading, equal to the float64 forces the layers saw
-    assert len(tactile) == len(msgs["/skinsafe/taxels"])
+    tactile = msgs["/skinsafe/tactile"]  # at 30 Hz: the newest of the float64 forces the layers saw, as float32
+    assert len(tactile) == len(msgs["/tf"])
     forces = np.array([m.data for m in msgs["/skinsafe/taxels"]])
+    newest = np.searchsorted(log_times(folder, "/skinsafe/taxels"), log_times(folder, "/skinsafe/tactile"), "right") - 1
     t = design.taxels
     names = {b.id: b.name for b in design.boards}
-    for m, f in zip(tactile, forces):
+    for m, f in zip(tactile, forces[newest]):
         sensors = {s.name: s.values for s in m.sensors}
         got = np.array([sensors[names[int(b)]][c] for b, c in zip(t.board, t.channel)])
         np.testing.assert_array_equal(got, f.astype(np.float32))
@@ -215,14 +222,16 @@ def test_foxglove_gets_what_the_record_holds(ur5, run):
             R, p = poses[model.body(b).name]
             np.testing.assert_allclose(p, data.xpos[b], atol=1e-12)
             np.testing.assert_allclose(R, data.xmat[b].reshape(3, 3), atol=1e-9)
-    tactile = msgs["/skinsafe/tactile"]
-    times = np.array([stamp(m) for m in tactile])
+    rec = Recording(folder)  # the record's ticks: the forces the layers saw (float64), newest by each tick
+    design = load(skin)
+    names = {b.id: b.name for b in design.boards}
     for _, data in got["/skinsafe/tactile"]:
         m = store.deserialize_cdr(data, "tactile_msgs/msg/TactileState")
-        rec = tactile[int(np.searchsorted(times, stamp(m), side="right")) - 1]  # the newest reading by then
-        for a, b in zip(m.sensors, rec.sensors, strict=True):
-            assert a.name == b.name
-            np.testing.assert_array_equal(a.values, b.values)
+        i = int(np.argmin(np.abs(rec.t - stamp(m))))
+        assert abs(rec.t[i] - stamp(m)) < 1e-9  # a tick of the record
+        sensors = {s.name: s.values for s in m.sensors}
+        values = np.array([sensors[names[int(b)]][c] for b, c in zip(design.taxels.board, design.taxels.channel)])
+        np.testing.assert_array_equal(values, rec.tick(i).force.astype(np.float32))
 
 
 def test_the_docs_layout_is_the_one_built_and_shows_recorded_topics():
