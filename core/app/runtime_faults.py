@@ -3,7 +3,7 @@ each with one fault.
 
 Its own command (`skinsafe faults --runs N --json`; the bench starts it as a user would, so the bench never
 imports the application): one emulator process (boards fed by the run's simulation through one shared-memory feed, the
-map deployed once) serves every run; each run is the real command (`core.app.run.run`: pre-flight,
+map deployed once) serves every run; each run is the real command (`core.app.run.execute` on the RunConfig of its command line: pre-flight,
 sim driver, readings source, stack, recorder, signal handling) with one fault, at a random time
 0.3-0.9 s after the robot starts moving, each of `KINDS` in turn, injected at its source at a known
 time.monotonic() (the onset): a board's link closed (the host's side of its pseudo-terminal), its
