@@ -72,8 +72,9 @@ def lookup(data, path: str):
 
 
 def constant(module: str, path: str):
-    """The value at NAME.ATTR... in a module of the code (a constant, a dataclass's default, a dict's entry), scaled
-    as `lookup` scales: the docs quote the code's own settings, never a copy of them."""
+    """The value at NAME.ATTR... in a module of the code (a constant, a dataclass's default; in a dict, list or
+    numpy array as `lookup` walks and reduces them), scaled as `lookup` scales: the docs quote the code's own
+    settings, never a copy of them."""
     import importlib
 
     path, *ops = re.split(r"(?=[*/][0-9.])", path)
@@ -81,13 +82,16 @@ def constant(module: str, path: str):
         data = importlib.import_module(module)
     except ImportError as e:
         raise FigureError(f"no module '{module}' ({e})") from None
-    for key in path.split("."):
+    keys = path.split(".")
+    for i, key in enumerate(keys):
+        data = data.tolist() if hasattr(data, "tolist") else data  # a numpy array: a list, reduced as lookup does
+        if isinstance(data, (dict, list)):
+            return lookup(data, ".".join(keys[i:]) + "".join(ops))
         try:
-            data = data[int(key) if isinstance(data, list) else key] if isinstance(data, (dict, list)) else \
-                getattr(data, key)
-        except (KeyError, IndexError, ValueError, AttributeError):
+            data = getattr(data, key)
+        except AttributeError:
             raise FigureError(f"no '{key}' in '{module}.{path}'") from None
-    return lookup({"v": data}, "v" + "".join(ops))
+    return lookup({"v": data.tolist() if hasattr(data, "tolist") else data}, "v" + "".join(ops))
 
 
 def fmt(v, spec: str = "") -> str:

@@ -75,7 +75,7 @@ HAND_WRITTEN = {
     "README.md": 5, "docs/benchmarks.md": 558, "docs/contributing.md": 9, "docs/deploy/index.md": 18,
     "docs/design/addon.md": 13, "docs/design/blender.md": 33, "docs/design/buildable.md": 29,
     "docs/design/cli.md": 31, "docs/design/fabrication.md": 31, "docs/design/jacobians.md": 2,
-    "docs/design/robots.md": 51, "docs/reference/formats.md": 2, "docs/run/fr3.md": 77, "docs/run/index.md": 121,
+    "docs/design/robots.md": 51, "docs/reference/formats.md": 2, "docs/run/fr3.md": 65, "docs/run/index.md": 121,
     "docs/run/live.md": 42, "docs/run/ros2.md": 18, "docs/run/safety.md": 138, "docs/simulate/defensiveness.md": 97,
     "docs/simulate/index.md": 6, "docs/simulate/pfl.md": 226, "docs/simulate/trade.md": 18,
 }
@@ -108,6 +108,10 @@ def test_a_setting_is_quoted_from_the_code_itself():
     new, changed = fill(text)
     assert len(changed) == 2 and f"-->{RunConfig.max_excluded:.0%}<!--" in new and \
         f"-->{LINK_LATENCY_FREE * 1000:g}<!--" in new and hand_written(new) == []
+    from skinsafe.hardware.franka import QD_MAX
+
+    new, _ = fill("<!-- fig:const skinsafe.hardware.franka QD_MAX.max -->x<!-- /fig -->")  # a numpy array, reduced
+    assert f"-->{QD_MAX.max():g}<!--" in new
     with pytest.raises(FigureError, match="no 'nope' in 'skinsafe.core.runtime.run_config.RunConfig.nope'"):
         fill("<!-- fig:const skinsafe.core.runtime.run_config RunConfig.nope -->1<!-- /fig -->")
     with pytest.raises(FigureError, match="no module 'skinsafe.nowhere'"):
