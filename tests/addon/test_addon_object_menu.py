@@ -6,6 +6,7 @@ every pad on its link within 1 mm, every link at the robot's pose, and the modul
 to 1e-6 m. Add an operator to OPS and it is tested. Headless Blender pushes an undo step only when asked
 (`ed.undo_push`, what the window manager does after each operator)."""
 import json
+import tempfile
 from pathlib import Path
 
 import bpy
@@ -174,10 +175,13 @@ def _dup_in_place_then_delete_original(linked=False):
     return bpy.ops.object.delete()
 
 
-def _exported(after, tmp="/tmp/skinsafe_object_menu_map.json"):
+def _exported(after):
     """File > Export's taxel map holds the scene's pads, each where its object shows it."""
-    assert bpy.ops.skinsafe.export_taxel_map(filepath=tmp) == {"FINISHED"}
-    d, bodies = taxel_map.load(tmp), b2c.body_objects(bpy.context.scene)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = f"{tmp}/skin.json"
+        assert bpy.ops.skinsafe.export_taxel_map(filepath=path) == {"FINISHED"}
+        d = taxel_map.load(path)
+    bodies = b2c.body_objects(bpy.context.scene)
     assert d.n_taxels == sum(len(o.data.polygons) for o in b2c.module_objects(bpy.context.scene))
     for mid, (_, ids, world) in after.items():
         on = d.taxels.module == mid
