@@ -75,7 +75,7 @@ HAND_WRITTEN = {
     "README.md": 5, "docs/benchmarks.md": 444, "docs/contributing.md": 9, "docs/deploy/index.md": 18,
     "docs/design/addon.md": 13, "docs/design/blender.md": 33, "docs/design/buildable.md": 29,
     "docs/design/cli.md": 27, "docs/design/fabrication.md": 31, "docs/design/jacobians.md": 2,
-    "docs/design/robots.md": 51, "docs/reference/formats.md": 2, "docs/run/fr3.md": 65, "docs/run/index.md": 121,
+    "docs/design/robots.md": 51, "docs/reference/formats.md": 2, "docs/run/fr3.md": 65, "docs/run/index.md": 111,
     "docs/run/live.md": 42, "docs/run/ros2.md": 18, "docs/run/safety.md": 139, "docs/simulate/defensiveness.md": 97,
     "docs/simulate/index.md": 4, "docs/simulate/pfl.md": 225, "docs/simulate/trade.md": 18,
 }
