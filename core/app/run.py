@@ -453,8 +453,8 @@ def _scheduling(cfg: RunConfig) -> str:
 def _wire(cfg: RunConfig, stack, feed, ports, inject, map_path, map_hash, robot, design) -> _Parts:
     """Driver, command source, boards (pre-flight), stack, recorder and view, each closed by `stack`; refused with
     2 (bad input) or 3 (the pre-flight)."""
+    from skinsafe.core.app.record_writer import start as start_writer
     from skinsafe.core.robot.models import only_joints
-    from skinsafe.core.runtime.record import Recorder
     from skinsafe.core.skin.force_feed import FeedError, ForceFeed
     from skinsafe.hardware.client import BoardError
     from skinsafe.hardware.skin_source import PreflightRefused, SkinSource
@@ -513,9 +513,11 @@ def _wire(cfg: RunConfig, stack, feed, ports, inject, map_path, map_hash, robot,
         if isinstance(command, Teleop):  # who may drive it, and with which key (its id, never its value)
             config["teleop"] = {"leader": cfg.teleop_leader or "", "key": command.key.path, "key_id": command.key.key_id}
         try:
-            recorder = Recorder(cfg.record, driver.joint_names, config, topics=ros2_topics(robot, arm, design))
+            recorder = start_writer(Path(cfg.record), map_path.resolve(), driver.joint_names,
+                                    [b.uid for b in design.boards], design.n_taxels, config, preexec=background)
         except OSError as e:
-            raise _Refused(2, f"--record {cfg.record}: {e.strerror or e}; choose a folder you can write to") from None
+            raise _Refused(2, f"--record {cfg.record}: {e}; choose a folder you can write to") from None
+        stack.callback(recorder.close, {"reason": "the run ended before its stop", "kind": "fault"})
     tap = Tap()
     if cfg.view:
         try:

@@ -26,7 +26,9 @@ record, core/runtime/sim_record.py) a bare FILE.mcap (the layout of version 1).
 Metadata `skinsafe` holds the configuration a replay needs (map, limits, period, excluded taxels, ...) and, as
 `run`, the run's whole configuration as given (core/runtime/run_config.py `RunConfig.to_json`).
 
-The loop only enqueues (`put`, never blocks): a writer thread encodes and writes. When the writer is
+The loop only enqueues (`put`, never blocks): a writer thread encodes and writes. `skinsafe run` runs the recorder
+in a writer process of its own (core/app/record_writer.py), fed through shared memory, so that its encoding does not
+share the loop's interpreter lock; that process's ring is the loop's queue. When the writer is
 behind (`queue_size` ticks waiting) a tick's telemetry (its taxel forces, layers, diagnostics) is dropped
 and counted (`dropped`, in the record's last diagnostics; the replay then says the record is incomplete);
 its safety topics (`/joint_states`, `/skinsafe/command`, `/skinsafe/planned`, `/skinsafe/tick`) never are:
@@ -196,14 +198,15 @@ class Recorder:
         self.thread = threading.Thread(target=self._work, name="recorder", daemon=True)
         self.thread.start()
 
-    def put(self, tick: Tick, wait: bool = False) -> None:
+    def put(self, tick: Tick, wait: bool = False, telemetry: bool = True) -> None:
         """Enqueue one tick, never blocking; when the writer is behind, only its safety topics (module docstring), its
-        telemetry dropped and counted. `wait`: a writer with no loop to keep (core/runtime/sim_record.py) waits for
-        room and keeps everything."""
+        telemetry dropped and counted. `wait`: a writer with no loop to keep (core/runtime/sim_record.py, the run's
+        writer process core/app/record_writer.py) waits for room and keeps what it is given (without `telemetry`:
+        the safety topics, the telemetry dropped and counted by the loop's side)."""
         if wait:
             while self.q.qsize() >= self.queue_size and self.thread.is_alive():
                 time.sleep(0.001)
-            self.q.put(tick)
+            self.q.put(tick if telemetry else ("safety", tick))
         elif self.q.qsize() >= self.queue_size:
             self.dropped += 1
             self.q.put(("safety", tick))

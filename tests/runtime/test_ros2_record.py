@@ -3,6 +3,7 @@ a Foxglove WebSocket client connected while it runs; independent readers (rosbag
 store, mcap-ros2-support) decode every message; the skin sits where the taxel map and the recorded /tf put it;
 what Foxglove received equals the record."""
 import json
+import os
 import re
 import subprocess
 import sys
@@ -244,3 +245,46 @@ def test_the_docs_layout_is_the_one_built_and_shows_recorded_topics():
     fields = set(re.findall(r"/skinsafe/state\.([a-z_]+)", text))  # the plotted fields are LayerState's
     assert fields == {"potential", "speed_factor", "retracting"}
     assert fields <= {name for name, _ in typestore().fielddefs["skinsafe_msgs/msg/LayerState"][1]}
+
+
+def test_the_writer_process_behind_gets_every_tick_and_a_killed_one_is_named(ur5, tmp_path):
+    """The record's writer process (core/app/record_writer.py) paused while the loop puts more ticks than its ring holds:
+    the ticks beyond the ring lose their telemetry (counted) and their safety topics wait in the loop's backlog, so
+    the record holds every tick in order, the stop's last; a writer killed mid-run is named at close, never waited on."""
+    import signal
+
+    from skinsafe.core.app.record_writer import start
+
+    robot, design = ur5
+    save(design, tmp_path / "skin.json")
+    joints = [robot.model.joint(j).name for j in range(robot.model.njnt)]
+
+    def feed(folder):
+        return start(folder, tmp_path / "skin.json", joints, [b.uid for b in design.boards], design.n_taxels,
+                     {"map": str(tmp_path / "skin.json"), "period_s": 0.001})
+
+    def tick(i, last=False):
+        return Tick(t=i * 1e-3, q=np.full(len(joints), i * 1e-3), command=np.zeros(len(joints)), index=i + 1,
+                    force=np.full(design.n_taxels, float(i)), force_new=True, reading_seq=float(i), ticked=not last,
+                    stop="stopped" if last else "", ns=10**6 * (i + 1))
+
+    rec = feed(tmp_path / "run")
+    os.kill(rec.proc.pid, signal.SIGSTOP)
+    k = rec.frames.slots + 40
+    for i in range(k):
+        rec.put(tick(i, last=i == k - 1))
+    assert rec.dropped == 40 and len(rec.backlog) == 40
+    os.kill(rec.proc.pid, signal.SIGCONT)
+    out = rec.close({"reason": "stopped", "kind": "fault", "dropped": rec.dropped})
+    assert out["dropped"] == 40 and out["path"] == str(tmp_path / "run"), out
+    got = Recording(tmp_path / "run")
+    assert np.allclose(got.t, np.arange(k) * 1e-3) and np.allclose(got.q[:, 0], np.arange(k) * 1e-3)
+    assert len(got.forces) == k - 40 and np.allclose(got.forces[:, 0], np.arange(k - 40))  # the ring's ticks' forces
+    assert got.stop == "stopped"
+
+    rec = feed(tmp_path / "killed")
+    rec.put(tick(0))
+    os.kill(rec.proc.pid, signal.SIGKILL)
+    out = rec.close({"reason": "stopped", "kind": "fault"})
+    assert f"writer process (pid {rec.proc.pid}) died (killed by signal 9)" in out["error"]
+    assert not (tmp_path / "killed").exists()  # never renamed into place: the record is not called complete
