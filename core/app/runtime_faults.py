@@ -10,21 +10,22 @@ time.monotonic() (the onset): a board's link closed (the host's side of its pseu
 frames held 50 ms, ever later (frame-lag), replayed, foreign or corrupt (on the link proxy), the
 simulation failed, its state frozen, its clock gone back or missing states (overruns), the boards' reader killed
 (SIGKILL), a NaN reading from the readings source, the layers' command non-finite, the retraction's QP solve failed
-(that run has a poke: a retraction), the teleop leader silent, a second sender beside the teleop leader (its shoulder
+(that run has a contact: a retraction), the teleop leader silent, a second sender beside the teleop leader (its shoulder
 target +0.4 rad at 100 Hz: unsigned with stamps 2^30 us ahead, signed with another key, the leader's datagram
 replayed; the onset its first datagram), SIGINT to this process (once, or twice 10 ms apart:
 one stop). Per run: the fault kind the monitor named (is it the
 one injected: `EXPECT`, no text matched), onset -> the time the driver sent zero velocity (not the
 detection), any traceback, is the record readable (every message decodes with mcap-ros2-support and
 the last one is the stop's diagnostics), was the stop latched (the monitor's protective stop)?
-Every run but the sim's contact kinds' (a poke on the arm at rest: stack-qp-fail, after-contact under
---after-contact hold) sweeps the first joint at a speed (`--speeds`, fractions of its velocity limit; franky-sim's arm
+Every run sweeps the first joint at a speed (`--speeds`, fractions of its velocity limit; franky-sim's arm
 from where the last run left it, toward the further end of its range), so the stop is measured as a safety engineer
 states it: from the onset to every joint at rest (`Runtime.stopping`, on the arm's measured state), and the furthest
 any taxel travelled meanwhile (`monitor.travel`), beside the printed bounds' model at the top speed measured.
-The FR3's contact kinds (given on their own with `--kinds`: their world has an obstacle) sweep the first joint at
-each speed into a sphere in franky-sim's world 0.4 rad along it from the start pose (`franky_world.obstacle_in_path`:
-its first contact on skin), the arm first brought back to that pose.
+The contact kinds (stack-qp-fail, after-contact under --after-contact hold) sweep it into something: the sim's arm
+into a sprung post SIM_POST_GAP_M in front of the taxel the first joint sweeps fastest into (`--contact post`); the
+FR3's (given on their own with `--kinds`: their world has an obstacle) into a sphere in franky-sim's world 0.4 rad
+along it from the start pose (`franky_world.obstacle_in_path`: its first contact on skin), the arm first brought back
+to that pose.
 A frame-lag is a ramp: its onset is when the newest frame the link proxy had passed to the host became older
 than the run's silence since the board sent it (hardware/link_faults.py, measured on the frames), not its
 first late byte.
@@ -61,8 +62,14 @@ EXPECT = {"board-unplug": "link-lost", "frame-delay": "board-silent", "frame-lag
           "after-contact": "after-contact", "teleop-intruder": "command-intruder", "robot-freeze": "robot-frozen",
           "robot-clock-back": "robot-clock-back", "robot-nan": "robot-nonfinite", "robot-overrun": "overrun",
           "robot-die": "driver"}  # injected -> the monitor's kind
+# a contact at speed stops by its own retraction's latch (stack-latch: pushed further into the contact than braking
+# allows, ticks flagged infeasible, or the solve failed) at or before the retraction's end, where after-contact's
+# hold would latch: the earlier cause, named right; the row says so (`named_earlier`) beside named_as_injected
+EARLIER = {"after-contact": "stack-latch"}
 INTRUDER_HZ = 100.0  # the intruder's datagrams per second (the issue's hijack)
-CONTACT = ("stack-qp-fail", "after-contact")  # a contact (a retraction): the sim's on the arm at rest, speed 0 only
+CONTACT = ("stack-qp-fail", "after-contact")  # a contact (a retraction): the arm swept into a post / an obstacle
+SIM_POST_GAP_M = 0.1  # the sim's post: this far in front of its taxel at home (0.16 rad of the first joint: the arm
+# at speed before it, the arc still through the post)
 CONTACT_LEAD_RAD = 0.4  # the FR3's obstacle: this far along its first joint from the start pose
 CONTACT_SWEEP_RAD = 0.8  # the FR3's contact sweep: this far along it, through the obstacle
 RETURN_S = 1.0  # s the FR3's contact run takes back to the start pose before its sweep
@@ -70,7 +77,7 @@ SPEEDS = (0.25, 0.5, 1.0)  # the swept joint's speed, a fraction of its velocity
 SWEEP_S = 1.2  # s the swept joint moves at its speed from the start (then the arm holds)
 # per driver: the robot's own faults as sim-* (the sim's SimFaults) or robot-* (the FR3 driver's view of franky-sim's
 # states, its FaultPlan). The FR3's contact kinds come from an obstacle in franky-sim's world (`--kinds` with only
-# them: the other kinds' runs have none, so nothing is retracted); the sim's from a poke on the arm at rest
+# them: the other kinds' runs have none, so nothing is retracted); the sim's from a post (`--contact`, per run)
 KINDS = {"sim": tuple(k for k in EXPECT if not k.startswith("robot-")),
          "fr3": tuple(k for k in EXPECT if not k.startswith("sim-") and k not in CONTACT)}
 SIGNALS = {"ctrl-c": (0.0,), "ctrl-c-twice": (0.0, 0.01)}  # SIGINTs to this process, s after the fault's time
@@ -225,12 +232,13 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
         intruder = _Intruder(("127.0.0.1", port), home, key, out / "other.key", stop, done)
         threading.Thread(target=stream, args=(("127.0.0.1", port), times, targets, stop, 100.0, key),
                          daemon=True).start()
-    elif kind in CONTACT:  # the sim: a poke (at `at`) on the arm at rest; the FR3: back to its start pose, then the
-        sim = robot[1] == "sim"  # sweep into the world's obstacle
-        command = "hold" if sim else f"trajectory:{_into_obstacle(out / 'contact.csv', the, home, abs(v))}"
-        poke = ["--contact", f"poke:at={at:.3f}" if kind == "after-contact" else "poke"] if sim else []
+    elif kind in CONTACT:  # the sim: the sweep into a post; the FR3: back to its start pose, then the sweep into the
+        sim = robot[1] == "sim"  # world's obstacle (the sim's QP fails from the post's first retraction tick on)
+        if not sim:
+            command = f"trajectory:{_into_obstacle(out / 'contact.csv', the, home, abs(v))}"
+        post = ["--contact", f"post:joint=0,gap={SIM_POST_GAP_M}"] if sim else []
         # after-contact: the retraction's end latches under --after-contact hold
-        extra = ["--after-contact", "hold", *poke] if kind == "after-contact" else ["--inject", f"{kind}@{at:.3f}", *poke]
+        extra = ["--after-contact", "hold", *post] if kind == "after-contact" else ["--inject", f"{kind}@{0 if sim else at:.3f}", *post]
     elif kind not in SIGNALS:
         extra = ["--inject", f"{kind}@{at:.3f}"]
 
@@ -298,6 +306,7 @@ def one_run(k: int, kind: str, at: float, map_path: Path, feed, ports, home, out
             "exit": code, "reason": reason,
             "named_kind": s.get("watchdog", ""), "expected_kind": EXPECT[kind], "stopped": bool(s) and s.get("kind") != "end",
             "named": bool(reason) and s.get("kind") != "end", "named_as_injected": s.get("watchdog") == EXPECT[kind],
+            "named_earlier": kind in EARLIER and s.get("watchdog") == EARLIER[kind],
             "onset_to_zero_ms": (zero - onset) * 1e3 if onset and zero else None,
             "latched": s.get("state") == "protective_stop",
             "traceback": bool(tb) or "Traceback" in err.getvalue(), "record_readable": _readable(record),
@@ -432,7 +441,7 @@ def add_arguments(p) -> None:
                    "of the driver; fr3's contact kinds stack-qp-fail after-contact only on their own: their world has an obstacle)")
     p.add_argument("--speeds", type=float, nargs="+", default=list(SPEEDS), metavar="FRACTION",
                    help="the swept joint's speeds, fractions of its velocity limit; every kind runs at each in turn "
-                        f"(the sim's contact kinds {', '.join(CONTACT)} on an arm at rest; default {' '.join(map(str, SPEEDS))})")
+                        f"(the contact kinds {', '.join(CONTACT)} swept into something; default {' '.join(map(str, SPEEDS))})")
     p.add_argument("--picture", metavar="FILE.png", help="draw each taxel's stopping distance of the run whose furthest "
                    "taxel travelled furthest, on the arm's pose at its onset")
     p.add_argument("--json", action="store_true", help="print the per-run rows as one JSON list")
@@ -467,8 +476,7 @@ def run(args) -> int:
         period = 0.001 if args.driver == "fr3" else 0.002  # the drivers' periods (skinsafe run's sim default)
         frame = 1.0 / args.rate
         the = _arm(args.driver, map_path, Timing(period, frame, 2 * frame + args.link_latency, 0.1))
-        at_rest = CONTACT if args.driver == "sim" else ()  # the sim's poke: speed 0, once per round of speeds
-        plan = list(dict.fromkeys((kind, 0.0) if kind in at_rest else (kind, v) for v in args.speeds for kind in kinds))
+        plan = [(kind, v) for v in args.speeds for kind in kinds]
         pose, worst = home, None
         for k in tqdm(range(args.runs), desc=f"fault runs ({args.driver})", file=sys.stderr):
             kind, speed = plan[k % len(plan)]

@@ -50,9 +50,10 @@ each block holds one whole sweep: the same contacts.
 `--faults`: the fault storm (`skinsafe faults`) in its own process, one row per fault kind and
 driver (`--robot`: sim, or fr3 against franky-sim): runs, detect_bound_ms (the monitor's bound for the kind that names it), onset_to_zero_ms_p50 /
 _max (the injection's time -> the zero command the driver sent), over_bound (runs over the bound),
-named_as_injected (fraction named by that kind), unnamed, tracebacks, records_readable (fraction),
+named_as_injected (fraction named by that kind), named_earlier (fraction named by the earlier cause the kind allows:
+after-contact at speed by its contact's own stack-latch, core/app/runtime_faults.py EARLIER), unnamed, tracebacks, records_readable (fraction),
 latched (fraction left in the monitor's protective stop); `--fault-kinds` picks kinds. One row per fault kind, driver and
-speed (`--fault-speeds`: the swept joint's speed, a fraction of its velocity limit; the contact kinds at rest): the
+speed (`--fault-speeds`: the swept joint's speed, a fraction of its velocity limit; the contact kinds swept into something): the
 stop as a safety engineer states it, from the arm's measured state (core/runtime/loop.py `Runtime.stopping`):
 stop_time_ms_p50 / _max (the onset -> every joint below 0.02 rad/s, on the robot's clock), stop_distance_mm_max (the
 furthest any taxel travelled from where it was at the onset, up to the rest), stop_missing (runs whose arm was not at
@@ -626,6 +627,7 @@ def fault_rows(args) -> list[dict]:
                      "model_distance_mm_max": max((r.get("model_distance_mm") or 0.0 for r in these), default=None),
                      "over_model": over_model,
                      "named_as_injected": float(np.mean([r["named_as_injected"] for r in these])),
+                     "named_earlier": float(np.mean([r.get("named_earlier", False) for r in these])),
                      "unnamed": sum(not r["named"] for r in these), "tracebacks": sum(r["traceback"] for r in these),
                      "records_readable": float(np.mean([r["record_readable"] for r in these])),
                      "latched": float(np.mean([r["latched"] for r in these])),

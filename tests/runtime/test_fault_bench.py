@@ -17,8 +17,8 @@ pytestmark = [pytest.mark.xdist_group("realtime"), pytest.mark.usefixtures("real
 
 SKINSAFE = str(Path(sys.executable).with_name("skinsafe"))
 KEYS = {"fault", "driver", "runs", "detect_bound_ms", "onset_to_zero_ms_p50", "onset_to_zero_ms_max", "over_bound",
-        "named_as_injected", "unnamed", "tracebacks", "records_readable", "latched", "speed", "stop_time_ms_p50",
-        "stop_time_ms_max", "stop_distance_mm_max", "stop_category", "over_model"}
+        "named_as_injected", "named_earlier", "unnamed", "tracebacks", "records_readable", "latched", "speed",
+        "stop_time_ms_p50", "stop_time_ms_max", "stop_distance_mm_max", "stop_category", "over_model"}
 # process death, a link hang-up, signals, the robot's own faults, non-finite and stack faults: within 2 control periods
 # + 5 ms at any link latency
 PROMPT = {"reader-kill", "board-unplug", "ctrl-c", "sim-die", "sim-clock-back", "reading-nan",
@@ -27,7 +27,7 @@ NEW = {"ctrl-c-twice": "operator", "reading-nan": "reading-nonfinite", "stack-na
        "stack-qp-fail": "stack-latch", "sim-overrun": "overrun", "reader-stall": "reader-stalled",
        "sim-nan": "robot-nonfinite", "command-nan": "command-bad", "after-contact": "after-contact",
        "crc-burst": "crc-storm"}  # issue 39's rows, issue 50's
-# one injection per kind of the monitor's table (the swept joint at a quarter of its limit; the contact kinds at rest):
+# one injection per kind of the monitor's table (the swept joint at a quarter of its limit, the contact kinds into a post):
 # ctrl-c-twice: tests/runtime/test_fr3_driver.py (two SIGINTs, one stop); crc-storm (its silent path):
 # test_runtime_closed_loop.py
 SKIP = ("ctrl-c-twice", "crc-storm")
@@ -51,7 +51,9 @@ def test_every_sim_fault_kind_is_one_row_stopped_within_its_bound():
             # CRC burst's adds the time its 5 corrupt frames took)
             assert r["detect_bound_ms"] == round(bound[Kind(NEW[r["fault"]])] * 1e3, 2), r
         assert (r["unnamed"], r["tracebacks"], r["records_readable"], r["latched"]) == (0, 0, 1.0, 1.0), r
-        assert r["named_as_injected"] == 1.0 and r["over_bound"] == 0, r
+        # after-contact at speed: its contact's own stack-latch (pushed beyond braking) may come first (EARLIER)
+        assert r["named_as_injected"] + r["named_earlier"] == 1.0 and r["over_bound"] == 0, r
+        assert r["named_earlier"] == 0.0 or r["fault"] == "after-contact", r
         assert r["onset_to_zero_ms_max"] <= r["detect_bound_ms"], r
         if r["fault"] in PROMPT:
             assert r["onset_to_zero_ms_max"] <= 2 * 2 + 5, r
