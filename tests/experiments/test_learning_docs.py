@@ -45,7 +45,8 @@ def prose(page: str) -> str:
         a = text.index(first)
         parts.append(text[a:text.index(end, a) if end else len(text)])
     out = "\n".join(parts)
-    for pattern in (MARKER, FENCE, re.compile(r"<!--.*?-->", re.S), re.compile(r"`[^`]*`"), re.compile(r"\]\([^)]*\)"), REFERENCE):
+    for pattern in (MARKER, FENCE, re.compile(r"<!--.*?-->", re.S), re.compile(r"</?[A-Za-z][^>]*>"), re.compile(r"`[^`]*`"),
+                    re.compile(r"\]\([^)]*\)"), REFERENCE):
         out = pattern.sub(" ", out)
     return out
 
