@@ -174,12 +174,12 @@ def one_thread() -> None:
         sys.modules["torch"].set_num_threads(1)
 
 
-def background() -> None:
+def background(niceness: int = 10) -> None:
     """In the view's processes before they start: the normal scheduler (not the run's real-time one, which a
-    child inherits: a page at SCHED_FIFO starved the emulated boards, stopped as silent) at nice 10."""
+    child inherits: a page at SCHED_FIFO starved the emulated boards, stopped as silent) at nice `niceness`."""
     if hasattr(os, "sched_setscheduler"):
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    os.nice(10)
+    os.nice(niceness)
 
 
 def single_thread_blas() -> bool:

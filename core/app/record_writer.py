@@ -10,13 +10,15 @@ tick's own arrays, which nobody writes again) until the ring has room: every tic
 message reaches the record, the stop's and the ramp's to rest included. `close(stop)` hands the backlog over, sends
 the stop and waits for the writer to finish the folder; a writer that died is named in the result's `error`.
 
-`start(...)` starts `python -m skinsafe.core.app.record_writer SHM SLOTS MAP DIR JOINT...` at the view's low
-priority (core/realtime.py `background`), the record's configuration on its stdin, and returns once the writer is
+`start(...)` starts `python -m skinsafe.core.app.record_writer SHM SLOTS MAP DIR JOINT...` on the normal scheduler
+at nice 0 (core/realtime.py `background`: not the loop's real-time priority; at the view's nice 10 on a loaded 2-core
+host it fell behind and dropped the telemetry of 10-55% of 16,331-taxel ticks), the record's configuration on its stdin, and returns once the writer is
 ready (an OSError naming the folder when it cannot write it). The writer ignores Ctrl+C (the run's handler stops the
 robot; the writer still gets the stop) and, when its run ends without a stop, finishes the record saying so.
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 import select
@@ -26,6 +28,7 @@ import sys
 from collections import deque
 from pathlib import Path
 
+from skinsafe.core.realtime import background
 from skinsafe.core.runtime.tick import Tick
 from skinsafe.core.runtime.view_share import SharedFrames
 
@@ -83,14 +86,14 @@ class RecordFeed:
         return self.result
 
 
-def start(path: Path, map_path: Path, joint_names: list[str], boards: list[int], n_taxels: int, config: dict,
-          preexec=None) -> RecordFeed:
+def start(path: Path, map_path: Path, joint_names: list[str], boards: list[int], n_taxels: int,
+          config: dict) -> RecordFeed:
     """The writer process of the record folder `path` and the loop's feed to it (module docstring)."""
     slots = max(MIN_SLOTS, RING_BYTES // SharedFrames.size(n_taxels, len(joint_names), len(boards), 1, True))
     frames = SharedFrames.create(n_taxels, len(joint_names), boards, slots, exact=True)
     proc = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.record_writer", frames.name, str(slots),
                              str(map_path), str(path), *joint_names], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                            preexec_fn=preexec)
+                            preexec_fn=functools.partial(background, 0))
     proc.stdin.write((json.dumps(config) + "\n").encode())
     proc.stdin.flush()
     line = proc.stdout.readline().decode().strip()

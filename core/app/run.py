@@ -514,7 +514,7 @@ def _wire(cfg: RunConfig, stack, feed, ports, inject, map_path, map_hash, robot,
             config["teleop"] = {"leader": cfg.teleop_leader or "", "key": command.key.path, "key_id": command.key.key_id}
         try:
             recorder = start_writer(Path(cfg.record), map_path.resolve(), driver.joint_names,
-                                    [b.uid for b in design.boards], design.n_taxels, config, preexec=background)
+                                    [b.uid for b in design.boards], design.n_taxels, config)
         except OSError as e:
             raise _Refused(2, f"--record {cfg.record}: {e}; choose a folder you can write to") from None
         stack.callback(recorder.close, {"reason": "the run ended before its stop", "kind": "fault"})

@@ -34,15 +34,17 @@ class SharedFrames:
     `newest` also renews its lease (`wanted` for LEASE_S more): the writer skips ticks nobody will read.
 
     Several slots (the record's writer process, core/app/record_writer.py): a ring every tick goes through in order,
-    `push` by the loop (False when full: it never waits) and `take` by the one reader, the forces as float64.
+    `push` by the loop (False when full: it never waits) and `take` by the one reader, the forces as float64 and
+    copied only when they are a new array (a new reading: the loop keeps its forces' array between readings; the
+    reader gives the last one it took meanwhile), a tenth of the ticks at 100 readings a second.
 
     Layout: `u64 lease end (monotonic ns) | u64 head (ticks pushed) | u64 tail (ticks taken) | u64 0`, then each slot
     `u64 seq | u64 n_pool | u64 text_len | u64 ns | f64 [t, retracting, pool, potential, speed_factor, frames_lost,
-    planned?, qd?, dt, force_new, reading_seq, ticked, command_age, command_refused, index, force?, telemetry?] | f64 q, qd,
+    planned?, qd?, dt, force_new, reading_seq, ticked, command_age, command_refused, index, force?, telemetry?, forces copied?] | f64 q, qd,
     command, planned (n_joints each) | f64 board ages (the boards' order, NaN: none) | forces (n_taxels; float32, or
     float64 with `exact`) | i32 pool | text: the stop reason and the flags, U+001E between them`."""
 
-    BLOCK, HEADER, SCALARS, TEXT = 4, 4, 17, 4096
+    BLOCK, HEADER, SCALARS, TEXT = 4, 4, 18, 4096
     LEASE_S = 0.25  # several of the view's reads (30 Hz), well under a second of a stalled reader
 
     def __init__(self, shm: shared_memory.SharedMemory, owner: bool, n_taxels: int, n_joints: int, boards,
@@ -57,6 +59,7 @@ class SharedFrames:
         self._pack = struct.Struct(f"<{self.nf}d").pack_into
         self._none = (0.0,) * n_joints
         self._seen, self._frame = 0, None
+        self._pushed = self._taken = None  # the ring's forces: the array last copied in, the one last copied out
         if owner:
             self._block[:] = 0
 
@@ -133,12 +136,14 @@ class SharedFrames:
         planned = f.planned if f.planned is not None else self._none
         qd = f.qd if f.qd is not None else self._none
         has_force = telemetry and f.force is not None
+        copy = has_force and (self.slots == 1 or f.force is not self._pushed)
         words[0] += np.uint64(1)
         self._pack(self.shm.buf, at, f.t, f.retracting, f.pool, f.potential, f.speed_factor, f.frames_lost,
                    f.planned is not None, f.qd is not None, f.dt, f.force_new, f.reading_seq, f.ticked, f.command_age,
-                   f.command_refused, f.index, has_force, telemetry, *f.q, *qd, *f.command, *planned, *ages)
-        if has_force:
+                   f.command_refused, f.index, has_force, telemetry, copy, *f.q, *qd, *f.command, *planned, *ages)
+        if copy:
             force[:] = f.force
+            self._pushed = f.force if self.slots > 1 else None
         elif self.slots == 1:
             force[:] = np.nan
         pool_v[:len(pool)] = pool
@@ -174,9 +179,10 @@ class SharedFrames:
         v, nj, k = f64.copy(), self.nj, self.SCALARS
         stop, *flags = text[:n_text].tobytes().decode(errors="replace").split("\x1e")
         ages = {b: float(a) for b, a in zip(self.boards, v[k + 4 * nj:]) if a == a}
-        has_force = v[15] or self.slots == 1
+        if v[17] or self.slots == 1:
+            self._taken = force.copy()
         return Tick(t=float(v[0]), q=v[k:k + nj], qd=v[k + nj:k + 2 * nj] if v[7] else None,
-                    force=force.copy() if has_force else None,
+                    force=self._taken if v[15] or self.slots == 1 else None,
                     command=v[k + 2 * nj:k + 3 * nj], retracting=bool(v[1]), pool=int(v[2]), flags=tuple(flags),
                     stop=stop, planned=v[k + 3 * nj:k + 4 * nj] if v[6] else None,
                     pool_taxels=pool[:n_pool].copy() if v[1] and v[16] else None, potential=float(v[3]),
