@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 
 from skinsafe.core.runtime.commands import CommandError, command_source
 from skinsafe.core.runtime.protocol import StopRobot
+from skinsafe.core.runtime.rosbag2 import record_file
 from skinsafe.core.runtime.teleop import (
     MAGIC,
     NO_KEY,
@@ -283,7 +284,7 @@ def test_the_hijack_fails_the_leader_keeps_the_arm_and_the_intruder_is_named(tmp
     assert name in stop_diag.message and name in values["teleop"]
     from mcap.reader import make_reader
 
-    with open(record, "rb") as f:
+    with open(record_file(record), "rb") as f:
         config = json.loads(next(m for m in make_reader(f).iter_metadata() if m.name == "skinsafe").metadata["config"])
     assert config["teleop"] == {"leader": "", "key": key.path, "key_id": key.key_id}
-    assert key.secret.hex() not in record.read_bytes().decode(errors="replace")
+    assert key.secret.hex() not in record_file(record).read_bytes().decode(errors="replace")
