@@ -7,13 +7,11 @@ serves; it rebuilds the robot and the URDF from the map, attaches to the block a
 """
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
-from skinsafe.core.runtime.view_share import SharedFrames
+from skinsafe.core.runtime.view_share import SharedFrames, wait_for_parent
 
 
 def start(frames: SharedFrames, map_path: Path, joint_names: list[str], port: int, preexec=None):
@@ -45,12 +43,7 @@ def _serve(argv: list[str]) -> int:
         print(f"error {e}", flush=True)
         return 2
     print(f"serving {live.port}", flush=True)
-    parent = os.getppid()
-    try:
-        while os.getppid() == parent:
-            time.sleep(0.2)
-    except KeyboardInterrupt:
-        pass
+    wait_for_parent()
     live.close()
     frames.close()
     return 0

@@ -231,6 +231,16 @@ def start_publisher(frames: SharedFrames, hello_message: bytes, host: str, port:
     return proc, (h, int(p))
 
 
+def wait_for_parent() -> None:
+    """Return when the process that started this one ends, or on Ctrl-C (a view server's life)."""
+    parent = os.getppid()
+    try:
+        while os.getppid() == parent:
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+
+
 def _serve(argv: list[str]) -> int:
     """`python -m skinsafe.core.runtime.view_share SHM HOST PORT`, the hello message on stdin: publish the block's
     frames until the run that started it ends."""
@@ -244,12 +254,7 @@ def _serve(argv: list[str]) -> int:
         print(f"error {e}", flush=True)
         return 2
     print(f"serving {pub.address[0]}:{pub.address[1]}", flush=True)
-    parent = os.getppid()
-    try:
-        while os.getppid() == parent:
-            time.sleep(0.2)
-    except KeyboardInterrupt:
-        pass
+    wait_for_parent()
     pub.close()
     frames.close()
     return 0
