@@ -100,9 +100,15 @@ def realtime_host(tmp_path_factory):
     """The machine's one real-time slot, held while a test runs the control loop (`skinsafe run`: SCHED_FIFO, the loop
     pinned to the first core, the PM QoS target held at 0, boards named silent after a set latency). Two at once, one
     per pytest-xdist worker, stall each other's ticks and frames: the `realtime` group's tests take it in turn on one
-    worker, the docs' blocks that run the loop wait for it on the other."""
+    worker; a docs block takes it only while its command that runs the loop does (`realtime_lock`)."""
     with realtime_slot(tmp_path_factory):
         yield
+
+
+@pytest.fixture(scope="session")
+def realtime_lock(tmp_path_factory):
+    """The file whose lock (flock) is the real-time slot: a shell script holds the slot with `flock` on it."""
+    return slot_file(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")
@@ -112,11 +118,15 @@ def realtime_host_module(tmp_path_factory):
         yield
 
 
+def slot_file(tmp_path_factory):
+    return run_folder(tmp_path_factory) / "realtime.lock"
+
+
 @contextlib.contextmanager
 def realtime_slot(tmp_path_factory):
     import fcntl
 
-    with open(run_folder(tmp_path_factory) / "realtime.lock", "w") as f:
+    with open(slot_file(tmp_path_factory), "a") as f:
         fcntl.flock(f, fcntl.LOCK_EX)
         yield
 

@@ -118,7 +118,7 @@ def clone(tmp_path_factory):
 
 
 FAILED = "readme-test: failed: "
-LOOP = re.compile(r"\bskinsafe (run|bench runtime)\b")  # commands that start `skinsafe run` (conftest.realtime_host)
+LOOP = re.compile(r"\bskinsafe (run|bench runtime)\b")  # commands that start `skinsafe run` (the real-time slot)
 
 
 def missing_part(out: str, returncode: int) -> str | None:
@@ -138,7 +138,9 @@ def test_a_command_missing_a_part_skips_its_block_and_any_other_failure_fails():
     assert missing_part("missing system part: x\n", 2) is None  # no failed command
 
 
-def _script(cmds: list[str]) -> str:
+def _script(cmds: list[str], slot: Path) -> str:
+    """The block as one bash script; a command that runs the control loop holds the machine's real-time slot (`slot`,
+    conftest.realtime_lock: flock on that file) while it runs, its neighbours not."""
     lines = ["set -euo pipefail", f"trap 'echo \"{FAILED}$BASH_COMMAND\" >&2' ERR"]
     for c in cmds:
         op, what = DIRECTIVES.get(c, ("", ""))
@@ -146,21 +148,40 @@ def _script(cmds: list[str]) -> str:
             lines.append(f"echo {shlex.quote('readme-test: not run: ' + c + ' (' + what + ')')}")
             continue
         run = f"{c} {what}" if op == "+=" else c
-        lines += [f"echo {shlex.quote('$ ' + run)} >&2", run]
+        lines.append(f"echo {shlex.quote('$ ' + run)} >&2")
+        if LOOP.search(c):
+            assert not c.endswith("&"), f"docs: `{c}`: the control loop in the background would run without its slot"
+            run = f"{{ flock 9; {run}; }} 9>>{shlex.quote(str(slot))}"
+        lines.append(run)
     return "\n".join(lines) + "\n"
+
+
+def test_only_the_loop_holds_the_real_time_slot(tmp_path):
+    """The slot is held while the loop's command runs (flock, the lock conftest.realtime_slot takes) and given back
+    after it: the block's next command runs while another process takes the slot."""
+    import fcntl
+
+    slot, between = tmp_path / "realtime.lock", tmp_path / "between"
+    script = _script([f"echo skinsafe run; if flock -n {slot} true; then exit 7; fi", f"touch {between} && sleep 5"], slot)
+    assert script.count("flock 9") == 1
+    proc = subprocess.Popen(["bash", "-c", script], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        while not between.exists():
+            assert proc.poll() is None, f"the slot was free while the loop's command ran: {proc.stderr.read()}"
+            time.sleep(0.05)
+        with open(slot, "a") as f:  # taken here while the block's next command runs
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    finally:
+        proc.kill()
+        proc.wait()
 
 
 def block_group(page: str) -> str:
     """The pytest-xdist group of a page's blocks: one worker runs a group's blocks in order (a block may use an
     earlier one's files); the groups never use each other's files (the simulate pages make the map the deploy page
-    deploys, the run page the map the live view shows), so two workers can run two groups at once. A page whose
-    blocks run the control loop joins the `realtime` group (the tests that run it too): one worker runs them all in
-    turn, none waits for the machine's real-time slot (`realtime_host`) while the other holds it."""
-    loop = {_section(p) for p, _, cmds in BLOCKS if any(LOOP.search(c) for c in cmds)}
-    return "realtime" if _section(page) in loop else _section(page)
-
-
-def _section(page: str) -> str:
+    deploys, the run page the map the live view shows), so two workers can run two groups at once. A command that
+    runs the control loop waits for the machine's real-time slot (`_script`), the block's other commands (designs,
+    replays, views) run beside the `realtime` group's tests."""
     parts = page.split("/")
     if len(parts) < 3:
         return "docs-" + parts[-1].removesuffix(".md").lower()
@@ -170,14 +191,12 @@ def _section(page: str) -> str:
 @pytest.mark.parametrize("page,line,cmds", [pytest.param(p, n, c, marks=pytest.mark.xdist_group(block_group(p)))
                                              for p, n, c in BLOCKS],
                          ids=[f"{p}:{n}-{c[0].split(' #')[0][:40]}" if c else f"{p}:{n}" for p, n, c in BLOCKS])
-def test_docs_bash_block_runs_as_written(clone, page, line, cmds, tmp_path, request):
-    if any(LOOP.search(c) for c in cmds):  # the control loop: never beside the `realtime` group's (pytest-xdist)
-        request.getfixturevalue("realtime_host")
+def test_docs_bash_block_runs_as_written(clone, page, line, cmds, tmp_path, realtime_lock):
     env = {**os.environ, "PATH": f"{Path(sys.prefix) / 'bin'}{os.pathsep}{os.environ['PATH']}", "MPLBACKEND": "Agg"}
     log = tmp_path / "out.txt"
     t = time.perf_counter()
     with open(log, "w") as f:  # a file, not a pipe: a command left running in the background cannot hold it open
-        proc = subprocess.Popen(["bash", "-c", _script(cmds)], cwd=clone, env=env, stdout=f, stderr=subprocess.STDOUT,
+        proc = subprocess.Popen(["bash", "-c", _script(cmds, realtime_lock)], cwd=clone, env=env, stdout=f, stderr=subprocess.STDOUT,
                                 start_new_session=True)
         try:
             proc.wait(timeout=600)
