@@ -7,6 +7,7 @@ import json
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -33,17 +34,22 @@ SWING = np.array([0.3, 0, 0, 0, 0, 0, 0])  # rad/s of the base joint
 LINK_LATENCY = 0.5  # s: the shared test machine's kernel holds serial input this late at times (README)
 # one world, in order (the last test kills it); SCHED_FIFO (conftest.realtime_host)
 pytestmark = [pytest.mark.xdist_group("realtime"), pytest.mark.usefixtures("realtime_host")]
-HANG_S = 300  # s: no test here takes a tenth of it
+HANG_S = 120  # s: no test here takes half of it
+HANG_LOG = Path(tempfile.gettempdir()) / "skinsafe-fr3-hang.txt"  # where the stacks of a hung test go (xdist eats stderr)
 
 
 @pytest.fixture(autouse=True)
-def no_hang():
+def no_hang(request):
     """pylibfranka's readOnce waits for the robot's next state holding the interpreter lock, so a world that stops
     sending states would hang the suite where no Python timeout can act: faulthandler's watchdog (a C thread, no
-    lock needed) dumps every thread's stack and ends the process instead, a failure that names where it stood."""
-    faulthandler.dump_traceback_later(HANG_S, exit=True)
-    yield
-    faulthandler.cancel_dump_traceback_later()
+    lock needed) dumps every thread's stack to HANG_LOG and ends the process instead, a failure that names where it
+    stood."""
+    with HANG_LOG.open("a") as log:
+        log.write(f"{time.strftime('%F %T')} {request.node.nodeid}\n")
+        log.flush()
+        faulthandler.dump_traceback_later(HANG_S, exit=True, file=log)
+        yield
+        faulthandler.cancel_dump_traceback_later()
 
 
 @pytest.fixture(scope="module")
@@ -106,7 +112,7 @@ def test_fr3_run_senses_the_hand_retracts_and_replays(fr3_map, world, tmp_path):
     assert s["loop_hz_robot_p50"] == pytest.approx(1000, rel=1e-3) and s["world"]["success_rate_min"] > 0.5
     m = topics(record)
     threshold = float(taxel_map.load(fr3_map).taxels.thresholds["force"].min())
-    felt = [t for t, msg in m["/skinsafe/taxels"] if max(msg.data) > threshold]
+    felt = [t for t, msg in m["/skinsafe/forces"] if max(msg.force) > threshold]
     assert felt, "the skin never sensed the hand"
     cmd = np.array([msg.velocity for t, msg in m["/skinsafe/command"]])
     ct = np.array([t for t, _ in m["/skinsafe/command"]])
