@@ -3,6 +3,7 @@
 bpy is imported first: pymeshlab and bpy both bundle Embree, and bpy fails to import after pymeshlab.
 """
 import contextlib
+from pathlib import Path
 
 import bpy  # noqa: F401  (must precede any pymeshlab import)
 import matplotlib
@@ -183,7 +184,31 @@ def pytest_runtest_teardown(item, nextitem):
             item.user_properties.append(("cpu_s", _cpu_s() - start))
 
 
+def pytest_configure(config):
+    """The run's hang log (SKINSAFE_HANG_LOG, inherited by xdist's workers): a test that guards a C call holding the
+    interpreter lock with faulthandler (tests/runtime/test_fr3_driver.py) dumps its stacks there before it ends its
+    worker, whose stderr xdist drops; the summary prints it."""
+    import os
+    import tempfile
+
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        log = Path(tempfile.gettempdir()) / f"skinsafe-hangs-{os.getpid()}.txt"
+        log.unlink(missing_ok=True)
+        os.environ["SKINSAFE_HANG_LOG"] = str(log)
+
+
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """A hung test's stacks (SKINSAFE_HANG_LOG), then the run's times (`_times_summary`)."""
+    import os
+
+    log = Path(os.environ.get("SKINSAFE_HANG_LOG", "/nonexistent"))
+    if not os.environ.get("PYTEST_XDIST_WORKER") and log.is_file() and "Thread 0x" in log.read_text():
+        terminalreporter.write_sep("=", f"a test hung: its stacks ({log})")
+        terminalreporter.write(log.read_text())
+    _times_summary(terminalreporter, exitstatus, config)
+
+
+def _times_summary(terminalreporter, exitstatus, config):
     """With SKINSAFE_TEST_TIMES=FILE: the run's wall time, its outcome counts, the machine's busy and idle CPU seconds
     over the run (every process, not only the tests'), the 20 slowest tests (setup + call + teardown) and every test's
     [node id, wall s, CPU s, start s after the run's, worker] as JSON,

@@ -4,6 +4,7 @@ through emulated boards over pseudo-terminals: three processes, two protocols (s
 One franky-sim world serves the module (the last test kills it); the driver's own stops run on it too."""
 import faulthandler
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -35,7 +36,8 @@ LINK_LATENCY = 0.5  # s: the shared test machine's kernel holds serial input thi
 # one world, in order (the last test kills it); SCHED_FIFO (conftest.realtime_host)
 pytestmark = [pytest.mark.xdist_group("realtime"), pytest.mark.usefixtures("realtime_host")]
 HANG_S = 120  # s: no test here takes half of it
-HANG_LOG = Path(tempfile.gettempdir()) / "skinsafe-fr3-hang.txt"  # where the stacks of a hung test go (xdist eats stderr)
+# where a hung test's stacks go (tests/conftest.py prints them; xdist drops a worker's stderr)
+HANG_LOG = Path(os.environ.get("SKINSAFE_HANG_LOG") or Path(tempfile.gettempdir()) / "skinsafe-hangs.txt")
 
 
 @pytest.fixture(autouse=True)
