@@ -84,7 +84,8 @@ def constant(module: str, path: str):
         raise FigureError(f"no module '{module}' ({e})") from None
     keys = path.split(".")
     for i, key in enumerate(keys):
-        data = data.tolist() if hasattr(data, "tolist") else data  # a numpy array: a list, reduced as lookup does
+        data = data.tolist() if hasattr(data, "tolist") else list(data) if isinstance(data, tuple) else data  # a
+        # numpy array or a tuple: a list, walked and reduced as lookup does
         if isinstance(data, (dict, list)):
             return lookup(data, ".".join(keys[i:]) + "".join(ops))
         try:
