@@ -28,6 +28,7 @@ host's serial input stalled; none mean the board was (`summary["silences"]`).
 """
 from __future__ import annotations
 
+import gc
 import select
 import signal
 import sys
@@ -169,7 +170,9 @@ class BoardsReader:
 
     # -- running -------------------------------------------------------------------------------
     def run(self, rx: Connection, tx: Connection, state: ForceFeed, beat: ForceFeed) -> None:
-        """Read, publish and name faults until the parent says stop (or its pipe closes)."""
+        """Read, publish and name faults until the parent says stop (or its pipe closes); no collector pass over
+        everything imported holds a frame up (`gc.freeze`)."""
+        gc.freeze()
         self.t_newest = time.monotonic()
         self.running = True
         self._publish(state)
