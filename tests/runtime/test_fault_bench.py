@@ -12,9 +12,6 @@ import pytest
 from skinsafe.core.app.runtime_faults import EXPECT
 from skinsafe.core.runtime.monitor import Kind, Timing, bounds
 
-# `skinsafe run`s (SCHED_FIFO, core 0, timed watchdogs): one at a time (conftest.realtime_host)
-pytestmark = [pytest.mark.xdist_group("realtime"), pytest.mark.usefixtures("realtime_host")]
-
 SKINSAFE = str(Path(sys.executable).with_name("skinsafe"))
 KEYS = {"fault", "driver", "runs", "detect_bound_ms", "onset_to_zero_ms_p50", "onset_to_zero_ms_max", "over_bound",
         "named_as_injected", "named_earlier", "unnamed", "tracebacks", "records_readable", "latched", "speed",
@@ -35,6 +32,9 @@ KINDS = [k for k in EXPECT if not k.startswith("robot-") and k not in SKIP]
 RUNS = len(KINDS)
 
 
+# `skinsafe run`s (SCHED_FIFO, core 0, timed watchdogs): one at a time (conftest.realtime_host)
+@pytest.mark.xdist_group("realtime")
+@pytest.mark.usefixtures("realtime_host")
 def test_every_sim_fault_kind_is_one_row_stopped_within_its_bound():
     out = subprocess.run([SKINSAFE, "bench", "runtime", "--faults", "--runs", str(RUNS), "--link-latency", "0.5",
                           "--fault-speeds", "0.25", "--fault-kinds", *KINDS, "--json"], capture_output=True, text=True,
@@ -66,7 +66,8 @@ def test_every_sim_fault_kind_is_one_row_stopped_within_its_bound():
 
 
 def test_the_fr3_contact_kinds_are_given_on_their_own():
-    """Their world has an obstacle the others' runs must not meet: mixed with other kinds, refused in one line."""
+    """Their world has an obstacle the others' runs must not meet: mixed with other kinds, refused in one line (before
+    any run: no real-time slot)."""
     out = subprocess.run([SKINSAFE, "faults", "--driver", "fr3", "--kinds", "stack-qp-fail", "board-unplug"],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "Traceback" not in out.stderr
