@@ -8,7 +8,8 @@ The loop only copies a tick's arrays into the ring (`RecordFeed.put`, never wait
 writer behind) the tick's telemetry is dropped and counted, and its safety topics wait in the loop's backlog (the
 tick's own arrays, which nobody writes again) until the ring has room: every tick's joint state, command and tick
 message reaches the record, the stop's and the ramp's to rest included. `close(stop)` hands the backlog over, sends
-the stop and waits for the writer to finish the folder; a writer that died is named in the result's `error`.
+the stop and waits for the writer to finish the folder; a writer that died is named in the result's `error`, and
+what it had written is recovered into the folder (core/runtime/record_recover.py; `recovered`: its path).
 
 `start(...)` starts `python -m skinsafe.core.app.record_writer SHM SLOTS MAP DIR JOINT...` on the normal scheduler
 at nice 0 (core/realtime.py `background`: not the loop's real-time priority; at the view's nice 10 on a loaded 2-core
@@ -29,6 +30,7 @@ from collections import deque
 from pathlib import Path
 
 from skinsafe.core.realtime import background
+from skinsafe.core.runtime.record_recover import recover
 from skinsafe.core.runtime.tick import Tick
 from skinsafe.core.runtime.view_share import SharedFrames
 
@@ -80,9 +82,15 @@ class RecordFeed:
             self.result = json.loads(line) | {"dropped": self.dropped}
         except ValueError:
             how = f"killed by signal {-rc}" if rc < 0 else f"exit {rc}"
-            self.result = {"written": 0, "dropped": self.dropped,
-                           "error": f"the record's writer process (pid {self.proc.pid}) died ({how}); "
-                                    f"{self.path.name}.part holds the record up to then, unfinished"}
+            died = f"the record's writer process (pid {self.proc.pid}) died ({how})"
+            try:
+                kept = recover(self.path, died)
+            except OSError as e:  # a folder that cannot be written
+                self.result = {"written": 0, "dropped": self.dropped,
+                               "error": f"{died}; {self.path.name}.part cannot be recovered ({e})"}
+            else:
+                self.result = {"written": kept["written"], "dropped": self.dropped, "recovered": kept["path"],
+                               "error": f"{died}; recovered what it had written into {kept['path']}"}
         return self.result
 
 

@@ -17,8 +17,7 @@ from collections.abc import Callable
 
 from foxglove.websocket import ServerListener
 
-from skinsafe.core.runtime.record import JointStateEncoder
-from skinsafe.core.runtime.ros2_msgs import schema
+from skinsafe.core.runtime.ros2_msgs import JointStateEncoder, schema
 from skinsafe.core.runtime.ros2_topics import LATCHED, TOPICS, Ros2Topics
 from skinsafe.core.runtime.tick import Tick
 

@@ -1,14 +1,14 @@
 """A record (`skinsafe run --record`, or an experiment's: core/runtime/sim_record.py) as arrays for a viewer:
 each tick's time, q, command, forces, layers' states and (an experiment's moving person) obstacle poses,
 any tick in the view stream's frame format, the next contact after a time. Used by `skinsafe view
-FILE.mcap` and Blender's live link (mcap and mcap-ros2-support read it; no mujoco)."""
+DIR` and Blender's live link; every record version read by core/runtime/record_read.py (no mujoco)."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
 
-from skinsafe.core.runtime.replay import ReplayError, read_record
+from skinsafe.core.runtime.record_read import NO_LAYERS, ReplayError, read_record
 from skinsafe.core.runtime.tick import Tick
 from skinsafe.core.runtime.view_stream import frame_header
 
@@ -17,32 +17,20 @@ class Recording:
     """A record's ticks as arrays (time on the robot's clock) and the view-stream frame of any tick."""
 
     def __init__(self, path: str | Path):
-        self.config, messages = read_record(path, diagnostics=True)
-        t, q, cmd, planned, force_at, layers, poses, diag = [], [], [], [], [], [], [], []
-        forces, cur = [], {}
-        for topic, msg in messages:
-            if topic == "/joint_states":
-                cur["q"] = np.asarray(msg.position, float)
-            elif topic == "/skinsafe/command":
-                cur["command"] = np.asarray(msg.velocity, float)
-            elif topic == "/skinsafe/planned":
-                cur["planned"] = np.asarray(msg.velocity, float)
-            elif topic == "/skinsafe/taxels":
-                forces.append(msg.astype(np.float32))
-            elif topic == "/skinsafe/obstacles":
-                cur["obstacles"] = np.asarray(msg.data, float).reshape(-1, 7)
-            elif topic == "/skinsafe/layers" and layers:  # written after its tick's /skinsafe/tick
-                layers[-1] = msg
-            elif topic == "/skinsafe/tick":
-                t.append(msg[0])
-                q.append(cur.get("q"))
-                cmd.append(cur.get("command"))
-                planned.append(cur.get("planned"))
-                force_at.append(len(forces) - 1)
-                layers.append(None)
-                poses.append(cur.pop("obstacles", None))
-            elif topic == "/diagnostics":
-                diag.append((t[-1] if t else 0.0, _diagnostics(msg)))
+        self.config, ticks = read_record(path)
+        t, q, cmd, planned, force_at, layers, poses, diag, forces = [], [], [], [], [], [], [], [], []
+        for k in ticks:
+            if k.force is not None:
+                forces.append(k.force.astype(np.float32))
+            t.append(k.t)
+            q.append(k.q)
+            cmd.append(k.command)
+            planned.append(k.planned)
+            force_at.append(len(forces) - 1)
+            layers.append(k.layers or NO_LAYERS)
+            poses.append(k.obstacles)
+            if k.status:
+                diag.append((k.t, k.status))
         if not t or q[0] is None:
             raise ReplayError(f"{path}: no tick recorded (the robot never moved)")
         self.t = np.asarray(t)
@@ -50,16 +38,15 @@ class Recording:
         self.planned = planned
         self.forces = np.array(forces) if forces else np.zeros((1, 0), np.float32)
         self.force_at = np.asarray(force_at)
-        none = np.array([0.0, 1.0, 0.0, 0.0])
-        self.layers = [x if x is not None else none for x in layers]
-        self.potential = np.array([x[0] for x in self.layers])
-        self.speed_factor = np.array([x[1] for x in self.layers])
-        self.retracting = np.array([x[2] for x in self.layers])
+        self.layers = layers
+        self.potential = np.array([x.potential for x in layers])
+        self.speed_factor = np.array([x.speed_factor for x in layers])
+        self.retracting = np.array([float(x.retracting) for x in layers])
         # (ticks, P, 7) poses of the metadata's obstacles, or None: they stand still (runs, older records)
         self.obstacles = np.array(poses) if all(p is not None for p in poses) else None
-        ticks = [d for d in diag if "skinsafe/layers" in d[1]]  # the ticks' diagnostics (not the stop's)
-        self.diag_t = np.array([d[0] for d in ticks])
-        self.diag = [d[1] for d in ticks]
+        ticked = [d for d in diag if "skinsafe/layers" in d[1]]  # the ticks' diagnostics (not the stop's)
+        self.diag_t = np.array([d[0] for d in ticked])
+        self.diag = [d[1] for d in ticked]
         self.stop = next((d["skinsafe/watchdog"]["message"] for _, d in diag[::-1] if "skinsafe/watchdog" in d), "")
         peak = np.array([np.nanmax(f) if f.size else 0.0 for f in self.forces])
         self.peak = np.where(self.force_at >= 0, peak[np.maximum(self.force_at, 0)], 0.0)
@@ -81,10 +68,10 @@ class Recording:
         layers = d.get("skinsafe/layers", {}).get("values", {})
         skin = d.get("skinsafe/skin", {}).get("values", {})
         ages = {int(k.split()[1], 16): float(v) / 1e3 for k, v in skin.items() if k.startswith("board ")}
-        pool = np.asarray(lay[4:], int)
+        pool = np.asarray(lay.pool, int)
         return Tick(t=float(self.t[i]), q=self.q[i], command=self.command[i], planned=self.planned[i], force=force,
-                    retracting=bool(lay[2]), pool=len(pool), pool_taxels=pool, potential=float(lay[0]),
-                    speed_factor=float(lay[1]), flags=tuple(f for f in layers.get("flags", "").split(",") if f),
+                    retracting=lay.retracting, pool=len(pool), pool_taxels=pool, potential=float(lay.potential),
+                    speed_factor=float(lay.speed_factor), flags=tuple(f for f in layers.get("flags", "").split(",") if f),
                     stop=self.stop if i == len(self.t) - 1 else "", board_age_s=ages,
                     frames_lost=int(skin.get("frames_lost", 0)), index=i + 1,
                     obstacles=None if self.obstacles is None else self.obstacles[i])
@@ -108,7 +95,3 @@ class Recording:
         end = start + int(np.argmax(self.active[start:] == 0)) if (self.active[start:] == 0).any() else len(self.t)
         return float(self.t[start + int(np.argmax(self.peak[start:end]))])
 
-
-def _diagnostics(msg) -> dict:
-    return {s.name: {"level": int(s.level), "message": s.message, "values": {kv.key: kv.value for kv in s.values}}
-            for s in msg.status}

@@ -1,11 +1,14 @@
 """ROS 2 messages for the record and the live Foxglove stream: their schema texts and CDR encoders.
 
 Schemas come from rosbags' ROS 2 Jazzy type store (`schema`, `type_hash`: the text and RIHS01 hash a
-rosbag2 stores), plus two packages a ROS install may lack, registered from their message definitions so
-the record carries them: `tactile_msgs/msg/TactileState` (ubi-agni's tactile_toolbox: a header and named
-sensor arrays, `sensor_msgs/ChannelFloat32`) and `skinsafe_msgs/msg/LayerState` (the safety layers' state
-as named fields). Encoders write little-endian CDR with numpy for the arrays (rosbags' serializer gives the
-same bytes, tested; it builds a Python object per element, milliseconds for a skin's thousands of taxels).
+rosbag2 stores), plus packages a ROS install may lack, registered from their message definitions so the
+record carries them: `tactile_msgs/msg/TactileState` (ubi-agni's tactile_toolbox: a header and named
+sensor arrays, `sensor_msgs/ChannelFloat32`) and skinsafe's own: `LayerState` (the safety layers' state as
+named fields), `Tick` (a control tick: the robot's clock as the layers saw it, the stamp being it rounded to
+nanoseconds) and `TaxelForces` (a reading as the layers saw it, float64 in the taxel map's order: what a
+replay needs exactly; TactileState's float32 is for viewers). One encoder per message type, little-endian
+CDR with numpy for the arrays (rosbags' serializer gives the same bytes, tested; it builds a Python object
+per element, milliseconds for a skin's thousands of taxels).
 """
 from __future__ import annotations
 
@@ -18,7 +21,10 @@ import numpy as np
 TACTILE_STATE = "std_msgs/Header header\nsensor_msgs/ChannelFloat32[] sensors\n"
 LAYER_STATE = ("std_msgs/Header header\nfloat64 potential\nfloat64 speed_factor\nbool retracting\n"
                "uint32[] pool_taxels\nstring[] flags\nstring stop\n")
-PACKAGES = {"tactile_msgs/msg/TactileState": TACTILE_STATE, "skinsafe_msgs/msg/LayerState": LAYER_STATE}
+TICK = "std_msgs/Header header\nfloat64 t\nfloat64 dt\nfloat64 reading_seq\nuint64 index\nbool ticked\n"
+TAXEL_FORCES = "std_msgs/Header header\nfloat64[] force\n"
+PACKAGES = {"tactile_msgs/msg/TactileState": TACTILE_STATE, "skinsafe_msgs/msg/LayerState": LAYER_STATE,
+            "skinsafe_msgs/msg/Tick": TICK, "skinsafe_msgs/msg/TaxelForces": TAXEL_FORCES}
 CDR_LE = b"\x00\x01\x00\x00"
 FLOAT32 = 7  # sensor_msgs/PointField datatype
 LOG_INFO, LOG_WARN, LOG_ERROR = 20, 30, 40  # rcl_interfaces/msg/Log levels
@@ -48,8 +54,8 @@ def type_hash(name: str) -> str:
 class Cdr:
     """One message's CDR bytes, built field by field (alignment counted from after the encapsulation header)."""
 
-    def __init__(self):
-        self.buf = bytearray(CDR_LE)
+    def __init__(self, start: bytes = CDR_LE):
+        self.buf = bytearray(start)
 
     def align(self, n: int) -> Cdr:
         self.buf += b"\0" * (-(len(self.buf) - 4) % n)
@@ -80,6 +86,54 @@ class Cdr:
 
     def bytes(self) -> bytes:
         return bytes(self.buf)
+
+
+class JointStateEncoder:
+    """sensor_msgs/msg/JointState for one robot's joint names (laid out once: a message writes its stamp and
+    numbers)."""
+
+    def __init__(self, names: list[str], frame: str = ""):
+        c = Cdr().header(0.0, frame).pack("I", len(names))
+        for n in names:
+            c.string(n)
+        self.head = bytes(c.buf)
+
+    def __call__(self, t: float, position=(), velocity=(), effort=()) -> bytes:
+        c = Cdr(self.head)
+        struct.pack_into("<iI", c.buf, 4, *_sec_ns(t))
+        for x in (position, velocity, effort):
+            c.array(np.asarray(x, float), "<f8")
+        return c.bytes()
+
+
+def diagnostics(t: float, status: list) -> bytes:
+    """diagnostic_msgs/msg/DiagnosticArray: `status` = [(name, level, message, [(key, value)])], from skinsafe."""
+    c = Cdr().header(t).pack("I", len(status))
+    for name, level, message, values in status:
+        c.pack("B", level, size=1).string(name).string(message).string("skinsafe").pack("I", len(values))
+        for k, v in values:
+            c.string(k).string(v)
+    return c.bytes()
+
+
+def tick(t: float, dt: float, reading_seq: float, index: int, ticked: bool) -> bytes:
+    """skinsafe_msgs/msg/Tick (`TICK`)."""
+    return Cdr().header(t).pack("ddd", t, dt, reading_seq, size=8).pack("Q", index, size=8).pack(
+        "B", bool(ticked), size=1).bytes()
+
+
+def taxel_forces(t: float, force: np.ndarray) -> bytes:
+    """skinsafe_msgs/msg/TaxelForces (`TAXEL_FORCES`)."""
+    return Cdr().header(t).array(force, "<f8").bytes()
+
+
+def pose_array(t: float, frame: str, poses: np.ndarray) -> bytes:
+    """geometry_msgs/msg/PoseArray of (P, 7) poses: position, quaternion w x y z."""
+    poses = np.asarray(poses, float).reshape(-1, 7)
+    c = Cdr().header(t, frame).pack("I", len(poses))
+    if len(poses):
+        c.align(8).buf += np.ascontiguousarray(poses[:, [0, 1, 2, 4, 5, 6, 3]], "<f8").tobytes()
+    return c.bytes()
 
 
 def string_msg(text: str) -> bytes:

@@ -9,12 +9,12 @@ layers' state and their faults, each tick turned into ROS 2 messages (core/runti
 | `/skinsafe/tactile` | tactile_msgs/TactileState | `rate_hz` | one sensor per board (its name), values by channel (N; NaN: no taxel): the newest reading |
 | `/skinsafe/skin` | sensor_msgs/PointCloud2 | `rate_hz` | `world`: x, y, z, force (N) of every taxel |
 | `/skinsafe/contacts` | sensor_msgs/PointCloud2 | `rate_hz` | `world`: x, y, z, force, priority (0 first) of the taxels the layers retract from |
-| `/skinsafe/state` | skinsafe_msgs/LayerState | `rate_hz` | danger potential, speed factor, retracting, the taxel ids retracted from, flags, stop |
+| `/skinsafe/state` | skinsafe_msgs/LayerState | every tick (the record writes it: `state`) | danger potential, speed factor, retracting, the taxel ids retracted from, flags, stop |
 | `/rosout` | rcl_interfaces/Log | on a change of the layers' flags (WARN), on the stop (WARN) | |
 
 `world` is the MuJoCo model's world (the robot's base); stamps are the robot's clock. The rate is counted on
 the robot's clock, so a record holds the same messages however fast it was written; `every=True` (the live
-stream, which samples ticks) gives every topic of the tick.
+stream, which samples ticks) gives every topic of the tick, `/skinsafe/state` included.
 """
 from __future__ import annotations
 
@@ -44,6 +44,13 @@ def _relative(qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
     w2, x2, y2, z2 = qb.T
     return np.column_stack([w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2, w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
                             w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2, w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2])
+
+
+def state(k: Tick, ids: np.ndarray | None = None) -> bytes:
+    """Tick k's skinsafe_msgs/LayerState, its retracting taxels named by `ids` (None: by index)."""
+    pool = np.zeros(0, np.int64) if k.pool_taxels is None else np.asarray(k.pool_taxels, np.int64)
+    return msgs.layer_state(k.t, k.potential, k.speed_factor, k.retracting, pool if ids is None else ids[pool],
+                            k.flags, k.stop)
 
 
 class Ros2Topics:
@@ -100,8 +107,13 @@ class Ros2Topics:
             out[rows] += d.xpos[b]
         return out if self.inverse is None else out[self.inverse]
 
+    def state(self, k: Tick) -> bytes:
+        """Tick k's `/skinsafe/state`."""
+        return state(k, self.ids)
+
     def tick(self, k: Tick, every: bool = False) -> list[tuple[str, bytes]]:
-        """Tick k's messages (module docstring)."""
+        """Tick k's messages (module docstring): at the rate, or all with `every`; `/skinsafe/state` only with
+        `every` (a record writes it every tick)."""
         t, out = k.t, []
         pool = np.zeros(0, np.int64) if k.pool_taxels is None else np.asarray(k.pool_taxels, np.int64)
         if every or t >= self.due:
@@ -116,9 +128,9 @@ class Ros2Topics:
             contacts = np.empty((len(pool), 5), np.float32)
             contacts[:, :4], contacts[:, 4] = skin[pool], np.arange(len(pool))
             out += [("/skinsafe/skin", msgs.point_cloud(t, WORLD, SKIN_FIELDS, skin)),
-                    ("/skinsafe/contacts", msgs.point_cloud(t, WORLD, CONTACT_FIELDS, contacts)),
-                    ("/skinsafe/state", msgs.layer_state(t, k.potential, k.speed_factor, k.retracting, self.ids[pool],
-                                                         k.flags, k.stop))]
+                    ("/skinsafe/contacts", msgs.point_cloud(t, WORLD, CONTACT_FIELDS, contacts))]
+            if every:
+                out.append(("/skinsafe/state", self.state(k)))
         if k.flags != self.flags:
             self.flags = k.flags
             out.append(("/rosout", msgs.log(t, msgs.LOG_WARN, "skinsafe/layers",

@@ -3,8 +3,9 @@
 `DIR/metadata.yaml` (rosbag2 format version 9: each topic's type, RIHS01 type hash, offered QoS and message
 count; the record's version in `custom_data`) beside `DIR/DIR_0.mcap` (storage `mcap`). Latched topics
 (`/robot_description`, `/tf_static`) are offered transient local, so a late subscriber gets them on play.
-Record versions: 1, a bare `FILE.mcap` (skinsafe before the ROS 2 topics; still replayed and viewed);
-2, the folder.
+Record versions (core/runtime/record_read.py reads each): 1, a bare `FILE.mcap` (skinsafe before the ROS 2
+topics); 2, the folder, the tick, forces and layers still as Float64MultiArray; 3, those typed (the folder of a run,
+a bare `FILE.mcap` of an experiment).
 """
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from pathlib import Path
 
 from skinsafe.core.runtime.ros2_msgs import type_hash
 
-RECORD_VERSION = 2
+RECORD_VERSION = 3
 METADATA = "metadata.yaml"
 
 

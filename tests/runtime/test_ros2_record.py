@@ -8,6 +8,7 @@ import re
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import mujoco
@@ -71,7 +72,7 @@ def rosbags_messages(folder: Path) -> dict:
     with AnyReader([folder], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         for con, _, raw in reader.messages():
             out.setdefault(con.topic, []).append(reader.deserialize(raw, con.msgtype))
-        assert {c.topic: c.msgcount for c in reader.connections} == {t: len(m) for t, m in out.items()}
+        assert {c.topic: c.msgcount for c in reader.connections if c.msgcount} == {t: len(m) for t, m in out.items()}
     return out
 
 
@@ -135,8 +136,8 @@ def test_rosbags_decodes_every_message_of_every_topic(run):
     assert urdf.count("<link name=\"taxel_") == design.n_taxels
     tactile = msgs["/skinsafe/tactile"]  # at 30 Hz: the newest of the float64 forces the layers saw, as float32
     assert len(tactile) == len(msgs["/tf"])
-    forces = np.array([m.data for m in msgs["/skinsafe/taxels"]])
-    newest = np.searchsorted(log_times(folder, "/skinsafe/taxels"), log_times(folder, "/skinsafe/tactile"), "right") - 1
+    forces = np.array([m.force for m in msgs["/skinsafe/forces"]])
+    newest = np.searchsorted(log_times(folder, "/skinsafe/forces"), log_times(folder, "/skinsafe/tactile"), "right") - 1
     t = design.taxels
     names = {b.id: b.name for b in design.boards}
     for m, f in zip(tactile, forces[newest]):
@@ -144,9 +145,15 @@ def test_rosbags_decodes_every_message_of_every_topic(run):
         got = np.array([sensors[names[int(b)]][c] for b, c in zip(t.board, t.channel)])
         np.testing.assert_array_equal(got, f.astype(np.float32))
     assert forces.max() > 2.0  # the poke was felt
-    states = msgs["/skinsafe/state"]
+    states = msgs["/skinsafe/state"]  # every tick's, after its /skinsafe/tick
+    assert len(states) == len(msgs["/skinsafe/tick"]) == len(msgs["/joint_states"])
     assert any(s.retracting and len(s.pool_taxels) for s in states)  # the layers' state names the taxels by id
-    assert set(np.concatenate([s.pool_taxels for s in states])) <= set(t.ids.tolist())
+    rec = Recording(folder)  # what the viewers read: the same ticks, the taxels by index in the map's order
+    np.testing.assert_array_equal(rec.t, [m.t for m in msgs["/skinsafe/tick"]])
+    for s, lay in zip(states, rec.layers):
+        assert (lay.potential, lay.speed_factor, lay.retracting) == (s.potential, s.speed_factor, s.retracting)
+        np.testing.assert_array_equal(t.ids[lay.pool], s.pool_taxels)
+    np.testing.assert_array_equal(rec.forces, forces.astype(np.float32))
     assert any(m.msg.startswith("stopped: ") for m in msgs["/rosout"])
 
 
@@ -250,7 +257,8 @@ def test_the_docs_layout_is_the_one_built_and_shows_recorded_topics():
 def test_the_writer_process_behind_gets_every_tick_and_a_killed_one_is_named(ur5, tmp_path):
     """The record's writer process (core/app/record_writer.py) paused while the loop puts more ticks than its ring holds:
     the ticks beyond the ring lose their telemetry (counted) and their safety topics wait in the loop's backlog, so
-    the record holds every tick in order, the stop's last; a writer killed mid-run is named at close, never waited on."""
+    the record holds every tick in order, the stop's last; a writer killed mid-run is named at close, never waited on,
+    and what it had written is recovered into a folder rosbags opens."""
     import signal
 
     from skinsafe.core.app.record_writer import start
@@ -282,9 +290,27 @@ def test_the_writer_process_behind_gets_every_tick_and_a_killed_one_is_named(ur5
     assert len(got.forces) == k - 40 and np.allclose(got.forces[:, 0], np.arange(k - 40))  # the ring's ticks' forces
     assert got.stop == "stopped"
 
-    rec = feed(tmp_path / "killed")
-    rec.put(tick(0))
+    rec = feed(tmp_path / "killed")  # killed mid-run: what it wrote is recovered into the folder
+    k = 1000  # ~5 MiB of messages, the forces random (LZ4 keeps their size): chunks of 1 MiB reach the disk
+    part = tmp_path / "killed.part" / "killed_0.mcap"
+    forces = np.random.default_rng(0).random((k, design.n_taxels))
+    for i in range(k):
+        while not rec.frames.room():
+            time.sleep(0.001)
+        rec.put(Tick(t=i * 1e-3, q=np.full(len(joints), i * 1e-3), command=np.zeros(len(joints)), index=i + 1,
+                     force=forces[i], force_new=True, reading_seq=float(i), ns=10**6 * (i + 1)))
+    for _ in range(3000):  # at least two chunks written (a writer that never writes fails below)
+        if part.stat().st_size > 2 << 20:
+            break
+        time.sleep(0.01)
     os.kill(rec.proc.pid, signal.SIGKILL)
     out = rec.close({"reason": "stopped", "kind": "fault"})
     assert f"writer process (pid {rec.proc.pid}) died (killed by signal 9)" in out["error"]
-    assert not (tmp_path / "killed").exists()  # never renamed into place: the record is not called complete
+    assert out["recovered"] == str(tmp_path / "killed") in out["error"] and not part.parent.exists()
+    msgs = rosbags_messages(tmp_path / "killed")  # a finished rosbag2 folder: every message it holds decodes
+    ticks = [m.index for m in msgs["/skinsafe/tick"]]
+    assert out["written"] == sum(map(len, msgs.values())) and 2 * 220 < len(ticks) < k
+    assert ticks == list(range(1, len(ticks) + 1))  # every tick up to the recovered end, in order
+    np.testing.assert_array_equal([m.position[0] for m in msgs["/joint_states"][:len(ticks)]], np.arange(len(ticks)) * 1e-3)
+    got = Recording(tmp_path / "killed")  # each recovered tick's forces as the loop gave them
+    np.testing.assert_array_equal(got.forces, forces[:len(ticks)].astype(np.float32))

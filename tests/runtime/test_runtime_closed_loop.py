@@ -29,8 +29,8 @@ from skinsafe.core.skin.taxel_map import save
 LINK_LATENCY = 0.5  # s: the host's serial input may be this late before a board is named silent
 # SCHED_FIFO loop pinned to core 0, timed watchdogs: one at a time (conftest.realtime_host)
 pytestmark = [pytest.mark.xdist_group("realtime"), pytest.mark.usefixtures("realtime_host")]
-TOPICS = {"/joint_states", "/skinsafe/command", "/skinsafe/planned", "/skinsafe/taxels", "/skinsafe/tick",
-          "/skinsafe/layers", "/diagnostics", *ROS2_TOPICS}
+TOPICS = {"/joint_states", "/skinsafe/command", "/skinsafe/planned", "/skinsafe/forces", "/skinsafe/tick",
+          "/skinsafe/state", "/diagnostics", *ROS2_TOPICS}
 
 
 @pytest.fixture(scope="module")
@@ -79,14 +79,13 @@ def test_a_poke_is_retracted_and_the_record_replays_exactly(skin, tmp_path):
     cmd = np.array([m.velocity for t, m in msgs if t == "/skinsafe/command"])
     assert np.abs(cmd[times < w["onset_t"]]).max() == 0.0  # hold: still until the poke
     assert np.abs(cmd[times > w["onset_t"]]).max() > 0.05  # then the retraction
-    taxels = [m for t, m in msgs if t == "/skinsafe/taxels"]
-    assert len(taxels[0].data) == s["taxels"] and max(max(m.data) for m in taxels) > 2.0
-    layers = [np.asarray(m.data) for t, m in msgs if t == "/skinsafe/layers"]
-    assert len(layers) == len(cmd)  # one per tick: [f, speed factor, retracting, K, K taxels]
-    assert all(len(x) == 4 + int(x[3]) for x in layers)
-    on = [x for x in layers if x[2] == 1.0]
-    assert on and all(x[3] >= 1 for x in on)  # the retraction names its taxels
-    assert not any(x[2] for x, tt in zip(layers, times) if tt < w["onset_t"])
+    taxels = [m for t, m in msgs if t == "/skinsafe/forces"]
+    assert len(taxels[0].force) == s["taxels"] and max(max(m.force) for m in taxels) > 2.0
+    layers = [m for t, m in msgs if t == "/skinsafe/state"]
+    assert len(layers) == len(cmd)  # one per tick
+    on = [x for x in layers if x.retracting]
+    assert on and all(len(x.pool_taxels) >= 1 for x in on)  # the retraction names its taxels
+    assert not any(x.retracting for x, tt in zip(layers, times) if tt < w["onset_t"])
     r = skinsafe("replay", record, "--json")
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)

@@ -14,10 +14,10 @@ from hypothesis import strategies as st
 from mcap.reader import make_reader
 from mcap_ros2.writer import Writer as Ros2Writer
 
+from skinsafe.core.runtime import ros2_msgs as msgs
 from skinsafe.core.runtime.commands import CommandError, Trajectory, read_trajectory
 from skinsafe.core.runtime.protocol import StopRobot
-from skinsafe.core.runtime.record import SCHEMAS, JointStateEncoder, encode_diagnostics, encode_float64_array
-from skinsafe.core.runtime.replay import decode_float64_array
+from skinsafe.core.runtime.record_read import decode_float64_array
 from skinsafe.core.runtime.teleop import NO_KEY, Refusal, Teleop, datagram, now_us
 from skinsafe.core.skin.force_feed import FeedError, ForceFeed
 from skinsafe.hardware.skin_source import classify
@@ -111,7 +111,7 @@ def test_teleop_over_udp_tracks_rejects_and_goes_stale():
 def _reference(name, msg) -> bytes:
     buf = io.BytesIO()
     w = Ros2Writer(buf)
-    schema = w.register_msgdef(name, SCHEMAS[name])
+    schema = w.register_msgdef(name, msgs.schema(name))
     w.write_message("/x", schema, msg, log_time=1)
     w.finish()
     buf.seek(0)
@@ -128,17 +128,23 @@ def test_cdr_encoders_equal_mcap_ros2_support(t, n, names, seed):
     stamp = {"sec": sec, "nanosec": min(int(round((t - sec) * 1e9)), 999_999_999)}
     ref = _reference("sensor_msgs/msg/JointState", {"header": {"stamp": stamp, "frame_id": ""}, "name": names,
                                                     "position": pos.tolist(), "velocity": vel.tolist(), "effort": []})
-    assert JointStateEncoder(names)(t, pos, vel) == ref
+    assert msgs.JointStateEncoder(names)(t, pos, vel) == ref
     x = rng.normal(size=n)
-    data = encode_float64_array(x)
-    assert data == _reference("std_msgs/msg/Float64MultiArray", {"layout": {"dim": [], "data_offset": 0},
-                                                                 "data": x.tolist()})
-    assert decode_float64_array(data).tolist() == x.tolist()
+    data = _reference("std_msgs/msg/Float64MultiArray", {"layout": {"dim": [], "data_offset": 0}, "data": x.tolist()})
+    assert decode_float64_array(data).tolist() == x.tolist()  # records of versions 1 and 2
     status = [(nm, k % 3, nm * 2, [(nm, str(k))] * k) for k, nm in enumerate(names)]
     ref = _reference("diagnostic_msgs/msg/DiagnosticArray", {"header": {"stamp": stamp, "frame_id": ""}, "status": [
         {"level": lv, "name": nm, "message": m, "hardware_id": "skinsafe",
          "values": [{"key": a, "value": b} for a, b in v]} for nm, lv, m, v in status]})
-    assert encode_diagnostics(t, status) == ref
+    assert msgs.diagnostics(t, status) == ref
+    header = {"stamp": stamp, "frame_id": ""}
+    assert msgs.taxel_forces(t, x) == _reference("skinsafe_msgs/msg/TaxelForces", {"header": header, "force": x.tolist()})
+    assert msgs.tick(t, 1e-3, 7.0, n, n % 2 == 1) == _reference("skinsafe_msgs/msg/Tick", {
+        "header": header, "t": t, "dt": 1e-3, "reading_seq": 7.0, "index": n, "ticked": n % 2 == 1})
+    poses = rng.normal(size=(n, 7))  # x y z, qw qx qy qz
+    assert msgs.pose_array(t, "world", poses) == _reference("geometry_msgs/msg/PoseArray", {
+        "header": header | {"frame_id": "world"}, "poses": [
+            {"position": dict(zip("xyz", p[:3])), "orientation": dict(zip("wxyz", p[3:]))} for p in poses.tolist()]})
 
 
 @settings(max_examples=40, deadline=None)

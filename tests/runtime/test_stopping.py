@@ -21,7 +21,7 @@ from skinsafe.core.runtime.fault_plan import FaultPlan, Injection
 from skinsafe.core.runtime.limiter import JointLimits, Limiter, limits_config
 from skinsafe.core.runtime.loop import Runtime
 from skinsafe.core.runtime.record import Recorder
-from skinsafe.core.runtime.replay import decode_float64_array
+from skinsafe.core.runtime.record_read import read_record
 from skinsafe.core.runtime.tick import Tick
 from skinsafe.core.safety.defensiveness import TickInfo
 from skinsafe.core.sim.robot_driver import SimFaults
@@ -262,10 +262,10 @@ def test_a_slow_writer_drops_telemetry_never_a_tick(tmp_path):
     assert out["dropped"] > 0 and "path" in out
     with open(out["path"], "rb") as f:
         msgs = [(c.topic, m.data) for _, c, m in make_reader(f).iter_messages(log_time_order=False)]
-    ticks = [decode_float64_array(d) for t, d in msgs if t == "/skinsafe/tick"]
-    assert [int(x[3]) for x in ticks] == list(range(1, k + 1)) and ticks[-1][4] == 0
+    ticks = list(read_record(out["path"])[1])
+    assert [x.index for x in ticks] == list(range(1, k + 1)) and not ticks[-1].ticked
     assert sum(t == "/skinsafe/command" for t, _ in msgs) == k
-    assert sum(t == "/skinsafe/taxels" for t, _ in msgs) == k - out["dropped"]
+    assert sum(x.force is not None for x in ticks) == sum(t == "/skinsafe/forces" for t, _ in msgs) == k - out["dropped"]
     assert msgs[-1][0] == "/diagnostics"
 
 
