@@ -1,5 +1,5 @@
 """The Foxglove layout for a run (live, `skinsafe run --foxglove`, or its record folder), built with foxglove-sdk's
-typed layouts: the 3D panel on the robot (`/robot_description` and `/tf`) with the skin's points coloured by force
+typed layouts: the 3D panel on the robot (`/robot_description`, its meshes `/skinsafe/robot_meshes`, and `/tf`) with the skin's points coloured by force
 (turbo, 0 to `vmax` N) and the taxels the layers retract from drawn larger in red; the layers' state (danger
 potential and speed factor plotted, the whole `/skinsafe/state` message beside); the fault log (`/rosout`).
 
@@ -24,6 +24,7 @@ def layout(vmax: float = VMAX_N) -> dict:
         scene=fl.BaseRendererSceneSettings(transforms=fl.BaseRendererTransforms(show_label=False, axis_size=0.0)),
         topics={
             "/robot_description": fl.BaseRendererUrdfTopicSettings(visible=True),
+            "/skinsafe/robot_meshes": fl.BaseRendererRosMarkerTopicSettings(visible=True, show_outlines=False),
             "/skinsafe/skin": fl.BaseRendererPointCloudTopicSettings(
                 visible=True, point_size=6.0, color_mode="colormap", color_field="force", color_map="turbo",
                 min_value=0.0, max_value=vmax),

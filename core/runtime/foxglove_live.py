@@ -40,6 +40,7 @@ class FoxgloveLive:
                                                  schema=foxglove.Schema(name=typ, encoding="ros2msg",
                                                                         data=schema(typ).encode()))
                          for topic, typ in (TOPICS | JOINT_TOPICS).items()}
+        self.static = dict(topics.static())  # before serving: the robot's meshes are decimated once, in seconds
         self.resend = set(LATCHED)  # latched topics a new subscriber is owed
         self.subscriptions = _Subscriptions(self.resend)
         self.server = foxglove.start_server(name="skinsafe", host=host, port=port, context=self.context,
@@ -58,11 +59,9 @@ class FoxgloveLive:
     def _work(self) -> None:
         last = None
         while not self._stop.wait(self.period):
-            if self.resend:
-                static = dict(self.topics.static())
-                while self.resend:
-                    topic = self.resend.pop()
-                    self._log(topic, static[topic])
+            while self.resend:
+                topic = self.resend.pop()
+                self._log(topic, self.static[topic])
             if not self.subscriptions.count:  # nobody watching: no tick taken (the loop then shares none)
                 continue
             k = self.latest()

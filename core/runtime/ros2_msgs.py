@@ -28,6 +28,7 @@ PACKAGES = {"tactile_msgs/msg/TactileState": TACTILE_STATE, "skinsafe_msgs/msg/L
 CDR_LE = b"\x00\x01\x00\x00"
 FLOAT32 = 7  # sensor_msgs/PointField datatype
 LOG_INFO, LOG_WARN, LOG_ERROR = 20, 30, 40  # rcl_interfaces/msg/Log levels
+TRIANGLE_LIST, ADD = 11, 0  # visualization_msgs/msg/Marker type and action
 
 
 @functools.cache
@@ -133,6 +134,23 @@ def pose_array(t: float, frame: str, poses: np.ndarray) -> bytes:
     c = Cdr().header(t, frame).pack("I", len(poses))
     if len(poses):
         c.align(8).buf += np.ascontiguousarray(poses[:, [0, 1, 2, 4, 5, 6, 3]], "<f8").tobytes()
+    return c.bytes()
+
+
+def triangle_markers(t: float, markers: list[tuple]) -> bytes:
+    """visualization_msgs/msg/MarkerArray of TRIANGLE_LIST markers locked to their frames: each (frame, ns, id, pose
+    (x y z, qw qx qy qz in the frame), rgba, triangles (T, 3, 3) m in the pose)."""
+    c = Cdr().pack("I", len(markers))
+    for frame, ns, mid, pose, rgba, tri in markers:
+        x, y, z, qw, qx, qy, qz = pose
+        c.header(t, frame).string(ns).pack("iii", mid, TRIANGLE_LIST, ADD)
+        c.pack("10d", x, y, z, qx, qy, qz, qw, 1.0, 1.0, 1.0, size=8).pack("4f", *rgba).pack("iI", 0, 0)
+        points = np.ascontiguousarray(tri, "<f8").reshape(-1, 3)
+        c.pack("B", 1, size=1).pack("I", len(points))
+        if len(points):
+            c.align(8).buf += points.tobytes()
+        c.pack("I", 0).string("").header(0.0).string("").pack("I", 0)  # colors, texture_resource, texture
+        c.pack("I", 0).string("").string("").string("").pack("I", 0).pack("B", 0, size=1)  # uv, text, mesh
     return c.bytes()
 
 

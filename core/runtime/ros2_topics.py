@@ -5,6 +5,7 @@ layers' state and their faults, each tick turned into ROS 2 messages (core/runti
 | --- | --- | --- | --- |
 | `/robot_description` | std_msgs/String | once (transient local) | the URDF with a link `taxel_<id>` per taxel |
 | `/tf_static` | tf2_msgs/TFMessage | once (transient local) | each `taxel_<id>` on its link (z: outward normal) |
+| `/skinsafe/robot_meshes` | visualization_msgs/MarkerArray | once (transient local) | the robot's mesh geoms (the URDF holds its primitives, not its meshes) as triangle lists on their links |
 | `/tf` | tf2_msgs/TFMessage | `rate_hz` | each link on its parent link; the root links on `world` |
 | `/skinsafe/tactile` | tactile_msgs/TactileState | `rate_hz` | one sensor per board (its name), values by channel (N; NaN: no taxel): the newest reading |
 | `/skinsafe/skin` | sensor_msgs/PointCloud2 | `rate_hz` | `world`: x, y, z, force (N) of every taxel |
@@ -18,6 +19,8 @@ stream, which samples ticks) gives every topic of the tick, `/skinsafe/state` in
 """
 from __future__ import annotations
 
+import functools
+
 import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -28,10 +31,12 @@ from skinsafe.core.runtime.tick import Tick
 from skinsafe.core.skin.model import SkinDesign
 
 TOPICS = {"/robot_description": "std_msgs/msg/String", "/tf_static": "tf2_msgs/msg/TFMessage",
-          "/tf": "tf2_msgs/msg/TFMessage", "/skinsafe/tactile": "tactile_msgs/msg/TactileState",
+          "/tf": "tf2_msgs/msg/TFMessage", "/skinsafe/robot_meshes": "visualization_msgs/msg/MarkerArray", "/skinsafe/tactile": "tactile_msgs/msg/TactileState",
           "/skinsafe/skin": "sensor_msgs/msg/PointCloud2", "/skinsafe/contacts": "sensor_msgs/msg/PointCloud2",
           "/skinsafe/state": "skinsafe_msgs/msg/LayerState", "/rosout": "rcl_interfaces/msg/Log"}
-LATCHED = ("/robot_description", "/tf_static")  # transient local: a late subscriber gets them
+LATCHED = ("/robot_description", "/tf_static", "/skinsafe/robot_meshes")  # transient local: a late subscriber gets them
+MESH_RGBA = (0.7, 0.7, 0.72, 1.0)
+MESH_TRIANGLES = 20_000  # the robot's meshes decimated to about this many triangles in all (72 bytes each)
 WORLD = "world"
 SKIN_FIELDS = ("x", "y", "z", "force")
 CONTACT_FIELDS = ("x", "y", "z", "force", "priority")
@@ -44,6 +49,31 @@ def _relative(qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
     w2, x2, y2, z2 = qb.T
     return np.column_stack([w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2, w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
                             w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2, w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2])
+
+
+def mesh_markers(model: mujoco.MjModel, triangles: int = MESH_TRIANGLES) -> list[tuple]:
+    """The robot's mesh geoms as `msgs.triangle_markers` markers on their bodies: its visual ones (no contacts), or
+    its colliding ones where it has none (as exporters/urdf.py chooses), decimated (core/robot/meshes.py) to about
+    `triangles` in all, each mesh its share by its own count."""
+    import trimesh
+
+    from skinsafe.core.robot.meshes import decimate
+
+    g = np.arange(model.ngeom)
+    on_body = model.geom_bodyid[g] > 0
+    visual = on_body & (model.geom_contype[g] == 0) & (model.geom_conaffinity[g] == 0)
+    chosen = g[(visual if visual.any() else on_body) & (model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH)]
+    total = max(1, int(model.mesh_facenum[model.geom_dataid[chosen]].sum()))
+    out = []
+    for i in chosen:
+        m = model.geom_dataid[i]
+        v0, f0, nf = model.mesh_vertadr[m], model.mesh_faceadr[m], model.mesh_facenum[m]
+        mesh = decimate(trimesh.Trimesh(model.mesh_vert[v0:v0 + model.mesh_vertnum[m]],
+                                        model.mesh_face[f0:f0 + nf]), max(4, triangles * nf // total))  # vertices merged
+        out.append((model.body(model.geom_bodyid[i]).name, "skinsafe/robot", int(i),
+                    np.concatenate([model.geom_pos[i], model.geom_quat[i]]), MESH_RGBA,
+                    np.asarray(mesh.vertices)[np.asarray(mesh.faces)]))
+    return out
 
 
 def state(k: Tick, ids: np.ndarray | None = None) -> bytes:
@@ -84,10 +114,16 @@ class Ros2Topics:
         self.due, self.flags, self.stopped = -np.inf, (), False
 
     def static(self, t: float = 0.0) -> list[tuple[str, bytes]]:
-        """The latched messages: the URDF and the taxel links on their links."""
+        """The latched messages: the URDF, the taxel links on their links, the robot's meshes."""
         return [("/robot_description", msgs.string_msg(self.urdf)),
                 ("/tf_static", msgs.tf_message(t, self.taxel_parents, [f"taxel_{int(i)}" for i in self.ids],
-                                               self.local, self.taxel_quat))]
+                                               self.local, self.taxel_quat)),
+                ("/skinsafe/robot_meshes", self.meshes)]
+
+    @functools.cached_property
+    def meshes(self) -> bytes:
+        """`/skinsafe/robot_meshes`, decimated once (seconds for a robot of CAD meshes)."""
+        return msgs.triangle_markers(0.0, mesh_markers(self.model))
 
     def links(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each body's pose on its parent at q: translations (B, 3), rotations (B, 4) x y z w."""

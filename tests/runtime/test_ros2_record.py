@@ -247,7 +247,8 @@ def test_the_docs_layout_is_the_one_built_and_shows_recorded_topics():
     assert doc == layout()
     text = json.dumps(doc)
     shown = set(re.findall(r'"(/[a-z_/]+)', text))
-    assert shown == {"/robot_description", "/skinsafe/skin", "/skinsafe/contacts", "/skinsafe/state", "/rosout"}
+    assert shown == {"/robot_description", "/skinsafe/robot_meshes", "/skinsafe/skin", "/skinsafe/contacts",
+                     "/skinsafe/state", "/rosout"}
     assert shown <= set(TOPICS)
     fields = set(re.findall(r"/skinsafe/state\.([a-z_]+)", text))  # the plotted fields are LayerState's
     assert fields == {"potential", "speed_factor", "retracting"}
@@ -314,3 +315,35 @@ def test_the_writer_process_behind_gets_every_tick_and_a_killed_one_is_named(ur5
     np.testing.assert_array_equal([m.position[0] for m in msgs["/joint_states"][:len(ticks)]], np.arange(len(ticks)) * 1e-3)
     got = Recording(tmp_path / "killed")  # each recovered tick's forces as the loop gave them
     np.testing.assert_array_equal(got.forces, forces[:len(ticks)].astype(np.float32))
+
+
+def test_the_robots_meshes_are_triangle_markers_on_their_links():
+    """A robot's visual mesh (its colliding sphere left to the URDF) as a TRIANGLE_LIST locked to its link, at the geom's
+    pose, its triangles MuJoCo's; a large mesh decimated to the budget; rosbags decodes both."""
+    from skinsafe.core.runtime.ros2_msgs import triangle_markers
+    from skinsafe.core.runtime.ros2_topics import mesh_markers
+
+    xml = """<mujoco><asset><mesh name="t" vertex="0 0 0 1 0 0 0 1 0 0 0 1"/>{big}</asset><worldbody>
+      <body name="link" pos="0 0 1"><joint/><geom type="mesh" mesh="t" pos="0.1 0.2 0" euler="0 0 90" contype="0"
+      conaffinity="0"/><geom size="0.1"/>{big_geom}</body></worldbody></mujoco>"""
+    model = mujoco.MjModel.from_xml_string(xml.format(big="", big_geom=""))
+    store = typestore()
+    got = store.deserialize_cdr(triangle_markers(0.0, mesh_markers(model)), "visualization_msgs/msg/MarkerArray")
+    (m,) = got.markers
+    assert (m.header.frame_id, m.type, m.frame_locked) == ("link", 11, True)
+    p, o = m.pose.position, m.pose.orientation
+    np.testing.assert_allclose([p.x, p.y, p.z, o.w, o.x, o.y, o.z], np.r_[model.geom_pos[0], model.geom_quat[0]])
+    points = np.array([[q.x, q.y, q.z] for q in m.points])
+    np.testing.assert_allclose(points, model.mesh_vert[model.mesh_face].reshape(-1, 3), atol=1e-6)
+    lat, lon = np.meshgrid(np.linspace(0.05, np.pi - 0.05, 40), np.linspace(0, 2 * np.pi, 90, endpoint=False),
+                           indexing="ij")  # a band of a sphere: 40 x 90 vertices, 2 triangles per cell
+    v = np.stack([np.sin(lat) * np.cos(lon), np.sin(lat) * np.sin(lon), np.cos(lat)], -1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(39), np.arange(90), indexing="ij")
+    a, b, c, d = i * 90 + j, i * 90 + (j + 1) % 90, (i + 1) * 90 + j, (i + 1) * 90 + (j + 1) % 90
+    f = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
+    mesh = f'<mesh name="big" vertex="{" ".join(map(str, v.ravel().round(5)))}" face="{" ".join(map(str, f.ravel()))}"/>'
+    model = mujoco.MjModel.from_xml_string(xml.format(big=mesh, big_geom=(
+        '<geom type="mesh" mesh="big" contype="0" conaffinity="0"/>')))
+    big = mesh_markers(model, triangles=1000)
+    assert model.mesh_facenum.sum() > 7000 and sum(len(x[5]) for x in big) < 1100
+    assert len(store.deserialize_cdr(triangle_markers(0.0, big), "visualization_msgs/msg/MarkerArray").markers) == 2
