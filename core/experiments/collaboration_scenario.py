@@ -250,6 +250,13 @@ def person_now(sc):
                   np.array(radius), np.array([h.velocity(d, k) for k in range(len(h.parts))]))
 
 
+def servo_lag_s(model, actuators) -> float:
+    """The slowest of the position servos' velocity lags (s): tracking a command moving at v, a servo with
+    stiffness kp, damping kv and the joint's damping b trails it by (kv + b) v / kp (the sim's UR5 pan: 69 ms)."""
+    dof = model.jnt_dofadr[model.actuator_trnid[actuators, 0]]
+    return float(np.max((-model.actuator_biasprm[actuators, 2] + model.dof_damping[dof]) / model.actuator_gainprm[actuators, 0]))
+
+
 def make_stack(sc, stack: str, pot, cfg: CollabConfig, regions):
     """One of `STACKS` for the scene (module docstring); the cap (or None) alongside."""
     from skinsafe.core.safety.modulation import ModulationLayer
@@ -259,9 +266,10 @@ def make_stack(sc, stack: str, pot, cfg: CollabConfig, regions):
     defens = sc.defensiveness() if stack != "none" else None
     mod = ModulationLayer(pot, tangent_gain=0.0) if stack.startswith("full") and pot is not None else None
     cap = None
-    if stack == "full+pfl":
+    if stack == "full+pfl":  # braking as the stack does, through the servos' lag
         cap = PFLCap(sc.kin, tuple(cfg.pfl_regions or regions), factor=cfg.pfl_factor,
-                     area=contact_areas(sc.design), fixtures=[((0, 0, 0), (0, 0, 1))], stop_s=2 * sc.control_dt)
+                     area=contact_areas(sc.design), fixtures=[((0, 0, 0), (0, 0, 1))], stop_s=2 * sc.control_dt,
+                     acc=sc.robot.acc_limits, lag_s=servo_lag_s(sc.model, sc.act))
     return sc.stack(defens, mod, cap), cap
 
 

@@ -38,6 +38,19 @@ the body model in `skinsafe.core.sim.body_regions` (the person in a scene reads 
   person presses onto the robot is yielded to, not resisted). When any bound is negative (a part closing in faster than allowed, or inside the
   keep-out) scaling cannot meet it: the command is the nearest one that does (a small QP,
   DAQP), i.e. the robot retreats.
+- Braking before the contact (`acc`, the joint acceleration limits the stack brakes at): the command
+  is scaled as a whole, so braking it in the least time the limits allow, `h = max_j |qdot_j| / acc_j`,
+  slows taxel i's normal speed u at `a_i = u / h` (the same for any scale of the command). The taxel
+  keeps u for the reaction time `tau = stop_s + lag_s` (the stack's reaction and the servo's lag, how
+  late the arm follows its command: the sim's UR5 pan 69 ms) and then brakes, so it covers
+  `u tau + u^2 / (2 a_i)` before it is at rest. That may be no more than the distance d to the part plus
+  what a lag-free arm meeting the part at v_max covers braking after the contact, `v_max^2 / (2 a_i)`:
+  `u <= -a_i tau + sqrt((a_i tau)^2 + v_max^2 + 2 a_i d)`, and never above v_max (d = 0 where the
+  person is not observed). Where the arm's measured normal speed u_m is the faster (its servo lags a
+  braking command), it covers `u_m tau` first: `u <= sqrt(v_max^2 + 2 a_i (d - u_m tau))`, 0 where
+  even that does not fit. Without it the cap allowed v_max up to the part: a robot whose servo lags
+  arrives at v_max and pushes on into the part for its reaction and braking (the collaboration's
+  delivery: 0.21 rad of pan in 190 ms after the contact, a hand at 428 N where 280 N is the limit).
 """
 from __future__ import annotations
 
@@ -144,7 +157,8 @@ class PFLCap:
     """The PFL speed cap for the safety stack: `cap(q, qdot) -> qdot` with every taxel's velocity
     along its outward normal at most `factor * v_max` of the most sensitive of `regions` (module
     docstring: pressure through `area` (N,) m^2, clamping against `fixtures` [(point, outward
-    normal)], the person's parts and velocities through `observe`).
+    normal)], the person's parts and velocities through `observe`, braking before the contact at the
+    joint acceleration limits `acc` after the reaction `stop_s` and the servo's lag `lag_s`).
 
     Per tick: one body Jacobian per skinned body gives `G_b` (6, nv) (`NormalRows`), `mj_solveM`
     gives `M^-1 G_b^T`, so each taxel's `1/m_R = w^T (G_b M^-1 G_b^T) w` and normal speed
@@ -159,7 +173,7 @@ class PFLCap:
 
     def __init__(self, kin: TaxelKinematics, regions=("hand",), factor: float = 1.0, area=None, fixtures=(),
                  clamp_gap: float = 0.12, stop_s: float = 0.02, reach: float = 0.3, keep_out: float = 0.1,
-                 avoid_gain: float = 2.0, give_way: float = 0.2):
+                 avoid_gain: float = 2.0, give_way: float = 0.2, acc=None, lag_s: float = 0.0):
         self.kin = kin
         names = (regions,) if isinstance(regions, str) else tuple(regions)
         if not names:
@@ -168,7 +182,7 @@ class PFLCap:
         if not (np.isfinite(factor) and 0 < factor <= 1):
             raise ValueError(f"PFLCap: factor is {factor}; give a margin in (0, 1] (1 = the ISO limit)")
         for name, value in (("clamp_gap", clamp_gap), ("stop_s", stop_s), ("reach", reach), ("keep_out", keep_out),
-                            ("avoid_gain", avoid_gain), ("give_way", give_way)):
+                            ("avoid_gain", avoid_gain), ("give_way", give_way), ("lag_s", lag_s)):
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"PFLCap: {name} is {value}; give a finite number >= 0")
         self.regions, self.factor = names, float(factor)
@@ -181,7 +195,17 @@ class PFLCap:
         self.area = np.ascontiguousarray(area)
         fx = np.array([np.r_[np.asarray(o, float), np.asarray(u, float) / np.linalg.norm(u)] for o, u in fixtures])
         self._fixtures = fx.reshape(-1, 6)
-        self._opts = np.array([clamp_gap, stop_s, reach, keep_out, avoid_gain, give_way])
+        if acc is not None:
+            acc = np.asarray(acc, float)
+            if acc.shape not in ((), (kin.model.nv,)) or not np.all(np.isfinite(acc) & (acc > 0)):
+                raise ValueError(f"PFLCap: acc is {acc}; give the joint acceleration limits the stack brakes at "
+                                 "(rad/s^2, finite and > 0, one per joint or one for all), or None")
+            acc = np.broadcast_to(acc, (kin.model.nv,)).copy()
+        self.acc = acc
+        # the options; [6]: 1 with the braking model (`acc`), [7]: 1/h of the command this call, [8]: its reaction
+        # time (module docstring)
+        self._opts = np.array([clamp_gap, stop_s, reach, keep_out, avoid_gain, give_way, float(acc is not None), 0.0,
+                               stop_s + lag_s])
         self.wrench = normal_wrenches(kin)
         self.local_normal = np.ascontiguousarray(kin.local_frames[:, :, 2])
         self.bodies = np.unique(kin.body_id)
@@ -228,16 +252,24 @@ class PFLCap:
         H = np.matmul(G, self._MG.reshape(G.shape).transpose(0, 2, 1))
         return H, G @ v
 
-    def __call__(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    def __call__(self, q: np.ndarray, v: np.ndarray, qdot: np.ndarray | None = None) -> np.ndarray:
+        """The capped command for the joint state q and the command v; `qdot`, the arm's measured joint
+        velocity where known (the braking model: an arm faster than its command brakes from its own speed)."""
         v = np.asarray(v, dtype=float)
         q = np.asarray(q, dtype=float)
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v)) and np.all(np.isfinite(self._parts))):
+        qdot = np.zeros_like(v) if qdot is None else np.asarray(qdot, dtype=float)
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v)) and np.all(np.isfinite(qdot))
+                and np.all(np.isfinite(self._parts))):
             return self._stop(v)
         H, gv = self._body_terms(q, v)
+        gm = self._G @ qdot
+        if self.acc is not None:  # 1/h: the least time the joint limits allow to brake the command as a whole
+            moving = v != 0
+            self._opts[7] = np.min(self.acc[moving] / np.abs(v[moving])) if moving.any() else np.inf
         d = self.kin.data
         Rb = np.ascontiguousarray(d.xmat[self.bodies].reshape(-1, 3, 3))
         Xb = np.ascontiguousarray(d.xpos[self.bodies])
-        ok = _bounds(self.wrench, self.slot, H, gv, Rb, Xb, self.kin.local_pos, self.local_normal, self.area,
+        ok = _bounds(self.wrench, self.slot, H, gv, gm, Rb, Xb, self.kin.local_pos, self.local_normal, self.area,
                      self._reg, self.factor, self._fixtures, self._opts, self._parts, self.vmax, self.vn, self.bound,
                      self.clamp)
         if not ok:
@@ -279,8 +311,10 @@ class PFLCap:
 
 
 @numba.njit(cache=True, nogil=True)
-def _limit(reg, r, factor, inv, area, clamp, dist, opts):
-    """v_max of region row `reg[r]` for a taxel (module docstring): clamping, transient or avoidance."""
+def _limit(reg, r, factor, inv, area, clamp, dist, opts, u, um):
+    """v_max of region row `reg[r]` for a taxel whose command moves it along its normal at u and the arm at um
+    (module docstring): clamping, transient (with the braking model, at distance `dist`, 0 where unknown) or
+    avoidance."""
     ft, fq, pt, pq, inv_mh, k = reg[r]
     if clamp:
         f = min(fq, pq * area)
@@ -288,14 +322,22 @@ def _limit(reg, r, factor, inv, area, clamp, dist, opts):
             return 0.0
         return factor * (f / k) / (1.0 / np.sqrt(inv * k) + opts[1])
     if ft > 0.0:
-        return factor * min(ft, pt * area) / np.sqrt(k) * np.sqrt(inv_mh + inv)
+        vm = factor * min(ft, pt * area) / np.sqrt(k) * np.sqrt(inv_mh + inv)
+        if opts[6] == 0.0 or u <= 0.0:
+            return vm
+        a, d, tau = u * opts[7], max(dist, 0.0) if np.isfinite(dist) else 0.0, opts[8]
+        lim = -a * tau + np.sqrt((a * tau) ** 2 + vm * vm + 2.0 * a * d)
+        if um > lim:  # the arm, faster than its command (its servo lags a braking one), covers tau um first
+            lim = np.sqrt(max(vm * vm + 2.0 * a * (d - tau * um), 0.0))
+        return min(lim, vm)
     if np.isfinite(dist):
         return opts[4] * (dist - opts[3])
     return 0.0
 
 
 @numba.njit(cache=True, nogil=True)
-def _bounds(wrench, slot, H, gv, Rb, Xb, lpos, lnrm, area, reg, factor, fixtures, opts, parts, vmax, vn, bound, clamp):
+def _bounds(wrench, slot, H, gv, gm, Rb, Xb, lpos, lnrm, area, reg, factor, fixtures, opts, parts, vmax, vn, bound,
+            clamp):
     """Per taxel: 1/m_R = w^T H w, normal speed w . gv, world pose, whether it faces a fixture,
     v_max (min over the regions or the near parts) and the bound on its normal speed (v_max plus
     the near parts' velocity along its normal; inf where no part is near). False when a mass or
@@ -303,21 +345,22 @@ def _bounds(wrench, slot, H, gv, Rb, Xb, lpos, lnrm, area, reg, factor, fixtures
     p, n = np.empty(3), np.empty(3)
     for i in range(wrench.shape[0]):
         b = slot[i]
-        inv, s = 0.0, 0.0
+        inv, s, sm = 0.0, 0.0, 0.0
         for r in range(6):
             hw = 0.0
             for col in range(6):
                 hw += H[b, r, col] * wrench[i, col]
             inv += wrench[i, r] * hw
             s += wrench[i, r] * gv[b, r]
-        if not (np.isfinite(inv) and np.isfinite(s)):
+            sm += wrench[i, r] * gm[b, r]
+        if not (np.isfinite(inv) and np.isfinite(s) and np.isfinite(sm)):
             return False
         inv = max(inv, 0.0)
         vn[i] = s
         if parts.shape[0] == 0 and fixtures.shape[0] == 0:  # the plain cap: the regions everywhere
             vm = np.inf
             for r in range(reg.shape[0]):
-                vm = min(vm, _limit(reg, r, factor, inv, area[i], False, np.inf, opts))
+                vm = min(vm, _limit(reg, r, factor, inv, area[i], False, np.inf, opts, s, sm))
             vmax[i], bound[i], clamp[i] = vm, vm, False
             continue
         for r in range(3):
@@ -335,7 +378,7 @@ def _bounds(wrench, slot, H, gv, Rb, Xb, lpos, lnrm, area, reg, factor, fixtures
         vm, bd = np.inf, np.inf
         if parts.shape[0] == 0:
             for r in range(reg.shape[0]):
-                vm = min(vm, _limit(reg, r, factor, inv, area[i], c, np.inf, opts))
+                vm = min(vm, _limit(reg, r, factor, inv, area[i], c, np.inf, opts, s, sm))
             bd = vm
         for k in range(parts.shape[0]):
             L, u = 0.0, 0.0
@@ -353,7 +396,7 @@ def _bounds(wrench, slot, H, gv, Rb, Xb, lpos, lnrm, area, reg, factor, fixtures
             dist = np.sqrt(d2) - parts[k, 7]
             if dist > opts[2] or front < FACING * np.sqrt(d2):
                 continue  # out of reach, or not in front of the taxel (it cannot be where the part is met)
-            lim = -opts[5] if dist <= TOUCHING else _limit(reg, int(parts[k, 0]), factor, inv, area[i], c, dist, opts)
+            lim = -opts[5] if dist <= TOUCHING else _limit(reg, int(parts[k, 0]), factor, inv, area[i], c, dist, opts, s, sm)
             vm = min(vm, lim)
             bd = min(bd, lim + vpn)
         vmax[i], bound[i] = vm, bd

@@ -29,9 +29,13 @@ A command source is anything callable as `source(t, q) -> qdot_planned (nv,)`: a
    without pushing one: `viability.py`).
 
 Measured velocity: `tick(..., qdot=measured)` takes the robot's measured joint velocity, distinct
-from the planned command: the acceleration limits (and the brake) then start from it rather than
-from the last command sent, and while taxels retract a measured motion that carries one of them
-into its contact (`a_k . qdot < 0`) is flagged `pushing`.
+from the planned command. The acceleration limits (and the brake) start from the last command sent,
+as ros2_control's joint limits and libfranka's `limitRate` do: started from the measured velocity,
+a servo that lags the command by tau lets the arm gain only acc * dt / tau (the sim's UR5 servo, 60 ms:
+0.5 of its 15 rad/s^2). The measured velocity is checked (non-finite: the brake), sets the braking
+horizon where it is the faster (step 3), goes to the PFL cap (an arm faster than its command, its servo
+lagging a braking one, brakes from its own speed: `pfl.PFLCap`), and while taxels retract a measured
+motion that carries one of them into its contact (`a_k . qdot < 0`) is flagged `pushing`.
 
 Fail safe: a tick with a non-finite clock, q, dt, measured velocity, planned command, reading, TDM output or
 potential sends the safe command (`limits.brake`) or, where its own inputs are finite, the
@@ -177,7 +181,7 @@ class SafetyStack:
             raise ValueError(f"SafetyStack: 'vel_limits' has {len(vel)} values, the defensiveness layer's robot "
                              f"{d.kin.model.nv} joints; give one limit per joint")
         self.defensiveness, self.modulation, self.strategy = defensiveness, modulation, strategy
-        self.pfl = pfl  # optional ISO/TS 15066 speed cap `pfl(q, qdot) -> qdot` (pfl.PFLCap), after modulation
+        self.pfl = pfl  # optional ISO/TS 15066 speed cap `pfl(q, v, measured qdot or None) -> v` (pfl.PFLCap)
         if strategy is not None and modulation is not None:
             from skinsafe.core.safety.potential import FastPotential
 
@@ -203,8 +207,8 @@ class SafetyStack:
     def tick(self, t: float, q: np.ndarray, readings: dict[str, np.ndarray] | None, command: np.ndarray,
              dt: float, qdot: np.ndarray | None = None) -> np.ndarray:
         """The joint velocity to send now (module docstring), `dt` seconds (measured) after the last
-        tick. `qdot`: the robot's measured joint velocity, if known; the limits then start from it
-        instead of the last command."""
+        tick. `qdot`: the robot's measured joint velocity, if known: checked and watched for pushing (module
+        docstring); the limits start from the last command sent either way."""
         j, d, prev = self.joints, self.defensiveness, self.last
         q = np.asarray(q, dtype=float)
         v = np.array(command, dtype=float)
@@ -225,8 +229,6 @@ class SafetyStack:
             return self._send(brake(prev, self.limits, None if "dt" in bad else dt),
                               TickInfo(nonfinite=tuple(bad), safe=True))
         self._t = t
-        if qdot is not None:
-            prev = qdot
         plan_ok = not bad
         s = q[j]
         info = TickInfo(nonfinite=tuple(bad))
@@ -259,9 +261,10 @@ class SafetyStack:
             else:
                 v = w
                 if retracting and self.modulation.stop is not None:
-                    v = self._stop_short(v, prev, f, dt)
+                    faster = prev if qdot is None else np.where(np.abs(qdot) > np.abs(prev), qdot, prev)
+                    v = self._stop_short(v, faster, f, dt)
         if self.pfl is not None:
-            v = self.pfl(q, v)
+            v = self.pfl(q, v, qdot)
         A, b = d.rows if retracting else (None, None)
         proj = final_command(v, prev, self.limits, A, b, dt=dt)
         info.infeasible = info.infeasible or proj.infeasible

@@ -126,19 +126,18 @@ def test_severity_counts_only_stimuli_over_their_thresholds():
 
 # ---- the measured joint velocity (distinct from the planned command)
 
-def test_limits_start_from_the_measured_velocity():
-    """The robot lags: it measures 0 while the last command was at speed. The next command may
-    differ from the measured velocity by at most acc * dt, not from the last command."""
+def test_limits_start_from_the_last_command_not_the_measured_velocity():
+    """The robot lags: it measures 0 while the last command was at speed. The next command differs from the last
+    command by at most acc * dt (as ros2_control's and libfranka's rate limits): started from the measured
+    velocity, a servo lagging by tau would let the arm gain only acc * dt / tau."""
     stack = SafetyStack(ROBOT.vel_limits, layer(), dt=DT)
     last = ramp(stack)
     step = stack.limits.acc * DT
     assert np.abs(last).max() > 4 * step.max()
     measured = np.zeros(6)
     out = stack.tick(0.2, ROBOT.home, {"force": np.zeros(N)}, PLAN, DT, qdot=measured)
-    assert np.all(np.abs(out - measured) <= step * (1 + 1e-9))
-    assert np.abs(out - last).max() > 2 * step.max()  # it did not start from the last command
-    same = stack.tick(0.202, ROBOT.home, {"force": np.zeros(N)}, PLAN, DT, qdot=out)
-    assert np.all(np.abs(same - out) <= step * (1 + 1e-9))
+    assert np.all(np.abs(out - last) <= step * (1 + 1e-9))
+    assert np.abs(out - measured).max() > 2 * step.max()  # it did not start from the measured velocity
 
 
 @pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
