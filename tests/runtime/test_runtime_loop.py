@@ -137,7 +137,6 @@ from skinsafe.core.app.precompile import cached_kernels
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.runtime.layers import build_stack
-from skinsafe.core.runtime.limiter import Limiter
 from skinsafe.core.runtime.loop import warm_up
 from skinsafe.core.safety.tdm import TactileDangerModel, save_tdm
 
