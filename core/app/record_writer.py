@@ -26,11 +26,13 @@ import select
 import signal
 import subprocess
 import sys
+import time
 from collections import deque
 from pathlib import Path
 
 from skinsafe.core.realtime import background
 from skinsafe.core.runtime.record_recover import recover
+from skinsafe.core.runtime.rosbag2 import mcap_name
 from skinsafe.core.runtime.tick import Tick
 from skinsafe.core.runtime.view_share import SharedFrames
 
@@ -41,11 +43,12 @@ MIN_SLOTS = 64
 class RecordFeed:
     """The loop's side of the writer process (module docstring): `put` each tick, `close` once."""
 
-    def __init__(self, frames: SharedFrames, proc: subprocess.Popen, path: Path):
+    def __init__(self, frames: SharedFrames, proc: subprocess.Popen, path: Path, recovered_part: dict | None = None):
         self.frames, self.proc, self.path = frames, proc, path
         self.backlog: deque[Tick] = deque()
         self.dropped = 0
         self.result: dict | None = None
+        self.recovered_part = recovered_part  # `start`'s recovery of a dead run's record (path, written), if any
 
     def put(self, tick: Tick) -> None:
         """Copy the tick into the ring, never waiting: when it is full, only its safety topics, later (module docstring)."""
@@ -96,7 +99,16 @@ class RecordFeed:
 
 def start(path: Path, map_path: Path, joint_names: list[str], boards: list[int], n_taxels: int,
           config: dict) -> RecordFeed:
-    """The writer process of the record folder `path` and the loop's feed to it (module docstring)."""
+    """The writer process of the record folder `path` and the loop's feed to it (module docstring). A `path`.part
+    left by a run that died with its writer is recovered first, beside (`recovered_part`), not written over."""
+    part = Path(path).with_name(Path(path).name + ".part")
+    recovered = None
+    if (part / mcap_name(Path(path))).is_file():
+        when = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime((part / mcap_name(Path(path))).stat().st_mtime))
+        recovered = recover(path, "its run died before finishing it",
+                            into=Path(path).with_name(f"{Path(path).name}-recovered-{when}"))
+        print(f"skinsafe run: --record {path}: {part.name} is the unfinished record of a run that died; recovered "
+              f"{recovered['written']} messages into {recovered['path']}", file=sys.stderr)
     slots = max(MIN_SLOTS, RING_BYTES // SharedFrames.size(n_taxels, len(joint_names), len(boards), 1, True))
     frames = SharedFrames.create(n_taxels, len(joint_names), boards, slots, exact=True)
     proc = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.record_writer", frames.name, str(slots),
@@ -110,7 +122,7 @@ def start(path: Path, map_path: Path, joint_names: list[str], boards: list[int],
         proc.wait(10)
         frames.close()
         raise OSError(line.removeprefix("error ") or f"the record's writer process did not start (exit {proc.returncode})")
-    return RecordFeed(frames, proc, Path(path))
+    return RecordFeed(frames, proc, Path(path), recovered)
 
 
 def _line(buf: bytearray) -> str | None:

@@ -7,7 +7,8 @@ up to the unfinished end, writes each schema, channel, metadata and message it h
 `metadata.yaml` beside it (core/runtime/rosbag2.py) in `DIR.recovering`, marks it (metadata `skinsafe_recovered`:
 why, the messages kept) and renames it to `DIR` (an earlier record there replaced, as a finished one would): what
 was in the writer's memory (at most its open chunk, a MiB of messages, and its file buffer) is lost, every message
-before it is kept. The run's parent calls it when its writer died (core/app/record_writer.py).
+before it is kept. The run's parent calls it when its writer died, and at the start of a record whose folder's
+`.part` a run that died left behind (into `DIR-recovered-<its time>`: core/app/record_writer.py).
 """
 from __future__ import annotations
 
@@ -25,16 +26,17 @@ from skinsafe.core.runtime import rosbag2
 from skinsafe.core.runtime.ros2_topics import LATCHED
 
 
-def recover(path: str | Path, reason: str) -> dict:
-    """Finish `path`.part as the record `path` (module docstring): {path, written (messages kept)}."""
+def recover(path: str | Path, reason: str, into: str | Path | None = None) -> dict:
+    """Finish `path`.part as the record `into` (default `path`; module docstring): {path, written (messages kept)}."""
     path = Path(path)
-    part, tmp = (path.with_name(path.name + s) for s in (".part", ".recovering"))
-    name = rosbag2.mcap_name(path)
+    dest = Path(into or path)
+    part, tmp = path.with_name(path.name + ".part"), dest.with_name(dest.name + ".recovering")
+    name = rosbag2.mcap_name(dest)
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
     schemas, channels, types, counts = {}, {}, {}, {}
     first = last = None
-    with open(part / name, "rb") as f, open(tmp / name, "wb") as out:
+    with open(part / rosbag2.mcap_name(path), "rb") as f, open(tmp / name, "wb") as out:
         w = Writer(out, compression=CompressionType.LZ4)
         w.start(profile=Profile.ROS2, library="skinsafe (recovered)")
         try:
@@ -60,10 +62,10 @@ def recover(path: str | Path, reason: str) -> dict:
         w.add_metadata("skinsafe_recovered", {"reason": reason, "messages": str(kept)})
         w.finish()
     rosbag2.write_metadata(tmp, name, types, counts, LATCHED, first or 0, last or 0)
-    if path.is_dir():
-        shutil.rmtree(path)
-    elif path.exists():
-        path.unlink()
-    os.replace(tmp, path)
+    if dest.is_dir():
+        shutil.rmtree(dest)
+    elif dest.exists():
+        dest.unlink()
+    os.replace(tmp, dest)
     shutil.rmtree(part)
-    return {"path": str(path), "written": kept}
+    return {"path": str(dest), "written": kept}
