@@ -22,8 +22,10 @@ from skinsafe.hardware.skin_reader import KINDS
 
 skin, ur5 = closed_loop.skin, loop.ur5  # their fixtures
 messages, run, _runtime = closed_loop.messages, closed_loop.run, loop._runtime
-# `skinsafe run`s (SCHED_FIFO, core 0, timed watchdogs): one at a time (conftest.realtime_host)
-pytestmark = [pytest.mark.xdist_group("realtime"), pytest.mark.usefixtures("realtime_host")]
+# `skinsafe run`s (SCHED_FIFO, core 0, timed watchdogs): one at a time (conftest.realtime_host); the in-process runtimes
+# (`_runtime`: the sim unpaced, every watchdog on its own clock) need no slot
+REALTIME = pytest.mark.xdist_group("realtime")
+SLOT = pytest.mark.usefixtures("realtime_host")
 
 
 def _stopped_by(p, s, record, kind: str):
@@ -34,6 +36,8 @@ def _stopped_by(p, s, record, kind: str):
     assert stop.name == "skinsafe/watchdog" and stop.message == s["reason"]
 
 
+@REALTIME
+@SLOT
 def test_reader_death_after_a_settle_stall_is_named(skin, tmp_path):
     """The reader stalls (SIGSTOP) while the boards settle (named, let pass), then is killed while the robot moves:
     its pidfd names the death, whatever --link-latency (0.5 s here) a board's silence waits."""
@@ -47,6 +51,8 @@ def test_reader_death_after_a_settle_stall_is_named(skin, tmp_path):
 # reader-stalled within its bound, latched, the record readable)
 
 
+@REALTIME
+@SLOT
 def test_late_but_steady_frames_stop_the_robot(skin, tmp_path):
     """From 0.3 s on a board's frames arrive ever later but never more than 1.5 frame periods apart: no silence by
     arrival; by the board's own clock they are late."""
@@ -119,6 +125,8 @@ def test_a_non_finite_robot_state_or_teleop_target_is_typed(ur5):
     assert rt.monitor.fault.kind is Kind.COMMAND_BAD and rt.ticks == 1
 
 
+@REALTIME
+@SLOT
 @pytest.mark.parametrize("fault, kind, extra", [("stack-qp-fail", "stack-latch", ("--contact", "poke:at=0.4"))])
 # stack-nan and reading-nan: tests/runtime/test_fault_bench.py (named, within their bounds, the record readable) and
 # tests/runtime/test_stopping.py (no non-finite command can be sent)
@@ -138,6 +146,8 @@ def test_stack_and_reading_faults_are_named_from_their_source(skin, tmp_path, fa
         assert "non-finite reading on 1 taxel(s)" in s["reason"]
 
 
+@REALTIME
+@SLOT
 def test_consecutive_overruns_on_the_robots_clock_stop_it(skin, tmp_path):
     """From 0.3 s the sim's state clock advances 3 periods a tick (states missed): the third overrun in a row stops the
     robot, its onset the first one's start; --overruns 0 lets the same run end as planned, counting them."""
