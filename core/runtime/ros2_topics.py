@@ -55,14 +55,28 @@ def mesh_markers(model: mujoco.MjModel, triangles: int = MESH_TRIANGLES) -> list
     """The robot's mesh geoms as `msgs.triangle_markers` markers on their bodies: its visual ones (no contacts), or
     its colliding ones where it has none (as exporters/urdf.py chooses), decimated (core/robot/meshes.py) to about
     `triangles` in all, each mesh its share by its own count."""
-    import trimesh
-
-    from skinsafe.core.robot.meshes import decimate
+    from skinsafe.core.sim.skin_collision import geom_digest, load_pieces, save_pieces
 
     g = np.arange(model.ngeom)
     on_body = model.geom_bodyid[g] > 0
     visual = on_body & (model.geom_contype[g] == 0) & (model.geom_conaffinity[g] == 0)
     chosen = g[(visual if visual.any() else on_body) & (model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH)]
+    key = "markers-" + geom_digest(model, chosen, triangles)  # decimated once per robot (seconds), then from the cache
+    tris = load_pieces(key)
+    if tris is None or len(tris) != len(chosen):
+        tris = _decimated(model, chosen, triangles)
+        save_pieces(key, [t.reshape(-1, 3) for t in tris])
+    return [(model.body(model.geom_bodyid[i]).name, "skinsafe/robot", int(i),
+             np.concatenate([model.geom_pos[i], model.geom_quat[i]]), MESH_RGBA, t.reshape(-1, 3, 3))
+            for i, t in zip(chosen, tris)]
+
+
+def _decimated(model: mujoco.MjModel, chosen: np.ndarray, triangles: int) -> list[np.ndarray]:
+    """Each chosen mesh geom's triangles (k, 3, 3), decimated to its share of `triangles` by its own count."""
+    import trimesh
+
+    from skinsafe.core.robot.meshes import decimate
+
     total = max(1, int(model.mesh_facenum[model.geom_dataid[chosen]].sum()))
     out = []
     for i in chosen:
@@ -70,9 +84,7 @@ def mesh_markers(model: mujoco.MjModel, triangles: int = MESH_TRIANGLES) -> list
         v0, f0, nf = model.mesh_vertadr[m], model.mesh_faceadr[m], model.mesh_facenum[m]
         mesh = decimate(trimesh.Trimesh(model.mesh_vert[v0:v0 + model.mesh_vertnum[m]],
                                         model.mesh_face[f0:f0 + nf]), max(4, triangles * nf // total))  # vertices merged
-        out.append((model.body(model.geom_bodyid[i]).name, "skinsafe/robot", int(i),
-                    np.concatenate([model.geom_pos[i], model.geom_quat[i]]), MESH_RGBA,
-                    np.asarray(mesh.vertices)[np.asarray(mesh.faces)]))
+        out.append(np.asarray(mesh.vertices)[np.asarray(mesh.faces)])
     return out
 
 

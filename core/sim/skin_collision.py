@@ -218,18 +218,18 @@ def _add_surface_pieces(spec, model, design: SkinDesign | None, report: dict) ->
     if not todo:
         return
     q = model.key_qpos[0] if model.nkey else model.qpos0
-    robot_key = _digest(model, [], _robot_digest(model, q), PIECES_VERSION, PIECE_TOL, PIECE_DEPTH, PIECE_BUDGET,
+    robot_key = geom_digest(model, [], _robot_digest(model, q), PIECES_VERSION, PIECE_TOL, PIECE_DEPTH, PIECE_BUDGET,
                         PIECE_MIN_SIZE, FOOTPRINT_MARGIN, GUARD_GAP)
     for b in todo:
         name = model.body(b).name
         cells = Footprint.of(design, name) if design is not None else None
-        key = _digest(model, [], robot_key, name, *((cells.positions, cells.frames, cells.half) if cells else ()))
+        key = geom_digest(model, [], robot_key, name, *((cells.positions, cells.frames, cells.half) if cells else ()))
         if key not in _PIECES:
-            pieces = _load_pieces(key)
+            pieces = load_pieces(key)
             if pieces is None:
                 surf, outer, normals = _outer_surface(model, name, q)
                 pieces = surface_pieces(surf, outer=(outer, normals), footprint=cells)
-                _save_pieces(key, pieces)
+                save_pieces(key, pieces)
             _PIECES[key] = pieces
             if len(_PIECES) > 64:
                 _PIECES.pop(next(iter(_PIECES)))
@@ -250,7 +250,7 @@ def _robot_digest(model, q) -> str:
     """A digest of what a robot's surfaces at configuration q depend on: its visual meshes and
     their poses, the bodies' poses and joints."""
     visual = [g for g in range(model.ngeom) if model.geom_bodyid[g] and not _collides(model, g)]
-    return _digest(model, visual, q, model.body_pos, model.body_quat, model.jnt_pos, model.jnt_axis,
+    return geom_digest(model, visual, q, model.body_pos, model.body_quat, model.jnt_pos, model.jnt_axis,
                    model.jnt_bodyid.astype(float))
 
 
@@ -326,7 +326,8 @@ def cache_dir() -> Path:
     return Path(os.environ.get("SKINSAFE_CACHE") or Path.home() / ".cache" / "skinsafe") / "pieces"
 
 
-def _load_pieces(key: str) -> list[np.ndarray] | None:
+def load_pieces(key: str) -> list[np.ndarray] | None:
+    """The arrays (n_i, 3) kept under `key` (`cache_dir`), or None."""
     try:
         with np.load(cache_dir() / f"{key}.npz") as z:
             return np.split(z["points"], z["ends"][:-1]) if len(z["ends"]) else []
@@ -334,7 +335,7 @@ def _load_pieces(key: str) -> list[np.ndarray] | None:
         return None
 
 
-def _save_pieces(key: str, pieces: list[np.ndarray]) -> None:
+def save_pieces(key: str, pieces: list[np.ndarray]) -> None:
     """Written to a temporary file and renamed: a reader never sees half a file; a cache that
     cannot be written is only slower."""
     folder = cache_dir()
@@ -348,7 +349,7 @@ def _save_pieces(key: str, pieces: list[np.ndarray]) -> None:
         pass
 
 
-def _digest(model, geoms, *values) -> str:
+def geom_digest(model, geoms, *values) -> str:
     import hashlib
 
     h = hashlib.sha1()

@@ -366,3 +366,6 @@ def test_the_robots_meshes_are_triangle_markers_on_their_links():
     big = mesh_markers(model, triangles=1000)
     assert model.mesh_facenum.sum() > 7000 and sum(len(x[5]) for x in big) < 1100
     assert len(store.deserialize_cdr(triangle_markers(0.0, big), "visualization_msgs/msg/MarkerArray").markers) == 2
+    again, finer = mesh_markers(model, triangles=1000), mesh_markers(model, triangles=3000)  # the cache, by budget
+    assert all(np.array_equal(x[5], y[5]) for x, y in zip(big, again, strict=True))
+    assert sum(len(x[5]) for x in finer) > 2000
