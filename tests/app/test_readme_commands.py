@@ -93,6 +93,13 @@ def test_every_directive_names_a_command_of_a_bash_block():
                                                       f"{sorted(set(DIRECTIVES) - commands)}"
 
 
+def test_a_skipped_command_names_the_block_that_runs_its_path():
+    """`=> skip: runs as PAGE:LINE` names a bash block's first line (a page's edits above it move it)."""
+    blocks = {f"{page}:{line}" for page, line, _ in BLOCKS}
+    named = [m for _, what in DIRECTIVES.values() for m in re.findall(r"runs as (\S+\.md:\d+)", what)]
+    assert named and not set(named) - blocks, f"docs: readme-test 'runs as' no block: {sorted(set(named) - blocks)}"
+
+
 def test_parsing_keeps_quotes_and_joins_continuations():
     blocks = bash_blocks("```bash\na 'x # y' # note\nb \\\n   --c 1  # more\n# only a comment\n```\n")
     assert blocks == [(1, ["a 'x # y'", "b --c 1"])]
