@@ -27,7 +27,7 @@ def start(frames: SharedFrames, map_path: Path, joint_names: list[str], port: in
 
 
 def _serve(argv: list[str]) -> int:
-    from skinsafe.core.app.run import ros2_topics
+    from skinsafe.core.app.run_topics import ros2_topics
     from skinsafe.core.robot.models import load_robot, only_joints
     from skinsafe.core.runtime.foxglove_live import FoxgloveLive
     from skinsafe.core.skin.taxel_map import load

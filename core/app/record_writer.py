@@ -140,7 +140,7 @@ def _line(buf: bytearray) -> str | None:
 
 
 def _serve(argv: list[str]) -> int:
-    from skinsafe.core.app.run import ros2_topics
+    from skinsafe.core.app.run_topics import ros2_topics
     from skinsafe.core.robot.models import load_robot, only_joints
     from skinsafe.core.runtime.record import Recorder
     from skinsafe.core.skin.taxel_map import load

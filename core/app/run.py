@@ -320,14 +320,6 @@ def _foxglove(cfg: RunConfig, stack: contextlib.ExitStack, design, driver, map_p
     return tap
 
 
-def ros2_topics(robot, arm, design):
-    """The run's ROS 2 topics (core/runtime/ros2_topics.py): `arm`'s kinematics, the URDF of `robot` with its skin."""
-    from skinsafe.core.runtime.ros2_topics import Ros2Topics
-    from skinsafe.exporters.urdf import build_urdf
-
-    return Ros2Topics(arm.model, design, build_urdf(design, robot))
-
-
 def _end(proc) -> None:
     proc.terminate()
     try:

@@ -23,7 +23,6 @@ import functools
 
 import mujoco
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from skinsafe.core.robot.kinematics import body_ids
 from skinsafe.core.runtime import ros2_msgs as msgs
@@ -51,6 +50,16 @@ def _relative(qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
                             w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2, w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2])
 
 
+def _quat_xyzw(frames: np.ndarray) -> np.ndarray:
+    """Unit quaternions (x, y, z, w: ROS's order) of rotation matrices (n, 9), row-major (MuJoCo's mju_mat2Quat)."""
+    out = np.zeros((len(frames), 4))
+    q = np.zeros(4)
+    for i, m in enumerate(frames):
+        mujoco.mju_mat2Quat(q, m)
+        out[i] = q[1], q[2], q[3], q[0]
+    return out
+
+
 def mesh_markers(model: mujoco.MjModel, triangles: int = MESH_TRIANGLES) -> list[tuple]:
     """The robot's mesh geoms as `msgs.triangle_markers` markers on their bodies: its visual ones (no contacts), or
     its colliding ones where it has none (as exporters/urdf.py chooses), decimated (core/robot/meshes.py) to about
@@ -61,6 +70,8 @@ def mesh_markers(model: mujoco.MjModel, triangles: int = MESH_TRIANGLES) -> list
     on_body = model.geom_bodyid[g] > 0
     visual = on_body & (model.geom_contype[g] == 0) & (model.geom_conaffinity[g] == 0)
     chosen = g[(visual if visual.any() else on_body) & (model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH)]
+    if not len(chosen):
+        return []
     key = "markers-" + geom_digest(model, chosen, triangles)  # decimated once per robot (seconds), then from the cache
     tris = load_pieces(key)
     if tris is None or len(tris) != len(chosen):
@@ -112,7 +123,7 @@ class Ros2Topics:
         self.body = body_ids(model, design)[t.body] if len(t) else np.zeros(0, np.int64)
         self.local = np.asarray(t.positions, float)
         self.taxel_parents = [names[b] for b in self.body]
-        self.taxel_quat = Rotation.from_matrix(t.frames).as_quat() if len(t) else np.zeros((0, 4))
+        self.taxel_quat = _quat_xyzw(np.asarray(t.frames, float).reshape(-1, 9))
         order = np.argsort(self.body, kind="stable")  # taxels by body: one product per body's slice
         self.inverse = None if (order == np.arange(len(order))).all() else np.argsort(order)
         self.local_by_body = self.local[order]
