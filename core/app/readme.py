@@ -356,12 +356,6 @@ def tracking_nstep(root: Path) -> str:
     return "\n".join(lines) + f"\n\nChosen on seeds {seeds} (lowest contact ticks over episodes 6-10): " + "; ".join(chosen) + "."
 
 
-def _why(comparisons: list[dict]) -> str:
-    """The comparisons that did not hold, with their difference and Holm-adjusted p (why a claim fails or is open)."""
-    off = [f"{c['name']} ({c['difference']:+.1f}, Holm p {c['p_holm']:.2g}: {c['verdict']})" for c in comparisons if c["verdict"] != "holds"]
-    return f"; not shown: {', '.join(off)}" if off else ""
-
-
 def _grid(root: Path, file: str) -> dict | None:
     """A full grid's result, or None while its grid is not complete (the file is written at the end)."""
     return load(root, file) if (root / file).is_file() else None
@@ -374,44 +368,34 @@ def _pending(name: str) -> str:
 
 
 def _fig9(maze: dict) -> str:
-    """Fig. 9's cell: the verdict settled across the replicates, then each replicate's verdict, totals and why."""
+    """Fig. 9's cell: the verdict settled across the replicates and the protocol in a sentence; each replicate's
+    totals and comparisons are the Strategy page's maze grid and `maze_results.json`'s `claims`."""
     from skinsafe.core.experiments.maze_report import FASTER
 
     cl, proto = maze["claims"], maze["protocol"]
-    reps = []
-    for k, rep in enumerate(maze["replicates"]):
-        c = rep["summary"]["claim"]
-        means = ", ".join(f"{m} {fmt(v)}" for m, v in sorted(c["means"].items(), key=lambda kv: kv[1]))
-        reps.append(f"replicate {k + 1} (tuning seed{'s' if len(rep['tuning_seeds']) > 1 else ''} "
-                    f"{', '.join(map(str, rep['tuning_seeds']))}): **{c['verdict']}**, total contacts {means}{_why(c['comparisons'])}; "
-                    f"reach the goal: {', '.join(c['reaching']) or 'none'}")
-    online = f". Online contacts only (recovery-rl's accounting): {cl['online']['verdict']}" if cl["online"] else ""
-    conv = "".join(f". Fig. 9c {k}: {FASTER.get(v['verdict'], v['verdict'])} (replicates: "
-                   f"{', '.join(FASTER[x] for x in v['replicate_verdicts'])})" for k, v in cl["convergence"].items())
-    return (f"**{cl['total']['verdict']}** ({len(maze['eval_seeds'])} held-out seeds x {proto['episodes']} episodes; every method "
-            f"{proto['trials']} Optuna trials from its published defaults, tuned as it is evaluated; Holm-corrected Welch tests; "
-            f"replicates: {', '.join(cl['total']['replicate_verdicts'])}). " + ". ".join(reps) + online + conv)
+    online = f"; online contacts only: {cl['online']['verdict']}" if cl["online"] else ""
+    conv = "".join(f"; Fig. 9c {k}: {FASTER.get(v['verdict'], v['verdict'])}" for k, v in cl["convergence"].items())
+    return (f"**{cl['total']['verdict']}** (replicates: {', '.join(cl['total']['replicate_verdicts'])}; "
+            f"{len(maze['eval_seeds'])} held-out seeds x {proto['episodes']} episodes, {proto['trials']} Optuna trials "
+            f"per method, Holm-corrected Welch tests{online}{conv}). Each replicate's totals and tests: "
+            "[Strategy](../simulate/strategy.md#results), `maze_results.json` `claims`")
 
 
 def _fig11(track: dict) -> str:
-    """Fig. 11's cell: the headline's verdict settled across its replicates (ticks, onsets), each replicate's
-    means and why, and each extension's verdict with what it uses."""
-    from skinsafe.core.experiments.tracking_report import NAMES
+    """Fig. 11's cell: the headline's verdict settled across its replicates (ticks, onsets), the 2-step TDM's
+    share of vanilla's contacts per replicate, each extension's verdict; each comparison is the Modulation
+    page's claims table and `tracking.json`."""
+    from skinsafe.core.experiments.tracking import SHARE
 
     head = track["labels"][track["headline"]]
-    reps = []
-    for rep in head["replicates"]:
-        c = rep["claim"]
-        reps.append(f"seeds {rep['seeds'][0]}-{rep['seeds'][-1]}: **{c['verdict']}**, contact ticks per episode (episodes "
-                    "6-10) " + ", ".join(f"{NAMES[m]} {v:.1f}" for m, v in c["means"].items())
-                    + f", 2-step / vanilla {c['tdm2_over_vanilla']:.0%}{_why(c['comparisons'])}")
-    ext = "".join(f". Extension {name} ({res['uses'].split(': ', 1)[-1]}): {res['settled']['verdict']}"
+    shares = ", ".join(f"{rep['claim']['tdm2_over_vanilla']:.0%}" for rep in head["replicates"])
+    ext = "".join(f"; extension {name}: {res['settled']['verdict']}"
                   for name, res in track["labels"].items() if res["role"] == "extension")
-    return (f"**{head['settled']['verdict']}** with the paper's labels (what the skin felt at visited states; "
-            f"{len(head['replicates'])} replicates of {len(head['replicates'][0]['seeds'])} held-out seeds x "
-            f"{track['config']['episodes']} episodes, {fmt(track['n_taxels'])} taxels; contacts counted in ticks as Fig. 11e; "
-            "vanilla most, TDM and 2-step below it, 2-step <= 10% of vanilla and below the TDM, Holm-corrected paired tests). "
-            + "; ".join(reps) + f". Counted in contact onsets: {head['settled_onsets']['verdict']}{ext}")
+    return (f"**{head['settled']['verdict']}** with the paper's labels ({len(head['replicates'])} replicates of "
+            f"{len(head['replicates'][0]['seeds'])} held-out seeds x {track['config']['episodes']} episodes, "
+            f"{fmt(track['n_taxels'])} taxels; contacts counted in ticks as Fig. 11e): 2-step / vanilla {shares} "
+            f"(claimed at most {SHARE:.0%}); in contact onsets {head['settled_onsets']['verdict']}{ext}. Each "
+            "comparison: [Modulation](../simulate/modulation.md#results-on-held-out-seeds), `tracking.json`")
 
 
 def _opt(row: dict, key: str, spec: str) -> str:
