@@ -84,11 +84,13 @@ CONSTANTS: dict[str, dict[str, str]] = {
     "docs/design/addon.md": {"4": "the camera's margin (addon/headless.py: 1.08 of the extent)",
                              "1.5": "the dots' lift off the link (addon/headless.py: lift=0.0015)"},
     "docs/deploy/index.md": {**{c: "an exit code of deploy and stream (hardware/cli_deploy.py EXIT_CODES)"
-                                for c in ("0", "1", "2", "130", "143")},
+                                for c in ("0", "2", "130", "143")},
+                             "1": "an exit code (hardware/cli_deploy.py EXIT_CODES) and the link's default 1 Mbaud "
+                                  "(hardware/client.py baud)",
                              "24": "a config's header bytes (hardware/PROTOCOL.md)",
                              "12": "a config entry's bytes (hardware/PROTOCOL.md)",
                              "22": "a frame's header bytes (hardware/PROTOCOL.md)",
-                             "16": "a frame's trailer bytes (hardware/PROTOCOL.md)"},
+                             "16": "a frame's fixed payload fields (hardware/PROTOCOL.md)"},
     "docs/design/buildable.md": {"3": "polyimide's yield strain (DuPont Kapton HN datasheet)",
                                  "4,000": "the exposed surface's samples (core/design/cover.py, exposed(n=4000))",
                                  "60": "bench fab's coverage threshold (core/app/bench_fab.py: covered < 0.6)",
@@ -177,7 +179,7 @@ CONSTANTS: dict[str, dict[str, str]] = {
                            "0": "IEC 60204-1's stop category 0, --overruns 0 (off) and the picture's scale's start",
                            "1": "IEC 60204-1's stop category 1, the FR3's 1 ms period (hardware/franka.py), a "
                                 "poke at 1 s (the storm's) and named_as_injected's whole",
-                           "3": "--overruns' default (core/runtime/run_config.py OVERRUNS) and the overrun tests' "
+                           "3": "--overruns' default (core/runtime/monitor.py OVERRUNS) and the overrun tests' "
                                 "3 periods (tests/runtime/test_runtime_safety.py)",
                            "50": "the storm's --rate default (core/app/runtime_faults.py)",
                            "10": "ctrl-c-twice's gap (core/app/runtime_faults.py SIGNALS) and the FR3's ramp "
