@@ -20,9 +20,9 @@ the body model in `skinsafe.core.sim.body_regions` (the person in a scene reads 
 - Clamping (ISO/TS 15066 5.5.5.4: quasi-static, the body part cannot recoil): a taxel that faces a
   fixed surface (`fixtures`, half-spaces) within `clamp_gap` can trap a body part against it. The
   part then cannot move away (m_H drops out) and is compressed by the robot's kinetic energy,
-  `v sqrt(m_R / k)`, plus what the robot covers while the stack reacts, `v stop_s`; within the
-  quasi-static limit `F_Q = min(F_qs, p_qs A)` (compression `F_Q / k`) that gives
-  `v_max = (F_Q / k) / (sqrt(m_R / k) + stop_s)`.
+  `v sqrt(m_R / k)`, plus what the robot covers while the stack reacts and its servo follows,
+  `v (stop_s + lag_s)`; within the quasi-static limit `F_Q = min(F_qs, p_qs A)` (compression `F_Q / k`)
+  that gives `v_max = (F_Q / k) / (sqrt(m_R / k) + stop_s + lag_s)`.
 - `PFLCap`: each taxel's velocity along its outward normal, `a_i . qdot`, capped at the smallest
   `v_max` over the scene's regions (the most sensitive one), times a margin `factor`. The command
   is scaled as a whole (direction kept, so a planned path stays the path); a non-finite joint
@@ -45,8 +45,8 @@ the body model in `skinsafe.core.sim.body_regions` (the person in a scene reads 
   late the arm follows its command: the sim's UR5 pan 69 ms) and then brakes, so it covers
   `u tau + u^2 / (2 a_i)` before it is at rest. That may be no more than the distance d to the part plus
   what a lag-free arm meeting the part at v_max covers braking after the contact, `v_max^2 / (2 a_i)`:
-  `u <= -a_i tau + sqrt((a_i tau)^2 + v_max^2 + 2 a_i d)`, and never above v_max (d = 0 where the
-  person is not observed). Where the arm's measured normal speed u_m is the faster (its servo lags a
+  `u <= -a_i tau + sqrt((a_i tau)^2 + v_max^2 + 2 a_i d)` (transient or clamping v_max; d = 0 where the
+  person is not observed, so below v_max: only a part seen far enough away allows more). Where the arm's measured normal speed u_m is the faster (its servo lags a
   braking command), it covers `u_m tau` first: `u <= sqrt(v_max^2 + 2 a_i (d - u_m tau))`, 0 where
   even that does not fit. Without it the cap allowed v_max up to the part: a robot whose servo lags
   arrives at v_max and pushes on into the part for its reaction and braking (the collaboration's
@@ -313,26 +313,26 @@ class PFLCap:
 @numba.njit(cache=True, nogil=True)
 def _limit(reg, r, factor, inv, area, clamp, dist, opts, u, um):
     """v_max of region row `reg[r]` for a taxel whose command moves it along its normal at u and the arm at um
-    (module docstring): clamping, transient (with the braking model, at distance `dist`, 0 where unknown) or
+    (module docstring): clamping or transient (with the braking model, at distance `dist`, 0 where unknown), or
     avoidance."""
     ft, fq, pt, pq, inv_mh, k = reg[r]
     if clamp:
-        f = min(fq, pq * area)
         if inv <= 0.0:
             return 0.0
-        return factor * (f / k) / (1.0 / np.sqrt(inv * k) + opts[1])
-    if ft > 0.0:
+        vm = factor * (min(fq, pq * area) / k) / (1.0 / np.sqrt(inv * k) + opts[8])
+    elif ft > 0.0:
         vm = factor * min(ft, pt * area) / np.sqrt(k) * np.sqrt(inv_mh + inv)
-        if opts[6] == 0.0 or u <= 0.0:
-            return vm
-        a, d, tau = u * opts[7], max(dist, 0.0) if np.isfinite(dist) else 0.0, opts[8]
-        lim = -a * tau + np.sqrt((a * tau) ** 2 + vm * vm + 2.0 * a * d)
-        if um > lim:  # the arm, faster than its command (its servo lags a braking one), covers tau um first
-            lim = np.sqrt(max(vm * vm + 2.0 * a * (d - tau * um), 0.0))
-        return min(lim, vm)
-    if np.isfinite(dist):
+    elif np.isfinite(dist):
         return opts[4] * (dist - opts[3])
-    return 0.0
+    else:
+        return 0.0
+    if opts[6] == 0.0 or u <= 0.0:
+        return vm
+    a, d, tau = u * opts[7], max(dist, 0.0) if np.isfinite(dist) else 0.0, opts[8]
+    lim = -a * tau + np.sqrt((a * tau) ** 2 + vm * vm + 2.0 * a * d)
+    if um > lim:  # the arm, faster than its command (its servo lags a braking one), covers tau um first
+        lim = np.sqrt(max(vm * vm + 2.0 * a * (d - tau * um), 0.0))
+    return lim
 
 
 @numba.njit(cache=True, nogil=True)
