@@ -45,14 +45,15 @@ def skinsafe(*args, timeout=60, **kw):
                           text=True, timeout=timeout, **kw)
 
 
-def run(skin, tmp_path, *extra, command="hold", seconds=1.5, when_moving=None):
-    """`skinsafe run` with the emulated boards; `when_moving(proc)` is called once the robot moves."""
-    stats, record = tmp_path / "stats.json", tmp_path / "run"
+def run(skin, tmp_path, *extra, command="hold", seconds=1.5, when_moving=None, record=True):
+    """`skinsafe run` with the emulated boards; `when_moving(proc)` is called once the robot moves; `record` False: no
+    `--record` (its writer process costs ~2-5 CPU s a run), for a test that reads none."""
+    stats, path = tmp_path / "stats.json", tmp_path / "run"
     args = ["run", skin, "--robot", "sim", "--boards", "emulate", "--command", command, "--link-latency", LINK_LATENCY, "--allow-link-latency", "--tare-frames", 10,
-            "--seconds", seconds, "--record", record, "--stats", stats, *extra]
+            "--seconds", seconds, *(["--record", path] if record else []), "--stats", stats, *extra]
     code, out, err = start_run(args, when_moving)
     p = subprocess.CompletedProcess(args, code, out, err)
-    return p, (json.loads(stats.read_text()) if stats.exists() else None), record
+    return p, (json.loads(stats.read_text()) if stats.exists() else None), path if record else None
 
 
 def messages(record):
@@ -172,12 +173,14 @@ def test_ctrl_c_stops_the_robot_first_then_reports_and_exits_130(skin, tmp_path)
 
 
 def test_preflight_names_faulty_taxels_and_refuses_beyond_the_limit(skin, tmp_path):
-    p, s, _ = run(skin, tmp_path, "--taxel-fault", "stuck:10", "--taxel-fault", "noisy:20", seconds=0.3)
+    p, s, _ = run(skin, tmp_path, "--taxel-fault", "stuck:10", "--taxel-fault", "noisy:20", seconds=0.3,
+                  record=False)
     assert p.returncode == 0, p.stderr
     assert s["preflight"]["stuck"] == [10] and s["preflight"]["noisy"] == [20] and s["preflight"]["excluded"] == 2
     assert "stuck [10], noisy [20]" in p.stderr
     (tmp_path / "refused").mkdir()
-    p, s, _ = run(skin, tmp_path / "refused", "--taxel-fault", "stuck:10", "--max-excluded", "0", seconds=0.3)
+    p, s, _ = run(skin, tmp_path / "refused", "--taxel-fault", "stuck:10", "--max-excluded", "0", seconds=0.3,
+                  record=False)
     assert p.returncode == 3 and "pre-flight refused" in p.stderr and "stuck 1" in p.stderr and "[10]" in p.stderr
     assert s is None  # the robot never moved
 
