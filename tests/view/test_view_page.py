@@ -28,10 +28,7 @@ W, H = 1200, 800
 # the docs' picture of a poke: rewritten only when asked (SKINSAFE_PICTURES=1), else a test run leaves the tree clean
 SCREENSHOT = Path(__file__).resolve().parents[2] / "results" / "view" / "view_poke.png"
 POKE_S = 2.0  # robot seconds
-pytestmark = [pytest.mark.skipif(CHROMIUM is None, reason="no chromium: `apt-get install -y chromium` (.ci/run does)"),
-              # `run` pins its loop to the first core at SCHED_FIFO and its boards go silent after 200 ms: never
-              # beside another real-time run (pytest-xdist: one worker runs the group in order)
-              pytest.mark.xdist_group("realtime"), pytest.mark.usefixtures("realtime_host")]
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no chromium: `apt-get install -y chromium` (.ci/run does)")
 
 
 def project(p, eye, at, fov=FOV, w=W, h=H):
@@ -102,17 +99,8 @@ def browser(tmp_path_factory):
         b.close()
 
 
-def test_run_view_live_then_the_record_scrubs_to_the_poke_and_the_taxel_turns_hot(tmp_path, browser):
-    robot = build_ur5()
-    design = make_sample_design("ur5", robot=robot)
-    skin = save(design, tmp_path / "skin.json")
-    kin = TaxelKinematics(robot.model, design)
-    pos, frames = kin.poses(robot.home)
-    eye, at = camera(pos)
-    # the taxel to poke: facing the camera, among the most visible (its normal toward the eye), on the forearm side
-    facing = np.einsum("ki,ki->k", frames[:, :, 2], (eye - pos) / np.linalg.norm(eye - pos, axis=1, keepdims=True))
-    taxel = int(np.argmax(facing))
-    record = tmp_path / "poke.mcap"
+def live(browser, skin, taxel: int, record):
+    """`skinsafe run --view --record` until Ctrl-C, the page's live tick advancing past the poke."""
     # runs until Ctrl-C: the live phase takes as long as this machine needs to draw the page, no longer
     run = cli("run", skin, "--boards", "emulate", "--command", "hold", "--rate", 10, "--tare-frames", 10,
               # held 0.5 s: the boards sample at 10 Hz on the host's clock, and a loaded host can run the sim's 0.13 s
@@ -141,6 +129,23 @@ def test_run_view_live_then_the_record_scrubs_to_the_poke_and_the_taxel_turns_ho
         raise AssertionError(f"the live phase failed ({e}); the run said: {run.communicate(timeout=60)[1][-2000:]}") from e
     assert run.returncode == 130 and "STOPPED by the operator" in err, err[-2000:]
     page.close()
+
+
+def test_run_view_live_then_the_record_scrubs_to_the_poke_and_the_taxel_turns_hot(tmp_path, browser, realtime_turn):
+    robot = build_ur5()
+    design = make_sample_design("ur5", robot=robot)
+    skin = save(design, tmp_path / "skin.json")
+    kin = TaxelKinematics(robot.model, design)
+    pos, frames = kin.poses(robot.home)
+    eye, at = camera(pos)
+    # the taxel to poke: facing the camera, among the most visible (its normal toward the eye), on the forearm side
+    facing = np.einsum("ki,ki->k", frames[:, :, 2], (eye - pos) / np.linalg.norm(eye - pos, axis=1, keepdims=True))
+    taxel = int(np.argmax(facing))
+    record = tmp_path / "poke.mcap"
+    # `run` pins its loop to the first core at SCHED_FIFO: never beside another real-time run (the slot held for the
+    # live phase only; the record's replay after it runs beside the real-time tests)
+    with realtime_turn():
+        live(browser, skin, taxel, record)
 
     view = cli("view", record, "--port", 0, "--seconds", 120)  # any free port: `url_of` reads it back
     try:
