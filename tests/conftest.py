@@ -112,18 +112,11 @@ def realtime_lock(tmp_path_factory):
     return slot_file(tmp_path_factory)
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def realtime_turn(tmp_path_factory):
-    """`realtime_host` as a context manager, for a test that runs the loop in one phase only (its other phases, a
-    record's replay in a browser, run beside the real-time tests): `with realtime_turn(): ...`."""
+    """`realtime_host` as a context manager, for a test or fixture that runs the loop in one phase only (its other
+    phases, a record's replay or decoding, run beside the real-time tests): `with realtime_turn(): ...`."""
     return lambda: realtime_slot(tmp_path_factory)
-
-
-@pytest.fixture(scope="module")
-def realtime_host_module(tmp_path_factory):
-    """`realtime_host` held for a module whose fixture runs the loop once for all its tests."""
-    with realtime_slot(tmp_path_factory):
-        yield
 
 
 def slot_file(tmp_path_factory):

@@ -33,7 +33,7 @@ from skinsafe.core.runtime.rosbag2 import record_file
 from skinsafe.core.runtime.tick import Tick
 from skinsafe.core.skin.taxel_map import load, save
 
-pytestmark = [pytest.mark.xdist_group("realtime")]
+pytestmark = [pytest.mark.xdist_group("ros2-record")]  # one worker runs the module's one run
 LIVE = ["/tf", "/skinsafe/tactile", "/robot_description"]
 
 
@@ -44,10 +44,16 @@ def ur5():
 
 
 @pytest.fixture(scope="module")
-def run(ur5, tmp_path_factory, realtime_host_module):
-    """The run's record folder, its map, and what a Foxglove client got while it ran."""
+def run(ur5, tmp_path_factory, realtime_turn):
+    """The run's record folder, its map, and what a Foxglove client got while it ran (the real-time slot held while
+    it runs; the tests' decoding runs beside the real-time tests)."""
     tmp = tmp_path_factory.mktemp("ros2")
     save(ur5[1], tmp / "skin.json")
+    with realtime_turn():
+        return _run(tmp)
+
+
+def _run(tmp):
     proc = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.cli", "run", tmp / "skin.json", "--robot", "sim",
                              "--boards", "emulate", "--command", "hold", "--link-latency", "0.5", "--allow-link-latency",
                              "--tare-frames", "10", "--contact", "poke:at=0.3", "--seconds", "1.2",
