@@ -13,8 +13,8 @@ what it had written is recovered into the folder (core/runtime/record_recover.py
 
 `start(...)` starts `python -m skinsafe.core.app.record_writer SHM SLOTS MAP DIR JOINT...` on the normal scheduler
 at nice 0 (core/realtime.py `background`: not the loop's real-time priority; at the view's nice 10 on a loaded 2-core
-host it fell behind and dropped the telemetry of 10-55% of 16,331-taxel ticks), the record's configuration on its stdin, and returns once the writer is
-ready (an OSError naming the folder when it cannot write it). The writer ignores Ctrl+C (the run's handler stops the
+host it fell behind and dropped the telemetry of 10-55% of 16,331-taxel ticks); `begin(config)` sends the record's
+configuration on its stdin and returns once the writer is ready (an OSError naming the folder when it cannot write it). The writer ignores Ctrl+C (the run's handler stops the
 robot; the writer still gets the stop) and, when its run ends without a stop, finishes the record saying so.
 """
 from __future__ import annotations
@@ -49,6 +49,21 @@ class RecordFeed:
         self.dropped = 0
         self.result: dict | None = None
         self.recovered_part = recovered_part  # `start`'s recovery of a dead run's record (path, written), if any
+        self.begun = False
+
+    def begin(self, config: dict) -> None:
+        """The record's configuration to the writer; returns once the writer is ready (an OSError naming why not)."""
+        self.proc.stdin.write((json.dumps(config) + "\n").encode())
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline().decode().strip()
+        if line != "ready":
+            self.proc.stdin.close()
+            self.proc.wait(10)
+            self.frames.close()
+            self.result = {"written": 0, "dropped": 0, "error": line}
+            raise OSError(line.removeprefix("error ") or
+                          f"the record's writer process did not start (exit {self.proc.returncode})")
+        self.begun = True
 
     def put(self, tick: Tick) -> None:
         """Copy the tick into the ring, never waiting: when it is full, only its safety topics, later (module docstring)."""
@@ -67,6 +82,12 @@ class RecordFeed:
         """Hand over the backlog, send the stop (reason, kind, stats: the record's last diagnostics), wait for the
         folder; {written, dropped, path} or {written, dropped, error}."""
         if self.result is not None:
+            return self.result
+        if not self.begun:  # the run ended before its record began (refused at its pre-flight): nothing written
+            self.proc.stdin.close()
+            self.proc.wait()
+            self.frames.close()
+            self.result = {"written": 0, "dropped": 0, "error": "the run ended before its record began"}
             return self.result
         while self.backlog and self.proc.poll() is None:
             if self.frames.push(self.backlog[0], telemetry=False):
@@ -98,9 +119,11 @@ class RecordFeed:
 
 
 def start(path: Path, map_path: Path, joint_names: list[str], boards: list[int], n_taxels: int,
-          config: dict) -> RecordFeed:
+          config: dict | None = None) -> RecordFeed:
     """The writer process of the record folder `path` and the loop's feed to it (module docstring). A `path`.part
-    left by a run that died with its writer is recovered first, beside (`recovered_part`), not written over."""
+    left by a run that died with its writer is recovered first, beside (`recovered_part`), not written over. The
+    writer loads the robot and its topics at once; the record begins with `begin(config)` (here when `config` is
+    given), so a run starts it before its pre-flight and the writer's start-up runs beside it."""
     part = Path(path).with_name(Path(path).name + ".part")
     recovered = None
     if (part / mcap_name(Path(path))).is_file():
@@ -114,15 +137,10 @@ def start(path: Path, map_path: Path, joint_names: list[str], boards: list[int],
     proc = subprocess.Popen([sys.executable, "-m", "skinsafe.core.app.record_writer", frames.name, str(slots),
                              str(map_path), str(path), *joint_names], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                             preexec_fn=functools.partial(background, 0))
-    proc.stdin.write((json.dumps(config) + "\n").encode())
-    proc.stdin.flush()
-    line = proc.stdout.readline().decode().strip()
-    if line != "ready":
-        proc.stdin.close()
-        proc.wait(10)
-        frames.close()
-        raise OSError(line.removeprefix("error ") or f"the record's writer process did not start (exit {proc.returncode})")
-    return RecordFeed(frames, proc, Path(path), recovered)
+    feed = RecordFeed(frames, proc, Path(path), recovered)
+    if config is not None:
+        feed.begin(config)
+    return feed
 
 
 def _line(buf: bytearray) -> str | None:
@@ -147,18 +165,20 @@ def _serve(argv: list[str]) -> int:
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run's handler stops the robot; the stop comes on stdin
     name, slots, map_path, path, *joints = argv
-    buf = bytearray()
-    config = None
-    while config is None:
-        config = _line(buf)
-    if not config:
-        return 2
     map_path = Path(map_path)
     robot = load_robot(load(map_path).robot, base_dir=map_path.parent)
     design = load(map_path, robot.body_names)
     frames = SharedFrames.attach(name, design.n_taxels, len(joints), [b.uid for b in design.boards], int(slots), True)
+    topics = ros2_topics(robot, only_joints(robot, joints), design)
+    buf = bytearray()
+    config = None
+    while config is None:  # the run's pre-flight meanwhile
+        config = _line(buf)
+    if not config:  # the run ended before the record began
+        frames.close()
+        return 2
     try:
-        rec = Recorder(path, joints, json.loads(config), topics=ros2_topics(robot, only_joints(robot, joints), design))
+        rec = Recorder(path, joints, json.loads(config), topics=topics)
     except OSError as e:
         print(f"error {e.strerror or e}", flush=True)
         return 2

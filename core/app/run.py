@@ -460,6 +460,14 @@ def _wire(cfg: RunConfig, stack, feed, ports, inject, map_path, map_hash, robot,
         driver = _driver(cfg, design, robot, feed, inject)
         stack.callback(driver.close)
         arm = only_joints(robot, driver.joint_names)  # the joints the driver moves (the FR3: not its fingers)
+        recorder = None
+        if cfg.record:  # its writer starts up beside the pre-flight; the record begins after it
+            try:
+                recorder = start_writer(Path(cfg.record), map_path.resolve(), driver.joint_names,
+                                        [b.uid for b in design.boards], design.n_taxels)
+            except OSError as e:
+                raise _Refused(2, f"--record {cfg.record}: {e}; choose a folder you can write to") from None
+            stack.callback(recorder.close, {"reason": "the run ended before its stop", "kind": "fault"})
         try:
             limits = JointLimits.of(driver.limits())  # validated once, here
         except ValueError as e:
@@ -497,19 +505,16 @@ def _wire(cfg: RunConfig, stack, feed, ports, inject, map_path, map_hash, robot,
         raise _Refused(2, f"--tdm: {e}") from None
     warm_up(layers, arm.home, design.taxels.thresholds["force"], driver.period_s)
     seconds = cfg.seconds or (command.duration + 1.0 if isinstance(command, Trajectory) else None)
-    recorder = None
-    if cfg.record:
+    if recorder is not None:
         config = run_config(map_path, driver, limits, params, source.excluded, command.spec, cfg.tdm)
         config["run"] = cfg.to_json()  # the run's whole configuration, as given (RunConfig.from_json reads it)
         config["board_period_s"] = 1.0 / cfg.rate  # for the view's board health
         if isinstance(command, Teleop):  # who may drive it, and with which key (its id, never its value)
             config["teleop"] = {"leader": cfg.teleop_leader or "", "key": command.key.path, "key_id": command.key.key_id}
         try:
-            recorder = start_writer(Path(cfg.record), map_path.resolve(), driver.joint_names,
-                                    [b.uid for b in design.boards], design.n_taxels, config)
+            recorder.begin(config)
         except OSError as e:
             raise _Refused(2, f"--record {cfg.record}: {e}; choose a folder you can write to") from None
-        stack.callback(recorder.close, {"reason": "the run ended before its stop", "kind": "fault"})
     tap = Tap()
     if cfg.view:
         try:
