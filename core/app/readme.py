@@ -54,12 +54,12 @@ REDUCE = {"min": min, "max": max, "sum": sum, "len": len, "mean": lambda v: sum(
 
 def lookup(data, path: str):
     """The value at KEY.PATH (module doc): keys, list indices, a key of every row of a list, `min`,
-    `max`, `sum`, `mean`, `len` of a list; a trailing `*F` or `/F` (repeatable) scales a number."""
+    `max`, `sum`, `mean` (of its values that are not null), `len` of a list; a trailing `*F` or `/F` (repeatable) scales a number."""
     path, *ops = re.split(r"(?=[*/][0-9.])", path)
     for key in path.split("."):
         try:
-            if isinstance(data, list) and key in REDUCE:
-                data = REDUCE[key](data)
+            if isinstance(data, list) and key in REDUCE:  # a missing value (null: nothing measured) left out
+                data = REDUCE[key](data if key == "len" else [v for v in data if v is not None])
             elif isinstance(data, list) and not key.lstrip("-").isdigit():  # a key of every row
                 data = [row[key] for row in data]
             else:

@@ -491,7 +491,5 @@ def run(args) -> int:
                 worst = (rows[-1], travel)
         if args.picture and worst is not None:
             picture(Path(args.picture), the, worst[0], *worst[1])
-            for f in Path(tmp).glob(f"run{k}.*"):
-                f.unlink()
     print(json.dumps(rows) if args.json else "\n".join(map(str, rows)))
     return 0
