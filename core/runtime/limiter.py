@@ -4,10 +4,10 @@ All joints at once, from the last command sent: position (never toward a joint l
 arm can stop before it, |qd| <= sqrt(2 qdd_max d)), velocity, acceleration and, where the robot
 states a jerk limit (the FR3), libfranka's `limitRate` rule with its margin. The runtime tells the
 stack what was sent (its next tick's limits and no-push rows start from it), and a replay runs the
-same limiter from the record's configuration. Both drivers get its output: the FR3 driver then sends
-it unchanged and rate-limits only its own ramp to zero. A driver whose `limits()` names position-dependent
-velocity bounds (`qd_bounds`: "fr3", libfranka's, see `fr3_velocity_bounds`) has every joint kept inside them
-too, and the name goes into the record so a replay uses the same bounds. numpy only (hardware/ imports it).
+same limiter from the record's configuration. Both drivers get its output and send it unchanged; each
+rate-limits only its own stop's ramp to zero (the same `rate_limit`, core/robot/rate_limit.py). A driver whose
+`limits()` names position-dependent velocity bounds (`qd_bounds`: "fr3", libfranka's, see `fr3_velocity_bounds`) has
+every joint kept inside them too, and the name goes into the record so a replay uses the same bounds. numpy only (hardware/ imports it).
 
 It cannot emit a non-finite command: the rate limits run at the driver's command period (`period_s`: one command
 goes out per period whatever the robot's clock says, libfranka's kDeltaT) or, without one, at the measured dt kept
@@ -21,7 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-MARGIN = 1e-3  # libfranka's kLimitEps: stay this fraction inside each limit (with a jerk limit)
+from skinsafe.core.robot.rate_limit import MARGIN, rate_limit
+
 KEYS = ("q_min", "q_max", "qd_max", "qdd_max", "qddd_max")
 DT_MIN, DT_MAX = 1e-5, 0.05  # s: the rate limits' step without a command period (the sim's shortest period / 20 and
 # its longest)
@@ -52,24 +53,6 @@ def _fr3_bounds(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 BOUNDS = {"fr3": fr3_velocity_bounds}  # a driver's `qd_bounds` name -> its position-dependent velocity bounds
-
-
-def rate_limit(qd_cmd: np.ndarray, qd_last: np.ndarray, qdd_last: np.ndarray, dt: float, qd_max: np.ndarray,
-               qdd_max: np.ndarray, qddd_max: np.ndarray, qd_min: np.ndarray | None = None
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """libfranka's `limitRate` for joint velocities: the command reached from the last one with bounded jerk and
-    acceleration, inside the velocity limits [-qd_max, qd_max] (kept MARGIN inside), or [qd_min, qd_max] as given
-    (position-dependent bounds, which carry their own tolerance). Returns (velocity, acceleration)."""
-    qdd_max, qddd_max = qdd_max * (1 - MARGIN), qddd_max * (1 - MARGIN)
-    if qd_min is None:
-        qd_max = qd_max * (1 - MARGIN)
-        qd_min = -qd_max
-    jerk = np.clip(((qd_cmd - qd_last) / dt - qdd_last) / dt, -qddd_max, qddd_max)
-    acc = qdd_last + jerk * dt
-    hi = np.minimum(qddd_max / qdd_max * (qd_max - qd_last), qdd_max)
-    lo = np.maximum(qddd_max / qdd_max * (qd_min - qd_last), -qdd_max)
-    acc = np.clip(acc, lo, hi)
-    return qd_last + acc * dt, acc
 
 
 @dataclass(frozen=True, eq=False)
@@ -185,8 +168,7 @@ class Limiter:
             out = np.clip(out, b_lo, b_hi)
             self.acc = (out - self.last) / dt
         else:
-            out = np.clip(out, self.last - self.qdd_max * dt, self.last + self.qdd_max * dt)
-            self.acc = (out - self.last) / dt
+            out, self.acc = rate_limit(out, self.last, self.acc, dt, self.qd_max, self.qdd_max, None)
         if not np.isfinite(out).all() or not np.isfinite(self.acc).all():  # unreachable with finite limits: fail safe
             out, self.acc = np.where(np.isfinite(out), out, self.last), np.where(np.isfinite(self.acc), self.acc, 0.0)
         self.changed += bool(np.any(out != v))

@@ -9,8 +9,11 @@ the emulated boards stream them over pseudo-terminals: the whole chain (contact 
 -> serial -> host -> layers -> driver) runs closed-loop on one machine.
 
 Before `run` the arm stands still and the feed is refreshed every period (the pre-flight's tare sees
-live sensors). A stop (control returned None, raised, `stop(reason)`, a physics failure) sends zero velocity,
-then the robot's own stop: the servos hold the measured pose until the arm is at rest.
+live sensors). A stop (control returned None, raised, `stop(reason)`, a physics failure) is a Category 2 stop
+(IEC 60204-1), as the FR3 driver's: from the arm's measured joint speeds, the velocity command ramped to zero at the
+driver's own joint limits (`limits()`: qdd_max, and qddd_max where given; core/robot/rate_limit.py), the servos
+tracking it (velocity and inertia feed-forward, as a velocity-controlled arm's joint controller), then holding the
+pose the ramp reached until the arm is at rest. A dead simulation sends nothing.
 
 `Contact` puts something in the arm's world to touch:
 - `poke`: a sprung probe jabs one skin taxel along its normal (the arm holding still is enough);
@@ -32,14 +35,15 @@ import numpy as np
 
 from skinsafe.core.robot.kinematics import TaxelKinematics
 from skinsafe.core.robot.models import Robot
+from skinsafe.core.robot.rate_limit import rate_limit
 from skinsafe.core.sim.readout import SkinReadout
 from skinsafe.core.sim.scene import Obstacle, SceneOptions, build_scene
 from skinsafe.core.skin.model import SkinDesign
 
 PROBE_RADIUS = 0.015  # m
 SERVO_LEAD = 0.2  # rad: the servo target never runs further than this ahead of the measured joint
-REST_SPEED = 1e-3  # rad/s: the robot's own stop ends when every joint is slower than this ...
-REST_TIMEOUT_S = 0.5  # ... or after this long
+REST_SPEED = 1e-3  # rad/s: the stop's hold ends when every joint is slower than this ...
+REST_TIMEOUT_S = 0.5  # ... or this long after its ramp ended
 RETRACT_SPEED = 1e-3  # m/s out of the contact: the measured motion follows the retraction
 TAXEL_FAULTS = ("stuck", "noisy")  # sensor faults on demand: stuck reads STUCK_N always, noisy adds U(0, threshold)
 STUCK_N = 5.0
@@ -105,9 +109,10 @@ class WorldStats:
     ticks: int = 0
     overruns: int = 0  # periods whose work took longer than the period
     stop_t: float | None = None  # sim time of the stop
-    zero_mono: float | None = None  # host time zero velocity was sent
+    zero_mono: float | None = None  # host time the stop began (its ramp's first command went out)
+    ramp_ticks: int = 0  # periods the stop's ramp to zero took
     fault_mono: float | None = None  # host time an injected fault (SimFaults) took effect
-    rest_qd: float = float("nan")  # largest joint speed when the robot's own stop ended
+    rest_qd: float = float("nan")  # largest joint speed when the stop's hold ended
     extra: dict = field(default_factory=dict)
 
 
@@ -175,6 +180,8 @@ class SimDriver:
         self.joint_names = [robot.model.joint(j).name for j in range(robot.model.njnt)][:robot.model.nv]
         self.contact_geom = self.model.geom("contact").id if contact is not None else -1
         self.target = robot.home.copy()
+        self._kv = -self.model.actuator_biasprm[:self.nq, 2]  # the joint servos' damping (their dampratio's)
+        self._track = None  # the stop's ramp: (velocity, acceleration) the servos track (`_step`)
         self.forces = np.zeros(design.n_taxels)  # the last step's taxel forces (what the boards are fed)
         self.stats = WorldStats()
         self.taxel_faults = {}
@@ -296,6 +303,10 @@ class SimDriver:
         self.target = np.clip(self.target + v * self.period_s, q - SERVO_LEAD, q + SERVO_LEAD)
         self._move_contact(d.time)
         d.qfrc_applied[:nq] = d.qfrc_bias[:nq]  # gravity (and Coriolis) compensation
+        if self._track is not None:  # the stop's ramp: velocity and inertia feed-forward, the servos track it
+            M = np.zeros((self.model.nv, self.model.nv))
+            mujoco.mj_fullM(self.model, d, M)
+            d.qfrc_applied[:nq] += self._kv * self._track[0] + M[:nq, :nq] @ self._track[1]
         d.ctrl[:nq] = self.target
         mujoco.mj_step(self.model, d)
         if not (np.isfinite(d.qpos).all() and np.isfinite(d.qvel).all()):
@@ -368,27 +379,39 @@ class SimDriver:
         return next_t
 
     def _halt(self, report, sent) -> None:
-        """Zero velocity, then the robot's own stop: hold the measured pose until the arm rests (every step's
-        command and state to `sent`); a simulation that fails meanwhile, or an arm not at rest after REST_TIMEOUT_S,
-        is reported as a fault during the stop."""
+        """The stop (module docstring): from the arm's measured pose and joint speeds, the velocity command ramped to
+        zero at the driver's own limits (the servos track it: velocity and inertia feed-forward), then zero, the
+        servos holding the pose the ramp reached, until every joint is below REST_SPEED (every step's command and
+        state to `sent`); a simulation that fails meanwhile, or an arm not at rest REST_TIMEOUT_S after the ramp, is
+        reported as a fault during the stop. A dead simulation has no arm: nothing is sent."""
         self.stats.stop_t, self.stats.zero_mono = float(self.data.time), time.monotonic()
-        d, nq = self.data, self.nq
-        self.target = d.qpos[:nq].copy()
-        end = d.time + REST_TIMEOUT_S
-        zero = np.zeros(nq)
-        if self._dead:  # a dead simulation has no arm to hold, and nothing was sent
+        d, nq, dt = self.data, self.nq, self.period_s
+        if self._dead:
             self.stats.rest_qd = float("nan")
             return
+        lim = self.limits()
+        zero = np.zeros(nq)
+        self.target = d.qpos[:nq].copy()
+        v, acc = np.clip(d.qvel[:nq], -lim["qd_max"], lim["qd_max"]), zero
         try:
+            while np.any(np.abs(v) > lim["qdd_max"] * dt):  # within one step of zero, the zero follows
+                last = v
+                v, acc = rate_limit(zero, v, acc, dt, lim["qd_max"], lim["qdd_max"], lim.get("qddd_max"))
+                self._track = (v, (v - last) / dt)
+                sent(self.state(), v)
+                self._step(v)
+                self.stats.ramp_ticks += 1
+            self._track = None
+            end = d.time + REST_TIMEOUT_S
             sent(self.state(), zero)
             while d.time < end and np.abs(d.qvel[:nq]).max() > REST_SPEED:
                 self._step(zero)
                 sent(self.state(), zero)
         except Exception as e:  # noqa: BLE001 - the stop itself failed: named, never silent
-            report("driver", f"sim: the simulation failed while holding the arm ({e})", time.monotonic(), True)
+            report("driver", f"sim: the simulation failed during the stop ({e})", time.monotonic(), True)
         self.stats.rest_qd = float(np.abs(d.qvel[:nq]).max())
         if not self.stats.rest_qd <= REST_SPEED:
-            report("driver", f"sim: the arm not at rest {REST_TIMEOUT_S:g} s after the stop (fastest joint "
+            report("driver", f"sim: the arm not at rest {REST_TIMEOUT_S:g} s after the stop's ramp (fastest joint "
                    f"{self.stats.rest_qd:.4f} rad/s)", time.monotonic(), True)
 
 

@@ -238,14 +238,57 @@ def test_a_driver_fault_reaches_the_monitor_with_its_onset(ur5):
 
 
 def test_the_sim_stop_is_recorded_until_the_arm_rests(ur5):
-    """--seconds ends a run mid-retraction: the hold after it goes to the record, tick by tick, until the arm rests."""
-    drv, rt = loop._runtime(ur5, seconds=0.16)
+    """--seconds ends a run mid-retraction: the stop's ramp and the hold after it go to the record, tick by tick,
+    until the arm rests; every command of the ramp within the acceleration limit of the one before, the hold zero."""
+    drv, rt = loop._runtime(ur5, seconds=0.26)
     rt.recorder = rec = Kept()
     out = rt.run(settle_s=0.0)
     after = [k for k in rec.ticks if not k.ticked]
-    assert out.exit_code == 0 and after and all(not k.command.any() for k in after), out.reason
+    ramp = np.array([k.command for k in after[:drv.stats.ramp_ticks]])
+    step = drv.limits()["qdd_max"] * drv.period_s
+    assert out.exit_code == 0 and drv.stats.ramp_ticks > 0 and all(not k.command.any() for k in after[len(ramp):])
+    assert np.all(np.abs(np.diff(np.vstack([ramp, np.zeros(len(step))]), axis=0)) <= step + 1e-12), out.reason
     assert np.abs(after[-1].qd).max() <= 1e-3 and [k.index for k in rec.ticks] == list(range(1, len(rec.ticks) + 1))
     assert out.stopping["stop_time_ms"] is not None and out.stopping["stop_time_ms"] >= 0
+
+
+@pytest.mark.parametrize("speed", [0.25, 1.0])
+def test_the_sim_stop_decelerates_within_the_braking_model(ur5, tmp_path, speed):
+    """The shoulder pan swept at `speed` x its velocity limit (1: the fastest the limiter allows), the robot's state
+    going NaN at 0.5 s: the stop ramps the command from the arm's speed to zero at 15 rad/s^2 (its ramp's length says
+    so) and its measured time and furthest taxel's travel to rest stay within the printed bounds' braking model, as
+    the fault bench computes it (`over_model`; the servos holding the measured pose instead took 92 ms against the
+    model's 64 at 0.25)."""
+    from skinsafe.core.app.runtime_faults import _Stopping
+    from skinsafe.core.bench.runtime import write_waypoints
+    from skinsafe.core.robot.kinematics import TaxelKinematics
+    from skinsafe.core.runtime.commands import Trajectory
+    from skinsafe.core.runtime.layers import build_stack
+    from skinsafe.core.runtime.limiter import MARGIN
+    from skinsafe.core.runtime.loop import warm_up
+    from skinsafe.core.runtime.monitor import Timing
+    from skinsafe.core.sim.robot_driver import SimDriver
+
+    robot, design = ur5
+    drv = SimDriver(design, robot, None, 0.002, realtime=False, faults=SimFaults(nan_at=0.5))
+    lim = drv.limits()
+    stack = build_stack(design, robot.model, lim["qd_max"], lim["qdd_max"], drv.period_s)
+    warm_up(stack, robot.home, design.taxels.thresholds["force"], drv.period_s)
+    end = robot.home + np.eye(6)[0] * speed * lim["qd_max"][0] * (1 - MARGIN)
+    sweep = write_waypoints(tmp_path / "sweep.csv", drv.joint_names, [0.0, 1.0, 2.0], [robot.home, end, end])
+    rt = Runtime(drv, loop.SimReadings(drv), stack, Trajectory(sweep, drv.joint_names, lim),
+                 np.zeros(design.n_taxels, bool), design.taxels.thresholds["force"], seconds=3.0)
+    out = rt.run(settle_s=0.0)
+    st = out.stopping
+    kin = TaxelKinematics(robot.model, design)
+    the = _Stopping(drv.joint_names, lim, kin.jacobians_of(np.arange(kin.n), robot.home)[0], Timing(0.002, 0.002, 0.004))
+    the.kin = kin
+    model_ms, model_mm = the.model(out.watchdog, st["qd_peak"], 0.0, np.asarray(st["q_path"][0]))
+    mm = float(np.nanmax(the.travel(st["q_path"])) * 1e3)
+    assert out.watchdog == "robot-nonfinite" and st["speed_at_onset"] > 0.85 * speed * np.pi, out.reason
+    assert drv.stats.ramp_ticks == pytest.approx(st["speed_at_onset"] / 15.0 / drv.period_s, abs=2)
+    assert 0.6 * model_ms < st["stop_time_ms"] <= model_ms and 0.5 * model_mm < mm <= model_mm, (st, model_ms, mm)
+    assert drv.stats.rest_qd <= 1e-3
 
 
 def test_a_slow_writer_drops_telemetry_never_a_tick(tmp_path):
