@@ -13,7 +13,7 @@ live sensors). A stop (control returned None, raised, `stop(reason)`, a physics 
 (IEC 60204-1), as the FR3 driver's: from the arm's measured joint speeds, the velocity command ramped to zero at the
 driver's own joint limits (`limits()`: qdd_max, and qddd_max where given; core/robot/rate_limit.py), the servos
 tracking it (velocity and inertia feed-forward, as a velocity-controlled arm's joint controller), then holding the
-pose the ramp reached until the arm is at rest. A dead simulation sends nothing.
+pose the ramp left the arm at until the arm is at rest. A dead simulation sends nothing.
 
 `Contact` puts something in the arm's world to touch:
 - `poke`: a sprung probe jabs one skin taxel along its normal (the arm holding still is enough);
@@ -381,7 +381,7 @@ class SimDriver:
     def _halt(self, report, sent) -> None:
         """The stop (module docstring): from the arm's measured pose and joint speeds, the velocity command ramped to
         zero at the driver's own limits (the servos track it: velocity and inertia feed-forward), then zero, the
-        servos holding the pose the ramp reached, until every joint is below REST_SPEED (every step's command and
+        servos holding the pose the ramp left the arm at, until every joint is below REST_SPEED (every step's command and
         state to `sent`); a simulation that fails meanwhile, or an arm not at rest REST_TIMEOUT_S after the ramp, is
         reported as a fault during the stop. A dead simulation has no arm: nothing is sent."""
         self.stats.stop_t, self.stats.zero_mono = float(self.data.time), time.monotonic()
@@ -401,7 +401,7 @@ class SimDriver:
                 sent(self.state(), v)
                 self._step(v)
                 self.stats.ramp_ticks += 1
-            self._track = None
+            self._track, self.target = None, d.qpos[:nq].copy()  # held where the arm is (in a contact: no further)
             end = d.time + REST_TIMEOUT_S
             sent(self.state(), zero)
             while d.time < end and np.abs(d.qvel[:nq]).max() > REST_SPEED:
