@@ -126,10 +126,11 @@ def test_fr3_run_senses_the_hand_retracts_and_replays(fr3_map, world, tmp_path):
                and np.linalg.norm(js[t]) > 0.02]
     assert follows, "the measured joint velocity never followed the retraction"
     # what the record holds is what was sent: the one limiter's output, inside the FR3's acceleration and jerk
-    # limits on the robot's clock (the stack's own output steps its acceleration at a contact), sent unchanged
-    dt = np.diff(ct[:-1])  # the last command is the stop's zero; the driver ramps from the one before it
-    acc = np.diff(cmd[:-1], axis=0) / dt[:, None]
-    jerk = np.diff(acc, axis=0) / dt[1:, None]
+    # limits (the stack's own output steps its acceleration at a contact), sent unchanged:
+    # per command, one robot cycle each (libfranka's limitRate rule: a state the host skipped on a stall does not
+    # widen the step); the last command is the stop's zero, the driver ramps from the one before it
+    acc = np.diff(cmd[:-1], axis=0) / franka.PERIOD_S
+    jerk = np.diff(acc, axis=0) / franka.PERIOD_S
     assert (np.abs(acc) <= franka.QDD_MAX + 1e-6).all()
     assert (np.abs(jerk) <= franka.QDDD_MAX + 1e-3).all() and np.abs(jerk).max() > 100  # it had work to do
     assert s["world"]["rate_limited_ticks"] == 0
