@@ -183,7 +183,7 @@ def fastest_taxel_speed(J: np.ndarray, qd_max: np.ndarray) -> float:
 
 STOP_CATEGORY = {k: 2 for k in Kind} | {Kind.DRIVER: None}
 # IEC 60204-1's stop category each kind gets: 2, a controlled stop with power kept (the runtime's zero velocity, the
-# FR3 driver's ramp at its limits, then the arm held: the sim's servos at the measured pose, the FR3's controller);
+# drivers' ramps at their acceleration limits, then the arm held: the sim's servos where it rests, the FR3's controller);
 # None for `driver`: the robot's (or its driver's) own stop, not this runtime's to state
 
 
