@@ -466,9 +466,11 @@ def warm_up(stack, q: np.ndarray, thresholds: np.ndarray, dt: float, ticks: int 
     """Tick the stack through contacts and through a plan before the robot moves, then forget it all:
     numba compiles (or loads from its cache: tens of ms) each kernel on its first call, and the QP
     solver loads on the first level where a constraint binds: none of it may land on the robot's first
-    tick or first contact. The contacts come while the arm moves fast each way, so the limits and
-    no-push rows bind; the plan, with no contact, runs the strategy filter and the modulation of a plan
-    (kernels a retraction never calls)."""
+    tick or first contact. The contacts come while the arm moves fast each way and the last command sent
+    is that motion, so the acceleration box, the limits and the no-push rows bind (the retraction's first
+    level then goes to the QP solver: `qp._first_level`, once loaded on the FR3's first contact, a 6-19 ms
+    tick); the plan, with no contact, runs the strategy filter and the modulation of a plan (kernels a
+    retraction never calls)."""
     n = len(thresholds)
     zero = np.zeros(len(stack.vel_limits))
     for sign in (1.0, -1.0):
@@ -476,6 +478,7 @@ def warm_up(stack, q: np.ndarray, thresholds: np.ndarray, dt: float, ticks: int 
             force = np.zeros(n)
             force[taxels] = 2 * thresholds.max() + 1.0
             moving = sign * 0.9 * stack.vel_limits
+            stack.last = moving.copy()
             for k in range(ticks):
                 stack.tick(k * dt, q, {"force": force if k < 2 else np.zeros(n)}, zero, dt,
                            qdot=moving if k < 3 else zero)

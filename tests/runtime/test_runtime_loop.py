@@ -142,19 +142,34 @@ from skinsafe.core.safety.tdm import TactileDangerModel, save_tdm
 
 robot = build_ur5()
 design = make_sample_design("ur5", robot=robot)
+n, th = design.n_taxels, design.taxels.thresholds["force"]
 torch.manual_seed(3)
-save_tdm(TactileDangerModel(6, 6, design.n_taxels, hidden=(16, 16)), sys.argv[1])
-stack = build_stack(design, robot.model, np.full(6, 3.0), np.full(6, 10.0), 0.002, tdm_path=sys.argv[1])
-warm_up(stack, robot.home, design.taxels.thresholds["force"], 0.002)
+save_tdm(TactileDangerModel(6, 6, n, hidden=(16, 16)), sys.argv[1])
 loaded = lambda: {f"{k.__name__}{s}" for ks in cached_kernels().values() for k in ks for s in k.signatures}
-before = loaded()
-stack.tick(0.0, robot.home.copy(), {"force": np.zeros(design.n_taxels)}, np.full(6, 0.01), 0.002)
-print(json.dumps(sorted(loaded() - before)))
+new = set()
+for tdm in (None, sys.argv[1]):  # the retraction alone first: the TDM's warm-up loads more
+    stack = build_stack(design, robot.model, np.full(6, 3.0), np.full(6, 10.0), 0.002, tdm_path=tdm)
+    warm_up(stack, robot.home, th, 0.002)
+    before = loaded()
+    stack.tick(0.0, robot.home.copy(), {"force": np.zeros(n)}, np.full(6, 0.01), 0.002)
+    rng = np.random.default_rng(5)
+    for case in range(12):  # contact onsets while the arm moves at up to its fastest, one taxel or a patch
+        stack.reset()
+        moving = rng.uniform(-1, 1, 6) * stack.vel_limits
+        stack.last = moving.copy()
+        force = np.zeros(n)
+        force[rng.choice(n, 1 if case % 2 else 40, replace=False)] = rng.uniform(1, 20) * th.max()
+        for k in range(6):
+            stack.tick(0.002 * k, robot.home.copy(), {"force": force}, moving, 0.002, qdot=moving)
+    new |= loaded() - before
+print(json.dumps(sorted(new)))
 """
 
 
-def test_after_the_warm_up_the_robots_first_tick_loads_no_kernel(tmp_path):
-    """`warm_up` runs every kernel the first ticks call, the plan's too (strategy filter, modulation of a plan): a
+def test_after_the_warm_up_the_robots_first_tick_and_first_contact_load_no_kernel(tmp_path):
+    """`warm_up` runs every kernel the first ticks call, the plan's too (strategy filter, modulation of a plan), and
+    those of a contact met while the arm moves (the retraction's first level bound by the acceleration box: it once
+    loaded `qp._first_level` on the FR3's first contact, a 6-19 ms tick at 16k taxels): a
     kernel's first call loads it from numba's cache (tens of ms) or compiles it (seconds) on the loop's core, which
     once starved the boards' reader on the first tick of `skinsafe run --tdm` (a watchdog stop, 1 run in 4). A fresh
     process: no earlier test may have loaded them."""
