@@ -31,9 +31,9 @@ terms b > 0 of opposing contacts): b is first lowered to 0; if that is still inf
 limits stay hard and the no-push rows take the least-violating motion (`least_violation`:
 minimum sum of squared violations inside the box), and the result says so (`recovery_dropped`,
 `infeasible`). A region feasible only to within DAQP's tolerance gets the rows lowered by `MARGIN`
-as well; should DAQP still find no solution (H's condition near 5e8 with a region 1e-9 wide), the
-smallest command meeting every constraint is taken and `solver_failed` says so (zero within the
-box if even that fails). Never a silent push.
+as well, widened step by step (`WIDEN`, at most 1e-5 m/s per unit row norm); should DAQP still find
+no solution, the smallest command meeting every constraint is taken and `solver_failed` says so
+(zero within the box if even that fails). Never a silent push.
 """
 from __future__ import annotations
 
@@ -52,6 +52,10 @@ BIG = 1e30  # DAQP's "no bound"
 # 2e-7 to 2e-5; H's condition 2.9e8); with 1e-8 to 1e-4 added, every one solved.
 RETRY_REG = 1e-6
 MARGIN = 1e-9  # m/s per unit row norm: how far relaxed no-push rows are lowered below what is just feasible
+# A least-violation region is a sliver around one point; with H's condition near 6e8 DAQP needs it wider than its
+# tolerance: the rows are lowered by MARGIN x each of these in turn until it solves (the UR5's post met at 0.23 rad/s
+# solved at 10x, a Panda patch at 1,000x; 1e4 x MARGIN is 10 um/s into a contact, 0.02 um in a 2 ms tick).
+WIDEN = (1.0, 1e1, 1e2, 1e3, 1e4)
 _SENSE = np.zeros(256, dtype=np.int32)  # every row an inequality (read-only use)
 
 
@@ -315,8 +319,11 @@ def prioritised(J, r, A, b, lo, hi, limits_vel, damping: float, sv_threshold: fl
             lower = lower.copy()
             lower[n:] = b
             z, ok, lam = solve(H, f, C, lower, upper)
-            if not ok:  # feasible only to within DAQP's tolerance: lower the rows by the margin as well
-                b = b - _margin(A)
+            relaxed = b
+            for widen in WIDEN:  # feasible only to within DAQP's tolerance: lower the rows by a margin as well
+                if ok:
+                    break
+                b = relaxed - widen * _margin(A)
                 lower[n:] = b
                 z, ok, lam = solve(H, f, C, lower, upper)
             if not ok:  # DAQP gives up on this H (condition ~5e8): the smallest command meeting every row

@@ -153,6 +153,27 @@ def test_a_level_daqp_calls_infeasible_is_retried_and_solved():
     assert ok and np.all(cx >= lower - 1e-7) and np.all(cx <= upper + 1e-7)
 
 
+@pytest.mark.parametrize("case", ["ur5_post", "panda_patch"])
+def test_a_least_violation_sliver_is_solved_not_called_a_solver_failure(case):
+    """Contacts met at speed (recorded: the UR5 sample's post at 0.23 rad/s of the shoulder pan, the runtime bench's
+    contact; a Panda patch of five taxels): no command in the acceleration box keeps every contact, the rows are
+    relaxed to the least violation, and that region is a sliver DAQP called infeasible with H's condition near 6e8.
+    With the rows lowered by at most `WIDEN[-1]` x `MARGIN` it solves: the command is in the box, meets every relaxed
+    row to that margin, and is no solver failure (that latched every sim contact at speed as a protective stop)."""
+    from skinsafe.core.safety import qp
+
+    p = np.load(Path(__file__).parent / "data" / "least_violation_slivers.npz")
+    J, r, A, b, lo, hi, vel = (p[f"{case}_{k}"] for k in ("J", "r", "A", "b", "lo", "hi", "vel"))
+    damping, sv, rank_tol = p[f"{case}_params"]
+    assert qp.unreachable(A, b, lo, hi)  # the contact cannot be kept this tick
+    sol = prioritised(J, r, A, b, lo, hi, vel, damping, sv, rank_tol)
+    assert sol.infeasible and not sol.solver_failed
+    assert np.all(sol.qd >= lo - 1e-9) and np.all(sol.qd <= hi + 1e-9)
+    relaxed = qp.relaxed_bounds(A, b, lo, hi)
+    assert np.all(A @ sol.qd >= relaxed - qp.WIDEN[-1] * qp._margin(A) - 1e-7)
+    assert np.linalg.norm(sol.qd) > 0.2  # the arm is not simply stopped: it brakes from its speed at its limit
+
+
 def test_a_qp_without_a_solution_sends_zero_within_the_box_and_says_so(monkeypatch):
     from skinsafe.core.safety import qp
 
