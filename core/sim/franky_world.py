@@ -58,6 +58,7 @@ MISSED_LIMIT = 20  # cycles without a command in a row: the FR3 aborts the motio
 SUCCESS_WINDOW = 100  # cycles over which control_command_success_rate is counted
 INITIAL_Q = (0.0, 0.0, 0.0, -1.57, 0.0, 1.57, 0.785)  # franky-sim's DEFAULT_INITIAL_JOINT_POS
 COMM_ERROR = 25  # communication_constraints_violation in the wire's error array (libfranka 0.21 names it so)
+EXIT_S = 5.0  # s a world left running gets to stop on SIGINT before it is killed
 CONTACT_GAP_S = 0.05  # a contact after this long without one is a new contact (an onset)
 RETRACT_SPEED = 1e-3  # m/s out of the obstacle: the touched point's measured motion follows the retraction
 
@@ -514,8 +515,15 @@ class WorldProcess:
         return self
 
     def __exit__(self, *exc) -> None:
+        """Not stopped yet: SIGINT, so the world removes its force feed itself (killed, its shared memory was left to
+        the resource tracker's clean-up, with a leak warning); killed after EXIT_S."""
         if self.proc.poll() is None:
-            self.kill()
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(EXIT_S)
+            except subprocess.TimeoutExpired:
+                pass
+        self.kill()
 
 
 def _floats(text: str, n: int, what: str) -> tuple[float, ...]:

@@ -260,6 +260,15 @@ def test_fr3_unreachable_host_is_one_line():
         FrankaDriver("127.0.0.254")
 
 
+def test_a_world_left_running_stops_itself_and_removes_its_force_feed(fr3_map, tmp_path):
+    """A `with WorldProcess` left without `stop()` (the fault bench's way) asks the world to stop: it exits 0 and
+    removes its shared memory itself (killed, the memory was left to the resource tracker, with a leak warning)."""
+    with WorldProcess(fr3_map, tmp_path / "world.json") as w:
+        feed = w.feed
+    assert w.proc.returncode == 0
+    assert not (Path("/dev/shm") / feed).exists()
+
+
 def test_fr3_robot_gone_is_named(world, driver):
     """Last: it kills the module's world."""
     n = []
