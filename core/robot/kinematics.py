@@ -25,6 +25,16 @@ def body_ids(model: mujoco.MjModel, design: SkinDesign) -> np.ndarray:
     return np.asarray(ids, dtype=np.int64)
 
 
+def taxel_quats(frames: np.ndarray) -> np.ndarray:
+    """(N, 4) unit quaternions in MuJoCo's order (w, x, y, z) of taxel frames, (N, 3, 3) or (N, 9) row-major
+    rotation matrices (columns x, y, z), by `mju_mat2Quat` (no scipy to import)."""
+    m = np.asarray(frames, float).reshape(-1, 9)
+    out = np.zeros((len(m), 4))
+    for i, row in enumerate(m):
+        mujoco.mju_mat2Quat(out[i], row)
+    return out
+
+
 _kernels = None
 
 

@@ -24,7 +24,7 @@ import functools
 import mujoco
 import numpy as np
 
-from skinsafe.core.robot.kinematics import body_ids
+from skinsafe.core.robot.kinematics import body_ids, taxel_quats
 from skinsafe.core.runtime import ros2_msgs as msgs
 from skinsafe.core.runtime.tick import Tick
 from skinsafe.core.skin.model import SkinDesign
@@ -48,16 +48,6 @@ def _relative(qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
     w2, x2, y2, z2 = qb.T
     return np.column_stack([w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2, w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
                             w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2, w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2])
-
-
-def _quat_xyzw(frames: np.ndarray) -> np.ndarray:
-    """Unit quaternions (x, y, z, w: ROS's order) of rotation matrices (n, 9), row-major (MuJoCo's mju_mat2Quat)."""
-    out = np.zeros((len(frames), 4))
-    q = np.zeros(4)
-    for i, m in enumerate(frames):
-        mujoco.mju_mat2Quat(q, m)
-        out[i] = q[1], q[2], q[3], q[0]
-    return out
 
 
 def mesh_markers(model: mujoco.MjModel, triangles: int = MESH_TRIANGLES) -> list[tuple]:
@@ -123,7 +113,7 @@ class Ros2Topics:
         self.body = body_ids(model, design)[t.body] if len(t) else np.zeros(0, np.int64)
         self.local = np.asarray(t.positions, float)
         self.taxel_parents = [names[b] for b in self.body]
-        self.taxel_quat = _quat_xyzw(np.asarray(t.frames, float).reshape(-1, 9))
+        self.taxel_quat = taxel_quats(t.frames)[:, [1, 2, 3, 0]]  # w, x, y, z -> ROS's x, y, z, w
         order = np.argsort(self.body, kind="stable")  # taxels by body: one product per body's slice
         self.inverse = None if (order == np.arange(len(order))).all() else np.argsort(order)
         self.local_by_body = self.local[order]

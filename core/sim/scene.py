@@ -13,9 +13,9 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from skinsafe.core.robot import meshes as meshlib
+from skinsafe.core.robot.kinematics import taxel_quats
 from skinsafe.core.robot.models import Robot
 from skinsafe.core.sim.contacts import prune_contacts
 from skinsafe.core.sim.skin_collision import fit_to_skin, taxel_clearance
@@ -205,14 +205,6 @@ def _drop_unused_meshes(spec: mujoco.MjSpec, model: mujoco.MjModel) -> None:
 
 # --- skin and obstacles -------------------------------------------------------------------
 
-def _taxel_quats(frames: np.ndarray) -> np.ndarray:
-    """(N,4) MuJoCo quaternions (w, x, y, z) of taxel frames (columns x, y, z)."""
-    if not len(frames):
-        return np.zeros((0, 4))
-    q = Rotation.from_matrix(frames).as_quat()  # x, y, z, w
-    return np.concatenate([q[:, 3:], q[:, :3]], axis=1)
-
-
 def taxel_cell(design: SkinDesign) -> np.ndarray:
     """(N,) the side of each taxel's square cell on its FPC (the module pitch), m."""
     pitch = {m.id: m.pitch for m in design.modules}
@@ -221,7 +213,7 @@ def taxel_cell(design: SkinDesign) -> np.ndarray:
 
 def _add_taxel_sites(spec: mujoco.MjSpec, design: SkinDesign, touch: bool) -> None:
     t = design.taxels
-    quats = _taxel_quats(t.frames)
+    quats = taxel_quats(t.frames)
     cell = taxel_cell(design)
     BOX = mujoco.mjtGeom.mjGEOM_BOX
     bodies = [spec.body(name) for name in design.bodies]
