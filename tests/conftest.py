@@ -74,9 +74,9 @@ def public_skin(tmp_path_factory):
 
 @pytest.fixture(scope="session", autouse=True)
 def fresh_pieces(tmp_path_factory):
-    """Surface pieces are kept on disk between processes (`skin_collision.cache_dir`): a test run
+    """Surface pieces and repaired meshes are kept on disk between processes (`array_cache.cache_dir`): a test run
     (its subprocesses too) starts from an empty folder, as CI's clean clone does, so it never
-    passes on pieces an earlier version of the code cut."""
+    passes on pieces or meshes an earlier version of the code made."""
     import os
 
     old = os.environ.get("SKINSAFE_PIECES")

@@ -19,6 +19,7 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from skinsafe.core.robot.array_cache import load_pieces, save_pieces
 from skinsafe.core.robot.meshes import load_checked
 from skinsafe.core.skin.model import DesignError
 
@@ -245,6 +246,29 @@ def _urdf_root(path: Path, roots: dict[str, Path], args: dict) -> ET.Element:
     return root
 
 
+MESH_CACHE_VERSION = 1  # part of every repaired mesh's key: bump it when load_checked's repair changes
+
+
+def _checked_mesh(file: Path, where: str, scale: list[float]) -> tuple[np.ndarray, np.ndarray]:
+    """A mesh file's repaired vertices (scaled) and faces (`load_checked`), kept on disk by a digest of the
+    file's bytes and the scale (`array_cache`): parsing and repairing a robot's Collada visuals takes
+    seconds, and a design, its exports and its runs load the same robot again and again."""
+    import hashlib
+
+    file = Path(file)
+    key = "mesh-" + hashlib.sha1(file.read_bytes() + np.asarray([*scale, MESH_CACHE_VERSION], float).tobytes())\
+        .hexdigest() if file.is_file() else None  # a missing file: load_checked names it
+    kept = load_pieces(key) if key else None
+    if kept is not None:
+        return kept[0], kept[1].astype(np.int64)
+    mesh = load_checked(file, where, manifold=False)
+    if scale != [1, 1, 1]:
+        mesh.apply_scale(scale)
+    vertices, faces = np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64)
+    save_pieces(key, [vertices, faces.astype(float)])  # face indices are exact in float64
+    return vertices, faces
+
+
 def urdf_spec(path: str | Path, package_dirs=(), args: dict | None = None) -> tuple[mujoco.MjSpec, dict, list[str]]:
     """An MjSpec of a URDF/xacro with every mesh loaded and validated here; also the URDF's joint
     velocity limits by name and the moving links without <inertial> (`links_without_inertia`)."""
@@ -283,13 +307,11 @@ def urdf_spec(path: str | Path, package_dirs=(), args: dict | None = None) -> tu
     for link, kind, k, file, scale, pos, quat, where in meshes:
         key = (str(file), tuple(scale))
         if key not in loaded:
-            mesh = load_checked(file, where, manifold=False)
-            if scale != [1, 1, 1]:
-                mesh.apply_scale(scale)
+            vertices, faces = _checked_mesh(file, where, scale)
             name = f"{Path(file).stem}_{len(loaded)}"
             m = spec.add_mesh(name=name)
-            m.uservert = np.asarray(mesh.vertices, float).ravel().tolist()
-            m.userface = np.asarray(mesh.faces, int).ravel().tolist()
+            m.uservert = vertices.ravel().tolist()
+            m.userface = faces.ravel().tolist()
             loaded[key] = name
         body = spec.body(link)
         visual = kind == "visual"

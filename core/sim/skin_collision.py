@@ -27,15 +27,12 @@ triangles) it took 20-45 s per link and left surface points 18-32 mm inside its 
 """
 from __future__ import annotations
 
-import os
-import tempfile
-from pathlib import Path
-
 import mujoco
 import numpy as np
 from scipy.spatial import ConvexHull, HalfspaceIntersection
 
 from skinsafe.core.design.surface import Surface, body_surface, skin_geoms
+from skinsafe.core.robot.array_cache import load_pieces, save_pieces
 from skinsafe.core.robot.shapes import inside_depth, mesh_vertices
 from skinsafe.core.skin.model import SkinDesign
 
@@ -316,37 +313,6 @@ def exposed_triangles(model: mujoco.MjModel, q=None) -> dict[str, np.ndarray]:
         surf, outer, _ = _outer_surface(model, name, q)
         out[name] = surf.vertices[surf.triangles[outer]]
     return out
-
-
-def cache_dir() -> Path:
-    """Where surface pieces are kept between processes: $SKINSAFE_PIECES, else the folder `pieces`
-    in $SKINSAFE_CACHE or ~/.cache/skinsafe."""
-    if os.environ.get("SKINSAFE_PIECES"):
-        return Path(os.environ["SKINSAFE_PIECES"])
-    return Path(os.environ.get("SKINSAFE_CACHE") or Path.home() / ".cache" / "skinsafe") / "pieces"
-
-
-def load_pieces(key: str) -> list[np.ndarray] | None:
-    """The arrays (n_i, 3) kept under `key` (`cache_dir`), or None."""
-    try:
-        with np.load(cache_dir() / f"{key}.npz") as z:
-            return np.split(z["points"], z["ends"][:-1]) if len(z["ends"]) else []
-    except (OSError, ValueError, KeyError):
-        return None
-
-
-def save_pieces(key: str, pieces: list[np.ndarray]) -> None:
-    """Written to a temporary file and renamed: a reader never sees half a file; a cache that
-    cannot be written is only slower."""
-    folder = cache_dir()
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, suffix=".npz", delete=False) as f:
-            np.savez(f, points=np.concatenate(pieces) if pieces else np.zeros((0, 3)),
-                     ends=np.cumsum([len(p) for p in pieces], dtype=np.int64))
-        os.replace(f.name, folder / f"{key}.npz")
-    except OSError:
-        pass
 
 
 def geom_digest(model, geoms, *values) -> str:
