@@ -109,10 +109,10 @@ class RunConfig:
 
     def _robot_problem(self) -> str | None:
         """Options that only one robot takes, and what a hardware robot refuses."""
-        if self.robot == "fr3" and self.after_contact == "always-resume" and not self.allow_non_realtime:
+        if self.robot == "fr3" and self.after_contact == "always-resume" and not (self.allow_non_realtime and self.feed):
             return ("--after-contact always-resume resumes the plan after every retraction, flagged or not: refused on "
-                    "a hardware robot; use resume or hold (with --allow-non-realtime, a simulated robot such as "
-                    "franky-sim, it is accepted for benches)")
+                    "a hardware robot; use resume or hold (a simulated robot, franky-sim with its world's --feed and "
+                    "--allow-non-realtime, accepts it for benches)")
         if self.robot == "sim" and self.host:
             return "--host is for --robot fr3"
         if self.robot == "fr3" and self.boards == ("emulate",) and not self.feed:

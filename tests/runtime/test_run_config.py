@@ -49,6 +49,8 @@ def test_the_command_line_becomes_one_typed_config_that_the_record_gives_back_eq
     (("--inject", "melt@1"), "--inject 'melt@1': faults are"),
     (("--robot", "fr3", "--feed", "f", "--inject", "sim-nan@1"), "--inject sim-\\*: for --robot sim only"),
     (("--robot", "fr3", "--feed", "f", "--after-contact", "always-resume"), "refused on a hardware robot"),
+    (("--robot", "fr3", "--host", "h", "--boards", "/dev/ttyACM0", "--allow-non-realtime", "--after-contact",
+      "always-resume"), "refused on a hardware robot"),  # a real FR3 on a host without real-time: still refused
     (("--robot", "fr3"), "needs --feed NAME"),
 ])
 def test_a_bad_option_is_refused_naming_it_and_the_fix(argv, named):
