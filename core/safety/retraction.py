@@ -107,11 +107,12 @@ def profile(u: np.ndarray) -> np.ndarray:
     return u ** 4 / 4 - 2 * u ** 3 / 3 + u ** 2 / 2
 
 
-@numba.vectorize(["float64(float64)"], cache=True)
+@numba.njit(cache=True, nogil=True)
 def profile_rate(u):
-    """ds/du = u (1-u)^2, zero at both ends, peak 4/27 at u = 1/3; 0 outside [0, 1] (a ufunc,
-    also callable from compiled code)."""
-    u = min(max(u, 0.0), 1.0)
+    """ds/du = u (1-u)^2, zero at both ends, peak 4/27 at u = 1/3; 0 outside [0, 1] (a scalar or an
+    array; also callable from compiled code). Compiled on first use, not at import: `skinsafe run`'s
+    warm-up (and `skinsafe precompile`) reach it through the defensiveness kernel."""
+    u = np.minimum(np.maximum(u, 0.0), 1.0)
     return u * (1 - u) ** 2
 
 
