@@ -5,6 +5,7 @@ Boards stream at 100 Hz with a link latency of 0.5 s allowed (a board is silent 
 shared test machine the kernel holds the pseudo-terminals' input for tens to hundreds of ms at a time
 (README "Running a robot")."""
 import json
+import re
 import signal
 import socket
 import subprocess
@@ -21,6 +22,7 @@ from mcap_ros2.decoder import DecoderFactory
 from skinsafe.core.design.sample import make_sample_design
 from skinsafe.core.robot.models import build_ur5
 from skinsafe.core.runtime.leader import stream
+from skinsafe.core.runtime.monitor import Kind
 from skinsafe.core.runtime.ros2_topics import TOPICS as ROS2_TOPICS
 from skinsafe.core.runtime.rosbag2 import record_file
 from skinsafe.core.runtime.run_config import RunConfig
@@ -66,6 +68,8 @@ def messages(record):
 def test_a_poke_is_retracted_and_the_record_replays_exactly(skin, tmp_path):
     p, s, record = run(skin, tmp_path, "--contact", "poke:at=0.4", seconds=1.6)
     assert p.returncode == 0, p.stderr
+    worst = re.search(r"worst stopping distance (\d+) mm in (\d+) ms \(`([a-z-]+)`", p.stderr)  # printed at start
+    assert worst and int(worst[1]) > 0 and int(worst[2]) > 0 and worst[3] in {k.value for k in Kind}
     w = s["world"]
     assert w["onset_t"] is not None and w["reaction_t"] is not None and w["peak_N"] > 2.0  # above the 2 N threshold
     assert 2.0 < w["first_peak_N"] <= w["peak_N"]  # the first contact's peak: one of the run's

@@ -157,6 +157,24 @@ def fr3_runtime(robot, seconds=None, faults=None):
     return rt, rec
 
 
+def test_the_printed_stopping_bound_is_detection_response_and_braking_by_hand():
+    """`monitor.stopping`, what `skinsafe run` prints at start as its worst stopping distance: one taxel 0.5 m from a
+    joint at 2 rad/s braking at 10 rad/s^2 (0.2 s, 0.2 rad), a kind detected within one 2 ms period, the robot's
+    response 2 periods: 0.206 s and 0.5 x (2 x 0.006 + 0.2) = 0.106 m; a jerk limit of 100 rad/s^3 adds
+    2 x 10 / 100 = 0.2 s at full speed (0.4 rad more: 0.306 m)."""
+    from skinsafe.core.runtime.monitor import Kind, Timing, stopping
+
+    J = np.zeros((2, 6, 2))
+    J[0, 0, 0], J[1, 1, 0], J[1, 1, 1] = 0.5, 0.1, 0.1  # taxel 0 the furthest; joint 1 at rest
+    tm = Timing(0.002, 0.01, 0.05)
+    t, d = stopping(tm, J, np.array([2.0, 0.0]), np.array([10.0, 10.0]))[Kind.STACK_LATCH]
+    assert np.isclose(t, 0.206) and np.isclose(d, 0.106)
+    t, d = stopping(tm, J, np.array([2.0, 0.0]), np.array([10.0, 10.0]), np.array([100.0, 100.0]))[Kind.STACK_LATCH]
+    assert np.isclose(t, 0.406) and np.isclose(d, 0.306)
+    t, _ = stopping(tm, J, np.array([2.0, 0.0]), np.array([10.0, 10.0]))[Kind.BOARD_SILENT]
+    assert np.isclose(t, 0.05 + 2 * 0.002 + 0.005 + 0.004 + 0.2)  # silence + a board's hand-off, then the same
+
+
 def test_a_repeated_fr3_timestamp_sends_no_nan_and_the_robot_clock_names_the_stop():
     """The robot's clock repeats once at 30 ms (the watchdog lets one through: no NaN, the arm goes on), then stays at
     60 ms: robot-frozen names it, and the ramp after it goes out and is recorded until the arm rests."""
