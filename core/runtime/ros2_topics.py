@@ -54,14 +54,14 @@ def mesh_markers(model: mujoco.MjModel, triangles: int = MESH_TRIANGLES) -> list
     """The robot's mesh geoms as `msgs.triangle_markers` markers on their bodies: its visual ones (no contacts), or
     its colliding ones where it has none (as exporters/urdf.py chooses), decimated (core/robot/meshes.py) to about
     `triangles` in all, each mesh its share by its own count."""
-    from skinsafe.core.sim.skin_collision import geom_digest, load_pieces, save_pieces
-
     g = np.arange(model.ngeom)
     on_body = model.geom_bodyid[g] > 0
     visual = on_body & (model.geom_contype[g] == 0) & (model.geom_conaffinity[g] == 0)
     chosen = g[(visual if visual.any() else on_body) & (model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH)]
-    if not len(chosen):
+    if not len(chosen):  # a robot of primitives: skin_collision (scipy.spatial, ~0.23 CPU s) stays unloaded
         return []
+    from skinsafe.core.sim.skin_collision import geom_digest, load_pieces, save_pieces
+
     key = "markers-" + geom_digest(model, chosen, triangles)  # decimated once per robot (seconds), then from the cache
     tris = load_pieces(key)
     if tris is None or len(tris) != len(chosen):
