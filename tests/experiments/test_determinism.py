@@ -1,5 +1,6 @@
-"""A run is a pure function of (code, configuration, seed): the same small maze and tracking runs in three
-fresh processes, one on one Ray worker, one on two and one with no Ray (`workers=0`), give identical result rows."""
+"""A run is a pure function of (code, configuration, seed): the same small maze and tracking runs in two fresh
+processes, one on two Ray workers (three maze tasks on two: a worker takes a second task after its first, and nothing
+may leak from one to the next) and one with no Ray (`workers=0`: every task in turn in one process), give identical result rows."""
 import json
 import subprocess
 import sys
@@ -45,9 +46,9 @@ def _rows(*workers: int) -> list[list]:
 
 
 def test_small_maze_and_tracking_runs_repeat_exactly_across_processes_and_workers():
-    one, two, here = _rows(1, 2, 0)
-    assert one == two == here
-    maze, track = one[:3], one[3:]
+    two, here = _rows(2, 0)
+    assert two == here
+    maze, track = two[:3], two[3:]
     assert [r["method"] for r in maze] == ["AC-TDM", "SAC", "SQRL"] and len(track) == 2
     assert maze[0]["fits"] and maze[0]["fits"][0]["train_loss"] > 0  # the TDM's fit records repeat to the last digit
     assert maze[2]["offline_contacts"] > 0 and track[1]["fit"]["steps"] > 0  # the offline phase and the n-step fit ran
