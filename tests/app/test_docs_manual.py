@@ -145,7 +145,7 @@ CONSTANTS: dict[str, dict[str, str]] = {
                          "0": "the record's start (t = 0)"},
     "docs/run/fr3.md": {"2": "the hand's period (core/sim/franky_world.py Hand.period: 2 s) and the machine's cores",
                         "1": "the robot's 1 kHz clock (hardware/franka.py PERIOD_S)",
-                        "990": "the loop rate's target (99% of the FR3's 1 kHz)"},
+                        "5": "the frame -> command latency bound (issue #50's worst tick, docs/run/index.md)"},
     "docs/simulate/defensiveness.md": {"0": "the formulas' s = 0 and epsilon's range [0, 1] (core/safety/retraction.py)",
                                        "1": "the formulas' N + 1 and epsilon's range [0, 1]",
                                        "2": "the brake's distance formula dt (N + 1) / 2 (core/safety/viability.py)"
