@@ -370,14 +370,21 @@ def _pending(name: str) -> str:
 def _fig9(maze: dict) -> str:
     """Fig. 9's cell: the verdict settled across the replicates and the protocol in a sentence; each replicate's
     totals and comparisons are the Strategy page's maze grid and `maze_results.json`'s `claims`."""
+    from skinsafe.core.experiments.maze_claims import LAST
     from skinsafe.core.experiments.maze_report import FASTER
 
     cl, proto = maze["claims"], maze["protocol"]
     online = f"; online contacts only: {cl['online']['verdict']}" if cl["online"] else ""
     conv = "".join(f"; Fig. 9c {k}: {FASTER.get(v['verdict'], v['verdict'])}" for k, v in cl["convergence"].items())
+    fewest = []  # why: the fewest total contacts of each replicate, and whether that method reaches the goal
+    for i, rep in enumerate(maze["replicates"]):
+        m, s = min(rep["summary"]["methods"].items(), key=lambda kv: kv[1]["total_contacts_mean"])
+        fewest.append(f"{m} {s['total_contacts_mean']:,.1f} in replicate {i + 1} (goal rate {s['goal_rate_last_mean']:.2f} over "
+                      f"its last {LAST} episodes)")
     return (f"**{cl['total']['verdict']}** (replicates: {', '.join(cl['total']['replicate_verdicts'])}; "
             f"{len(maze['eval_seeds'])} held-out seeds x {proto['episodes']} episodes, {proto['trials']} Optuna trials "
-            f"per method, Holm-corrected Welch tests{online}{conv}). Each replicate's totals and tests: "
+            f"per method, Holm-corrected Welch tests{online}{conv}). The fewest total contacts: {'; '.join(fewest)}. "
+            "Each replicate's totals and tests: "
             "[Strategy](../simulate/strategy.md#results), `maze_results.json` `claims`")
 
 

@@ -99,3 +99,22 @@ def test_the_nstep_figure_chooses_each_label_sets_step_from_its_rows(tmp_path):
     assert "binary: the 2-step TDM's rollout step 0.05 s (60.0 contact ticks); the grid's lowest T = 3, 0.05 s (30.0)" in text
     assert "soft: the 2-step TDM's rollout step 0.15 s (5.0 contact ticks); the grid's lowest T = 2, 0.15 s (5.0)" in text
     assert "| binary | tdm2 | 2 | 0.15 | 70.0 [69.0, 71.0] |" in text and "| soft | vanilla | — | — |" in text
+
+
+def test_the_fig9_cell_says_why_the_fewest_contacts_of_each_replicate_and_their_goal_rate():
+    """The paper table's Fig. 9 cell names, per replicate, the method with the fewest total contacts and whether it
+    reaches the goal (the maze grid's verdict turns on methods that avoid contacts by never getting there)."""
+    from skinsafe.core.app.readme import _fig9
+
+    def rep(totals, goals):
+        return {"summary": {"methods": {m: {"total_contacts_mean": t, "goal_rate_last_mean": g}
+                                        for m, t, g in zip(("A", "B", "C"), totals, goals)}}}
+
+    maze = {"claims": {"total": {"verdict": "does not hold", "replicate_verdicts": ["does not hold", "holds"]},
+                       "online": None, "convergence": {}},
+            "protocol": {"episodes": 60, "trials": 4}, "eval_seeds": list(range(8)),
+            "replicates": [rep((900.0, 12.5, 40.0), (1.0, 0.0, 0.5)), rep((3.0, 1200.0, 8.0), (0.25, 1.0, 1.0))]}
+    cell = _fig9(maze)
+    assert cell.startswith("**does not hold** (replicates: does not hold, holds; 8 held-out seeds x 60 episodes")
+    assert "The fewest total contacts: B 12.5 in replicate 1 (goal rate 0.00 over its last" in cell
+    assert "; A 3.0 in replicate 2 (goal rate 0.25 over its last" in cell
