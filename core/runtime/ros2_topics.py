@@ -24,6 +24,7 @@ import functools
 import mujoco
 import numpy as np
 
+from skinsafe.core.robot.array_cache import load_pieces, save_pieces
 from skinsafe.core.robot.kinematics import body_ids, taxel_quats
 from skinsafe.core.runtime import ros2_msgs as msgs
 from skinsafe.core.runtime.tick import Tick
@@ -60,7 +61,7 @@ def mesh_markers(model: mujoco.MjModel, triangles: int = MESH_TRIANGLES) -> list
     chosen = g[(visual if visual.any() else on_body) & (model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH)]
     if not len(chosen):  # a robot of primitives: skin_collision (scipy.spatial, ~0.23 CPU s) stays unloaded
         return []
-    from skinsafe.core.sim.skin_collision import geom_digest, load_pieces, save_pieces
+    from skinsafe.core.sim.skin_collision import geom_digest
 
     key = "markers-" + geom_digest(model, chosen, triangles)  # decimated once per robot (seconds), then from the cache
     tris = load_pieces(key)
